@@ -1,0 +1,79 @@
+"""Per-link memory of a robot (or a batch of robots): sparse, keyed by ``(i, j)``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["LinkMemory"]
+
+
+class LinkMemory:
+    """What robot i remembers about each neighbour j it has received from.
+
+    Stores, per directed link ``(i, j)``: the last received estimate of j (``x: (3,)``,
+    ``P: (3, 3)``) and the innovation norm of the last delivered transmission. Keys are
+    ``i * n_nodes + j`` kept sorted; look-ups are vectorized with ``searchsorted``, so memory
+    grows with the number of links actually used, never ``N x N``.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Size of the id space of ``j`` (robots in the batch).
+    """
+
+    def __init__(self, n_nodes: int) -> None:
+        self.n_nodes = int(n_nodes)
+        self.keys = np.empty(0, dtype=np.int64)
+        self.x = np.empty((0, 3))
+        self.P = np.empty((0, 3, 3))
+        self.last_norm = np.empty(0)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def lookup(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of links ``(i, j)`` in the store.
+
+        Parameters
+        ----------
+        i, j : ndarray of int, shape (E,)
+
+        Returns
+        -------
+        found : ndarray of bool, shape (E,)
+        pos : ndarray of int, shape (E,)
+            Valid where ``found``.
+        """
+        k = np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
+        pos = np.searchsorted(self.keys, k)
+        found = pos < len(self.keys)
+        found[found] = self.keys[pos[found]] == k[found]
+        return found, np.minimum(pos, max(len(self.keys) - 1, 0))
+
+    def store(
+        self,
+        i: np.ndarray,
+        j: np.ndarray,
+        x: np.ndarray,
+        P: np.ndarray,
+        norm: np.ndarray,
+    ) -> None:
+        """Insert or overwrite links ``(i, j)``.
+
+        Shapes: ``i, j, norm: (E,)``, ``x: (E, 3)``, ``P: (E, 3, 3)``.
+        """
+        if len(i) == 0:
+            return
+        found, pos = self.lookup(i, j)
+        self.x[pos[found]] = x[found]
+        self.P[pos[found]] = P[found]
+        self.last_norm[pos[found]] = norm[found]
+        new = ~found
+        if new.any():
+            k = np.asarray(i, np.int64)[new] * self.n_nodes + np.asarray(j, np.int64)[new]
+            keys = np.concatenate([self.keys, k])
+            order = np.argsort(keys, kind="stable")
+            self.keys = keys[order]
+            self.x = np.concatenate([self.x, x[new]])[order]
+            self.P = np.concatenate([self.P, P[new]])[order]
+            self.last_norm = np.concatenate([self.last_norm, norm[new]])[order]

@@ -1,0 +1,115 @@
+"""Estimator parameters: everything a robot's CL step needs besides its data."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from resloc.cl.detector import InnovationNorm
+
+__all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode"]
+
+
+class UpdateMode(enum.StrEnum):
+    """How a robot fuses several neighbours in one step.
+
+    ``sequential``: one Kalman update per neighbour, in ascending neighbour id, each from
+    the estimate the previous one produced (the default).
+    ``summed``: Algorithm 1 literally: every gain from the predicted estimate,
+    ``x += sum_j K_ij Lambda_ij`` and ``P -= sum_j K_ij P^zz_ij K_ij^T``.
+    """
+
+    SEQUENTIAL = "sequential"
+    SUMMED = "summed"
+
+
+class NeighbourEstimate(enum.StrEnum):
+    """Which estimate of neighbour j robot i uses to form ``hat z_ij`` for detector/trigger.
+
+    ``current``: j's predicted estimate at this step (the paper: "derived from the predicted
+    states hat x_i,k|k-1 and hat x_j,k|k-1").
+    ``cached``: the last estimate of j that i actually received (strictly distributed);
+    before the first reception the link is treated as triggered.
+    In both cases a delivered transmission carries j's current predicted estimate, which
+    the update then uses.
+    """
+
+    CURRENT = "current"
+    CACHED = "cached"
+
+
+class ThresholdInnovation(enum.StrEnum):
+    """Which ``||Lambda_ij||`` enters the threshold factor ``(1 + gamma ||Lambda_ij||)``.
+
+    ``current``: this step's innovation (the paper's notation, eq. 11).
+    ``last_sent``: the innovation of the link's last delivered transmission (0 before one).
+    """
+
+    CURRENT = "current"
+    LAST_SENT = "last_sent"
+
+
+@dataclass(frozen=True)
+class CLParams:
+    """Parameters of the per-robot CL step. Scalars, or per-robot arrays of shape (B,)
+    for the detector/trigger gains (so one batch can hold several configurations).
+
+    Attributes
+    ----------
+    range_std, bearing_std : float
+        Measurement noise standard deviations (m, rad), giving ``R``.
+    odometry_std : tuple of float
+        Standard deviations of measured ``v`` (m/s) and ``omega`` (rad/s).
+    process_floor_std : tuple of float
+        Additive process-noise floor for ``x, y, theta`` (per sqrt(s)).
+    detector : bool
+        Enable the attack detector.
+    rho : float or ndarray (B,)
+        Detection threshold on the detector norm.
+    detector_norm : InnovationNorm
+    trigger : bool
+        Enable event triggering; when off every accepted link is transmitted.
+    alpha, gamma, zeta_s, zeta_c : float or ndarray (B,)
+        Event-threshold constants of eq. (11).
+    trigger_norm : InnovationNorm
+    risk_factor_floor : float
+        Lower clip of ``(1 - zeta_s Ds - zeta_c Dc)``.
+    threshold_innovation : ThresholdInnovation
+    update_mode : UpdateMode
+    neighbour_estimate : NeighbourEstimate
+    update_without_transmission : bool
+        With ``cached`` neighbour estimates: fuse an accepted but untriggered measurement
+        with the cached estimate of j (no message). Off in the paper.
+    """
+
+    range_std: float = 0.005
+    bearing_std: float = 0.05
+    odometry_std: tuple[float, float] = (0.01, 0.05)
+    process_floor_std: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
+    detector: bool = True
+    rho: float | np.ndarray = 0.5
+    detector_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
+    trigger: bool = True
+    alpha: float | np.ndarray = 0.3
+    gamma: float | np.ndarray = 0.5
+    zeta_s: float | np.ndarray = 0.5
+    zeta_c: float | np.ndarray = 0.5
+    trigger_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
+    risk_factor_floor: float = 0.0
+    threshold_innovation: ThresholdInnovation = ThresholdInnovation.CURRENT
+    update_mode: UpdateMode = UpdateMode.SEQUENTIAL
+    neighbour_estimate: NeighbourEstimate = NeighbourEstimate.CURRENT
+    update_without_transmission: bool = False
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def R(self) -> np.ndarray:
+        """Measurement noise covariance, shape (2, 2)."""
+        return np.diag([self.range_std**2, self.bearing_std**2])
+
+    @property
+    def noise_std(self) -> np.ndarray:
+        """``[range_std, bearing_std]``, shape (2,)."""
+        return np.array([self.range_std, self.bearing_std])

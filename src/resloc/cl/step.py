@@ -1,0 +1,327 @@
+"""One cooperative-localization step of a batch of robots (Algorithm 1).
+
+``predict`` then ``correct``. Both are pure functions of arrays with a leading batch axis;
+a robot process calls them with batch size 1, the simulator with every robot of every trial.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from resloc.cl.detector import attack_detected, innovation_norm
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
+from resloc.cl.trigger import event_threshold, event_triggered
+from resloc.filters.base import GaussianFilter, Moments
+from resloc.filters.update import covariance_is_pd, innovation, kalman_update, repair_covariance
+from resloc.models.motion import process_noise
+
+__all__ = ["LinkBatch", "LinkOutcome", "correct", "predict"]
+
+
+def predict(
+    filt: GaussianFilter,
+    x: np.ndarray,
+    P: np.ndarray,
+    u: np.ndarray,
+    dt: float,
+    params: CLParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Time update of every robot from its measured odometry (Algorithm 1, "Prediction").
+
+    Parameters
+    ----------
+    filt : GaussianFilter
+    x : ndarray, shape (B, 3)
+    P : ndarray, shape (B, 3, 3)
+    u : ndarray, shape (B, 2)
+        Measured ``(v, omega)``.
+    dt : float
+    params : CLParams
+
+    Returns
+    -------
+    x, P : ndarray, shapes (B, 3), (B, 3, 3)
+    """
+    Q = process_noise(x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std))
+    return filt.predict(x, P, u, dt, Q)
+
+
+@dataclass
+class LinkBatch:
+    """The relative measurements of one step, one row per directed link ``(i, j)``.
+
+    Rows must be sorted by ``i`` (then by ``j``: the sequential update order).
+
+    Attributes
+    ----------
+    i : ndarray of int, shape (E,)
+        Observer, as an index into the batch ``[0, B)``.
+    j : ndarray of int, shape (E,)
+        Observed robot's id (used only as a key of the per-link memory).
+    z : ndarray, shape (E, 2)
+        Measured ``[range, bearing]`` (possibly falsified).
+    x_nb : ndarray, shape (E, 3)
+        Neighbour j's current predicted estimate: what a transmission would carry.
+    P_nb : ndarray, shape (E, 3, 3)
+    channel_ok : ndarray of bool, shape (E,)
+        Whether a transmission on this link would get through (False in a jammed CDZ).
+    risk_s, risk_c : ndarray, shape (B,)
+        ``Ds(i)``, ``Dc(i)`` for every robot of the batch.
+    lambda2 : ndarray, shape (B,)
+        Algebraic connectivity seen by every robot of the batch.
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    z: np.ndarray
+    x_nb: np.ndarray
+    P_nb: np.ndarray
+    channel_ok: np.ndarray
+    risk_s: np.ndarray
+    risk_c: np.ndarray
+    lambda2: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.i)
+
+
+@dataclass
+class LinkOutcome:
+    """What happened on every link of a :class:`LinkBatch`.
+
+    Attributes
+    ----------
+    norm : ndarray, shape (E,)
+        Trigger-norm of the innovation ``||Lambda_ij||`` (eq. 9).
+    threshold : ndarray, shape (E,)
+        ``delta_ij`` of eq. (11) (``nan`` where the detector discarded the link first).
+    detected : ndarray of bool, shape (E,)
+        Discarded by the attack detector.
+    triggered : ndarray of bool, shape (E,)
+        A transmission was attempted (eq. 10).
+    delivered : ndarray of bool, shape (E,)
+        The transmission got through (``sigma_ij = 1``).
+    fused : ndarray of bool, shape (E,)
+        ``z_ij`` was used in a Kalman update.
+    repairs : int
+        Covariances that had to be projected back to positive definite.
+    """
+
+    norm: np.ndarray
+    threshold: np.ndarray
+    detected: np.ndarray
+    triggered: np.ndarray
+    delivered: np.ndarray
+    fused: np.ndarray
+    repairs: int = 0
+
+    @classmethod
+    def empty(cls, E: int) -> LinkOutcome:
+        f = np.zeros(E, dtype=bool)
+        return cls(np.full(E, np.nan), np.full(E, np.nan), f, f.copy(), f.copy(), f.copy())
+
+
+def _at(v: float | np.ndarray, idx: np.ndarray) -> float | np.ndarray:
+    """A scalar parameter as is, or a per-robot parameter ``(B,)`` gathered at ``idx``."""
+    a = np.asarray(v, dtype=float)
+    return a if a.ndim == 0 else a[idx]
+
+
+def _take(m: Moments, rows: np.ndarray) -> Moments:
+    return Moments(
+        m.z_hat[rows],
+        m.S[rows],
+        m.Pxz[rows],
+        None if m.H_i is None else m.H_i[rows],
+        None if m.R_eff is None else m.R_eff[rows],
+    )
+
+
+def _decide(
+    filt: GaussianFilter,
+    x_i: np.ndarray,
+    P_i: np.ndarray,
+    rows: np.ndarray,
+    links: LinkBatch,
+    params: CLParams,
+    memory: LinkMemory | None,
+    out: LinkOutcome,
+) -> tuple[np.ndarray, Moments, np.ndarray]:
+    """Detector, trigger and channel for ``rows`` of ``links`` given robot estimates ``x_i``.
+
+    Returns the rows to fuse, the moments to fuse them with (same order as ``rows``) and
+    the innovations. Writes the per-link decisions into ``out``.
+    """
+    ii = links.i[rows]
+    R = params.R
+    x_ref, P_ref = links.x_nb[rows], links.P_nb[rows]
+    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
+    need_memory = cached or params.threshold_innovation is ThresholdInnovation.LAST_SENT
+    if need_memory and memory is None:
+        raise ValueError("cached neighbour estimates / last_sent threshold need a LinkMemory")
+    known = np.ones(len(rows), dtype=bool)
+    pos = np.zeros(len(rows), dtype=int)
+    if need_memory:
+        known, pos = memory.lookup(ii, links.j[rows])
+    if cached:
+        x_ref = np.where(known[:, None], memory.x[pos] if len(memory) else x_ref, x_ref)
+        P_ref = np.where(known[:, None, None], memory.P[pos] if len(memory) else P_ref, P_ref)
+    m = filt.relative_moments(x_i, P_i, x_ref, P_ref, R)
+    nu = innovation(links.z[rows], m.z_hat)
+    n_trig = innovation_norm(nu, m.S, params.trigger_norm, params.noise_std)
+    if params.detector_norm == params.trigger_norm:
+        n_det = n_trig
+    else:
+        n_det = innovation_norm(nu, m.S, params.detector_norm, params.noise_std)
+    detected = (
+        attack_detected(n_det, _at(params.rho, ii))
+        if params.detector
+        else np.zeros(len(rows), bool)
+    )
+    accepted = ~detected
+    if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
+        size = np.where(known, memory.last_norm[pos] if len(memory) else 0.0, 0.0)
+    else:
+        size = n_trig
+    delta = event_threshold(
+        _at(params.alpha, ii),
+        links.lambda2[ii],
+        _at(params.gamma, ii),
+        size,
+        _at(params.zeta_s, ii),
+        links.risk_s[ii],
+        _at(params.zeta_c, ii),
+        links.risk_c[ii],
+        params.risk_factor_floor,
+    )
+    if params.trigger:
+        fire = event_triggered(n_trig, delta)
+        if cached:
+            fire |= ~known  # nothing to compare against before the first reception
+    else:
+        fire = np.ones(len(rows), bool)
+    triggered = accepted & fire
+    delivered = triggered & links.channel_ok[rows]
+    fuse = delivered.copy()
+    if cached and params.update_without_transmission:
+        fuse |= accepted & ~triggered & known
+
+    out.norm[rows] = n_trig
+    out.threshold[rows] = np.where(accepted, delta, np.nan)
+    out.detected[rows] = detected
+    out.triggered[rows] = triggered
+    out.delivered[rows] = delivered
+    out.fused[rows] = fuse
+
+    if need_memory and delivered.any():
+        d = rows[delivered]
+        memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], n_trig[delivered])
+    if cached and delivered.any():
+        # A delivered message carries j's current estimate: fuse with that, not the cache.
+        sub = np.flatnonzero(delivered)
+        fresh = filt.relative_moments(
+            x_i[sub], P_i[sub], links.x_nb[rows[sub]], links.P_nb[rows[sub]], R
+        )
+        m = Moments(
+            m.z_hat.copy(),
+            m.S.copy(),
+            m.Pxz.copy(),
+            None if m.H_i is None else m.H_i.copy(),
+            None if m.R_eff is None else m.R_eff.copy(),
+        )
+        m.z_hat[sub], m.S[sub], m.Pxz[sub] = fresh.z_hat, fresh.S, fresh.Pxz
+        if m.H_i is not None:
+            m.H_i[sub], m.R_eff[sub] = fresh.H_i, fresh.R_eff
+        nu[sub] = innovation(links.z[rows[sub]], fresh.z_hat)
+    return fuse, m, nu
+
+
+def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, int]:
+    ok = covariance_is_pd(P)
+    if ok.all():
+        return P, 0
+    bad = ~ok
+    P = P.copy()
+    P[bad] = repair_covariance(P[bad])
+    return P, int(bad.sum())
+
+
+def correct(
+    filt: GaussianFilter,
+    x: np.ndarray,
+    P: np.ndarray,
+    links: LinkBatch,
+    params: CLParams,
+    memory: LinkMemory | None = None,
+) -> tuple[np.ndarray, np.ndarray, LinkOutcome]:
+    """Measurement correction of every robot from its neighbours (Algorithm 1, "Correction").
+
+    For each link: predicted measurement from the joint points over ``[x_i; x_j]``,
+    innovation (eq. 9), attack detection (discard when ``||Lambda|| > rho``), adaptive
+    threshold (eq. 11), event condition (eq. 10), transmission through the channel
+    (eq. 8: no update when ``sigma_ij = 0``), and the Kalman update of ``x_i`` only.
+
+    Parameters
+    ----------
+    filt : GaussianFilter
+    x : ndarray, shape (B, 3)
+        Predicted estimates ``hat x_i,k|k-1``.
+    P : ndarray, shape (B, 3, 3)
+    links : LinkBatch
+        Sorted by observer ``i``.
+    params : CLParams
+    memory : LinkMemory, optional
+        Needed for ``cached`` neighbour estimates and the ``last_sent`` threshold; updated
+        in place.
+
+    Returns
+    -------
+    x, P : ndarray, shapes (B, 3), (B, 3, 3)
+        Corrected estimates ``hat x_i,k|k``, ``P_i,k|k``.
+    outcome : LinkOutcome
+    """
+    E = len(links)
+    out = LinkOutcome.empty(E)
+    if E == 0:
+        return x, P, out
+    x = x.copy()
+    P = P.copy()
+    if params.update_mode is UpdateMode.SUMMED:
+        rows = np.arange(E)
+        fuse, m, nu = _decide(filt, x[links.i], P[links.i], rows, links, params, memory, out)
+        f = np.flatnonzero(fuse)
+        if f.size:
+            ii = links.i[f]
+            mf = _take(m, f)
+            Pi = P[ii]
+            x_upd, P_upd = kalman_update(x[ii], Pi, nu[f], mf)
+            np.add.at(x, ii, x_upd - x[ii])
+            np.add.at(P, ii, P_upd - Pi)
+            from resloc.angles import wrap_angle
+
+            x[:, 2] = wrap_angle(x[:, 2])
+            P[ii], out.repairs = _ensure_pd(0.5 * (P[ii] + np.swapaxes(P[ii], -1, -2)))
+        return x, P, out
+
+    start = np.searchsorted(links.i, links.i, side="left")
+    rank = np.arange(E) - start
+    order = np.argsort(rank, kind="stable")
+    bounds = np.searchsorted(rank[order], np.arange(int(rank.max()) + 2))
+    repairs = 0
+    for r in range(len(bounds) - 1):
+        rows = order[bounds[r] : bounds[r + 1]]
+        ii = links.i[rows]  # distinct within a round
+        fuse, m, nu = _decide(filt, x[ii], P[ii], rows, links, params, memory, out)
+        if not fuse.any():
+            continue
+        f = np.flatnonzero(fuse)
+        x_new, P_new = kalman_update(x[ii[f]], P[ii[f]], nu[f], _take(m, f))
+        P_new, n_rep = _ensure_pd(P_new)
+        repairs += n_rep
+        x[ii[f]] = x_new
+        P[ii[f]] = P_new
+    out.repairs = repairs
+    return x, P, out
