@@ -1,0 +1,1 @@
+"""Experiments: scenarios, metrics, runs, sweeps and reports."""

@@ -1,0 +1,427 @@
+"""Scenario files: schema, strict validation, TOML load/dump, and the embedded default.
+
+A scenario is a TOML file with the tables ``[run]``, ``[team]``, ``[motion]``,
+``[sensing]``, ``[estimator]``, ``[detector]``, ``[trigger]``, ``[attack]`` and the arrays of
+tables ``[[sdz]]`` and ``[[cdz]]``. Every key is optional (defaults below); an unknown key, a
+wrong type or an out-of-range value raises :class:`~resloc.errors.ConfigError` with one line
+naming the field, the value and the fix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field, fields, is_dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from resloc.cl.detector import InnovationNorm
+from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
+from resloc.errors import ConfigError
+from resloc.filters.base import FilterKind
+from resloc.world.control import LeaderPath
+from resloc.world.spec import (
+    AttackSpec,
+    MotionSpec,
+    SensingSpec,
+    TeamSpec,
+    WorldSpec,
+    ZoneSpec,
+    _f,
+)
+
+__all__ = [
+    "DetectorSpec",
+    "EstimatorSpec",
+    "RiskSource",
+    "RunSpec",
+    "Scenario",
+    "TriggerSpec",
+    "build",
+    "default_scenario",
+    "dump_scenario",
+    "load_scenario",
+    "parse_scenario",
+    "scenario_to_dict",
+]
+
+
+class RiskSource(enum.StrEnum):
+    """Where a robot evaluates ``Ds(i)``, ``Dc(i)`` for its trigger: at its true position
+    (the zones are sensed) or at its own position estimate (a known risk map)."""
+
+    TRUE = "true"
+    ESTIMATED = "estimated"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What to run."""
+
+    name: str = _f("arc-turn", "scenario name")
+    seed: int = _f(0, "random seed of the world (truth, noise, attacks, channel)", min=0)
+    steps: int = _f(1000, "number of time steps", min=1, max=10_000_000)
+    trials: int = _f(1, "Monte Carlo trials simulated together (seeds seed.0 .. seed.T-1)", min=1)
+    filters: list = _f(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
+    dead_reckoning: bool = _f(True, "also run odometry-only dead reckoning as a floor")
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """Per-robot filter options (see ``docs/algorithm.md``)."""
+
+    update_mode: UpdateMode = _f(UpdateMode.SEQUENTIAL, "sequential or summed neighbour fusion")
+    neighbour_estimate: NeighbourEstimate = _f(
+        NeighbourEstimate.CURRENT, "neighbour estimate for detector/trigger: current or cached"
+    )
+    update_without_transmission: bool = _f(
+        False, "with cached estimates, fuse untriggered measurements with the cache"
+    )
+    ukf_alpha: float = _f(1.0, "UKF alpha (scaled sigma points)", gt=0.0)
+    ukf_beta: float = _f(2.0, "UKF beta", min=0.0)
+    ukf_kappa: float = _f(0.0, "UKF kappa")
+
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """Innovation-residual attack detector (Algorithm 1)."""
+
+    enabled: bool = _f(True, "discard measurements whose innovation norm exceeds rho")
+    rho: float = _f(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0)
+    norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
+
+
+@dataclass(frozen=True)
+class TriggerSpec:
+    """Adaptive event trigger, eq. (11)."""
+
+    enabled: bool = _f(True, "event-triggered communication (off: transmit every step)")
+    alpha: float = _f(0.3, "alpha of eq. (11)", min=0.0)
+    gamma: float = _f(0.5, "gamma of eq. (11)", min=0.0)
+    zeta_s: float = _f(0.5, "weight of the sensing risk Ds(i)")
+    zeta_c: float = _f(0.5, "weight of the communication risk Dc(i)")
+    norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
+    lambda2: str = _f("component", "lambda2 of the robot's component or of the global graph")
+    risk_factor_floor: float = _f(0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)")
+    threshold_innovation: ThresholdInnovation = _f(
+        ThresholdInnovation.CURRENT, "innovation inside the threshold: current or last_sent"
+    )
+    risk_source: RiskSource = _f(RiskSource.TRUE, "Ds/Dc at the true or estimated position")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A complete, validated scenario."""
+
+    run: RunSpec = field(default_factory=RunSpec)
+    world: WorldSpec = field(default_factory=WorldSpec)
+    estimator: EstimatorSpec = field(default_factory=EstimatorSpec)
+    detector: DetectorSpec = field(default_factory=DetectorSpec)
+    trigger: TriggerSpec = field(default_factory=TriggerSpec)
+
+    def cl_params(self) -> CLParams:
+        """The per-robot estimator parameters of this scenario."""
+        w, d, t, e = self.world, self.detector, self.trigger, self.estimator
+        return CLParams(
+            range_std=w.sensing.range_std,
+            bearing_std=w.sensing.bearing_std,
+            odometry_std=tuple(w.motion.odometry_std),
+            process_floor_std=tuple(w.motion.process_floor_std),
+            detector=d.enabled,
+            rho=d.rho,
+            detector_norm=d.norm,
+            trigger=t.enabled,
+            alpha=t.alpha,
+            gamma=t.gamma,
+            zeta_s=t.zeta_s,
+            zeta_c=t.zeta_c,
+            trigger_norm=t.norm,
+            risk_factor_floor=t.risk_factor_floor,
+            threshold_innovation=t.threshold_innovation,
+            update_mode=e.update_mode,
+            neighbour_estimate=e.neighbour_estimate,
+            update_without_transmission=e.update_without_transmission,
+        )
+
+    def replace(self, **changes: Any) -> Scenario:
+        """Copy with dotted-path changes, validated: ``replace(**{"detector.rho": 0.3})``."""
+        data = scenario_to_dict(self)
+        for dotted, value in changes.items():
+            set_dotted(data, dotted, value)
+        return parse_scenario(data, source="override")
+
+
+# Sections of the TOML file and where they live in Scenario.
+_SECTIONS: dict[str, tuple[type, tuple[str, ...]]] = {
+    "run": (RunSpec, ("run",)),
+    "team": (TeamSpec, ("world", "team")),
+    "motion": (MotionSpec, ("world", "motion")),
+    "sensing": (SensingSpec, ("world", "sensing")),
+    "estimator": (EstimatorSpec, ("estimator",)),
+    "detector": (DetectorSpec, ("detector",)),
+    "trigger": (TriggerSpec, ("trigger",)),
+    "attack": (AttackSpec, ("world", "attack")),
+}
+_ZONE_SECTIONS = ("sdz", "cdz")
+_LIST_LENGTHS = {
+    "motion.odometry_std": 2,
+    "motion.process_floor_std": 3,
+    "attack.bias": 2,
+    "center": 2,
+}
+
+
+def _type_name(v: Any) -> str:
+    return {bool: "boolean", int: "integer", float: "number", str: "string", list: "array"}.get(
+        type(v), type(v).__name__
+    )
+
+
+def _check_number(path: str, value: Any, meta: dict, want: type) -> float | int:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(f"{path}: expected a {want.__name__}, got {_type_name(value)} {value!r}")
+    if want is int and not isinstance(value, int):
+        raise ConfigError(f"{path}: expected an integer, got {value!r}")
+    if isinstance(value, float) and math.isnan(value):
+        raise ConfigError(f"{path}: NaN is not allowed")
+    if "min" in meta and value < meta["min"]:
+        raise ConfigError(
+            f"{path}: {value!r} is below the minimum {meta['min']}; use >= {meta['min']}"
+        )
+    if "max" in meta and value > meta["max"]:
+        raise ConfigError(
+            f"{path}: {value!r} is above the maximum {meta['max']}; use <= {meta['max']}"
+        )
+    if "gt" in meta and not value > meta["gt"]:
+        raise ConfigError(f"{path}: {value!r} must be greater than {meta['gt']}")
+    return want(value)
+
+
+def build(cls: type, data: Any, path: str) -> Any:
+    """Build dataclass ``cls`` from a mapping, validating every key (see module doc)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table, got {_type_name(data)} {data!r}")
+    names = {f.name: f for f in fields(cls)}
+    for key in data:
+        if key not in names:
+            known = ", ".join(sorted(names))
+            raise ConfigError(f"{path}.{key}: unknown key; known keys here: {known}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in data.items():
+        kwargs[name] = _convert(f"{path}.{name}", value, hints[name], names[name].metadata)
+    return cls(**kwargs)
+
+
+def _convert(path: str, value: Any, hint: Any, meta: Any) -> Any:
+    meta = dict(meta or {})
+    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+        choices = [m.value for m in hint]
+        if not isinstance(value, str) or value not in choices:
+            raise ConfigError(f"{path}: {value!r} is not one of {', '.join(choices)}")
+        return hint(value)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path}: expected true or false, got {value!r}")
+        return value
+    if hint in (int, float):
+        return _check_number(path, value, meta, hint)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path}: expected a string, got {_type_name(value)} {value!r}")
+        return value
+    if hint is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{path}: expected an array, got {_type_name(value)} {value!r}")
+        short = (
+            path.split(".", 1)[1] if path.count(".") and path.startswith(("sdz", "cdz")) else path
+        )
+        want_len = _LIST_LENGTHS.get(short.split("[")[0]) or _LIST_LENGTHS.get(
+            path.rsplit(".", 1)[-1]
+        )
+        if want_len is not None:
+            if len(value) != want_len:
+                raise ConfigError(f"{path}: expected {want_len} numbers, got {value!r}")
+            return [_check_number(f"{path}[{k}]", v, meta, float) for k, v in enumerate(value)]
+        return list(value)
+    if is_dataclass(hint):
+        return build(hint, value, path)
+    raise ConfigError(f"{path}: unsupported value {value!r}")  # pragma: no cover
+
+
+def set_dotted(data: dict, dotted: str, value: Any) -> None:
+    """Set ``data["a"]["b"] = value`` for ``dotted = "a.b"`` (creating tables)."""
+    keys = dotted.split(".")
+    node = data
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"{dotted}: {k!r} is not a table")
+    node[keys[-1]] = value
+
+
+def parse_scenario(data: dict, source: str = "scenario") -> Scenario:
+    """Validate a scenario mapping (as read from TOML) into a :class:`Scenario`.
+
+    Raises
+    ------
+    ConfigError
+        With one line naming ``source``, the field and the fix.
+    """
+    try:
+        return _parse(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _parse(data: dict) -> Scenario:
+    if not isinstance(data, dict):
+        raise ConfigError("expected a TOML document")
+    known = set(_SECTIONS) | set(_ZONE_SECTIONS)
+    for key in data:
+        if key not in known:
+            raise ConfigError(f"{key}: unknown section; known sections: {', '.join(sorted(known))}")
+    parts: dict[str, Any] = {}
+    for section, (cls, _) in _SECTIONS.items():
+        parts[section] = build(cls, data.get(section, {}), section)
+    zones: dict[str, tuple[ZoneSpec, ...]] = {}
+    for section in _ZONE_SECTIONS:
+        raw = data.get(section, [])
+        if isinstance(raw, dict):
+            raw = [raw]
+        if not isinstance(raw, list):
+            raise ConfigError(f"{section}: expected [[{section}]] tables, got {raw!r}")
+        zones[section] = tuple(build(ZoneSpec, z, f"{section}[{k}]") for k, z in enumerate(raw))
+    run: RunSpec = parts["run"]
+    for k, name in enumerate(run.filters):
+        if name not in [f.value for f in FilterKind]:
+            raise ConfigError(f"run.filters[{k}]: {name!r} is not one of ckf, ukf, ekf")
+    if len(set(run.filters)) != len(run.filters):
+        raise ConfigError(f"run.filters: {run.filters!r} lists a filter twice")
+    if not run.filters and not run.dead_reckoning:
+        raise ConfigError("run.filters: empty and dead_reckoning is false; nothing to run")
+    team: TeamSpec = parts["team"]
+    if team.robots < 2:
+        raise ConfigError(
+            f"team.robots: {team.robots} robots cannot localize cooperatively; use >= 2"
+        )
+    trig: TriggerSpec = parts["trigger"]
+    if trig.lambda2 not in ("component", "global"):
+        raise ConfigError(f"trigger.lambda2: {trig.lambda2!r} is not one of component, global")
+    LeaderPath(parts["motion"].waypoints)  # validates the path
+    if run.trials * team.robots > 5_000_000:
+        raise ConfigError(
+            f"run.trials x team.robots = {run.trials * team.robots} exceeds 5,000,000 robots"
+        )
+    world = WorldSpec(
+        team=team,
+        motion=parts["motion"],
+        sensing=parts["sensing"],
+        attack=parts["attack"],
+        sdz=zones["sdz"],
+        cdz=zones["cdz"],
+    )
+    return Scenario(
+        run=run,
+        world=world,
+        estimator=parts["estimator"],
+        detector=parts["detector"],
+        trigger=trig,
+    )
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file.
+
+    Raises
+    ------
+    ConfigError
+        Missing file, TOML syntax error, or invalid content (one line, names the field).
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such scenario file") from None
+    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read scenario file ({exc.__class__.__name__})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return parse_scenario(data, source=str(p))
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, enum.Enum):
+        return v.value
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    if isinstance(v, float) and math.isinf(v):
+        return v
+    return v
+
+
+def scenario_to_dict(s: Scenario) -> dict:
+    """The scenario as a TOML-ready mapping (every value explicit)."""
+    out: dict[str, Any] = {}
+    for section, (_, where) in _SECTIONS.items():
+        obj: Any = s
+        for attr in where:
+            obj = getattr(obj, attr)
+        out[section] = {k: _plain(v) for k, v in dataclasses.asdict(obj).items()}
+    for section in _ZONE_SECTIONS:
+        zs = getattr(s.world, section)
+        if zs:
+            out[section] = [{k: _plain(v) for k, v in dataclasses.asdict(z).items()} for z in zs]
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} as TOML")  # pragma: no cover
+
+
+def _toml_table(header: str, values: dict, cls: type) -> list[str]:
+    docs = {f.name: f.metadata.get("doc", "") for f in fields(cls)}
+    lines = [header]
+    for key, val in values.items():
+        text = f"{key} = {_toml_value(val)}"
+        doc = docs.get(key, "")
+        lines.append(f"{text:<40} # {doc}" if doc else text)
+    return lines
+
+
+def dump_scenario(s: Scenario) -> str:
+    """The scenario as commented TOML text (loads back to an equal scenario)."""
+    data = scenario_to_dict(s)
+    lines: list[str] = []
+    for section, (cls, _) in _SECTIONS.items():
+        lines += _toml_table(f"[{section}]", data[section], cls)
+        lines.append("")
+    for section in _ZONE_SECTIONS:
+        for zone in data.get(section, []):
+            lines += _toml_table(f"[[{section}]]", zone, ZoneSpec)
+            lines.append("")
+    return "\n".join(lines)
+
+
+def default_scenario() -> Scenario:
+    """The embedded default: the paper's 17-robot arc-turn with one SDZ and one CDZ."""
+    text = resources.files("resloc").joinpath("data/default.toml").read_text(encoding="utf-8")
+    return parse_scenario(tomllib.loads(text), source="embedded default scenario")

@@ -1,0 +1,288 @@
+"""Run a scenario: one world, every estimator in lockstep on the same data.
+
+All estimators see exactly the same truth, odometry, measurements, attacks and channel
+outcomes (common random numbers), so their differences are the filters' own.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from resloc.cl.memory import LinkMemory
+from resloc.cl.step import LinkBatch, correct, predict
+from resloc.experiments.config import RiskSource, Scenario
+from resloc.experiments.metrics import detector_scores, msle, nees, position_rmse, rate
+from resloc.filters.base import FilterKind, GaussianFilter, make_filter
+from resloc.world.world import World
+
+__all__ = ["DEAD_RECKONING", "EstimatorResult", "RunResult", "run_scenario"]
+
+#: Name of the odometry-only baseline in results.
+DEAD_RECKONING = "dr"
+
+#: Per-step series recorded for every estimator, each of shape (steps, T).
+SERIES = ("msle", "rmse", "nees", "candidates", "triggered", "delivered", "detected", "attacked")
+#: Per-trial totals, each of shape (T,).
+TOTALS = (
+    "candidates",
+    "triggered",
+    "delivered",
+    "failed",
+    "detected",
+    "fused",
+    "attacked",
+    "tp",
+    "fp",
+    "fn",
+    "tn",
+    "attacked_fused",
+    "repairs",
+)
+
+
+@dataclass
+class EstimatorResult:
+    """Everything recorded for one estimator over a run.
+
+    Attributes
+    ----------
+    name : str
+        ``ckf``, ``ukf``, ``ekf`` or ``dr``.
+    series : dict of str to ndarray, each shape (steps, T)
+        Per-step metrics (``msle``, ``rmse``, ``nees``) and link counts.
+    totals : dict of str to ndarray, each shape (T,)
+        Per-trial counts over the run.
+    raster : ndarray of int8, shape (steps, N)
+        Transmissions attempted by each robot of trial 0 at each step.
+    track : ndarray, shape (steps + 1, N, 3)
+        Estimated poses of trial 0.
+    wall_time : float
+        Seconds spent in this estimator's predict/correct.
+    """
+
+    name: str
+    series: dict[str, np.ndarray]
+    totals: dict[str, np.ndarray]
+    raster: np.ndarray
+    track: np.ndarray
+    wall_time: float = 0.0
+
+    def summary(self) -> dict[str, float]:
+        """Scalar summary: means over steps and trials, final values, rates, detector scores."""
+        s, t = self.series, self.totals
+        steps = s["msle"].shape[0]
+        out = {
+            "msle_mean": float(np.nanmean(s["msle"])),
+            "msle_final": float(np.nanmean(s["msle"][-1])),
+            "rmse_mean": float(np.nanmean(s["rmse"])),
+            "rmse_final": float(np.nanmean(s["rmse"][-1])),
+            "nees_mean": float(np.nanmean(s["nees"])),
+            "nees_median": float(np.nanmedian(s["nees"])),
+            "comm_rate": rate(t["triggered"].sum(), t["candidates"].sum()),
+            "delivery_rate": rate(t["delivered"].sum(), t["triggered"].sum()),
+            "fused_rate": rate(t["fused"].sum(), t["candidates"].sum()),
+            "attacked_rate": rate(t["attacked"].sum(), t["candidates"].sum()),
+            "attacked_fused": int(t["attacked_fused"].sum()),
+            "repairs": int(t["repairs"].sum()),
+            "wall_time_s": self.wall_time,
+            "steps": steps,
+        }
+        det = {
+            "tp": int(t["tp"].sum()),
+            "fp": int(t["fp"].sum()),
+            "fn": int(t["fn"].sum()),
+            "tn": int(t["tn"].sum()),
+        }
+        out["detector_precision"] = rate(det["tp"], det["tp"] + det["fp"])
+        out["detector_recall"] = rate(det["tp"], det["tp"] + det["fn"])
+        out["detector_false_alarm"] = rate(det["fp"], det["fp"] + det["tn"])
+        return out
+
+    def per_trial(self, metric: str) -> np.ndarray:
+        """A per-trial scalar, shape (T,): ``msle_mean``, ``msle_final``, ``rmse_mean``,
+        ``nees_mean`` or ``comm_rate``."""
+        s, t = self.series, self.totals
+        if metric == "comm_rate":
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return t["triggered"] / t["candidates"]
+        key, how = metric.rsplit("_", 1)
+        return np.nanmean(s[key], axis=0) if how == "mean" else s[key][-1]
+
+
+@dataclass
+class RunResult:
+    """A finished run: the resolved scenario, the truth of trial 0, and every estimator."""
+
+    scenario: Scenario
+    estimators: dict[str, EstimatorResult]
+    truth: np.ndarray  # (steps + 1, N, 3) true poses of trial 0
+    time: np.ndarray  # (steps,) seconds
+    wall_time: float = 0.0
+    meta: dict = field(default_factory=dict)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """``{estimator: summary}``."""
+        return {name: est.summary() for name, est in self.estimators.items()}
+
+
+class _Track:
+    """Mutable state of one estimator during a run."""
+
+    def __init__(self, name: str, filt: GaussianFilter, x0, P0, steps: int, T: int, N: int):
+        self.name = name
+        self.filt = filt
+        self.x = x0.copy()
+        self.P = P0.copy()
+        self.memory = LinkMemory(T * N)
+        self.series = {k: np.full((steps, T), np.nan) for k in SERIES}
+        self.totals = {k: np.zeros(T, dtype=np.int64) for k in TOTALS}
+        self.raster = np.zeros((steps, N), dtype=np.int8)
+        self.track = np.zeros((steps + 1, N, 3))
+        self.track[0] = x0[:N]
+        self.wall = 0.0
+
+
+def run_scenario(
+    scenario: Scenario,
+    filters: list[str] | None = None,
+    seed: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    metric_stride: int = 1,
+) -> RunResult:
+    """Simulate ``scenario`` and run its estimators.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    filters : list of str, optional
+        Override ``run.filters`` (``ckf``, ``ukf``, ``ekf``).
+    seed : int, optional
+        Override ``run.seed``.
+    progress : callable(k, steps), optional
+        Called after every step.
+    metric_stride : int
+        Compute the O(N^2) MSLE/NEES/RMSE every ``metric_stride`` steps (others ``nan``).
+
+    Returns
+    -------
+    RunResult
+    """
+    t_start = time.perf_counter()
+    if filters is not None or seed is not None:
+        changes = {}
+        if filters is not None:
+            changes["run.filters"] = list(filters)
+        if seed is not None:
+            changes["run.seed"] = int(seed)
+        scenario = scenario.replace(**changes)
+    run = scenario.run
+    world = World(scenario.world, run.trials, run.seed, scenario.trigger.lambda2)
+    params = scenario.cl_params()
+    T, N, steps, dt = run.trials, world.n, run.steps, world.dt
+    x0, P0 = world.initial_estimates()
+    est = scenario.estimator
+    tracks = [
+        _Track(
+            name,
+            make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa),
+            x0,
+            P0,
+            steps,
+            T,
+            N,
+        )
+        for name in run.filters
+    ]
+    dr = None
+    if run.dead_reckoning:
+        dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+    truth = np.zeros((steps + 1, N, 3))
+    truth[0] = world.pose[:N]
+    team = world.team
+    for k in range(steps):
+        ws = world.step()
+        truth[k + 1] = ws.pose[:N]
+        team_i = team[ws.i]
+        candidates = np.bincount(team_i, minlength=T)
+        attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
+        record = (k + 1) % metric_stride == 0 or k == steps - 1
+        for tr in tracks:
+            t0 = time.perf_counter()
+            xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
+            if scenario.trigger.risk_source is RiskSource.ESTIMATED:
+                risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
+                risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
+            else:
+                risk_s, risk_c = ws.risk_s, ws.risk_c
+            links = LinkBatch(
+                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, risk_s, risk_c, ws.lambda2
+            )
+            tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
+            tr.wall += time.perf_counter() - t0
+            _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+        if dr is not None:
+            t0 = time.perf_counter()
+            dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
+            dr.wall += time.perf_counter() - t0
+            _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+        if progress is not None:
+            progress(k + 1, steps)
+    results = {}
+    for tr in [*tracks, *([dr] if dr is not None else [])]:
+        results[tr.name] = EstimatorResult(
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall
+        )
+    return RunResult(
+        scenario,
+        results,
+        truth,
+        dt * np.arange(1, steps + 1),
+        time.perf_counter() - t_start,
+        {"robots": N, "trials": T},
+    )
+
+
+def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+    """Accumulate one step of one estimator."""
+    s, tot = tr.series, tr.totals
+    s["candidates"][k] = candidates
+    s["attacked"][k] = attacked_n
+    tot["candidates"] += candidates
+    tot["attacked"] += attacked_n.astype(np.int64)
+    if out is not None:
+        att = ws.attacked
+
+        def count(mask):
+            return np.bincount(team_i, weights=mask, minlength=T).astype(np.int64)
+
+        trig = count(out.triggered)
+        s["triggered"][k] = trig
+        s["delivered"][k] = count(out.delivered)
+        s["detected"][k] = count(out.detected)
+        tot["triggered"] += trig
+        tot["delivered"] += count(out.delivered)
+        tot["failed"] += count(out.triggered & ~out.delivered)
+        tot["detected"] += count(out.detected)
+        tot["fused"] += count(out.fused)
+        tot["attacked_fused"] += count(out.fused & att)
+        sc = detector_scores(out.detected, att)
+        # Per-trial confusion counts.
+        tot["tp"] += count(out.detected & att)
+        tot["fp"] += count(out.detected & ~att)
+        tot["fn"] += count(~out.detected & att)
+        tot["tn"] += count(~out.detected & ~att)
+        del sc
+        tot["repairs"][0] += out.repairs
+        own = ws.i < N
+        tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
+    tr.track[k + 1] = tr.x[:N]
+    if record:
+        pos_t = ws.pose[:, :2].reshape(T, N, 2)
+        pos_e = tr.x[:, :2].reshape(T, N, 2)
+        s["msle"][k] = msle(pos_t, pos_e)
+        s["rmse"][k] = position_rmse(pos_t, pos_e)
+        s["nees"][k] = nees(ws.pose, tr.x, tr.P).reshape(T, N).mean(axis=1)

@@ -1,0 +1,1 @@
+"""The simulated world: robots, leader-follower control, danger zones, attacks, network."""

@@ -1,0 +1,131 @@
+"""The world's parameters (also the scenario-file sections ``team``, ``motion``,
+``sensing``, ``attack``, ``sdz`` and ``cdz``).
+
+Field metadata carries validation bounds used by :mod:`resloc.experiments.config`:
+``min``/``max`` (inclusive), ``gt`` (strictly greater), ``doc``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+from resloc.world.attacks import AttackKind, LinkScope
+from resloc.world.zones import RiskProfile
+
+__all__ = [
+    "AttackSpec",
+    "ChannelRule",
+    "FormationFrame",
+    "MotionSpec",
+    "SensingSpec",
+    "TeamSpec",
+    "WorldSpec",
+    "ZoneSpec",
+]
+
+
+def _f(default, doc: str, **bounds):
+    """A dataclass field with a default, a doc string and validation bounds."""
+    if isinstance(default, list | dict):
+        return field(
+            default_factory=lambda: type(default)(default), metadata={"doc": doc, **bounds}
+        )
+    return field(default=default, metadata={"doc": doc, **bounds})
+
+
+class FormationFrame(enum.StrEnum):
+    """Frame of the followers' formation offsets: fixed in the world, or turning with the
+    leader's path heading."""
+
+    WORLD = "world"
+    LEADER = "leader"
+
+
+class ChannelRule(enum.StrEnum):
+    """Whose CDZ risk jams a transmission on link (i, j): the receiver i's (``receiver``,
+    the paper's ``Dc(i)``) or either end's (``either``: ``1 - (1 - Dc(i))(1 - Dc(j))``)."""
+
+    RECEIVER = "receiver"
+    EITHER = "either"
+
+
+@dataclass(frozen=True)
+class TeamSpec:
+    """The team: a leader plus followers on a square lattice behind it."""
+
+    robots: int = _f(17, "number of robots (1 leader + followers)", min=1, max=200000)
+    spacing: float = _f(0.25, "lattice spacing of the followers (m)", gt=0.0)
+    leader_gap: float = _f(
+        0.25, "distance from the leader to the first follower column (m)", min=0.0
+    )
+    init_pos_std: float = _f(0.05, "std of the initial position estimate error (m)", min=0.0)
+    init_heading_std: float = _f(0.05, "std of the initial heading estimate error (rad)", min=0.0)
+
+
+@dataclass(frozen=True)
+class MotionSpec:
+    """Leader path, follower control and odometry (Robotarium-like unicycles)."""
+
+    dt: float = _f(0.033, "time step (s)", gt=0.0)
+    v_max: float = _f(0.2, "linear speed limit (m/s)", gt=0.0)
+    omega_max: float = _f(3.6, "angular speed limit (rad/s)", gt=0.0)
+    leader_speed: float = _f(0.12, "leader's speed along its path (m/s)", gt=0.0)
+    waypoints: list = _f(
+        [[-0.4, -0.9], [0.4, -0.9], "arc", [0.4, 0.5], [-0.4, 0.5]],
+        "leader path: [x, y] points; the string 'arc' between two points makes a "
+        "half-circle turn (left) joining them",
+    )
+    formation: FormationFrame = _f(FormationFrame.WORLD, "frame of the formation offsets")
+    gain: float = _f(1.5, "proportional gain of position tracking (1/s)", gt=0.0)
+    projection: float = _f(0.05, "look-ahead distance of the unicycle mapping (m)", gt=0.0)
+    odometry_std: list = _f([0.01, 0.05], "std of measured [v (m/s), omega (rad/s)]", min=0.0)
+    process_floor_std: list = _f(
+        [0.001, 0.001, 0.001], "additive process-noise floor for [x, y, theta] per sqrt(s)", min=0.0
+    )
+
+
+@dataclass(frozen=True)
+class SensingSpec:
+    """Range/bearing sensing and the communication range."""
+
+    radius: float = _f(1.0, "sensing radius R (m)", gt=0.0)
+    comm_radius: float = _f(1.0, "communication radius (m)", gt=0.0)
+    range_std: float = _f(0.005, "range noise std (m)", min=0.0)
+    bearing_std: float = _f(0.05, "bearing noise std (rad)", min=0.0)
+
+
+@dataclass(frozen=True)
+class AttackSpec:
+    """How SDZs falsify measurements and CDZs jam links."""
+
+    kind: AttackKind = _f(AttackKind.RANDOM, "injected error: fixed bias or random in +-bias")
+    bias: list = _f([0.4, 0.8], "injection magnitude [range (m), bearing (rad)]", min=0.0)
+    links: LinkScope = _f(LinkScope.FULL, "which links an SDZ can falsify: full or partial")
+    link_fraction: float = _f(
+        0.5, "share of attackable links when links = 'partial'", min=0.0, max=1.0
+    )
+    channel: ChannelRule = _f(ChannelRule.RECEIVER, "whose CDZ risk jams a link")
+
+
+@dataclass(frozen=True)
+class ZoneSpec:
+    """One danger zone (a ``[[sdz]]`` or ``[[cdz]]`` table)."""
+
+    center: list = _f([0.0, 0.0], "zone centre [x, y] (m)")
+    radius: float = _f(0.4, "zone radius (m)", gt=0.0)
+    peak: float = _f(1.0, "risk at the centre (probability)", min=0.0, max=1.0)
+    profile: RiskProfile = _f(RiskProfile.LINEAR, "risk profile from centre to edge")
+    tau: float = _f(0.0, "zone threshold tau: risk below it counts as 0", min=0.0, max=1.0)
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """Everything the simulated world needs."""
+
+    team: TeamSpec = field(default_factory=TeamSpec)
+    motion: MotionSpec = field(default_factory=MotionSpec)
+    sensing: SensingSpec = field(default_factory=SensingSpec)
+    attack: AttackSpec = field(default_factory=AttackSpec)
+    sdz: tuple[ZoneSpec, ...] = ()
+    cdz: tuple[ZoneSpec, ...] = ()

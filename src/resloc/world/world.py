@@ -1,0 +1,231 @@
+"""The simulated world: T independent teams of N unicycle robots, advanced in one batch.
+
+Robot ``b`` of the batch is robot ``b % N`` of trial ``b // N``. Each trial draws from its
+own random streams (spawned from the seed by trial index), so trial ``t`` of a batched run
+is identical to a run of that trial alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from resloc.angles import wrap_angle
+from resloc.cl.graph import component_lambda2
+from resloc.models.measurement import range_bearing
+from resloc.models.motion import unicycle_step
+from resloc.world.attacks import apply_injection, attackable_links, injection
+from resloc.world.control import LeaderPath, lattice_offsets, si_to_unicycle
+from resloc.world.network import radius_links
+from resloc.world.spec import ChannelRule, FormationFrame, WorldSpec, ZoneSpec
+from resloc.world.zones import Zone, ZoneField
+
+__all__ = ["World", "WorldStep", "zone_field"]
+
+_STREAMS = ("init", "odometry", "measurement", "attack", "channel")
+
+
+def zone_field(specs: tuple[ZoneSpec, ...]) -> ZoneField:
+    """Build a :class:`ZoneField` from zone specs."""
+    return ZoneField(
+        [Zone(tuple(z.center), z.radius, z.peak, z.profile, z.tau) for z in specs]  # type: ignore[arg-type]
+    )
+
+
+@dataclass
+class WorldStep:
+    """What the world produced at step ``k`` (after moving from ``k-1`` to ``k``).
+
+    Attributes
+    ----------
+    k : int
+    pose : ndarray, shape (B, 3)
+        True poses at step ``k``.
+    u_meas : ndarray, shape (B, 2)
+        Odometry measured over the move (true command plus noise).
+    i, j : ndarray of int, shape (E,)
+        Sensed directed links (batch indices), sorted by ``i`` then ``j``.
+    z : ndarray, shape (E, 2)
+        Range/bearing measurements, falsified where ``attacked``.
+    attacked : ndarray of bool, shape (E,)
+    channel_ok : ndarray of bool, shape (E,)
+        A transmission on the link would get through (in comm range and not jammed).
+    risk_s, risk_c : ndarray, shape (B,)
+        ``Ds(i)``, ``Dc(i)`` at the true positions.
+    lambda2 : ndarray, shape (B,)
+        Algebraic connectivity of the communication graph seen by each robot.
+    """
+
+    k: int
+    pose: np.ndarray
+    u_meas: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    z: np.ndarray
+    attacked: np.ndarray
+    channel_ok: np.ndarray
+    risk_s: np.ndarray
+    risk_c: np.ndarray
+    lambda2: np.ndarray
+
+
+class World:
+    """Batched leader-follower world with sensing and communication danger zones.
+
+    Parameters
+    ----------
+    spec : WorldSpec
+    trials : int
+        Independent teams simulated together.
+    seed : int
+    lambda2_mode : {"component", "global"}
+        How each robot's ``lambda2`` is taken from the communication graph.
+    """
+
+    def __init__(
+        self, spec: WorldSpec, trials: int = 1, seed: int = 0, lambda2_mode: str = "component"
+    ) -> None:
+        self.spec = spec
+        self.trials = int(trials)
+        self.seed = int(seed)
+        self.lambda2_mode = lambda2_mode
+        self.n = spec.team.robots
+        self.B = self.trials * self.n
+        self.team = np.repeat(np.arange(self.trials), self.n)
+        self.rid = np.tile(np.arange(self.n), self.trials)
+        self.dt = spec.motion.dt
+        self.sdz = zone_field(spec.sdz)
+        self.cdz = zone_field(spec.cdz)
+        self.path = LeaderPath(spec.motion.waypoints)
+        self.offsets = lattice_offsets(self.n - 1, spec.team.spacing, spec.team.leader_gap)
+        # Trial t, stream s: SeedSequence(seed).spawn -> child t -> its child s. Deterministic
+        # in (seed, t, s) and independent of how many trials are batched.
+        children = [
+            c.spawn(len(_STREAMS)) for c in np.random.SeedSequence(self.seed).spawn(self.trials)
+        ]
+        self._rng = {
+            name: [np.random.default_rng(c[k]) for c in children] for k, name in enumerate(_STREAMS)
+        }
+        self.k = 0
+        self.pose = self._initial_poses()
+        self._l2_key: tuple | None = None
+        self._l2: np.ndarray = np.zeros(self.B)
+
+    # ------------------------------------------------------------------ set-up
+    def _desired(self, t: float) -> tuple[np.ndarray, float]:
+        """Desired positions ``(N, 2)`` of one team at time ``t`` and the path heading."""
+        p_leader, heading = self.path.at(self.spec.motion.leader_speed * t)
+        off = self.offsets
+        if self.spec.motion.formation is FormationFrame.LEADER:
+            c, s = np.cos(heading), np.sin(heading)
+            off = off @ np.array([[c, s], [-s, c]])
+        return np.vstack([p_leader[None, :], p_leader + off]), heading
+
+    def _initial_poses(self) -> np.ndarray:
+        p, heading = self._desired(0.0)
+        pose = np.zeros((self.B, 3))
+        pose[:, :2] = np.tile(p, (self.trials, 1))
+        pose[:, 2] = heading
+        return pose
+
+    def initial_estimates(self) -> tuple[np.ndarray, np.ndarray]:
+        """Initial estimates: truth plus seeded Gaussian error, and the matching covariance.
+
+        Returns
+        -------
+        x0 : ndarray, shape (B, 3)
+        P0 : ndarray, shape (B, 3, 3)
+        """
+        sp_, sh = self.spec.team.init_pos_std, self.spec.team.init_heading_std
+        std = np.array([sp_, sp_, sh])
+        err = np.vstack([g.normal(size=(self.n, 3)) for g in self._fresh("init")]) * std
+        x0 = self.pose.copy() + err
+        var = np.maximum(std**2, 1e-8)
+        P0 = np.broadcast_to(np.diag(var), (self.B, 3, 3)).copy()
+        return x0, P0
+
+    def _fresh(self, stream: str) -> list[np.random.Generator]:
+        return self._rng[stream]
+
+    # ------------------------------------------------------------------ stepping
+    def commands(self) -> np.ndarray:
+        """True unicycle commands ``(B, 2)`` for the move from step ``k`` to ``k + 1``."""
+        m = self.spec.motion
+        t_next = (self.k + 1) * self.dt
+        p_des, _ = self._desired(t_next)
+        p_des = np.tile(p_des, (self.trials, 1))
+        c, s = np.cos(self.pose[:, 2]), np.sin(self.pose[:, 2])
+        ahead = self.pose[:, :2] + m.projection * np.stack([c, s], axis=1)
+        v_si = m.gain * (p_des - ahead)
+        speed = np.linalg.norm(v_si, axis=1, keepdims=True)
+        v_si *= np.minimum(1.0, m.v_max / np.maximum(speed, 1e-12))
+        return si_to_unicycle(self.pose, v_si, m.projection, m.v_max, m.omega_max)
+
+    def step(self) -> WorldStep:
+        """Move every robot one ``dt``, then sense and draw attacks and channel outcomes."""
+        m, sens, att = self.spec.motion, self.spec.sensing, self.spec.attack
+        u = self.commands()
+        self.pose = unicycle_step(self.pose, u, self.dt)
+        self.k += 1
+        odo_std = np.asarray(m.odometry_std, float)
+        u_meas = u + np.vstack([g.normal(size=(self.n, 2)) for g in self._fresh("odometry")]) * (
+            odo_std
+        )
+
+        p = self.pose[:, :2]
+        i, j = radius_links(p, self.team, sens.radius)
+        z = range_bearing(self.pose[i], self.pose[j])
+        counts = np.bincount(self.team[i], minlength=self.trials)
+        noise = np.vstack(
+            [g.normal(size=(c, 2)) for g, c in zip(self._fresh("measurement"), counts, strict=True)]
+        )
+        z = z + noise.reshape(-1, 2) * np.array([sens.range_std, sens.bearing_std])
+        z[:, 0] = np.abs(z[:, 0])
+        z[:, 1] = wrap_angle(z[:, 1])
+
+        risk_s = self.sdz.risk(p) if self.sdz else np.zeros(self.B)
+        risk_c = self.cdz.risk(p) if self.cdz else np.zeros(self.B)
+
+        attacked = np.zeros(len(i), dtype=bool)
+        att_rngs = self._fresh("attack")
+        if self.sdz:
+            u_att = np.concatenate([g.random(c) for g, c in zip(att_rngs, counts, strict=True)])
+            can = attackable_links(
+                self.rid[i], self.rid[j], att.links, att.link_fraction, self.seed
+            )
+            attacked = can & (u_att < risk_s[i])
+            if attacked.any():
+                per_trial = np.bincount(self.team[i][attacked], minlength=self.trials)
+                gamma = np.vstack(
+                    [
+                        injection(att.kind, np.asarray(att.bias), c, g)
+                        for g, c in zip(att_rngs, per_trial, strict=True)
+                    ]
+                )
+                z[attacked] = apply_injection(z[attacked], gamma)
+
+        in_comm = np.hypot(*(p[i] - p[j]).T) <= sens.comm_radius
+        channel_ok = in_comm.copy()
+        if self.cdz:
+            u_ch = np.concatenate(
+                [g.random(c) for g, c in zip(self._fresh("channel"), counts, strict=True)]
+            )
+            if att.channel is ChannelRule.EITHER:
+                p_fail = 1.0 - (1.0 - risk_c[i]) * (1.0 - risk_c[j])
+            else:
+                p_fail = risk_c[i]
+            channel_ok &= u_ch >= p_fail
+
+        lambda2 = self._lambda2(i[in_comm], j[in_comm])
+        return WorldStep(
+            self.k, self.pose.copy(), u_meas, i, j, z, attacked, channel_ok, risk_s, risk_c, lambda2
+        )
+
+    def _lambda2(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Per-robot ``lambda2``, recomputed only when the communication graph changes."""
+        key = (len(i), hash(i.tobytes()), hash(j.tobytes()))
+        if key != self._l2_key:
+            self._l2 = component_lambda2(i, j, self.B, self.lambda2_mode, group=self.team)
+            self._l2_key = key
+        return self._l2
