@@ -48,7 +48,10 @@ def cholesky_jitter(P: np.ndarray) -> np.ndarray:
         If a matrix is not positive definite even with the largest jitter, or is not finite.
     """
     try:
-        return np.linalg.cholesky(P)
+        L = np.linalg.cholesky(P)
+        # LAPACK does not always raise on NaN/inf input: it can return a non-finite factor.
+        if np.all(np.isfinite(L)):
+            return L
     except np.linalg.LinAlgError:
         pass
     P = np.asarray(P, dtype=float)

@@ -92,10 +92,10 @@ class CLParams:
     rho: float | np.ndarray = 0.5
     detector_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
     trigger: bool = True
-    alpha: float | np.ndarray = 0.3
+    alpha: float | np.ndarray = 0.6
     gamma: float | np.ndarray = 0.5
-    zeta_s: float | np.ndarray = 0.5
-    zeta_c: float | np.ndarray = 0.5
+    zeta_s: float | np.ndarray = 1.0
+    zeta_c: float | np.ndarray = 1.0
     trigger_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
     risk_factor_floor: float = 0.0
     threshold_innovation: ThresholdInnovation = ThresholdInnovation.CURRENT

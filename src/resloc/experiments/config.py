@@ -81,7 +81,7 @@ class EstimatorSpec:
     update_without_transmission: bool = _f(
         False, "with cached estimates, fuse untriggered measurements with the cache"
     )
-    ukf_alpha: float = _f(1.0, "UKF alpha (scaled sigma points)", gt=0.0)
+    ukf_alpha: float = _f(0.5, "UKF alpha (scaled sigma points)", gt=0.0)
     ukf_beta: float = _f(2.0, "UKF beta", min=0.0)
     ukf_kappa: float = _f(0.0, "UKF kappa")
 
@@ -100,10 +100,10 @@ class TriggerSpec:
     """Adaptive event trigger, eq. (11)."""
 
     enabled: bool = _f(True, "event-triggered communication (off: transmit every step)")
-    alpha: float = _f(0.3, "alpha of eq. (11)", min=0.0)
+    alpha: float = _f(0.6, "alpha of eq. (11)", min=0.0)
     gamma: float = _f(0.5, "gamma of eq. (11)", min=0.0)
-    zeta_s: float = _f(0.5, "weight of the sensing risk Ds(i)")
-    zeta_c: float = _f(0.5, "weight of the communication risk Dc(i)")
+    zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)")
+    zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)")
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
     lambda2: str = _f("component", "lambda2 of the robot's component or of the global graph")
     risk_factor_floor: float = _f(0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)")

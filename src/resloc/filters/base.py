@@ -72,7 +72,7 @@ class GaussianFilter(Protocol):
 
 def make_filter(
     kind: FilterKind | str,
-    ukf_alpha: float = 1.0,
+    ukf_alpha: float = 0.5,
     ukf_beta: float = 2.0,
     ukf_kappa: float = 0.0,
 ) -> GaussianFilter:

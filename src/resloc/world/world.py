@@ -81,10 +81,18 @@ class World:
     seed : int
     lambda2_mode : {"component", "global"}
         How each robot's ``lambda2`` is taken from the communication graph.
+    first_trial : int
+        Index of the first trial: trials ``first_trial .. first_trial + trials - 1`` of the
+        seed are simulated (so seeds can be split across processes and re-run alone).
     """
 
     def __init__(
-        self, spec: WorldSpec, trials: int = 1, seed: int = 0, lambda2_mode: str = "component"
+        self,
+        spec: WorldSpec,
+        trials: int = 1,
+        seed: int = 0,
+        lambda2_mode: str = "component",
+        first_trial: int = 0,
     ) -> None:
         self.spec = spec
         self.trials = int(trials)
@@ -101,9 +109,8 @@ class World:
         self.offsets = lattice_offsets(self.n - 1, spec.team.spacing, spec.team.leader_gap)
         # Trial t, stream s: SeedSequence(seed).spawn -> child t -> its child s. Deterministic
         # in (seed, t, s) and independent of how many trials are batched.
-        children = [
-            c.spawn(len(_STREAMS)) for c in np.random.SeedSequence(self.seed).spawn(self.trials)
-        ]
+        trial_seqs = np.random.SeedSequence(self.seed).spawn(first_trial + self.trials)
+        children = [c.spawn(len(_STREAMS)) for c in trial_seqs[first_trial:]]
         self._rng = {
             name: [np.random.default_rng(c[k]) for c in children] for k, name in enumerate(_STREAMS)
         }

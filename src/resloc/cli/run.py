@@ -1,0 +1,164 @@
+"""``resloc run`` and ``resloc scenario show``."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import enum
+import sys
+from pathlib import Path
+
+import typer
+
+from resloc.cli.common import handle_errors
+
+__all__ = ["print_summary", "register", "run_command"]
+
+
+class FilterChoice(enum.StrEnum):
+    """Filter selection on the command line."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+    ALL = "all"
+
+
+def _fmt(v: float, spec: str = ".4g") -> str:
+    return "-" if v is None or v != v else format(v, spec)
+
+
+def print_summary(result, console=None) -> None:
+    """Print the per-estimator results table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console(width=None if sys.stdout.isatty() else 130)
+    table = Table(
+        title=f"{result.scenario.run.name}: {result.meta['robots']} robots, "
+        f"{result.scenario.run.trials} trial(s), {result.scenario.run.steps} steps, "
+        f"seed {result.scenario.run.seed}"
+    )
+    for col in (
+        "estimator",
+        "MSLE mean",
+        "MSLE final",
+        "RMSE (m)",
+        "NEES",
+        "comm rate",
+        "det. precision",
+        "det. recall",
+        "wall (s)",
+    ):
+        table.add_column(col, justify="right" if col != "estimator" else "left")
+    for name, s in result.summary().items():
+        table.add_row(
+            name.upper() if name != "dr" else "dead reckoning",
+            _fmt(s["msle_mean"]),
+            _fmt(s["msle_final"]),
+            _fmt(s["rmse_mean"], ".4f"),
+            _fmt(s["nees_mean"], ".3g"),
+            _fmt(s["comm_rate"], ".3f"),
+            _fmt(s["detector_precision"], ".3f"),
+            _fmt(s["detector_recall"], ".3f"),
+            _fmt(s["wall_time_s"], ".2f"),
+        )
+    console.print(table)
+
+
+def run_command(
+    scenario_path: Path | None,
+    filter_choice: FilterChoice,
+    seed: int | None,
+    out: Path | None,
+    overwrite: bool,
+    plots: bool,
+    progress: bool,
+):
+    """Load (or embed) the scenario, run it, print the table, write the outputs."""
+    from resloc.experiments.config import default_scenario, load_scenario
+    from resloc.experiments.output import atomic_output_dir, check_output_dir, save_run
+    from resloc.experiments.runner import run_scenario
+
+    scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
+    filters = None if filter_choice is FilterChoice.ALL else [filter_choice.value]
+    if filter_choice is FilterChoice.ALL and scenario_path is None:
+        filters = ["ckf", "ukf", "ekf"]
+    if out is None:
+        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = Path("runs") / stamp
+    check_output_dir(out, overwrite)
+    if plots:
+        from resloc.experiments.plots import pyplot
+
+        pyplot()  # fail early, before the run, if matplotlib is missing
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    err = Console(stderr=True)
+    steps = scenario.run.steps
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} steps"),
+        TimeRemainingColumn(),
+        console=err,
+        transient=True,
+        disable=not progress,
+    ) as bar:
+        task = bar.add_task("simulating", total=steps)
+        result = run_scenario(
+            scenario,
+            filters=filters,
+            seed=seed,
+            progress=lambda k, n: bar.update(task, completed=k),
+        )
+    print_summary(result)
+    with atomic_output_dir(out, overwrite) as tmp:
+        save_run(result, tmp, plots=plots)
+    print(f"results written to {out}/ (scenario.toml, summary.json, timeseries.csv, plots)")
+    return result
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``run`` and the ``scenario`` group to ``app``."""
+
+    @app.command("run")
+    @handle_errors
+    def run(
+        scenario: Path | None = typer.Argument(
+            None,
+            help="Scenario TOML file (default: the embedded 17-robot arc-turn).",
+            show_default=False,
+        ),
+        filter: FilterChoice = typer.Option(
+            FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
+        ),
+        seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
+        out: Path | None = typer.Option(
+            None, "--out", "-o", help="Output directory [default: runs/<timestamp>]."
+        ),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
+        progress: bool = typer.Option(
+            True, "--progress/--no-progress", help="Show a progress bar on stderr."
+        ),
+    ) -> None:
+        """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
+        run_command(scenario, filter, seed, out, overwrite, plots, progress and sys.stderr.isatty())
+
+    scenario_app = typer.Typer(help="Scenario files.", no_args_is_help=True)
+
+    @scenario_app.command("show")
+    @handle_errors
+    def show(
+        path: Path | None = typer.Argument(
+            None, help="A scenario file to validate and print resolved (default: embedded)."
+        ),
+    ) -> None:
+        """Print a scenario (default: the embedded one) as TOML with every value explicit."""
+        from resloc.experiments.config import default_scenario, dump_scenario, load_scenario
+
+        sc = load_scenario(path) if path else default_scenario()
+        sys.stdout.write(dump_scenario(sc))
+
+    app.add_typer(scenario_app, name="scenario")

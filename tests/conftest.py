@@ -1,0 +1,32 @@
+"""Shared fixtures for the lower-layer tests (angles, linalg, models, filters, cl)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A fresh seeded generator per test (tests never touch the global ``np.random``)."""
+    return np.random.default_rng(20240611)
+
+
+@pytest.fixture
+def random_spd() -> Callable[..., np.ndarray]:
+    """``random_spd(rng, B, n, scale=1.0, cond=10.0)``: SPD batch ``(B, n, n)``.
+
+    Eigenvalues are drawn in ``[scale / cond, scale]`` with random orthogonal eigenvectors.
+    """
+
+    def make(
+        rng: np.random.Generator, B: int, n: int, scale: float = 1.0, cond: float = 10.0
+    ) -> np.ndarray:
+        Qm, _ = np.linalg.qr(rng.normal(size=(B, n, n)))
+        w = scale * np.exp(rng.uniform(-np.log(cond), 0.0, size=(B, n)))
+        P = np.einsum("bij,bj,bkj->bik", Qm, w, Qm)
+        return 0.5 * (P + np.swapaxes(P, -1, -2))
+
+    return make

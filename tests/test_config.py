@@ -1,0 +1,86 @@
+"""Scenario schema: validation errors name the field; TOML round-trips."""
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from resloc.errors import ConfigError
+from resloc.experiments.config import (
+    default_scenario,
+    dump_scenario,
+    load_scenario,
+    parse_scenario,
+)
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def test_default_scenario_is_the_paper_setup():
+    s = default_scenario()
+    assert s.world.team.robots == 17
+    assert s.world.motion.dt == 0.033
+    assert s.world.motion.v_max == 0.2 and s.world.motion.omega_max == 3.6
+    assert s.world.sensing.radius == 1.0
+    assert (s.world.sensing.range_std, s.world.sensing.bearing_std) == (0.005, 0.05)
+    assert len(s.world.sdz) == 1 and len(s.world.cdz) == 1
+    assert s.run.filters == ["ckf", "ukf", "ekf"]
+
+
+def test_dump_load_roundtrip(tmp_path):
+    s = default_scenario().replace(**{"detector.rho": 0.7, "trigger.norm": "nis"})
+    text = dump_scenario(s)
+    assert parse_scenario(tomllib.loads(text)) == s
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    assert load_scenario(p) == s
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"sensing": {"radiu": 1.0}}, "sensing.radiu: unknown key"),
+        ({"sensnig": {}}, "sensnig: unknown section"),
+        ({"sensing": {"radius": -1.0}}, "sensing.radius: -1.0 must be greater than 0"),
+        ({"sensing": {"range_std": -0.1}}, "sensing.range_std: -0.1 is below the minimum"),
+        ({"sensing": {"radius": "far"}}, "sensing.radius: expected a float, got string"),
+        ({"team": {"robots": 1}}, "team.robots: 1 robots cannot localize"),
+        ({"team": {"robots": 2.5}}, "team.robots: expected an integer"),
+        ({"team": {"robots": True}}, "team.robots: expected a int, got boolean"),
+        ({"run": {"filters": ["ckf", "kf"]}}, "run.filters[1]: 'kf' is not one of"),
+        ({"detector": {"norm": "l1"}}, "detector.norm: 'l1' is not one of euclidean"),
+        ({"sdz": [{"center": [0, 0], "radius": 0}]}, "sdz[0].radius: 0 must be greater"),
+        ({"sdz": [{"center": [0]}]}, "sdz[0].center: expected 2 numbers"),
+        ({"cdz": [{"peak": 1.5}]}, "cdz[0].peak: 1.5 is above the maximum 1.0"),
+        ({"motion": {"waypoints": [[0, 0]]}}, "motion.waypoints"),
+        ({"attack": {"bias": [0.1, -0.2]}}, "attack.bias[1]: -0.2 is below the minimum"),
+        ({"trigger": {"lambda2": "local"}}, "trigger.lambda2: 'local' is not one of"),
+        ({"run": {"steps": 0}}, "run.steps: 0 is below the minimum 1"),
+    ],
+)
+def test_bad_values_name_the_field(data, message):
+    with pytest.raises(ConfigError) as info:
+        parse_scenario(data, source="x.toml")
+    text = str(info.value)
+    assert "\n" not in text
+    assert text.startswith("x.toml: ")
+    assert message in text
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ConfigError, match="no such scenario file"):
+        load_scenario(tmp_path / "missing.toml")
+    p = tmp_path / "bad.toml"
+    p.write_text("[run\nsteps = 3")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_scenario(p)
+
+
+def test_replace_validates():
+    with pytest.raises(ConfigError, match=r"detector\.rho"):
+        default_scenario().replace(**{"detector.rho": -1.0})
+
+
+@pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.toml")), ids=lambda p: p.name)
+def test_examples_are_valid(path):
+    load_scenario(path)
