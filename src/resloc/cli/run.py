@@ -53,8 +53,8 @@ def print_summary(result, console=None) -> None:
     for name, s in result.summary().items():
         table.add_row(
             name.upper() if name != "dr" else "dead reckoning",
-            _fmt(s["msle_mean"]),
-            _fmt(s["msle_final"]),
+            _fmt(s["msle_mean"], ".3e"),
+            _fmt(s["msle_final"], ".3e"),
             _fmt(s["rmse_mean"], ".4f"),
             _fmt(s["nees_mean"], ".3g"),
             _fmt(s["comm_rate"], ".3f"),

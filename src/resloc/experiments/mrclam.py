@@ -65,6 +65,7 @@ __all__ = [
     "estimate_noise",
     "ground_truth_at",
     "prepare_replay",
+    "range_noise_std",
     "run_mrclam",
     "save_mrclam",
 ]
@@ -93,9 +94,10 @@ class MRCLAMConfig:
         Zone discs (m); None places them automatically (:func:`default_zones`).
     seed : int
         Seed of the attack and channel draws.
-    range_std, bearing_std : float
-        Measurement noise (m, rad) of ``R``; defaults are the robust (MAD) standard
-        deviations of measured minus ground-truth range/bearing on Dataset 6, rounded up.
+    range_std, range_std_rel, bearing_std : float
+        Measurement noise of ``R``: range std ``sqrt(range_std^2 + (range_std_rel z)^2)``
+        (m; grows with the measured range ``z``), bearing std (rad). Defaults: fitted to the
+        robust (MAD) spread of measured minus ground-truth range/bearing on Dataset 6.
     odometry_density : tuple of float
         Odometry noise densities ``(m/s sqrt(s), rad/s sqrt(s))``: the std of the distance and
         heading error accumulated in 1 s. Per step the filter uses ``density / sqrt(dt)`` as
@@ -127,7 +129,8 @@ class MRCLAMConfig:
     sdz: tuple[float, float, float] | None = None
     cdz: tuple[float, float, float] | None = None
     seed: int = 0
-    range_std: float = 0.15
+    range_std: float = 0.03
+    range_std_rel: float = 0.045
     bearing_std: float = 0.01
     odometry_density: tuple[float, float] = (0.015, 0.04)
     init_std: tuple[float, float] = (0.02, 0.02)
@@ -159,6 +162,8 @@ class MRCLAMConfig:
         for name, v in positive.items():
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} must be a positive number, got {v}")
+        if not (np.isfinite(self.range_std_rel) and self.range_std_rel >= 0):
+            raise ConfigError(f"range_std_rel must be >= 0, got {self.range_std_rel}")
         if self.dt > 1.0:
             raise ConfigError(f"dt must be at most 1 s, got {self.dt}")
         if self.duration is not None and not (np.isfinite(self.duration) and self.duration > 0):
@@ -653,6 +658,9 @@ def _run_estimator(
     memory = LinkMemory(N + L)
     lambda2 = np.full(N, float(N))
     bounds, is_robot = rp.bounds, rp.is_robot
+    level = range_noise_level(rp.z[:, 0], config)
+    cache: dict[int, CLParams] = {}
+    cache_lm: dict[int, CLParams] = {}
     stride = max(K // 200, 1)
     for k in range(1, K + 1):
         x, P = predict(filt, x, P, rp.u[k - 1], dt, params)
@@ -660,35 +668,77 @@ def _run_estimator(
         if hi > lo and not dr:
             rows = np.arange(lo, hi)
             n_lm = int(np.count_nonzero(~is_robot[lo:hi]))  # landmark rows come first
-            for sub, landmark in ((rows[:n_lm], True), (rows[n_lm:], False)):
-                if len(sub) == 0:
-                    continue
-                tgt = rp.target[sub]
-                if landmark:
-                    x_nb, P_nb, prm = lm_x[tgt - N], lm_P[tgt - N], params_lm
-                else:
-                    x_nb, P_nb, prm = x[tgt], P[tgt], params
-                batch = LinkBatch(
-                    rp.obs[sub],
-                    tgt,
-                    rp.z[sub],
-                    x_nb,
-                    P_nb,
-                    rp.channel_ok[sub],
-                    rp.risk_s[k],
-                    rp.risk_c[k],
-                    lambda2,
-                )
-                x, P, out = correct(filt, x, P, batch, prm, memory)
-                links["norm"][sub] = out.norm
-                links["detected"][sub] = out.detected
-                links["triggered"][sub] = out.triggered
-                links["delivered"][sub] = out.delivered
-                links["fused"][sub] = out.fused
+            for part, landmark in ((rows[:n_lm], True), (rows[n_lm:], False)):
+                # One correct() per range-noise level (rows keep observer/time order).
+                lv = level[part]
+                for level_k in np.unique(lv) if len(part) else ():
+                    sub = part[lv == level_k]
+                    tgt = rp.target[sub]
+                    if landmark:
+                        x_nb, P_nb = lm_x[tgt - N], lm_P[tgt - N]
+                        prm = _level_params(cache_lm, params_lm, level_k, config)
+                    else:
+                        x_nb, P_nb = x[tgt], P[tgt]
+                        prm = _level_params(cache, params, level_k, config)
+                    batch = LinkBatch(
+                        rp.obs[sub],
+                        tgt,
+                        rp.z[sub],
+                        x_nb,
+                        P_nb,
+                        rp.channel_ok[sub],
+                        rp.risk_s[k],
+                        rp.risk_c[k],
+                        lambda2,
+                    )
+                    x, P, out = correct(filt, x, P, batch, prm, memory)
+                    links["norm"][sub] = out.norm
+                    links["detected"][sub] = out.detected
+                    links["triggered"][sub] = out.triggered
+                    links["delivered"][sub] = out.delivered
+                    links["fused"][sub] = out.fused
         track[k], cov[k] = x, P
         if progress is not None and (k % stride == 0 or k == K):
             progress(k, K)
     return track, cov, links, time.perf_counter() - t_start
+
+
+#: Range-noise standard deviations are rounded to this (m) so that rows share parameters.
+RANGE_STD_QUANTUM = 0.005
+
+
+def range_noise_std(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
+    """Range noise model ``sigma_r = sqrt(range_std^2 + (range_std_rel * z)^2)``.
+
+    Parameters
+    ----------
+    z_range : ndarray, shape (M,)
+        Measured ranges (m).
+    config : MRCLAMConfig
+
+    Returns
+    -------
+    ndarray, shape (M,)
+    """
+    return np.hypot(config.range_std, config.range_std_rel * np.asarray(z_range, float))
+
+
+def range_noise_level(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
+    """:func:`range_noise_std` in units of :data:`RANGE_STD_QUANTUM` (rounded), int (M,)."""
+    return np.maximum(np.rint(range_noise_std(z_range, config) / RANGE_STD_QUANTUM), 1).astype(
+        np.int64
+    )
+
+
+def _level_params(
+    cache: dict[int, CLParams], base: CLParams, level: int, config: MRCLAMConfig
+) -> CLParams:
+    """``base`` with ``range_std`` set to noise level ``level`` (memoized)."""
+    prm = cache.get(int(level))
+    if prm is None:
+        prm = dataclasses.replace(base, range_std=float(level) * RANGE_STD_QUANTUM)
+        cache[int(level)] = prm
+    return prm
 
 
 def _score(
