@@ -20,6 +20,7 @@ from resloc.cl import (
     event_threshold,
     predict,
 )
+from resloc.errors import ConfigError
 from resloc.filters import ExtendedFilter, innovation, kalman_update, make_filter
 from resloc.models import process_noise, range_bearing
 
@@ -174,7 +175,7 @@ def test_channel_failure_triggers_but_does_not_update() -> None:
 
 def test_threshold_and_trigger_follow_eq_11() -> None:
     x, P, _, links = make_world(4)
-    params = replace(PARAMS, rho=np.inf)
+    params = replace(PARAMS, rho=np.inf, alpha=0.1)
     _, _, out = correct(FILTERS["ekf"], x, P, links, params)
     i = links.i
     delta = event_threshold(
@@ -226,10 +227,14 @@ def test_sequential_equals_one_link_at_a_time(name: str) -> None:
 @pytest.mark.parametrize("name", list(FILTERS))
 def test_summed_mode_is_sum_of_gains_at_the_prior(name: str) -> None:
     """Algorithm 1 literally: ``x + sum_j K_ij Lambda_ij`` and ``P - sum_j K_ij S_ij
-    K_ij^T`` with every gain computed at the predicted estimate."""
+    K_ij^T`` with every gain computed at the predicted estimate. (Weak measurements, so the
+    summed covariance stays positive definite and no repair interferes.)"""
     filt = FILTERS[name]
     x, P, _, links = make_world(7, links_per_robot=(3, 2, 2, 1, 2))
-    params = replace(PARAMS, trigger=False, detector=False, update_mode=UpdateMode.SUMMED)
+    params = replace(
+        PARAMS, range_std=0.5, bearing_std=0.3, trigger=False, detector=False,
+        update_mode=UpdateMode.SUMMED,
+    )  # fmt: skip
     x1, P1, out = correct(filt, x, P, links, params)
     assert out.fused.all()
     assert out.repairs == 0
@@ -237,7 +242,7 @@ def test_summed_mode_is_sum_of_gains_at_the_prior(name: str) -> None:
     for r in range(len(links)):
         i = links.i[r]
         m = filt.relative_moments(
-            x[i : i + 1], P[i : i + 1], links.x_nb[r : r + 1], links.P_nb[r : r + 1], PARAMS.R
+            x[i : i + 1], P[i : i + 1], links.x_nb[r : r + 1], links.P_nb[r : r + 1], params.R
         )
         nu = links.z[r] - m.z_hat[0]
         nu[1] = wrap_angle(nu[1])
@@ -250,6 +255,26 @@ def test_summed_mode_is_sum_of_gains_at_the_prior(name: str) -> None:
     # It is not the sequential result (robots with >= 2 links differ).
     x_seq, _, _ = correct(filt, x, P, links, replace(params, update_mode=UpdateMode.SEQUENTIAL))
     assert np.abs(x_seq[0] - x1[0]).max() > 1e-8
+
+
+def test_summed_mode_repairs_overconfident_covariances_once_per_robot() -> None:
+    """Precise measurements summed at the prior over-subtract (P - sum K S K^T is not PD):
+    the covariance is projected back and each robot counts as one repair."""
+    filt = FILTERS["ckf"]
+    x, P, _, links = make_world(7, links_per_robot=(3, 2, 2, 1, 2))
+    params = replace(PARAMS, trigger=False, detector=False, update_mode=UpdateMode.SUMMED)
+    _, P1, out = correct(filt, x, P, links, params)
+    counts = np.bincount(links.i, minlength=5)
+    assert out.repairs == int((counts >= 2).sum()) == 4
+    assert np.all(np.linalg.eigvalsh(P1)[:, 0] > 0)
+
+
+def test_params_accept_choice_strings_and_reject_typos() -> None:
+    p = CLParams(update_mode="summed", neighbour_estimate="cached", trigger_norm="nis")
+    assert p.update_mode is UpdateMode.SUMMED
+    assert p.neighbour_estimate is NeighbourEstimate.CACHED
+    with pytest.raises(ConfigError, match="update_mode"):
+        CLParams(update_mode="sumed")
 
 
 # --------------------------------------------------------------------------------------
@@ -273,10 +298,9 @@ def test_cached_first_contact_forces_trigger_then_uses_memory() -> None:
     x1, P1, out1 = correct(filt, x, P, links, params, memory)
     assert out1.triggered.all()
     assert out1.delivered.all()
-    x_cur, _, _ = correct(filt, x, P, links, replace(params, neighbour_estimate="current"))
-    assert not correct(filt, x, P, links, replace(params, neighbour_estimate="current"))[
-        2
-    ].triggered.any()
+    # (With current estimates the same huge threshold silences every link.)
+    _, _, out_cur = correct(filt, x, P, links, replace(params, neighbour_estimate="current"))
+    assert not out_cur.triggered.any()
     x_trig_off, P_trig_off, _ = correct(
         filt, x, P, links, replace(params, neighbour_estimate="current", trigger=False)
     )
@@ -333,7 +357,7 @@ def test_cached_delivered_link_fuses_fresh_estimate_and_refreshes_memory() -> No
     )
     np.testing.assert_allclose(x2, x_exp, atol=1e-13)
     np.testing.assert_allclose(P2, P_exp, atol=1e-13)
-    found, pos = memory.lookup(links.i, links.j)
+    _, pos = memory.lookup(links.i, links.j)
     np.testing.assert_array_equal(memory.x[pos], links2.x_nb)
 
 

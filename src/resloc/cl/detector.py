@@ -43,6 +43,7 @@ def innovation_norm(
     -------
     ndarray, shape (E,)
     """
+    kind = InnovationNorm(kind)  # a plain string would otherwise fall through to "nis"
     if kind is InnovationNorm.EUCLIDEAN:
         return np.hypot(nu[:, 0], nu[:, 1])
     if kind is InnovationNorm.SCALED:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.detector import InnovationNorm
+from resloc.errors import ConfigError
 
 __all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode"]
 
@@ -104,6 +105,18 @@ class CLParams:
     update_without_transmission: bool = False
     extra: dict = field(default_factory=dict, compare=False)
 
+    def __post_init__(self) -> None:
+        # The step compares choices with ``is``: coerce their string values ("summed") to
+        # the enums so a plain string is not silently read as the default.
+        for name, kind in _CHOICES:
+            value = getattr(self, name)
+            try:
+                object.__setattr__(self, name, kind(value))
+            except ValueError:
+                raise ConfigError(
+                    f"CLParams.{name} must be one of {[k.value for k in kind]}, got {value!r}"
+                ) from None
+
     @property
     def R(self) -> np.ndarray:
         """Measurement noise covariance, shape (2, 2)."""
@@ -113,3 +126,12 @@ class CLParams:
     def noise_std(self) -> np.ndarray:
         """``[range_std, bearing_std]``, shape (2,)."""
         return np.array([self.range_std, self.bearing_std])
+
+
+_CHOICES = (
+    ("detector_norm", InnovationNorm),
+    ("trigger_norm", InnovationNorm),
+    ("threshold_innovation", ThresholdInnovation),
+    ("update_mode", UpdateMode),
+    ("neighbour_estimate", NeighbourEstimate),
+)

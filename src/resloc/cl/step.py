@@ -303,7 +303,10 @@ def correct(
             from resloc.angles import wrap_angle
 
             x[:, 2] = wrap_angle(x[:, 2])
-            P[ii], out.repairs = _ensure_pd(0.5 * (P[ii] + np.swapaxes(P[ii], -1, -2)))
+            # One repair per robot, not per link (ii repeats a robot with several links).
+            touched = np.unique(ii)
+            Pt = P[touched]
+            P[touched], out.repairs = _ensure_pd(0.5 * (Pt + np.swapaxes(Pt, -1, -2)))
         return x, P, out
 
     start = np.searchsorted(links.i, links.i, side="left")

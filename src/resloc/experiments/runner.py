@@ -15,7 +15,7 @@ import numpy as np
 from resloc.cl.memory import LinkMemory
 from resloc.cl.step import LinkBatch, correct, predict
 from resloc.experiments.config import RiskSource, Scenario
-from resloc.experiments.metrics import detector_scores, msle, nees, position_rmse, rate
+from resloc.experiments.metrics import msle, nees, position_rmse, rate
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.world.world import World
 
@@ -87,6 +87,11 @@ class EstimatorResult:
             "fused_rate": rate(t["fused"].sum(), t["candidates"].sum()),
             "attacked_rate": rate(t["attacked"].sum(), t["candidates"].sum()),
             "attacked_fused": int(t["attacked_fused"].sum()),
+            "candidates": int(t["candidates"].sum()),
+            "transmissions": int(t["triggered"].sum()),
+            "delivered": int(t["delivered"].sum()),
+            "failed": int(t["failed"].sum()),
+            "discarded": int(t["detected"].sum()),
             "repairs": int(t["repairs"].sum()),
             "wall_time_s": self.wall_time,
             "steps": steps,
@@ -269,13 +274,11 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["detected"] += count(out.detected)
         tot["fused"] += count(out.fused)
         tot["attacked_fused"] += count(out.fused & att)
-        sc = detector_scores(out.detected, att)
         # Per-trial confusion counts.
         tot["tp"] += count(out.detected & att)
         tot["fp"] += count(out.detected & ~att)
         tot["fn"] += count(~out.detected & att)
         tot["tn"] += count(~out.detected & ~att)
-        del sc
         tot["repairs"][0] += out.repairs
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
