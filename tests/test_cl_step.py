@@ -289,9 +289,7 @@ def test_cached_mode_needs_memory() -> None:
 def test_cached_first_contact_forces_trigger_then_uses_memory() -> None:
     filt = FILTERS["ckf"]
     x, P, _, links = make_world(9, links_per_robot=(2,))
-    params = replace(
-        PARAMS, neighbour_estimate=NeighbourEstimate.CACHED, alpha=1e9, detector=False
-    )
+    params = replace(PARAMS, neighbour_estimate=NeighbourEstimate.CACHED, alpha=1e9, detector=False)
     memory = LinkMemory(5)
     # Step 1: no cache yet -> every link triggers (despite the huge threshold) and fuses
     # with the transmitted estimate.
@@ -382,8 +380,10 @@ def test_last_sent_threshold_uses_memory() -> None:
     memory = LinkMemory(5)
     _, _, out1 = correct(filt, x, P, links, params, memory)
     i = links.i
-    base = params.alpha / links.lambda2[i] * (
-        1 - params.zeta_s * links.risk_s[i] - params.zeta_c * links.risk_c[i]
+    base = (
+        params.alpha
+        / links.lambda2[i]
+        * (1 - params.zeta_s * links.risk_s[i] - params.zeta_c * links.risk_c[i])
     )
     np.testing.assert_allclose(out1.threshold, base, rtol=1e-14)  # nothing sent before
     _, _, out2 = correct(filt, x, P, links, params, memory)

@@ -203,9 +203,7 @@ def make_scenario(seed: int, seam: bool) -> Scenario:
         P_j[t] = np.diag([0.02, 0.03, 0.01]) * (1.0 + 0.5 * np.sin(0.1 * t)) + A @ A.T
         x_j[t] = truth_j + np.linalg.cholesky(P_j[t]) @ rng.normal(size=3)
         x_j[t, 2] = wrap(x_j[t, 2])
-        z[t] = hx_joint(np.concatenate([truth, truth_j])) + np.sqrt(np.diag(R)) * rng.normal(
-            size=2
-        )
+        z[t] = hx_joint(np.concatenate([truth, truth_j])) + np.sqrt(np.diag(R)) * rng.normal(size=2)
         z[t, 1] = wrap(z[t, 1])
     x0 = np.array([0.3, -0.2, wrap(th0 + 0.1)])
     P0 = np.diag([0.1, 0.1, 0.05])
@@ -257,7 +255,7 @@ def check_against(ours, predict_fp, update_fp, sc: Scenario) -> None:
 # Point rules: the same points and weights as FilterPy's.
 # --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("n", [3, 6])
-@pytest.mark.parametrize(("alpha", "beta", "kappa"), [(1.0, 2.0, 0.0), (0.8, 2.0, 1.0), (1.0, 0, 0)])
+@pytest.mark.parametrize(("alpha", "beta", "kappa"), [(1.0, 2.0, 0.0), (0.8, 2.0, 1.0), (1, 0, 0)])
 def test_merwe_rule_matches_filterpy_points_and_weights(
     n: int, alpha: float, beta: float, kappa: float, rng: np.random.Generator, random_spd
 ) -> None:
@@ -349,9 +347,7 @@ def test_ukf_matches_filterpy_ukf_200_steps(
 # --------------------------------------------------------------------------------------
 def ckf_steps():
     pred = CubatureKalmanFilter(3, 2, DT, hx=lambda x: x[:2], fx=fx)
-    upd = CubatureKalmanFilter(
-        6, 2, DT, hx=hx_joint, fx=lambda x, dt: x, residual_z=z_residual
-    )
+    upd = CubatureKalmanFilter(6, 2, DT, hx=hx_joint, fx=lambda x, dt: x, residual_z=z_residual)
 
     def predict_fp(x, P, u, Q):
         pred.x, pred.P, pred.Q = x.copy(), P.copy(), Q
@@ -396,7 +392,7 @@ def test_ckf_arithmetic_matches_filterpy_ckf_200_steps() -> None:
 def test_ckf_circular_equals_arithmetic_away_from_seam() -> None:
     """Closes the loop to the default CKF: away from +-pi the circular mean of a tight
     cloud differs from the arithmetic one only at second order in the spread; our
-    default (circular) CKF stays within 1e-4 of the FilterPy-equivalent one here."""
+    default (circular) CKF stays within 1e-3 of the FilterPy-equivalent one here."""
     sc = make_scenario(seed=5, seam=False)
     arith = run_ours(
         SigmaPointFilter(FilterKind.CKF, cubature_rule(3), cubature_rule(6), circular=False), sc

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from resloc.errors import NumericalError, ResLocError
-from resloc.linalg import JITTER_LEVELS, cholesky_jitter, is_positive_definite, solve_spd, symmetrize
+from resloc.linalg import (
+    JITTER_LEVELS,
+    cholesky_jitter,
+    is_positive_definite,
+    solve_spd,
+    symmetrize,
+)
 
 SpdFactory = Callable[..., np.ndarray]
 

@@ -27,7 +27,7 @@ def central_difference(f, x: np.ndarray, eps: float = EPS, angle_rows=()) -> np.
 
     Output components listed in ``angle_rows`` are differenced on the circle.
     """
-    B, n = x.shape
+    n = x.shape[1]
     cols = []
     for c in range(n):
         step = np.zeros(n)
@@ -84,9 +84,7 @@ class TestUnicycleStep:
 
 class TestMotionJacobians:
     @pytest.mark.parametrize("dt", [0.01, 0.1, 1.0])
-    def test_state_jacobian_vs_finite_difference(
-        self, dt: float, rng: np.random.Generator
-    ) -> None:
+    def test_state_jacobian_vs_finite_difference(self, dt: float, rng: np.random.Generator) -> None:
         x = random_poses(rng, 64)
         u = np.column_stack([rng.uniform(-2, 2, 64), rng.uniform(-3, 3, 64)])
         F = unicycle_state_jacobian(x, u, dt)
@@ -95,9 +93,7 @@ class TestMotionJacobians:
         np.testing.assert_allclose(F, F_num, atol=1e-8)
 
     @pytest.mark.parametrize("dt", [0.01, 0.1, 1.0])
-    def test_input_jacobian_vs_finite_difference(
-        self, dt: float, rng: np.random.Generator
-    ) -> None:
+    def test_input_jacobian_vs_finite_difference(self, dt: float, rng: np.random.Generator) -> None:
         x = random_poses(rng, 64)
         u = np.column_stack([rng.uniform(-2, 2, 64), rng.uniform(-3, 3, 64)])
         G = unicycle_input_jacobian(x, dt)
@@ -205,7 +201,8 @@ def test_process_noise_per_robot_odometry_std(rng: np.random.Generator) -> None:
     odo = np.array([[0.01, 0.05], [0.1, 0.0], [0.0, 0.3]])
     Q = process_noise(x, 0.5, odo, np.full(3, 1e-4))
     for b in range(3):
-        np.testing.assert_allclose(Q[b], process_noise(x[b : b + 1], 0.5, odo[b], np.full(3, 1e-4))[0])
+        single = process_noise(x[b : b + 1], 0.5, odo[b], np.full(3, 1e-4))
+        np.testing.assert_allclose(Q[b], single[0])
     assert np.all(is_positive_definite(Q))
 
 

@@ -41,7 +41,10 @@ def algebraic_connectivity(L: np.ndarray | sp.spmatrix) -> float:
         return 0.0
     dense = L.toarray() if sp.issparse(L) else np.asarray(L, float)
     w = np.linalg.eigvalsh(dense)
-    return float(max(w[1], 0.0))
+    # Round-off leaves ~1e-17 instead of 0 for a disconnected graph; a connected graph has
+    # lambda2 >= 4 / n^2, far above this tolerance.
+    tol = n * np.finfo(float).eps * max(float(w[-1]), 1.0)
+    return float(w[1]) if w[1] > tol else 0.0
 
 
 def component_lambda2(

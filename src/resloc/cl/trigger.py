@@ -45,7 +45,7 @@ def event_threshold(
     risk = np.maximum(1.0 - zeta_s * risk_s - zeta_c * risk_c, risk_factor_floor)
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(lambda2 > 0.0, alpha / np.where(lambda2 > 0.0, lambda2, 1.0), np.inf)
-    out = scale * (1.0 + gamma * innovation_size) * risk
+        out = scale * (1.0 + gamma * innovation_size) * risk
     # inf * 0 (disconnected and risk factor 0) is resolved as "no transmission".
     return np.where(np.isnan(out), np.inf, out)
 
