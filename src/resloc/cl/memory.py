@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LinkMemory"]
+__all__ = ["LinkMemory", "LinkStatistic"]
 
 
 class LinkMemory:
@@ -14,6 +14,13 @@ class LinkMemory:
     ``P: (3, 3)``) and the innovation norm of the last delivered transmission. Keys are
     ``i * n_nodes + j`` kept sorted; look-ups are vectorized with ``searchsorted``, so memory
     grows with the number of links actually used, never ``N x N``.
+
+    Two optional extensions (issue 6, ``docs/beyond.md``): ``cusum``, the per-link CUSUM
+    statistic of the detector (a :class:`LinkStatistic`, updated for every *evaluated* link,
+    delivered or not), and ``independent``, the independent covariance parts ``(n_nodes, 3,
+    3)`` of split covariance intersection (None until a caller initializes it, e.g. with the
+    initial covariances); ``joint``, the team's joint covariance of ``tracked`` fusion (a
+    :class:`~resloc.cl.tracking.JointCovariance`, None until initialized).
 
     Parameters
     ----------
@@ -27,6 +34,9 @@ class LinkMemory:
         self.x = np.empty((0, 3))
         self.P = np.empty((0, 3, 3))
         self.last_norm = np.empty(0)
+        self.cusum = LinkStatistic(self.n_nodes)
+        self.independent: np.ndarray | None = None
+        self.joint = None  # resloc.cl.tracking.JointCovariance for fusion = "tracked"
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -77,3 +87,48 @@ class LinkMemory:
             self.x = np.concatenate([self.x, x[new]])[order]
             self.P = np.concatenate([self.P, P[new]])[order]
             self.last_norm = np.concatenate([self.last_norm, norm[new]])[order]
+
+
+class LinkStatistic:
+    """A sparse per-link scalar keyed by ``(i, j)`` (e.g. a CUSUM statistic), 0 when unseen.
+
+    Parameters
+    ----------
+    n_nodes : int
+        Size of the id space of ``j``.
+    """
+
+    def __init__(self, n_nodes: int) -> None:
+        self.n_nodes = int(n_nodes)
+        self.keys = np.empty(0, dtype=np.int64)
+        self.values = np.empty(0)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def _keys(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        return np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
+
+    def get(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Values of links ``(i, j)``, shape (E,); 0 for links never stored."""
+        k = self._keys(i, j)
+        if not len(self.keys):
+            return np.zeros(len(k))
+        pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+        return np.where(self.keys[pos] == k, self.values[pos], 0.0)
+
+    def set(self, i: np.ndarray, j: np.ndarray, values: np.ndarray) -> None:
+        """Insert or overwrite links ``(i, j)`` (distinct within one call), shape (E,)."""
+        k = self._keys(i, j)
+        if not len(k):
+            return
+        values = np.asarray(values, float)
+        pos = np.minimum(np.searchsorted(self.keys, k), max(len(self.keys) - 1, 0))
+        found = (pos < len(self.keys)) & (self.keys[pos] == k) if len(self.keys) else (k < 0)
+        self.values[pos[found]] = values[found]
+        new = ~found
+        if new.any():
+            keys = np.concatenate([self.keys, k[new]])
+            order = np.argsort(keys, kind="stable")
+            self.keys = keys[order]
+            self.values = np.concatenate([self.values, values[new]])[order]

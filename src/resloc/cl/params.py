@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.detector import InnovationNorm
+from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.errors import ConfigError
 
 __all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode"]
@@ -83,6 +84,17 @@ class CLParams:
     update_without_transmission : bool
         With ``cached`` neighbour estimates: fuse an accepted but untriggered measurement
         with the cached estimate of j (no message). Off in the paper.
+    fusion : FusionMethod
+        ``naive`` (the paper), ``ci`` or ``split_ci`` (:mod:`resloc.cl.fusion`, issue 6).
+    ci_criterion : CICriterion
+        What the CI weight minimises: posterior ``trace`` or ``det`` of ``P_i``.
+    cusum : bool
+        Also discard while the per-link CUSUM of the NIS exceeds ``cusum_h``
+        (:mod:`resloc.cl.cusum`; needs a LinkMemory). Off in the paper.
+    cusum_k, cusum_h : float or ndarray (B,)
+        CUSUM reference (drift) and alarm threshold, in NIS units.
+    cusum_cap : float or None
+        Upper bound of the CUSUM statistic (None: ``2 cusum_h``).
     """
 
     range_std: float = 0.005
@@ -103,6 +115,12 @@ class CLParams:
     update_mode: UpdateMode = UpdateMode.SEQUENTIAL
     neighbour_estimate: NeighbourEstimate = NeighbourEstimate.CURRENT
     update_without_transmission: bool = False
+    fusion: FusionMethod = FusionMethod.NAIVE
+    ci_criterion: CICriterion = CICriterion.TRACE
+    cusum: bool = False
+    cusum_k: float | np.ndarray = 4.0
+    cusum_h: float | np.ndarray = 20.0
+    cusum_cap: float | None = None
     extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
@@ -134,4 +152,6 @@ _CHOICES = (
     ("threshold_innovation", ThresholdInnovation),
     ("update_mode", UpdateMode),
     ("neighbour_estimate", NeighbourEstimate),
+    ("fusion", FusionMethod),
+    ("ci_criterion", CICriterion),
 )

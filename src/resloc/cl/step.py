@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.cl.detector import attack_detected, innovation_norm
+from resloc.cl.kernels import fast_correct
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.cl.trigger import event_threshold, event_triggered
@@ -284,9 +285,22 @@ def correct(
     outcome : LinkOutcome
     """
     E = len(links)
-    out = LinkOutcome.empty(E)
     if E == 0:
-        return x, P, out
+        return x, P, LinkOutcome.empty(E)
+    # Compiled path (numba) when it covers the filter and the options; else the reference.
+    fast = fast_correct(filt, x, P, links, params, memory)
+    if fast is not None:
+        out = LinkOutcome(
+            fast.norm,
+            fast.threshold,
+            fast.detected,
+            fast.triggered,
+            fast.delivered,
+            fast.fused,
+            fast.repairs,
+        )
+        return fast.x, fast.P, out
+    out = LinkOutcome.empty(E)
     x = x.copy()
     P = P.copy()
     if params.update_mode is UpdateMode.SUMMED:

@@ -35,6 +35,15 @@ def _register_all() -> None:
     from resloc.cli import run as _run
 
     _run.register(app)
+    from resloc.cli import sweep as _sweep
+
+    _sweep.register(app)
+    from resloc.cli import reproduce as _reproduce
+
+    _reproduce.register(app)
+    from resloc.cli import mrclam as _mrclam
+
+    _mrclam.register(app)
 
 
 _register_all()

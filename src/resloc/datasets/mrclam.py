@@ -52,6 +52,8 @@ __all__ = [
 BARCODES_FILE = "Barcodes.dat"
 LANDMARKS_FILE = "Landmark_Groundtruth.dat"
 ROBOT_KINDS = ("Groundtruth", "Odometry", "Measurement")
+#: Ground truth is read this far (s) past a ``duration`` cut, for interpolation at the end.
+GROUNDTRUTH_MARGIN = 1.0
 _ROBOT_RE = re.compile(r"^Robot(\d+)_(Groundtruth|Odometry|Measurement)\.dat$")
 
 #: Columns of every file: (names, which must be integers).
@@ -97,7 +99,8 @@ class MRCLAMDataset:
     t0 : float
         Absolute (Unix) time of relative time 0: the latest first ground-truth sample.
     end : float
-        Relative time of the last row read (odometry, measurement or ground truth).
+        Relative time of the last odometry or measurement row read (the end of the sensor
+        stream; ground truth is only used for scoring).
     robots : list of RobotLog
         Robots in subject order (index ``r`` is subject ``robots[r].subject``).
     barcodes : dict of int to int
@@ -340,6 +343,11 @@ def load_mrclam(path: str | Path, duration: float | None = None) -> MRCLAMDatase
             p = files[k][kind]
             if kind == "Measurement":
                 tab, counts = _read_measurements(p, barcodes, usable, k, t_stop)
+            elif kind == "Groundtruth":
+                # A margin past the cut so the last replayed step can still be scored.
+                margin = None if t_stop is None else t_stop + GROUNDTRUTH_MARGIN
+                tab = read_table(p, kind, margin)
+                counts = {}
             else:
                 tab = read_table(p, kind, t_stop)
                 counts = {}
@@ -348,7 +356,7 @@ def load_mrclam(path: str | Path, duration: float | None = None) -> MRCLAMDatase
                 counts["out_of_order"] = n_bad
                 tab = tab[np.argsort(tab[:, 0], kind="stable")]
             tab[:, 0] -= t0
-            if len(tab):
+            if len(tab) and kind != "Groundtruth":
                 end = max(end, float(tab[-1, 0]))
             counts = {c: v for c, v in counts.items() if v}
             if counts:

@@ -19,7 +19,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from resloc.cl.cusum import chi2_gate
 from resloc.cl.detector import InnovationNorm
+from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
@@ -84,6 +86,10 @@ class EstimatorSpec:
     ukf_alpha: float = _f(0.5, "UKF alpha (scaled sigma points)", gt=0.0)
     ukf_beta: float = _f(2.0, "UKF beta", min=0.0)
     ukf_kappa: float = _f(0.0, "UKF kappa")
+    fusion: FusionMethod = _f(
+        FusionMethod.NAIVE, "neighbour fusion: naive (paper), ci or split_ci (docs/beyond.md)"
+    )
+    ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,15 @@ class DetectorSpec:
     enabled: bool = _f(True, "discard measurements whose innovation norm exceeds rho")
     rho: float = _f(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0)
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
+    false_alarm: float = _f(
+        0.0,
+        "with norm = nis: chi-square gate at this false-alarm probability (0: use rho)",
+        min=0.0,
+        max=0.5,
+    )
+    cusum: bool = _f(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
+    cusum_k: float = _f(4.0, "CUSUM reference (drift) in NIS units", gt=0.0)
+    cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0)
 
 
 @dataclass(frozen=True)
@@ -105,7 +120,14 @@ class TriggerSpec:
     zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)")
     zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)")
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
-    lambda2: str = _f("component", "lambda2 of the robot's component or of the global graph")
+    lambda2: str = _f(
+        "component",
+        "lambda2 of the robot's component, of the global graph, or each robot's distributed "
+        "estimate",
+    )
+    lambda2_rounds: int = _f(
+        3, "distributed lambda2: neighbour exchanges per step", min=1, max=1000
+    )
     risk_factor_floor: float = _f(0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)")
     threshold_innovation: ThresholdInnovation = _f(
         ThresholdInnovation.CURRENT, "innovation inside the threshold: current or last_sent"
@@ -132,7 +154,7 @@ class Scenario:
             odometry_std=tuple(w.motion.odometry_std),
             process_floor_std=tuple(w.motion.process_floor_std),
             detector=d.enabled,
-            rho=d.rho,
+            rho=math.sqrt(chi2_gate(d.false_alarm)) if d.false_alarm > 0.0 else d.rho,
             detector_norm=d.norm,
             trigger=t.enabled,
             alpha=t.alpha,
@@ -145,6 +167,11 @@ class Scenario:
             update_mode=e.update_mode,
             neighbour_estimate=e.neighbour_estimate,
             update_without_transmission=e.update_without_transmission,
+            fusion=e.fusion,
+            ci_criterion=e.ci_criterion,
+            cusum=d.cusum,
+            cusum_k=d.cusum_k,
+            cusum_h=d.cusum_h,
         )
 
     def replace(self, **changes: Any) -> Scenario:
@@ -171,6 +198,7 @@ _LIST_LENGTHS = {
     "motion.odometry_std": 2,
     "motion.process_floor_std": 3,
     "attack.bias": 2,
+    "attack.stealth_direction": 2,
     "center": 2,
 }
 
@@ -310,8 +338,33 @@ def _parse(data: dict) -> Scenario:
             f"team.robots: {team.robots} robots cannot localize cooperatively; use >= 2"
         )
     trig: TriggerSpec = parts["trigger"]
-    if trig.lambda2 not in ("component", "global"):
-        raise ConfigError(f"trigger.lambda2: {trig.lambda2!r} is not one of component, global")
+    if trig.lambda2 not in ("component", "global", "distributed"):
+        raise ConfigError(
+            f"trigger.lambda2: {trig.lambda2!r} is not one of component, global, distributed"
+        )
+    det: DetectorSpec = parts["detector"]
+    if det.false_alarm > 0.0 and det.norm is not InnovationNorm.NIS:
+        raise ConfigError(
+            f"detector.false_alarm: {det.false_alarm!r} sets a chi-square gate on the NIS; "
+            f"set detector.norm = \"nis\" (now {det.norm.value!r}) or false_alarm = 0"
+        )
+    est: EstimatorSpec = parts["estimator"]
+    if est.fusion is not FusionMethod.NAIVE and est.update_mode is not UpdateMode.SEQUENTIAL:
+        raise ConfigError(
+            f"estimator.fusion: {est.fusion.value!r} needs update_mode = \"sequential\" "
+            f"(now {est.update_mode.value!r})"
+        )
+    if est.fusion is FusionMethod.SPLIT_CI and est.update_without_transmission:
+        raise ConfigError(
+            "estimator.fusion: 'split_ci' cannot fuse cached estimates "
+            "(update_without_transmission = true); use 'ci' or turn it off"
+        )
+    att: AttackSpec = parts["attack"]
+    if not any(abs(v) > 0.0 for v in att.stealth_direction):
+        raise ConfigError(
+            f"attack.stealth_direction: {att.stealth_direction!r} is zero; give a direction "
+            "such as [0.0, 1.0] (bearing)"
+        )
     LeaderPath(parts["motion"].waypoints)  # validates the path
     if run.trials * team.robots > 5_000_000:
         raise ConfigError(

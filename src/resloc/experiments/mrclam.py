@@ -28,9 +28,12 @@ Method (``docs/mrclam.md`` gives the reasons):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import math
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,12 +133,12 @@ class MRCLAMConfig:
     cdz: tuple[float, float, float] | None = None
     seed: int = 0
     range_std: float = 0.03
-    range_std_rel: float = 0.045
-    bearing_std: float = 0.01
+    range_std_rel: float = 0.07
+    bearing_std: float = 0.015
     odometry_density: tuple[float, float] = (0.015, 0.04)
     init_std: tuple[float, float] = (0.02, 0.02)
     detector: bool = True
-    rho: float = 0.8
+    rho: float = 1.0
     detector_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
     trigger: bool = True
     alpha: float = 0.3
@@ -176,6 +179,8 @@ class MRCLAMConfig:
             z = getattr(self, name)
             if z is not None and (len(z) != 3 or not np.all(np.isfinite(z)) or not z[2] > 0):
                 raise ConfigError(f"{name} must be (x, y, radius) with radius > 0, got {z}")
+        if (self.sdz is not None or self.cdz is not None) and not self.zones:
+            raise ConfigError("sdz/cdz given but the attack layer is off; also pass --zones")
         for name in ("alpha", "gamma"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -210,9 +215,7 @@ class MRCLAMConfig:
 
 
 # ---------------------------------------------------------------------------- ground truth
-def ground_truth_at(
-    gt: np.ndarray, t: np.ndarray, max_gap: float
-) -> tuple[np.ndarray, np.ndarray]:
+def ground_truth_at(gt: np.ndarray, t: np.ndarray, max_gap: float) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth poses interpolated at times ``t`` (heading unwrapped, then wrapped).
 
     Parameters
@@ -379,8 +382,12 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
     Replay
     """
     dt = config.dt
-    end = data.end if config.duration is None else min(data.end, config.duration)
-    K = int(np.floor(end / dt + 1e-9))
+    end = data.end
+    if config.duration is not None:
+        # A cut dataset ends at its last row <= duration: replay the full duration unless
+        # the data really stop earlier (more than a second before it).
+        end = config.duration if data.end > config.duration - 1.0 else data.end
+    K = int(np.ceil(end / dt - 1e-9))  # the last (partial) step holds the last rows
     if K < 1:
         raise ConfigError(
             f"the replay is shorter than one step: {end:.3f} s of data with dt = {dt} s"
@@ -414,9 +421,7 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
     t_m, obs, target, z, is_robot = t_m[keep], obs[keep], target[keep], z[keep], is_robot[keep]
     step = np.maximum(np.searchsorted(times, t_m - 1e-9 * dt, side="left"), 1)
     order = np.lexsort((t_m, obs, is_robot, step))
-    t_m, obs, target, z, is_robot, step = (
-        a[order] for a in (t_m, obs, target, z, is_robot, step)
-    )
+    t_m, obs, target, z, is_robot, step = (a[order] for a in (t_m, obs, target, z, is_robot, step))
 
     z_clean = z.copy()
     attacked = np.zeros(len(z), dtype=bool)
@@ -481,59 +486,101 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
 
 
 # ---------------------------------------------------------------------------- noise
-def estimate_noise(data: MRCLAMDataset, max_gap: float = 0.1) -> dict[str, dict[str, float]]:
-    """Measurement noise from the data: measured minus ground-truth-implied range/bearing.
+def _robust_std(e: np.ndarray) -> float:
+    """``1.4826 * MAD``: the standard deviation of the Gaussian core, blind to outliers."""
+    return float(1.4826 * np.median(np.abs(e - np.median(e)))) if len(e) else float("nan")
 
-    Robust standard deviations (``1.4826 * MAD``) and plain ones, for robot and landmark
-    sightings, over the measurements whose observer (and observed robot) has ground truth
-    within ``max_gap`` seconds.
+
+def estimate_noise(
+    data: MRCLAMDataset, max_gap: float = 0.25, window: float = 1.0
+) -> dict[str, dict[str, float]]:
+    """Sensor noise measured against the ground truth (how the defaults were chosen).
+
+    Measurements: measured minus ground-truth-implied range and bearing of every robot and
+    landmark sighting whose observer (and observed robot) has ground truth. Odometry: over
+    consecutive ``window``-second intervals, the distance along the heading and the heading
+    change from the ground truth minus the integral of the commanded ``v`` and ``omega``,
+    divided by ``sqrt(window)`` (a noise density, as :class:`MRCLAMConfig` expects).
+
+    Parameters
+    ----------
+    data : MRCLAMDataset
+    max_gap : float
+        Ground-truth gap (s) above which a time is not used.
+    window : float
+        Odometry integration window (s).
 
     Returns
     -------
     dict
-        ``{"robot": {...}, "landmark": {...}}`` with ``n``, ``range_bias``,
-        ``range_std_robust``, ``range_std``, ``bearing_bias``, ``bearing_std_robust``,
-        ``bearing_std``.
+        ``robot`` and ``landmark``: ``n``, ``range_bias``, ``range_std``,
+        ``range_std_robust``, ``range_std_rel_robust`` (robust std of the range error divided
+        by the true range), ``bearing_bias``, ``bearing_std``, ``bearing_std_robust``.
+        ``odometry``: ``n``, ``v_bias``, ``v_density``, ``v_density_robust``,
+        ``omega_bias``, ``omega_density``, ``omega_density_robust``.
     """
-    N = data.n_robots
     lm = dict(zip(data.landmark_subjects.tolist(), data.landmark_xy, strict=True))
-    subj_to_robot = {s: r for r, s in enumerate(data.robot_subjects.tolist())}
+    robot_log = {log.subject: log for log in data.robots}
     err: dict[str, list[np.ndarray]] = {"robot": [], "landmark": []}
-    for r, log in enumerate(data.robots):
+    odo_err: list[np.ndarray] = []
+    for log in data.robots:
         m = log.measurements
-        if len(m) == 0:
+        if len(m):
+            xi, ok = ground_truth_at(log.groundtruth, m[:, 0], max_gap)
+            xj = np.zeros((len(m), 3))
+            subject = m[:, 1].astype(int)
+            rob = np.isin(subject, list(robot_log))
+            for s in np.unique(subject[rob]):
+                sel = subject == s
+                xj[sel], ok_j = ground_truth_at(robot_log[s].groundtruth, m[sel, 0], max_gap)
+                ok[sel] &= ok_j
+            for k in np.flatnonzero(~rob):
+                xj[k, :2] = lm[subject[k]]
+            z_true = range_bearing(xi, xj)
+            e = m[:, 2:4] - z_true
+            e[:, 1] = wrap_angle(e[:, 1])
+            rel = e[:, 0] / np.maximum(z_true[:, 0], 1e-6)
+            rows = np.column_stack([e, rel])
+            err["robot"].append(rows[ok & rob])
+            err["landmark"].append(rows[ok & ~rob])
+        g, o = log.groundtruth, log.odometry
+        if len(o) < 2 or len(g) < 2:
             continue
-        xi, ok = ground_truth_at(log.groundtruth, m[:, 0], max_gap)
-        xj = np.zeros((len(m), 3))
-        rob = np.array([int(s) in subj_to_robot for s in m[:, 1]], dtype=bool)
-        for s in np.unique(m[rob, 1]).astype(int):
-            sel = m[:, 1] == s
-            xj[sel], okj = ground_truth_at(data.robots[subj_to_robot[s]].groundtruth, m[sel, 0], max_gap)
-            ok[sel] &= okj
-        for k in np.flatnonzero(~rob):
-            xj[k, :2] = lm[int(m[k, 1])]
-        e = m[:, 2:4] - range_bearing(xi, xj)
-        e[:, 1] = wrap_angle(e[:, 1])
-        err["robot"].append(e[ok & rob])
-        err["landmark"].append(e[ok & ~rob])
-    del N
-    out = {}
+        edges = np.arange(max(g[0, 0], o[0, 0]), min(g[-1, 0], o[-1, 0]), window)
+        if len(edges) < 2:
+            continue
+        pose, ok = ground_truth_at(g, edges, max_gap)
+        cmd = _step_commands(o, edges) * window  # (W, 2): commanded distance, turn
+        heading = np.unwrap(pose[:, 2])
+        mid = 0.5 * (heading[1:] + heading[:-1])
+        dist = np.diff(pose[:, 0]) * np.cos(mid) + np.diff(pose[:, 1]) * np.sin(mid)
+        turn = np.diff(heading)
+        both = ok[1:] & ok[:-1]
+        odo_err.append(np.column_stack([dist - cmd[:, 0], turn - cmd[:, 1]])[both])
+    out: dict[str, dict[str, float]] = {}
     for kind, parts in err.items():
-        e = np.concatenate(parts) if parts else np.zeros((0, 2))
-        if len(e) == 0:
-            out[kind] = {"n": 0}
-            continue
-        med = np.median(e, axis=0)
-        mad = 1.4826 * np.median(np.abs(e - med), axis=0)
+        e = np.concatenate(parts) if parts else np.zeros((0, 3))
         out[kind] = {
             "n": len(e),
-            "range_bias": float(med[0]),
-            "range_std_robust": float(mad[0]),
-            "range_std": float(e[:, 0].std()),
-            "bearing_bias": float(med[1]),
-            "bearing_std_robust": float(mad[1]),
-            "bearing_std": float(e[:, 1].std()),
+            "range_bias": float(np.median(e[:, 0])) if len(e) else float("nan"),
+            "range_std": float(e[:, 0].std()) if len(e) else float("nan"),
+            "range_std_robust": _robust_std(e[:, 0]),
+            "range_std_rel_robust": _robust_std(e[:, 2]),
+            "bearing_bias": float(np.median(e[:, 1])) if len(e) else float("nan"),
+            "bearing_std": float(e[:, 1].std()) if len(e) else float("nan"),
+            "bearing_std_robust": _robust_std(e[:, 1]),
         }
+    e = np.concatenate(odo_err) if odo_err else np.zeros((0, 2))
+    root = math.sqrt(window)
+    out["odometry"] = {
+        "n": len(e),
+        "v_bias": float(e[:, 0].mean() / window) if len(e) else float("nan"),
+        "v_density": float(e[:, 0].std() / root) if len(e) else float("nan"),
+        "v_density_robust": _robust_std(e[:, 0]) / root,
+        "omega_bias": float(e[:, 1].mean() / window) if len(e) else float("nan"),
+        "omega_density": float(e[:, 1].std() / root) if len(e) else float("nan"),
+        "omega_density_robust": _robust_std(e[:, 1]) / root,
+    }
     return out
 
 
@@ -769,7 +816,7 @@ def _score(
     lm = ~rob
     n_lm = np.bincount(obs[lm], minlength=N)
     fused_lm = np.bincount(obs[lm], weights=links["fused"][lm], minlength=N)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"), _quiet_nan_warnings():
         per_robot = {
             "position_rmse": np.sqrt(np.nanmean(pos_err**2, axis=0)),
             "position_error_final": _last_valid(pos_err),
@@ -785,6 +832,8 @@ def _score(
             "scored_fraction": valid.mean(axis=0),
         }
     det = detector_scores(links["detected"][rob], rp.attacked[rob])
+    if name == DEAD_RECKONING:  # no detector: its scores are undefined, not zero
+        det = {k: (0 if k in ("tp", "fp", "fn", "tn") else float("nan")) for k in det}
     overall = {
         "position_rmse": float(np.sqrt(np.nanmean(pos_err**2))),
         "position_error_final": float(np.nanmean(per_robot["position_error_final"])),
@@ -815,6 +864,14 @@ def _score(
     return MRCLAMEstimate(
         name, track, pos_err, heading_err, nees_v, msle_v, links, per_robot, overall, wall
     )
+
+
+@contextlib.contextmanager
+def _quiet_nan_warnings() -> Iterator[None]:
+    """Silence numpy's "mean of empty slice" warnings (all-nan columns give nan on purpose)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
 
 
 def _last_valid(err: np.ndarray) -> np.ndarray:
@@ -989,12 +1046,16 @@ def plot_mrclam_trajectories(result: MRCLAMResult, path: Path) -> Path:
     and danger zones."""
     plt = _pyplot()
     names = list(result.estimators)
-    cols = min(len(names), 2)
+    cols = min(len(names), 4)
     rows = int(np.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 6.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.0 * cols, 6.2 * rows + 0.6), squeeze=False)
     stride = max(round(0.1 / result.config.dt), 1)
     truth = result.truth[::stride]
     valid = result.valid[::stride]
+    # Every panel shows the arena (true paths and landmarks, 0.5 m margin); estimates that
+    # drift outside it (dead reckoning) are clipped by the axes.
+    seen = np.vstack([truth[..., :2][valid], result.landmark_xy])
+    lo, hi = seen.min(axis=0) - 0.5, seen.max(axis=0) + 0.5
     for ax, name in zip(axes.ravel(), names, strict=False):
         for zone_kind, color in (("sdz", "red"), ("cdz", "blue")):
             for z in result.zones.get(zone_kind, []):
@@ -1009,16 +1070,23 @@ def plot_mrclam_trajectories(result: MRCLAMResult, path: Path) -> Path:
             ax.plot(est[:, r, 0], est[:, r, 1], "--", color=c, lw=0.8)
         rmse = result.estimators[name].overall["position_rmse"]
         label = "dead reckoning" if name == DEAD_RECKONING else name.upper()
-        ax.set_title(f"{label} (dashed) vs truth: RMSE {rmse:.3f} m", fontsize=10)
+        ax.set_title(f"{label}: RMSE {rmse:.3f} m", fontsize=10)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(names) :]:
         ax.axis("off")
-    axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle(f"{result.info['dataset']}: {result.info['replayed_s']:.0f} s", fontsize=11)
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
+    fig.suptitle(
+        f"{result.info['dataset']}: {result.info['replayed_s']:.0f} s, truth solid, "
+        "estimate dashed",
+        fontsize=11,
+    )
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -1031,7 +1099,7 @@ def plot_mrclam_errors(result: MRCLAMResult, path: Path) -> Path:
     stride = max(round(0.1 / result.config.dt), 1)
     t = result.time[::stride]
     fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
-    with np.errstate(invalid="ignore"):
+    with _quiet_nan_warnings():
         for name, est in result.estimators.items():
             c = ESTIMATOR_COLORS.get(name)
             label = "dead reckoning" if name == DEAD_RECKONING else name.upper()
@@ -1057,6 +1125,7 @@ def plot_mrclam_errors(result: MRCLAMResult, path: Path) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper left")
     axes[0].set_yscale("log")
+    axes[0].set_ylim(bottom=1e-3)
     axes[0].set_title(f"{result.info['dataset']}: errors against ground truth")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -12,11 +12,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from resloc.cl.connectivity import DistributedLambda2
+from resloc.cl.fusion import FusionMethod, propagate_independent
 from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
+from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import msle, nees, position_rmse, rate
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
+from resloc.models.motion import process_noise
+from resloc.world.adversary import stealthy_tamper
+from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
 __all__ = ["DEAD_RECKONING", "EstimatorResult", "RunResult", "run_scenario"]
@@ -157,6 +164,7 @@ def run_scenario(
     seed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     metric_stride: int = 1,
+    params: CLParams | None = None,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -171,6 +179,9 @@ def run_scenario(
         Called after every step.
     metric_stride : int
         Compute the O(N^2) MSLE/NEES/RMSE every ``metric_stride`` steps (others ``nan``).
+    params : CLParams, optional
+        Estimator parameters to use instead of ``scenario.cl_params()`` (e.g. per-robot
+        detector thresholds ``(T * N,)`` to sweep a threshold over the trials of one run).
 
     Returns
     -------
@@ -185,10 +196,19 @@ def run_scenario(
             changes["run.seed"] = int(seed)
         scenario = scenario.replace(**changes)
     run = scenario.run
-    world = World(scenario.world, run.trials, run.seed, scenario.trigger.lambda2)
-    params = scenario.cl_params()
+    distributed = scenario.trigger.lambda2 == "distributed"
+    # With distributed estimates the world still computes the true (component) lambda2,
+    # which is only recorded, to measure the estimates' error.
+    world = World(
+        scenario.world,
+        run.trials,
+        run.seed,
+        "component" if distributed else scenario.trigger.lambda2,
+    )
+    params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
+    hooks = _Hooks(scenario, params, world, distributed)
     est = scenario.estimator
     tracks = [
         _Track(
@@ -202,6 +222,13 @@ def run_scenario(
         )
         for name in run.filters
     ]
+    split = params.fusion is FusionMethod.SPLIT_CI
+    tracked = params.fusion is FusionMethod.TRACKED
+    for tr in tracks:
+        if split:  # initial errors are independent across robots
+            tr.memory.independent = P0.copy()
+        if tracked:
+            tr.memory.joint = JointCovariance(P0, N)
     dr = None
     if run.dead_reckoning:
         dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
@@ -215,16 +242,47 @@ def run_scenario(
         candidates = np.bincount(team_i, minlength=T)
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
         record = (k + 1) % metric_stride == 0 or k == steps - 1
+        lambda2 = hooks.lambda2(ws)
         for tr in tracks:
             t0 = time.perf_counter()
+            if split:
+                tr.memory.independent = propagate_independent(
+                    tr.x,
+                    tr.memory.independent,
+                    ws.u_meas,
+                    dt,
+                    np.asarray(params.odometry_std),
+                    np.asarray(params.process_floor_std),
+                )
             xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
+            if tracked:  # the joint covariance is the authority on covariances
+                Pp = tr.memory.joint.predict(
+                    tr.x,
+                    ws.u_meas,
+                    dt,
+                    process_noise(
+                        tr.x,
+                        dt,
+                        np.asarray(params.odometry_std),
+                        np.asarray(params.process_floor_std),
+                    ),
+                )
             if scenario.trigger.risk_source is RiskSource.ESTIMATED:
                 risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
                 risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
             else:
                 risk_s, risk_c = ws.risk_s, ws.risk_c
             links = LinkBatch(
-                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, risk_s, risk_c, ws.lambda2
+                ws.i,
+                ws.j,
+                ws.z,
+                xp[ws.j],
+                Pp[ws.j],
+                ws.channel_ok,
+                risk_s,
+                risk_c,
+                lambda2,
+                **hooks.link_extras(ws, tr.memory),
             )
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
             tr.wall += time.perf_counter() - t0
@@ -247,8 +305,98 @@ def run_scenario(
         truth,
         dt * np.arange(1, steps + 1),
         time.perf_counter() - t_start,
-        {"robots": N, "trials": T},
+        {"robots": N, "trials": T, **hooks.meta()},
     )
+
+
+class _Hooks:
+    """Per-run extensions of the lockstep loop (issue 6, ``docs/beyond.md``).
+
+    * ``trigger.lambda2 = "distributed"``: every robot's own estimate of ``lambda2`` from a
+      :class:`~resloc.cl.connectivity.DistributedLambda2` run on the communication graph
+      (the world's true component value is kept to measure the error);
+    * ``attack.kind = "stealthy"``: a ``LinkBatch.tamper`` per estimator that injects the
+      largest bias that estimator's detector accepts, on the links the world marked attacked;
+    * ``estimator.fusion = "split_ci"``: the transmitted independent parts ``P_nb_ind``.
+
+    The cl layer never imports the world: it only calls the hooks it is given.
+    """
+
+    def __init__(self, scenario: Scenario, params: CLParams, world: World, distributed: bool):
+        self.params = params
+        self.world = world
+        self.attack = scenario.world.attack
+        self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
+        self.split = params.fusion is FusionMethod.SPLIT_CI
+        self.comm_radius = scenario.world.sensing.comm_radius
+        self.dl2: DistributedLambda2 | None = None
+        self.l2_true: list[float] = []
+        self.l2_est: list[float] = []
+        self.l2_abs_rel: list[float] = []
+        if distributed:
+            # Initial Fiedler-vector guesses drawn per trial (independent of the batching).
+            y0 = np.concatenate(
+                [
+                    np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
+                    for t in range(world.trials)
+                ]
+            )
+            self.dl2 = DistributedLambda2(
+                world.B, float(world.n), scenario.trigger.lambda2_rounds, y0=y0
+            )
+
+    def lambda2(self, ws) -> np.ndarray:
+        """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
+        if self.dl2 is None:
+            return ws.lambda2
+        p = ws.pose[:, :2]
+        in_comm = np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
+        est = self.dl2.step(ws.i[in_comm], ws.j[in_comm])
+        ok = ws.lambda2 > 0
+        self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else float("nan"))
+        self.l2_est.append(float(est[ok].mean()) if ok.any() else float("nan"))
+        rel = np.abs(est[ok] - ws.lambda2[ok]) / ws.lambda2[ok]
+        self.l2_abs_rel.append(float(rel.mean()) if ok.any() else float("nan"))
+        return est
+
+    def link_extras(self, ws, memory: LinkMemory) -> dict:
+        """Optional ``LinkBatch`` fields for this step and estimator."""
+        extra: dict = {}
+        if self.split:
+            extra["P_nb_ind"] = memory.independent[ws.j]
+        if self.stealthy:
+            p, a = self.params, self.attack
+            extra["tamper"] = stealthy_tamper(
+                ws.z,
+                ws.attacked,
+                ws.i,
+                np.asarray(a.stealth_direction, float),
+                a.stealth_margin,
+                np.asarray(a.bias, float),
+                p.detector,
+                p.detector_norm,
+                p.rho,
+                p.noise_std,
+                p.cusum_k if p.cusum else None,
+                a.stealth_knowledge,
+            )
+        return extra
+
+    def meta(self) -> dict:
+        """Run-level records: the distributed ``lambda2`` estimates against the truth."""
+        if self.dl2 is None:
+            return {}
+        return {
+            "lambda2": {
+                "true_mean": float(np.nanmean(self.l2_true)) if self.l2_true else float("nan"),
+                "estimate_mean": float(np.nanmean(self.l2_est)) if self.l2_est else float("nan"),
+                "abs_rel_error_mean": float(np.nanmean(self.l2_abs_rel))
+                if self.l2_abs_rel
+                else float("nan"),
+                "abs_rel_error_series": np.asarray(self.l2_abs_rel),
+                "messages": self.dl2.messages,
+            }
+        }
 
 
 def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:

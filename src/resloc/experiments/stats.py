@@ -194,26 +194,32 @@ def slopes(x, y, level: float = LEVEL) -> Estimate:
 
     Parameters
     ----------
-    x : array-like, shape (m,)
-        The swept values (numbers).
+    x : array-like, shape (m,) or (m, n)
+        The swept values (shared by all seeds), or one column of x values per seed (for
+        instance the measured communication rate of each seed).
     y : array-like, shape (m, n)
-        The measured value at each swept value for each of ``n`` seeds.
+        The measured value at each of the ``m`` points for each of ``n`` seeds.
 
     Returns
     -------
     Estimate
-        Of the ``n`` per-seed slopes (units of ``y`` per unit of ``x``).
+        Of the per-seed slopes (units of ``y`` per unit of ``x``); seeds with a non-finite
+        value or no spread in ``x`` are left out.
     """
-    x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
-    if y.ndim != 2 or y.shape[0] != x.size:
-        raise ValueError(f"slopes: y must have shape ({x.size}, n), got {y.shape}")
-    xc = x - x.mean()
-    denom = float((xc**2).sum())
-    if denom == 0.0:
-        return Estimate(float("nan"), float("nan"), 0, level)
-    ok = np.isfinite(y).all(axis=0)
-    per_seed = (xc[:, None] * (y[:, ok] - y[:, ok].mean(axis=0))).sum(axis=0) / denom
+    if y.ndim != 2:
+        raise ValueError(f"slopes: y must have shape (m, n), got {y.shape}")
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:
+        x = np.repeat(x[:, None], y.shape[1], axis=1)
+    if x.shape != y.shape:
+        raise ValueError(f"slopes: x has shape {x.shape}, y has shape {y.shape}")
+    ok = np.isfinite(y).all(axis=0) & np.isfinite(x).all(axis=0)
+    xc = x[:, ok] - x[:, ok].mean(axis=0)
+    yc = y[:, ok] - y[:, ok].mean(axis=0)
+    denom = (xc**2).sum(axis=0)
+    good = denom > 0
+    per_seed = (xc[:, good] * yc[:, good]).sum(axis=0) / denom[good]
     return mean_ci(per_seed, level)
 
 

@@ -25,11 +25,19 @@ class AttackKind(enum.StrEnum):
     ``random``: each component uniform in ``[-bias, +bias]``, drawn per measurement.
     ``gaussian``: zero-mean Gaussian with standard deviations ``bias`` (noise injection, as in
     the first author's public scripts).
+    ``stealthy``: the largest injection along ``attack.stealth_direction`` that the victim's
+    detector accepts (it knows robot i's predicted measurement, innovation covariance and
+    detector; :mod:`resloc.world.adversary`, applied by the runner through
+    ``LinkBatch.tamper``), bounded by ``bias``.
+    ``replay``: the same link's honest measurement from ``attack.replay_delay`` steps ago
+    (a link that did not exist then is not attacked).
     """
 
     FIXED = "fixed"
     RANDOM = "random"
     GAUSSIAN = "gaussian"
+    STEALTHY = "stealthy"
+    REPLAY = "replay"
 
 
 class LinkScope(enum.StrEnum):
@@ -114,6 +122,8 @@ def injection(kind: AttackKind, bias: np.ndarray, n: int, rng: np.random.Generat
     ndarray, shape (n, 2)
     """
     bias = np.asarray(bias, float)
+    if kind in (AttackKind.STEALTHY, AttackKind.REPLAY):
+        raise ValueError(f"attack kind {kind.value!r} is not an additive draw; see adversary.py")
     if kind is AttackKind.FIXED:
         return np.broadcast_to(bias, (n, 2)).copy()
     if kind is AttackKind.GAUSSIAN:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
+from resloc.world.adversary import StealthKnowledge
 from resloc.world.attacks import AttackKind, LinkScope
 from resloc.world.zones import RiskProfile
 
@@ -106,6 +107,17 @@ class AttackSpec:
         0.5, "share of attackable links when links = 'partial'", min=0.0, max=1.0
     )
     channel: ChannelRule = _f(ChannelRule.RECEIVER, "whose CDZ risk jams a link")
+    stealth_margin: float = _f(
+        0.9, "stealthy: drive each detector statistic to this fraction of its threshold",
+        gt=0.0, max=1.0,
+    )
+    stealth_direction: list = _f(
+        [0.0, 1.0], "stealthy: injection direction [range, bearing] (bearing by default)"
+    )
+    stealth_knowledge: StealthKnowledge = _f(
+        StealthKnowledge.FULL, "stealthy: evade every test (full) or only the gate (gate)"
+    )
+    replay_delay: int = _f(60, "replay: age of the replayed measurement (steps)", min=1)
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.angles import wrap_angle
-from resloc.cl.graph import component_lambda2
+from resloc.cl.graph import Lambda2Memo, component_lambda2
 from resloc.models.measurement import range_bearing
 from resloc.models.motion import unicycle_step
-from resloc.world.attacks import apply_injection, attackable_links, injection
+from resloc.world.adversary import ReplayBuffer
+from resloc.world.attacks import AttackKind, apply_injection, attackable_links, injection
 from resloc.world.control import LeaderPath, lattice_offsets, si_to_unicycle
 from resloc.world.network import radius_links
 from resloc.world.spec import ChannelRule, FormationFrame, WorldSpec, ZoneSpec
@@ -118,6 +119,11 @@ class World:
         self.pose = self._initial_poses()
         self._l2_key: tuple | None = None
         self._l2: np.ndarray = np.zeros(self.B)
+        self._replay = (
+            ReplayBuffer(spec.attack.replay_delay, self.B)
+            if spec.attack.kind is AttackKind.REPLAY
+            else None
+        )
 
     # ------------------------------------------------------------------ set-up
     def _desired(self, t: float) -> tuple[np.ndarray, float]:
@@ -202,7 +208,16 @@ class World:
                 self.rid[i], self.rid[j], att.links, att.link_fraction, self.seed
             )
             attacked = can & (u_att < risk_s[i])
-            if attacked.any():
+            if att.kind is AttackKind.REPLAY:
+                # The same link's honest measurement from replay_delay steps ago.
+                found, z_old = self._replay.replayed(i, j)
+                attacked &= found
+                honest = z.copy()
+                z[attacked] = z_old[attacked]
+                self._replay.record(i, j, honest)
+            elif att.kind is AttackKind.STEALTHY:
+                pass  # injected per victim by the runner's LinkBatch.tamper (adversary.py)
+            elif attacked.any():
                 per_trial = np.bincount(self.team[i][attacked], minlength=self.trials)
                 gamma = np.vstack(
                     [
@@ -230,9 +245,13 @@ class World:
         )
 
     def _lambda2(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """Per-robot ``lambda2``, recomputed only when the communication graph changes."""
+        """Per-robot ``lambda2``, recomputed only when the communication graph changes, and
+        then only for the large components that changed (a :class:`Lambda2Memo`)."""
         key = (len(i), hash(i.tobytes()), hash(j.tobytes()))
         if key != self._l2_key:
-            self._l2 = component_lambda2(i, j, self.B, self.lambda2_mode, group=self.team)
+            memo = self.__dict__.setdefault("_l2_memo", Lambda2Memo())
+            self._l2 = component_lambda2(
+                i, j, self.B, self.lambda2_mode, group=self.team, memo=memo
+            )
             self._l2_key = key
         return self._l2

@@ -1,0 +1,257 @@
+"""Cross-covariance tracking: the team's joint covariance, kept exactly (to first order).
+
+The ``tracked`` fusion method. A relative update of robot i from neighbour j's transmitted
+(predicted) estimate is a Schmidt-Kalman update of ``x_i`` that *uses* the cross-covariance
+``C_ij = cov(e_i, e_j)`` instead of assuming it is 0 (naive) or bounding it (CI):
+
+the moments of ``z_ij`` come from the joint ``[[P_i, C_ij], [C_ij^T, P_j]]`` (sigma points of
+the filter's own rule drawn from it, or the EKF's linearization), then the shared Kalman
+update of ``x_i`` only (``x_j`` is a "consider" state: the paper's protocol updates the
+observer only).
+
+Bookkeeping over one step, as in the recursive decentralized CL of Luft, Schubert,
+Roumeliotis & Burgard (IJRR 2018), which factorizes the same quantities so that each robot
+stores only its own part: after the prediction the joint covariance of the predicted errors
+``Sigma`` (``3N x 3N`` per team) is known; every robot's current error is a linear map of the
+predicted errors plus its own measurement noise, ``e_i = M_i e_pred + w_i``. An update of i
+from j (whose *predicted* estimate was transmitted) maps ``M_i <- (I - K H_i) M_i - K H_j E_j``
+(``w_i``, i's own measurement noise, is independent of every other robot), and gives
+``C_ij = M_i Sigma[:, j]``. At the end of the step the off-diagonal blocks become
+``M Sigma M^T`` and the diagonal blocks the filters' corrected ``P_i``; the next prediction
+maps ``Sigma_il <- F_i Sigma_il F_l^T`` (the diagonal: the filters' predicted ``P_i``).
+
+This is the centralized-equivalent bookkeeping: it needs the team's joint covariance, which a
+distributed team does not have. Luft et al.'s factorization ``Sigma_il = sigma_il sigma_li^T``
+with an approximation for third robots is its distributed realization (not implemented here;
+``docs/beyond.md``). It is the reference for what cross-covariance tracking can achieve.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from resloc.angles import circular_mean, wrap_angle
+from resloc.filters.base import Moments
+from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
+from resloc.models.measurement import range_bearing, range_bearing_jacobians
+from resloc.models.motion import unicycle_state_jacobian
+
+__all__ = ["JointCovariance"]
+
+
+class JointCovariance:
+    """The joint covariance of T independent teams of N robots, with one step's bookkeeping.
+
+    Robot ``b`` of the batch is robot ``b % N`` of team ``b // N`` (the simulator's layout).
+
+    Parameters
+    ----------
+    P0 : ndarray, shape (T * N, 3, 3)
+        Initial covariances (initial errors independent across robots).
+    robots : int
+        Team size N.
+    """
+
+    def __init__(self, P0: np.ndarray, robots: int) -> None:
+        B = P0.shape[0]
+        self.N = int(robots)
+        if B % self.N:
+            raise ValueError(f"batch of {B} robots is not a multiple of the team size {self.N}")
+        self.T = B // self.N
+        n3 = 3 * self.N
+        self.sigma = np.zeros((self.T, n3, n3))
+        self._set_diagonal(self.sigma, P0)
+        self._start_step()
+
+    # ------------------------------------------------------------------ layout helpers
+    def _set_diagonal(self, sigma: np.ndarray, P: np.ndarray) -> None:
+        v = sigma.reshape(self.T, self.N, 3, self.N, 3)
+        r = np.arange(self.N)
+        v[:, r, :, r, :] = np.swapaxes(P.reshape(self.T, self.N, 3, 3), 0, 1)
+
+    def _start_step(self) -> None:
+        B, n3 = self.T * self.N, 3 * self.N
+        self.M = np.zeros((B, 3, n3))
+        b = np.arange(B)
+        local = b % self.N
+        for a in range(3):
+            self.M[b, a, 3 * local + a] = 1.0
+        self.noise = np.zeros((B, 3, 3))
+
+    # ------------------------------------------------------------------ step
+    def predict(self, x: np.ndarray, u: np.ndarray, dt: float, Q: np.ndarray) -> np.ndarray:
+        """Time update ``Sigma <- F Sigma F^T + blockdiag(Q)`` (eqs. 1-2, linearized at ``x``).
+
+        Parameters
+        ----------
+        x : ndarray, shape (B, 3)
+            Estimates before the prediction.
+        u : ndarray, shape (B, 2)
+            Measured odometry.
+        dt : float
+        Q : ndarray, shape (B, 3, 3)
+            Process noise.
+
+        Returns
+        -------
+        ndarray, shape (B, 3, 3)
+            The predicted covariances ``P_i`` (the diagonal blocks), which the filters use.
+        """
+        F = unicycle_state_jacobian(x, u, dt).reshape(self.T, self.N, 3, 3)
+        v = self.sigma.reshape(self.T, self.N, 3, self.N, 3)
+        v = np.einsum("tiab,tibjc,tjdc->tiajd", F, v, F)
+        v[:, np.arange(self.N), :, np.arange(self.N), :] += np.swapaxes(
+            Q.reshape(self.T, self.N, 3, 3), 0, 1
+        )
+        self.sigma = symmetrize(v.reshape(self.sigma.shape))
+        self._start_step()
+        return self.diagonal()
+
+    def diagonal(self) -> np.ndarray:
+        """The diagonal blocks ``P_i``, shape (B, 3, 3)."""
+        v = self.sigma.reshape(self.T, self.N, 3, self.N, 3)
+        r = np.arange(self.N)
+        return np.swapaxes(v[:, r, :, r, :], 0, 1).reshape(-1, 3, 3).copy()
+
+    def cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``cov(e_i now, e_j predicted)`` for links ``(i, j)`` (batch indices).
+
+        Returns
+        -------
+        ndarray, shape (E, 3, 3)
+        """
+        t = i // self.N
+        cols = 3 * (j % self.N)[:, None] + np.arange(3)[None, :]  # (E, 3)
+        n3 = np.arange(3 * self.N)[None, :, None]
+        sig_cols = self.sigma[t[:, None, None], n3, cols[:, None, :]]  # (E, 3N, 3)
+        return self.M[i] @ sig_cols
+
+    def current(self, i: np.ndarray) -> np.ndarray:
+        """Current covariances ``P_i = M_i Sigma M_i^T + cov(w_i)`` of robots ``i``, (E, 3, 3)."""
+        t = i // self.N
+        Mi = self.M[i]
+        return symmetrize(Mi @ self.sigma[t] @ np.swapaxes(Mi, -1, -2) + self.noise[i])
+
+    def moments(
+        self,
+        filt,
+        x_i: np.ndarray,
+        x_j: np.ndarray,
+        i: np.ndarray,
+        j: np.ndarray,
+        R: np.ndarray,
+    ) -> Moments:
+        """Moments of ``z_ij`` under the tracked joint ``[[P_i, C_ij], [C_ij^T, P_j]]``.
+
+        A sigma-point filter draws its 6-D points (its own rule) from the full joint
+        covariance; the EKF linearizes: ``S = H J H^T + R``, ``P^xz = J[:3] H^T``.
+
+        Parameters
+        ----------
+        filt : GaussianFilter
+        x_i : ndarray, shape (E, 3)
+            Current estimates of the observers.
+        x_j : ndarray, shape (E, 3)
+            Transmitted (predicted) estimates.
+        i, j : ndarray of int, shape (E,)
+            Batch indices.
+        R : ndarray, shape (2, 2)
+
+        Returns
+        -------
+        Moments
+            Without Jacobians: the update is ``P - K S K^T``; the covariances themselves come
+            from the bookkeeping (:meth:`update`).
+        """
+        E = len(i)
+        J = np.zeros((E, 6, 6))
+        C = self.cross(i, j)
+        J[:, :3, :3] = self.current(i)
+        J[:, :3, 3:] = C
+        J[:, 3:, :3] = np.swapaxes(C, -1, -2)
+        J[:, 3:, 3:] = self._block(j)
+        J = symmetrize(J)
+        rule = getattr(filt, "rule6", None)
+        if rule is None:  # EKF: linearization
+            H_i, H_j = range_bearing_jacobians(x_i, x_j)
+            H = np.concatenate([H_i, H_j], axis=2)  # (E, 2, 6)
+            S = H @ J @ np.swapaxes(H, -1, -2) + R
+            Pxz = J[:, :3, :] @ np.swapaxes(H, -1, -2)
+            return Moments(range_bearing(x_i, x_j), symmetrize(S), Pxz)
+        L = cholesky_jitter(J)
+        offsets = np.einsum("bij,mj->bmi", L, rule.unit)  # (E, m, 6)
+        Z = range_bearing(x_i[:, None, :] + offsets[..., :3], x_j[:, None, :] + offsets[..., 3:])
+        z_hat = np.empty((E, 2))
+        z_hat[:, 0] = Z[..., 0] @ rule.Wm
+        z_hat[:, 1] = (
+            circular_mean(Z[..., 1], rule.Wm)
+            if getattr(filt, "circular", True)
+            else wrap_angle(Z[..., 1] @ rule.Wm)
+        )
+        dZ = Z - z_hat[:, None, :]
+        dZ[..., 1] = wrap_angle(dZ[..., 1])
+        dX = offsets[..., :3] - np.einsum("bmi,m->bi", offsets[..., :3], rule.Wm)[:, None, :]
+        S = np.einsum("bmi,m,bmj->bij", dZ, rule.Wc, dZ) + R
+        Pxz = np.einsum("bmi,m,bmj->bij", dX, rule.Wc, dZ)
+        return Moments(z_hat, symmetrize(S), Pxz)
+
+    def _block(self, j: np.ndarray) -> np.ndarray:
+        """Predicted covariances ``Sigma_jj`` of robots ``j``, (E, 3, 3)."""
+        t = j // self.N
+        c = 3 * (j % self.N)[:, None] + np.arange(3)[None, :]
+        return self.sigma[t[:, None, None], c[:, :, None], c[:, None, :]]
+
+    def update(
+        self,
+        i: np.ndarray,
+        j: np.ndarray,
+        x_i: np.ndarray,
+        x_j: np.ndarray,
+        m: Moments,
+        R: np.ndarray,
+    ) -> np.ndarray:
+        """Record the updates of observers ``i`` (distinct) from ``j``'s predicted estimates.
+
+        ``e_i <- (I - K H_i) e_i - K H_j e_j,pred - K v`` with the gain ``K = P^xz S^{-1}`` of
+        the moments ``m`` the update used (:meth:`moments`) and the Jacobians at the means.
+
+        Returns
+        -------
+        ndarray, shape (E, 3, 3)
+            The observers' covariances after the update (positive semi-definite by
+            construction for any gain).
+        """
+        K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
+        H_i, H_j = range_bearing_jacobians(x_i, x_j)
+        IKH = np.eye(3) - K @ H_i
+        Mi = IKH @ self.M[i]
+        cols = 3 * (j % self.N)[:, None] + np.arange(3)[None, :]  # (E, 3)
+        e = np.arange(len(i))[:, None, None]
+        Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= K @ H_j
+        self.M[i] = Mi
+        self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
+            K, -1, -2
+        )
+        return self.current(i)
+
+    def finish(self) -> np.ndarray:
+        """End of the correction: ``Sigma <- M Sigma M^T + blockdiag(cov w)``.
+
+        Returns
+        -------
+        ndarray, shape (B, 3, 3)
+            The corrected covariances ``P_i`` (the diagonal blocks), which the filters keep.
+            For the EKF they equal the filter's own ``P - K S K^T``; for the sigma-point
+            filters they are its first-order counterpart, which keeps the joint covariance
+            positive semi-definite by construction (mixing the points' ``P_i`` with
+            linearized cross-covariances does not).
+        """
+        M = self.M.reshape(self.T, self.N * 3, 3 * self.N)
+        sigma = M @ self.sigma @ np.swapaxes(M, -1, -2)
+        v = sigma.reshape(self.T, self.N, 3, self.N, 3)
+        v[:, np.arange(self.N), :, np.arange(self.N), :] += np.swapaxes(
+            self.noise.reshape(self.T, self.N, 3, 3), 0, 1
+        )
+        self.sigma = symmetrize(sigma)
+        self._start_step()
+        return self.diagonal()

@@ -1,0 +1,244 @@
+"""``resloc mrclam``: replay a UTIAS MRCLAM dataset through the CL estimators."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import enum
+import sys
+from pathlib import Path
+
+import typer
+
+from resloc.cl.detector import InnovationNorm
+from resloc.cli.common import handle_errors
+
+__all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
+
+
+class FilterChoice(enum.StrEnum):
+    """Filter selection on the command line."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+    ALL = "all"
+
+
+def _fmt(v, spec: str = ".4g") -> str:
+    return "-" if v is None or v != v else format(v, spec)
+
+
+def print_mrclam_summary(result, console=None) -> None:
+    """Print the overall and per-robot tables of an MRCLAM replay."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+    info, cfg = result.info, result.config
+    title = (
+        f"{info['dataset']}: {info['replayed_s']:.1f} s, dt {cfg.dt} s, "
+        f"landmarks {'on' if cfg.landmarks else 'off'}, zones {'on' if cfg.zones else 'off'}"
+    )
+    table = Table(title=title)
+    columns = ("estimator", "RMSE m", "head. deg", "MSLE", "NEES", "comm", "prec.", "recall")
+    for col in columns:
+        table.add_column(col, justify="left" if col == "estimator" else "right")
+    for name, s in result.summary().items():
+        table.add_row(
+            "DR" if name == "dr" else name.upper(),
+            _fmt(s["position_rmse"], ".3f"),
+            _fmt(s["heading_rmse_deg"], ".2f"),
+            _fmt(s["msle_mean"], ".4f"),
+            _fmt(s["nees_mean"], ".3g"),
+            _fmt(s["comm_rate"], ".3f"),
+            _fmt(s["detector_precision"], ".3f"),
+            _fmt(s["detector_recall"], ".3f"),
+        )
+    console.print(table)
+    per = Table(title="position RMSE (m) per robot; DR = dead reckoning (odometry only)")
+    per.add_column("estimator")
+    for subject in result.robots:
+        per.add_column(f"robot {subject}", justify="right")
+    for name, est in result.estimators.items():
+        per.add_row(
+            "DR" if name == "dr" else name.upper(),
+            *(_fmt(v, ".3f") for v in est.per_robot["position_rmse"]),
+        )
+    console.print(per)
+    skipped = {k: v for k, v in info["rows_skipped"].items() if v}
+    if skipped:
+        console.print(
+            "rows skipped while loading: " + ", ".join(f"{k} {v}" for k, v in skipped.items())
+        )
+    if cfg.zones:
+        console.print(
+            f"attack layer: {info['attacked']} robot-robot measurements falsified in the SDZ, "
+            f"{info['jammed']} transmissions jammed in the CDZ (seed {cfg.seed})"
+        )
+
+
+def noise_command(path: Path, duration: float | None) -> dict:
+    """Print the noise of the dataset's sensors against its ground truth."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from resloc.datasets.mrclam import load_mrclam
+    from resloc.experiments.mrclam import estimate_noise
+
+    data = load_mrclam(path, duration=duration)
+    noise = estimate_noise(data)
+    table = Table(title=f"{data.name}: sensor noise against ground truth (std: robust / plain)")
+    for col in ("sensor", "n", "range (m)", "range / range", "bearing (rad)"):
+        table.add_column(col, justify="left" if col == "sensor" else "right")
+    for kind in ("robot", "landmark"):
+        s = noise[kind]
+        table.add_row(
+            f"{kind} sightings",
+            str(s["n"]),
+            f"{_fmt(s['range_std_robust'], '.3f')} / {_fmt(s['range_std'], '.3f')}",
+            _fmt(s["range_std_rel_robust"], ".3f"),
+            f"{_fmt(s['bearing_std_robust'], '.4f')} / {_fmt(s['bearing_std'], '.4f')}",
+        )
+    Console().print(table)
+    o = noise["odometry"]
+    print(
+        f"odometry ({o['n']} windows of 1 s): v density {_fmt(o['v_density'], '.4f')} m/s*sqrt(s) "
+        f"(robust {_fmt(o['v_density_robust'], '.4f')}), omega density "
+        f"{_fmt(o['omega_density'], '.4f')} rad/s*sqrt(s) "
+        f"(robust {_fmt(o['omega_density_robust'], '.4f')})"
+    )
+    return noise
+
+
+def mrclam_command(
+    path: Path, out: Path | None, overwrite: bool, plots: bool, progress: bool, **kw
+):
+    """Validate, replay, print, save. ``kw`` are :class:`MRCLAMConfig` fields."""
+    from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam, save_mrclam
+    from resloc.experiments.output import atomic_output_dir, check_output_dir
+
+    config = MRCLAMConfig(**kw)
+    if out is None:
+        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = Path("runs") / f"mrclam-{Path(path).name}-{stamp}"
+    check_output_dir(out, overwrite)
+    if plots:
+        from resloc.experiments.plots import pyplot
+
+        pyplot()  # fail early if matplotlib is missing
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    err = Console(stderr=True)
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} steps"),
+        TimeRemainingColumn(),
+        console=err,
+        transient=True,
+        disable=not progress,
+    ) as bar:
+        tasks: dict[str, int] = {}
+
+        def report(name: str, k: int, n: int) -> None:
+            if name not in tasks:
+                label = "dead reckoning" if name == "dr" else name.upper()
+                tasks[name] = bar.add_task(label, total=n)
+            bar.update(tasks[name], completed=k)
+
+        result = run_mrclam(path, config, progress=report)
+    print_mrclam_summary(result)
+    with atomic_output_dir(out, overwrite) as tmp:
+        save_mrclam(result, tmp, plots=plots)
+    print(f"results written to {out}/ (summary.json, per_robot.csv, timeseries.csv, plots)")
+    return result
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``mrclam`` command to ``app``."""
+
+    @app.command("mrclam")
+    @handle_errors
+    def mrclam(
+        path: Path = typer.Argument(
+            ..., help="An MRCLAM dataset folder in the official format (MRCLAM_Dataset1..9)."
+        ),
+        filter: FilterChoice = typer.Option(
+            FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
+        ),
+        landmarks: bool = typer.Option(
+            True, "--landmarks/--no-landmarks", help="Fuse landmark sightings as anchors."
+        ),
+        zones: bool = typer.Option(
+            False, "--zones/--no-zones", help="Adversarial SDZ/CDZ in the arena."
+        ),
+        sdz: tuple[float, float, float] | None = typer.Option(
+            None, "--sdz", help="SDZ disc X Y RADIUS (m) [default: placed automatically]."
+        ),
+        cdz: tuple[float, float, float] | None = typer.Option(
+            None, "--cdz", help="CDZ disc X Y RADIUS (m) [default: placed automatically]."
+        ),
+        duration: float | None = typer.Option(
+            None, "--duration", help="Replay only the first S seconds [default: all]."
+        ),
+        dt: float = typer.Option(0.02, "--dt", help="Replay step (s)."),
+        seed: int = typer.Option(0, "--seed", "-s", min=0, help="Seed of attacks and jamming."),
+        rho: float = typer.Option(1.0, "--rho", help="Attack-detector threshold."),
+        detector_norm: InnovationNorm = typer.Option(
+            InnovationNorm.EUCLIDEAN, "--detector-norm", help="Norm the detector thresholds."
+        ),
+        detector: bool = typer.Option(True, "--detector/--no-detector", help="Attack detector."),
+        trigger: bool = typer.Option(
+            True, "--trigger/--no-trigger", help="Event trigger (off: transmit every link)."
+        ),
+        range_std: float = typer.Option(0.03, "--range-std", help="Range noise floor (m)."),
+        range_std_rel: float = typer.Option(
+            0.07, "--range-std-rel", help="Range noise per metre of range."
+        ),
+        bearing_std: float = typer.Option(0.015, "--bearing-std", help="Bearing noise (rad)."),
+        attack_bias: tuple[float, float] = typer.Option(
+            (0.4, 0.8), "--attack-bias", help="Injection bound: RANGE (m) BEARING (rad)."
+        ),
+        out: Path | None = typer.Option(
+            None, "--out", "-o", help="Output directory [default: runs/mrclam-<name>-<time>]."
+        ),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
+        progress: bool = typer.Option(
+            True, "--progress/--no-progress", help="Show progress bars on stderr."
+        ),
+        estimate_noise: bool = typer.Option(
+            False,
+            "--estimate-noise",
+            help="Only print the sensor noise measured against ground truth, then exit.",
+        ),
+    ) -> None:
+        """Cooperative localization on a real MRCLAM dataset, scored against ground truth."""
+        if estimate_noise:
+            noise_command(path, duration)
+            return
+        filters = ("ckf", "ukf", "ekf") if filter is FilterChoice.ALL else (filter.value,)
+        mrclam_command(
+            path,
+            out,
+            overwrite,
+            plots,
+            progress and sys.stderr.isatty(),
+            filters=filters,
+            dt=dt,
+            duration=duration,
+            landmarks=landmarks,
+            zones=zones,
+            sdz=sdz,
+            cdz=cdz,
+            seed=seed,
+            rho=rho,
+            detector_norm=detector_norm,
+            detector=detector,
+            trigger=trigger,
+            range_std=range_std,
+            range_std_rel=range_std_rel,
+            bearing_std=bearing_std,
+            attack_bias=attack_bias,
+        )

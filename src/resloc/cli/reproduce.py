@@ -1,0 +1,99 @@
+"""``resloc reproduce``: every experiment of the paper, one command, one report."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import sys
+from pathlib import Path
+
+import typer
+
+from resloc.cli.common import handle_errors
+
+__all__ = ["register", "reproduce_command"]
+
+
+def reproduce_command(
+    seeds: int | None,
+    steps: int | None,
+    jobs: int | None,
+    quick: bool,
+    out: Path | None,
+    overwrite: bool,
+    progress: bool,
+):
+    """Run every experiment, write the report, print where it is and the claims table."""
+    from resloc.cli.sweep import default_jobs, progress_bar
+    from resloc.experiments.output import atomic_output_dir, check_output_dir
+    from resloc.experiments.plots import pyplot
+    from resloc.experiments.reproduce import run_reproduction, write_reproduction
+
+    if out is None:
+        out = Path("runs") / f"reproduce-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    check_output_dir(out, overwrite)
+    pyplot()  # the report needs matplotlib: fail before the runs if it is missing
+    jobs = jobs or default_jobs()
+    with progress_bar("reproducing the paper's experiments", progress) as update:
+        rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, jobs=jobs, progress=update)
+    status = contextlib.nullcontext()
+    if progress:
+        from rich.console import Console
+
+        status = Console(stderr=True).status("writing the report (figures, tables)")
+    with status, atomic_output_dir(out, overwrite) as tmp:
+        claims, _ = write_reproduction(rep, tmp)
+    print_claims(claims, rep)
+    print(f"report written to {out}/report.md and {out}/report.html")
+    return rep, claims
+
+
+def print_claims(claims, rep) -> None:
+    """The short claims table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(
+        title=f"paper claims vs measured ({rep.seeds} seeds, {rep.steps} steps, "
+        f"{rep.wall_time:.0f} s{', quick' if rep.quick else ''})"
+    )
+    table.add_column("figure")
+    table.add_column("claim")
+    table.add_column("verdict")
+    style = {"holds": "green", "does not hold": "red", "inconclusive": "yellow"}
+    for c in claims:
+        v = c.verdict.value
+        table.add_row(c.figure, c.short, f"[{style[v]}]{v}[/]")
+    Console(width=None if sys.stdout.isatty() else 110).print(table)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``reproduce`` to ``app``."""
+
+    @app.command("reproduce")
+    @handle_errors
+    def reproduce(
+        seeds: int | None = typer.Option(
+            None, "--seeds", min=2, help="Seeds per experiment [default: 10; 2 with --quick]."
+        ),
+        jobs: int | None = typer.Option(
+            None, "--jobs", "-j", min=1, help="Worker processes [default: CPUs]."
+        ),
+        quick: bool = typer.Option(
+            False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
+        ),
+        steps: int | None = typer.Option(
+            None, "--steps", min=1, help="Steps per run [default: the scenario's]."
+        ),
+        out: Path | None = typer.Option(
+            None, "--out", "-o", help="Output directory [default: runs/reproduce-<timestamp>]."
+        ),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        progress: bool = typer.Option(
+            True, "--progress/--no-progress", help="Show a progress bar on stderr."
+        ),
+    ) -> None:
+        """Re-run every experiment of the paper over seeds and write report.md/report.html."""
+        reproduce_command(
+            seeds, steps, jobs, quick, out, overwrite, progress and sys.stderr.isatty()
+        )
