@@ -651,7 +651,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="reduced sizes (smoke test)")
     ap.add_argument("--out", type=Path, default=HERE / "results.json")
     ap.add_argument("--no-soak", action="store_true")
+    ap.add_argument(
+        "--markdown", type=Path, metavar="RESULTS", help="print RESULTS (json) as Markdown, exit"
+    )
     args = ap.parse_args(argv)
+    if args.markdown:
+        print(markdown_table(json.loads(args.markdown.read_text())))
+        return 0
 
     quick = args.quick
     sizes = [17, 100, 1000] if quick else [17, 100, 1000, 10_000]
@@ -762,6 +768,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warning: load average {load:.1f}: other processes shared the cores; rerun idle")
     print(f"\nwritten {args.out} in {results['seconds']:.0f} s")
     return 0
+
+
+def markdown_table(res: dict) -> str:
+    """The results as the Markdown table of ``docs/performance.md``."""
+    lines = [
+        "| filter | case | neighbours | step (ms) | robot-steps/s | FilterPy robot-steps/s "
+        "| speed-up | x lower bound | predict share | peak B/robot |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in res["rows"]:
+        fp = r.get("filterpy_robot_steps_per_s")
+        fp_s = f"{fp:,.0f}" if fp else "-"
+        up_s = f"{r['speedup_vs_filterpy']:,.0f}x" if fp else "-"
+        lines.append(
+            f"| {r['filter'].upper()} | {r['case']} | {r['degree']:.1f} | {r['step_s'] * 1e3:.3g} "
+            f"| {r['robot_steps_per_s']:,.0f} | {fp_s} | {up_s} "
+            f"| {r['x_lower_bound']:.0f} | {100 * r['phases_s']['predict'] / r['step_s']:.0f} % "
+            f"| {r['peak_step_bytes_per_robot']:,.0f} |"
+        )
+    return "\n".join(lines)
 
 
 def print_table(res: dict) -> None:

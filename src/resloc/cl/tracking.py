@@ -113,24 +113,26 @@ class JointCovariance:
         r = np.arange(self.N)
         return np.swapaxes(v[:, r, :, r, :], 0, 1).reshape(-1, 3, 3).copy()
 
-    def cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    def _m_sigma(self) -> np.ndarray:
+        """``M_b Sigma`` of every robot, shape (B, 3, 3N) (one matrix product per team)."""
+        n3 = 3 * self.N
+        return (self.M.reshape(self.T, n3, n3) @ self.sigma).reshape(-1, 3, n3)
+
+    def cross(self, i: np.ndarray, j: np.ndarray, ms: np.ndarray | None = None) -> np.ndarray:
         """``cov(e_i now, e_j predicted)`` for links ``(i, j)`` (batch indices).
 
         Returns
         -------
         ndarray, shape (E, 3, 3)
         """
-        t = i // self.N
+        ms = self._m_sigma() if ms is None else ms
         cols = 3 * (j % self.N)[:, None] + np.arange(3)[None, :]  # (E, 3)
-        n3 = np.arange(3 * self.N)[None, :, None]
-        sig_cols = self.sigma[t[:, None, None], n3, cols[:, None, :]]  # (E, 3N, 3)
-        return self.M[i] @ sig_cols
+        return ms[i[:, None, None], np.arange(3)[None, :, None], cols[:, None, :]]
 
-    def current(self, i: np.ndarray) -> np.ndarray:
+    def current(self, i: np.ndarray, ms: np.ndarray | None = None) -> np.ndarray:
         """Current covariances ``P_i = M_i Sigma M_i^T + cov(w_i)`` of robots ``i``, (E, 3, 3)."""
-        t = i // self.N
-        Mi = self.M[i]
-        return symmetrize(Mi @ self.sigma[t] @ np.swapaxes(Mi, -1, -2) + self.noise[i])
+        ms = self._m_sigma() if ms is None else ms
+        return symmetrize(ms[i] @ np.swapaxes(self.M[i], -1, -2) + self.noise[i])
 
     def moments(
         self,
@@ -165,8 +167,9 @@ class JointCovariance:
         """
         E = len(i)
         J = np.zeros((E, 6, 6))
-        C = self.cross(i, j)
-        J[:, :3, :3] = self.current(i)
+        ms = self._m_sigma()
+        C = self.cross(i, j, ms)
+        J[:, :3, :3] = self.current(i, ms)
         J[:, :3, 3:] = C
         J[:, 3:, :3] = np.swapaxes(C, -1, -2)
         J[:, 3:, 3:] = self._block(j)
@@ -179,7 +182,7 @@ class JointCovariance:
             Pxz = J[:, :3, :] @ np.swapaxes(H, -1, -2)
             return Moments(range_bearing(x_i, x_j), symmetrize(S), Pxz)
         L = cholesky_jitter(J)
-        offsets = np.einsum("bij,mj->bmi", L, rule.unit)  # (E, m, 6)
+        offsets = rule.unit[None] @ np.swapaxes(L, -1, -2)  # (E, m, 6)
         Z = range_bearing(x_i[:, None, :] + offsets[..., :3], x_j[:, None, :] + offsets[..., 3:])
         z_hat = np.empty((E, 2))
         z_hat[:, 0] = Z[..., 0] @ rule.Wm
@@ -190,9 +193,10 @@ class JointCovariance:
         )
         dZ = Z - z_hat[:, None, :]
         dZ[..., 1] = wrap_angle(dZ[..., 1])
-        dX = offsets[..., :3] - np.einsum("bmi,m->bi", offsets[..., :3], rule.Wm)[:, None, :]
-        S = np.einsum("bmi,m,bmj->bij", dZ, rule.Wc, dZ) + R
-        Pxz = np.einsum("bmi,m,bmj->bij", dX, rule.Wc, dZ)
+        dX = offsets[..., :3] - (rule.Wm @ offsets[..., :3])[:, None, :]
+        dZw = np.swapaxes(dZ * rule.Wc[None, :, None], -1, -2)  # (E, 2, m)
+        S = dZw @ dZ + R
+        Pxz = np.swapaxes(dZw @ dX, -1, -2)
         return Moments(z_hat, symmetrize(S), Pxz)
 
     def _block(self, j: np.ndarray) -> np.ndarray:
