@@ -651,6 +651,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="reduced sizes (smoke test)")
     ap.add_argument("--out", type=Path, default=HERE / "results.json")
     ap.add_argument("--no-soak", action="store_true")
+    ap.add_argument("--repeat", type=int, default=2, help="rounds of timing (fastest kept)")
     ap.add_argument(
         "--markdown", type=Path, metavar="RESULTS", help="print RESULTS (json) as Markdown, exit"
     )
@@ -687,9 +688,34 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  default scenario {trials} x 17: mean degree {sc_batch.degree:.2f}", flush=True)
     cases = [(f"N={N}", scen[N]) for N in sizes] + [(f"17 x {trials} trials", sc_batch)]
 
+    # Every case is timed `repeat` times, in rounds over all cases, keeping the fastest
+    # (engine) and the fastest (FilterPy) of the rounds: other load on a shared machine
+    # comes and goes.
+    best_eng: dict = {}
+    best_fp: dict = {}
+    for rnd in range(args.repeat):
+        for kind in FILTERS:
+            for label, sc in cases:
+                eng = time_engine(kind, sc, params)
+                key = (kind, label)
+                if has_filterpy:
+                    fp = time_filterpy(kind, sc, params, eng, fp_robots, fp_steps)
+                    if (
+                        key not in best_fp
+                        or fp["robot_steps_per_s"] > best_fp[key]["robot_steps_per_s"]
+                    ):
+                        best_fp[key] = fp
+                eng.pop("_states")
+                if key not in best_eng or eng["step_s"] < best_eng[key]["step_s"]:
+                    best_eng[key] = eng
+                print(
+                    f"  round {rnd + 1}: {kind} {label:>16}: {eng['step_s'] * 1e3:9.3f} ms/step "
+                    f"{eng['robot_steps_per_s']:12,.0f} robot-steps/s",
+                    flush=True,
+                )
     for kind in FILTERS:
         for label, sc in cases:
-            eng = time_engine(kind, sc, params)
+            eng = best_eng[(kind, label)]
             row = {
                 "filter": kind,
                 "case": label,
@@ -697,14 +723,14 @@ def main(argv: list[str] | None = None) -> int:
                 "trials": sc.trials,
                 "batch": sc.B,
                 "degree": sc.degree,
-                **{k: v for k, v in eng.items() if not k.startswith("_")},
+                **eng,
             }
             row.update(step_memory(kind, sc, params))
             lb = lower_bound(kind, sc.B, eng["links_per_step"], eng["fused_per_step"], peak)
             row.update(lb)
             row["x_lower_bound"] = eng["step_s"] / lb["lower_bound_s"]
             if has_filterpy:
-                fp = time_filterpy(kind, sc, params, eng, fp_robots, fp_steps)
+                fp = best_fp[(kind, label)]
                 row["filterpy_robot_steps_per_s"] = fp["robot_steps_per_s"]
                 row["filterpy_robots_timed"] = fp["robots"]
                 row["filterpy_max_abs_diff"] = fp["max_abs_diff"]
@@ -714,12 +740,6 @@ def main(argv: list[str] | None = None) -> int:
                 row["world_lambda2_s"] = float(np.median(sc.t_lambda2))
             row["world_step_s"] = float(np.median(sc.t_world))
             rows.append(row)
-            print(
-                f"  {kind} {label:>16}: {eng['step_s'] * 1e3:9.3f} ms/step "
-                f"{eng['robot_steps_per_s']:12,.0f} robot-steps/s"
-                + (f"  x{row['speedup_vs_filterpy']:,.0f} vs FilterPy" if has_filterpy else ""),
-                flush=True,
-            )
     # The numpy reference path, for context.
     reference = {}
     with kernels.use_backend("numpy"):
@@ -764,7 +784,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(json.dumps(results, indent=2) + "\n")
     print_table(results)
     load = max(info["load_average_at_start"], results["load_average_at_end"])
-    if load > (os.cpu_count() or 1) - 0.5:
+    if load > (os.cpu_count() or 1):  # this process counts for 1
         print(f"warning: load average {load:.1f}: other processes shared the cores; rerun idle")
     print(f"\nwritten {args.out} in {results['seconds']:.0f} s")
     return 0

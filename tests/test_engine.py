@@ -213,6 +213,20 @@ def test_kernel_raises_like_the_reference_on_a_nan_covariance() -> None:
 
 
 @needs_numba
+def test_inconsistent_shapes_go_to_the_reference_which_raises() -> None:
+    """The compiled loop does not bounds-check: bad input never reaches it."""
+    x, P, links = random_batch(8)
+    short = replace(links, lambda2=links.lambda2[:3])
+    params = PARAM_CASES["paper"]
+    with kernels.use_backend("numba"):
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, short, params) is None
+        with pytest.raises(IndexError):
+            correct(FILTERS["ckf"], x, P, short, params)
+        few_gains = replace(params, rho=np.ones(3))
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, few_gains) is None
+
+
+@needs_numba
 def test_uncovered_options_fall_back_to_the_reference() -> None:
     x, P, links = random_batch(7)
     base = PARAM_CASES["paper"]

@@ -17,6 +17,11 @@ and raises an alarm while ``g_k > h``. Under no attack ``E[NIS] = 2 < k`` and ``
 0; a bias that lifts the mean NIS above ``k`` drives ``g`` over ``h`` in about
 ``h / (E[NIS] - k)`` measurements. The cap bounds the statistic so that a link is released
 about ``(cap - h) / (k - 2)`` honest measurements after an attack ends.
+
+While a link alarms, the CL step (:func:`resloc.cl.step.correct`) discards its measurements
+whose own NIS exceeds ``k``: the gate tightens from ``chi2.ppf(1 - p_fa, 2)`` to ``k`` instead of
+closing the link, so the honest measurements of an intermittently attacked link (an SDZ
+falsifies each with probability ``Ds(i)``) keep the robot localized.
 """
 
 from __future__ import annotations

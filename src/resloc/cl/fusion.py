@@ -77,15 +77,19 @@ class CICriterion(enum.StrEnum):
 
 
 #: Candidate CI weights (the optimum is then refined by one parabolic step).
-CI_GRID = np.linspace(0.02, 0.98, 49)
+CI_GRID = np.linspace(0.02, 0.98, 33)
 
 
-def _inflated(
-    P_dep: np.ndarray, P_ind: np.ndarray | None, scale: np.ndarray
-) -> np.ndarray:
-    """``P_dep * scale + P_ind`` with ``scale`` broadcast over the trailing 3 x 3."""
-    out = P_dep * scale[..., None, None]
-    return out if P_ind is None else out + P_ind
+def _det2(a: np.ndarray) -> np.ndarray:
+    return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+
+
+def _det3(a: np.ndarray) -> np.ndarray:
+    return (
+        a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+        - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+        + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0])
+    )
 
 
 def _posterior_cost(
@@ -99,25 +103,49 @@ def _posterior_cost(
     w: np.ndarray,
     criterion: CICriterion,
 ) -> np.ndarray:
-    """Linearized posterior ``trace`` / ``det`` of ``P_i`` for weights ``w: (E, G)``."""
+    """Linearized posterior ``trace`` / ``det`` of ``P_i`` for weights ``w: (G,) or (E, G)``.
+
+    Returns an array of shape (E, G).
+
+    Everything is reduced to 2 x 2 measurement-space quantities per link first, so the
+    weights cost only element-wise arithmetic: with ``A = P_dep,i / w + P_ind,i``,
+    ``C = A H_i^T`` and ``S = H_i A H_i^T + S_j``, ``S_j = H_j (P_dep,j / (1-w) + P_ind,j)
+    H_j^T + R``: ``trace P = trace A - trace(C^T C S^{-1})`` and (determinant lemma)
+    ``det P = det A det S_j / det S``.
+    """
+    HiT, HjT = np.swapaxes(H_i, -1, -2), np.swapaxes(H_j, -1, -2)
+    zero3 = np.zeros_like(Pi_dep)
+    Pii = zero3 if Pi_ind is None else Pi_ind
+    Pji = zero3 if Pj_ind is None else Pj_ind
+    Cd, Ci = Pi_dep @ HiT, Pii @ HiT  # (E, 3, 2)
+    a_d, a_i = H_i @ Cd, H_i @ Ci  # (E, 2, 2)
+    b_d, b_i = H_j @ Pj_dep @ HjT, H_j @ Pji @ HjT + R
+    w = np.broadcast_to(w, (Pi_dep.shape[0], np.shape(w)[-1]))
+    u = (1.0 / w)[:, :, None, None]
+    v = (1.0 / (1.0 - w))[:, :, None, None]
     add = (slice(None), None)
-    A = _inflated(Pi_dep[add], None if Pi_ind is None else Pi_ind[add], 1.0 / w)  # (E,G,3,3)
-    Bj = _inflated(Pj_dep[add], None if Pj_ind is None else Pj_ind[add], 1.0 / (1.0 - w))
-    Hi = H_i[:, None]
-    Hj = H_j[:, None]
-    C = A @ np.swapaxes(Hi, -1, -2)  # (E,G,3,2)
-    S = Hi @ C + Hj @ Bj @ np.swapaxes(Hj, -1, -2) + R
-    det_s = S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
-    Sinv = np.empty_like(S)
-    Sinv[..., 0, 0] = S[..., 1, 1]
-    Sinv[..., 1, 1] = S[..., 0, 0]
-    Sinv[..., 0, 1] = -S[..., 0, 1]
-    Sinv[..., 1, 0] = -S[..., 1, 0]
-    Sinv /= det_s[..., None, None]
-    post = A - C @ Sinv @ np.swapaxes(C, -1, -2)
+    S_j = b_d[add] * v + b_i[add]  # (E, G, 2, 2)
+    S = a_d[add] * u + a_i[add] + S_j
     if criterion is CICriterion.DET:
-        return np.linalg.det(post)
-    return np.trace(post, axis1=-2, axis2=-1)
+        A = Pi_dep[add] * u + Pii[add]
+        return _det3(A) * _det2(S_j) / _det2(S)
+    CtC_dd = np.swapaxes(Cd, -1, -2) @ Cd
+    CtC_di = np.swapaxes(Cd, -1, -2) @ Ci
+    CtC_ii = np.swapaxes(Ci, -1, -2) @ Ci
+    G = CtC_dd[add] * u * u + (CtC_di + np.swapaxes(CtC_di, -1, -2))[add] * u + CtC_ii[add]
+    det_s = _det2(S)
+    # trace(G S^{-1}) with S^{-1} = adj(S) / det S.
+    tr_gsinv = (
+        G[..., 0, 0] * S[..., 1, 1]
+        + G[..., 1, 1] * S[..., 0, 0]
+        - G[..., 0, 1] * S[..., 1, 0]
+        - G[..., 1, 0] * S[..., 0, 1]
+    ) / det_s
+    tr_a = (
+        np.trace(Pi_dep, axis1=-2, axis2=-1)[:, None] / w
+        + np.trace(Pii, axis1=-2, axis2=-1)[:, None]
+    )
+    return tr_a - tr_gsinv
 
 
 def ci_weights(
@@ -160,8 +188,7 @@ def ci_weights(
     criterion = CICriterion(criterion)
     H_i, H_j = range_bearing_jacobians(x_i, x_j)
     E = x_i.shape[0]
-    W = np.broadcast_to(grid, (E, grid.size))
-    cost = _posterior_cost(H_i, H_j, Pi_dep, Pi_ind, Pj_dep, Pj_ind, R, W, criterion)
+    cost = _posterior_cost(H_i, H_j, Pi_dep, Pi_ind, Pj_dep, Pj_ind, R, grid, criterion)
     k = np.argmin(cost, axis=1)
     rows = np.arange(E)
     best = cost[rows, k]
@@ -172,10 +199,17 @@ def ci_weights(
     with np.errstate(divide="ignore", invalid="ignore"):
         shift = np.where(denom > 0.0, 0.5 * h * (c0 - c2) / denom, 0.0)
     w = np.where(k == kc, np.clip(grid[kc] + np.clip(shift, -h, h), grid[0], grid[-1]), grid[k])
+    # Keep the refinement only where it helps (the cost is not exactly a parabola).
+    refined = _posterior_cost(H_i, H_j, Pi_dep, Pi_ind, Pj_dep, Pj_ind, R, w[:, None], criterion)[
+        :, 0
+    ]
+    better = refined <= best
+    w = np.where(better, w, grid[k])
+    best = np.where(better, refined, best)
     # w -> 1 is "ignore j" (posterior = prior): keep that when no grid weight beats it.
     P_prior = Pi_dep if Pi_ind is None else Pi_dep + Pi_ind
-    prior = np.linalg.det(P_prior) if criterion is CICriterion.DET else np.trace(
-        P_prior, axis1=-2, axis2=-1
+    prior = (
+        _det3(P_prior) if criterion is CICriterion.DET else np.trace(P_prior, axis1=-2, axis2=-1)
     )
     return np.where(best < prior, w, 1.0)
 

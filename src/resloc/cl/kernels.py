@@ -20,7 +20,8 @@ trigger norm, ``threshold_innovation`` ``current`` and ``last_sent``, scalar or 
 gains, the exact :class:`~resloc.filters.SigmaPointFilter` (any rule on 6-D points,
 circular or arithmetic means) and :class:`~resloc.filters.ExtendedFilter` types.
 Not covered (reference path): ``summed`` updates, ``cached`` neighbour estimates, duplicated
-``(i, j)`` rows, and any other filter class.
+``(i, j)`` rows, any other filter class, and any :class:`~resloc.cl.params.CLParams` or
+:class:`~resloc.cl.step.LinkBatch` field added later unless it holds its default value.
 
 The backend is chosen by :func:`set_backend` / :func:`use_backend`, or by the environment
 variable ``RESLOC_BACKEND`` (``auto``, ``numba`` or ``numpy``) read at import.
@@ -269,8 +270,35 @@ def _prepare_params(params: CLParams) -> tuple | None:
             _NORM_CODE[params.trigger_norm],
             float(params.risk_factor_floor),
         )
-    _params_cache = (weakref.ref(params), prepared)
+    try:
+        _params_cache = (weakref.ref(params), prepared)
+    except TypeError:  # not weakly referenceable: no cache
+        _params_cache = (None, None)
     return prepared
+
+
+def _shapes_ok(x, P, links, li, prepared) -> bool:
+    """Every index the kernel will use is in range (the compiled loop does not check)."""
+    E = len(li)
+    if E == 0:
+        return False
+    B = int(li.max()) + 1
+    if li.min() < 0 or np.shape(x)[0] < B or np.shape(P)[0] < B:
+        return False
+    if np.shape(x)[1:] != (3,) or np.shape(P)[1:] != (3, 3):
+        return False
+    per_link = (
+        (links.z, (E, 2)),
+        (links.x_nb, (E, 3)),
+        (links.P_nb, (E, 3, 3)),
+        (links.channel_ok, (E,)),
+        (links.j, (E,)),
+    )
+    if any(np.shape(a) != shape for a, shape in per_link):
+        return False
+    if any(np.ndim(a) != 1 or len(a) < B for a in (links.risk_s, links.risk_c, links.lambda2)):
+        return False
+    return all(a.shape[0] == 1 or a.shape[0] >= B for a in prepared[:5])
 
 
 def _per_robot(v) -> np.ndarray:
@@ -303,6 +331,8 @@ def fast_correct(filt, x, P, links, params: CLParams, memory=None) -> FastCorrec
     li = np.ascontiguousarray(links.i, dtype=np.int64)
     lj = np.asarray(links.j, dtype=np.int64)
     E = len(li)
+    if not _shapes_ok(x, P, links, li, prepared):
+        return None  # the reference path raises on inconsistent input (no bounds checks here)
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
     last = np.zeros(E if last_sent else 0)

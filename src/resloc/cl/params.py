@@ -89,8 +89,9 @@ class CLParams:
     ci_criterion : CICriterion
         What the CI weight minimises: posterior ``trace`` or ``det`` of ``P_i``.
     cusum : bool
-        Also discard while the per-link CUSUM of the NIS exceeds ``cusum_h``
-        (:mod:`resloc.cl.cusum`; needs a LinkMemory). Off in the paper.
+        While the per-link CUSUM of the NIS exceeds ``cusum_h``, also discard the link's
+        measurements whose NIS exceeds ``cusum_k`` (:mod:`resloc.cl.cusum`; needs a
+        LinkMemory). Off in the paper.
     cusum_k, cusum_h : float or ndarray (B,)
         CUSUM reference (drift) and alarm threshold, in NIS units.
     cusum_cap : float or None

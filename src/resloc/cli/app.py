@@ -44,6 +44,9 @@ def _register_all() -> None:
     from resloc.cli import mrclam as _mrclam
 
     _mrclam.register(app)
+    from resloc.cli import compare as _compare
+
+    _compare.register(app)
 
 
 _register_all()

@@ -87,7 +87,8 @@ class EstimatorSpec:
     ukf_beta: float = _f(2.0, "UKF beta", min=0.0)
     ukf_kappa: float = _f(0.0, "UKF kappa")
     fusion: FusionMethod = _f(
-        FusionMethod.NAIVE, "neighbour fusion: naive (paper), ci or split_ci (docs/beyond.md)"
+        FusionMethod.NAIVE,
+        "neighbour fusion: naive (paper), ci, split_ci or tracked (docs/beyond.md)",
     )
     ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
 
@@ -346,18 +347,26 @@ def _parse(data: dict) -> Scenario:
     if det.false_alarm > 0.0 and det.norm is not InnovationNorm.NIS:
         raise ConfigError(
             f"detector.false_alarm: {det.false_alarm!r} sets a chi-square gate on the NIS; "
-            f"set detector.norm = \"nis\" (now {det.norm.value!r}) or false_alarm = 0"
+            f'set detector.norm = "nis" (now {det.norm.value!r}) or false_alarm = 0'
         )
     est: EstimatorSpec = parts["estimator"]
     if est.fusion is not FusionMethod.NAIVE and est.update_mode is not UpdateMode.SEQUENTIAL:
         raise ConfigError(
-            f"estimator.fusion: {est.fusion.value!r} needs update_mode = \"sequential\" "
+            f'estimator.fusion: {est.fusion.value!r} needs update_mode = "sequential" '
             f"(now {est.update_mode.value!r})"
         )
-    if est.fusion is FusionMethod.SPLIT_CI and est.update_without_transmission:
+    if est.fusion is not FusionMethod.NAIVE and est.update_without_transmission:
         raise ConfigError(
-            "estimator.fusion: 'split_ci' cannot fuse cached estimates "
-            "(update_without_transmission = true); use 'ci' or turn it off"
+            f"estimator.fusion: {est.fusion.value!r} fuses transmitted estimates only; "
+            "set estimator.update_without_transmission = false"
+        )
+    if (
+        est.fusion is FusionMethod.TRACKED
+        and est.neighbour_estimate is not NeighbourEstimate.CURRENT
+    ):
+        raise ConfigError(
+            "estimator.fusion: 'tracked' needs neighbour_estimate = \"current\" "
+            f"(now {est.neighbour_estimate.value!r})"
         )
     att: AttackSpec = parts["attack"]
     if not any(abs(v) > 0.0 for v in att.stealth_direction):

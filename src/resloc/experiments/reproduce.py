@@ -159,6 +159,15 @@ class Experiment:
         changes["run.filters"] = list(self.filters)
         return default_scenario().replace(**changes)
 
+    def changes(self) -> list[tuple[str, Any]]:
+        """Every change to the default scenario, as (dotted key, value)."""
+        out = list(self.overrides)
+        if tuple(self.filters) != FILTERS:
+            out.append(("run.filters", list(self.filters)))
+        if self.is_sweep:
+            out.append(("run.dead_reckoning", False))
+        return out
+
     def sweep(self) -> SweepSpec:
         """The sweep (only for ``is_sweep``)."""
         assert self.parameter is not None
@@ -1180,7 +1189,7 @@ def build_report(rep: Reproduction, claims: list[Claim], out: Path):
                 [
                     e.figure,
                     f"`examples/paper/{e.filename}`",
-                    ", ".join(f"`{k} = {_show(v)}`" for k, v in e.overrides) or "-",
+                    ", ".join(f"`{k} = {_show(v)}`" for k, v in e.changes()) or "-",
                     f"`{e.parameter}` = " + ", ".join(_show(v) for v in e.values)
                     if e.is_sweep
                     else "-",
@@ -1252,10 +1261,12 @@ def build_report(rep: Reproduction, claims: list[Claim], out: Path):
 
 
 def _show(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
     if isinstance(v, str):
         return f'"{v}"'
     if isinstance(v, list):
-        return "[]" if not v else str(v)
+        return "[" + ", ".join(_show(x) for x in v) + "]"
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 

@@ -3,8 +3,9 @@
 **Stealthy** (the paper's adversary "maximizes ``||r_ij||`` ... while avoiding detection",
 eq. 5 and the text after it). The attacker knows robot i's predicted measurement
 ``hat z_ij`` and innovation covariance ``S`` (the victim filter's) and the detector it runs.
-It injects ``Gamma = a d`` along a fixed unit direction ``d`` (default: bearing; a constant
-sign makes the bias persistent), with the largest ``a >= 0`` such that every test stays at
+It injects ``Gamma = a d`` along a fixed unit direction ``d`` (default: range, which
+distorts the inter-robot distances the MSLE measures; a constant sign makes the bias
+persistent), with the largest ``a >= 0`` such that every test stays at
 ``margin`` of its threshold:
 
 * a norm gate ``||Lambda + a d||_W <= margin rho`` with ``W = I`` (``euclidean``),

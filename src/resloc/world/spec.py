@@ -108,11 +108,13 @@ class AttackSpec:
     )
     channel: ChannelRule = _f(ChannelRule.RECEIVER, "whose CDZ risk jams a link")
     stealth_margin: float = _f(
-        0.9, "stealthy: drive each detector statistic to this fraction of its threshold",
-        gt=0.0, max=1.0,
+        0.9,
+        "stealthy: drive each detector statistic to this fraction of its threshold",
+        gt=0.0,
+        max=1.0,
     )
     stealth_direction: list = _f(
-        [0.0, 1.0], "stealthy: injection direction [range, bearing] (bearing by default)"
+        [1.0, 0.0], "stealthy: injection direction [range, bearing] (range by default)"
     )
     stealth_knowledge: StealthKnowledge = _f(
         StealthKnowledge.FULL, "stealthy: evade every test (full) or only the gate (gate)"

@@ -1,0 +1,89 @@
+"""``resloc compare``: resloc's fixes against the paper's method (issue 6, docs/beyond.md)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import enum
+import sys
+from pathlib import Path
+
+import typer
+
+from resloc.cli.common import fail, handle_errors
+
+__all__ = ["compare_command", "register"]
+
+
+class CompareFilter(enum.StrEnum):
+    """Filter used by every cell of the comparison."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+
+
+def compare_command(
+    quick: bool,
+    seeds: int | None,
+    jobs: int,
+    filt: CompareFilter,
+    out: Path | None,
+    overwrite: bool,
+    plots: bool,
+    progress: bool,
+):
+    """Run the comparison, print the report section, write the outputs."""
+    from resloc.cli.sweep import progress_bar
+    from resloc.experiments.compare import run_compare, save_compare
+    from resloc.experiments.output import atomic_output_dir, check_output_dir
+
+    if out is None:
+        out = Path("runs") / f"compare-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    check_output_dir(out, overwrite)
+    with progress_bar("comparing", progress) as update:
+        result = run_compare(
+            quick=quick,
+            seeds=seeds,
+            jobs=jobs,
+            filt=filt.value,
+            progress=lambda done, total, label: update(done, total),
+        )
+    print(result.markdown())
+    with atomic_output_dir(out, overwrite) as tmp:
+        save_compare(result, tmp, plots=plots)
+    print(f"results written to {out}/ (compare.md, compare.json, roc.csv, lambda2.csv)")
+    return result
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``compare`` to ``app``."""
+
+    @app.command("compare")
+    @handle_errors
+    def compare(
+        quick: bool = typer.Option(
+            False, "--quick", help="Smoke-test size: 2 seeds, 200 steps, fewer methods."
+        ),
+        seeds: int | None = typer.Option(
+            None, "--seeds", min=1, help="Seeds per cell [default: 10, quick 2]."
+        ),
+        jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes."),
+        filt: CompareFilter = typer.Option(
+            CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
+        ),
+        out: Path | None = typer.Option(
+            None, "--out", "-o", help="Output directory [default: runs/compare-<timestamp>]."
+        ),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write roc.png."),
+        progress: bool = typer.Option(
+            True, "--progress/--no-progress", help="Show a progress bar on stderr."
+        ),
+    ) -> None:
+        """Compare the paper's method with consistent fusion, NIS/CUSUM detection and
+        distributed lambda2 over clean, SDZ (fixed, stealthy) and CDZ scenarios."""
+        if seeds is not None and seeds < 2:
+            raise fail("--seeds: confidence intervals need at least 2 seeds")
+        compare_command(
+            quick, seeds, jobs, filt, out, overwrite, plots, progress and sys.stderr.isatty()
+        )
