@@ -31,18 +31,18 @@ def _edges(n, kind, rng):
 
 
 @pytest.mark.parametrize(
-    ("kind", "n", "steps", "tol"),
+    ("kind", "n", "steps", "leak", "tol"),
     [
-        ("complete", 6, 30, 0.01),
-        ("ring", 8, 400, 0.05),
-        ("path", 5, 400, 0.05),
-        ("rgg", 15, 400, 0.1),
+        ("complete", 6, 30, 0.01, 0.01),
+        ("ring", 8, 400, 0.0, 0.01),
+        ("path", 5, 1000, 0.0, 0.01),
+        ("rgg", 15, 2000, 0.0, 0.05),
     ],
 )
-def test_converges_on_a_static_graph(rng, kind, n, steps, tol):
+def test_converges_on_a_static_graph(rng, kind, n, steps, leak, tol):
     i, j = _edges(n, kind, rng)
     true = component_lambda2(i, j, n, "global")[0]
-    dl = DistributedLambda2(n, n, rounds=3, rng=rng)
+    dl = DistributedLambda2(n, n, rounds=3, leak=leak, rng=rng)
     for _ in range(steps):
         est = dl.step(i, j)
     np.testing.assert_allclose(est, true, rtol=tol)

@@ -72,7 +72,7 @@ def test_ci_is_consistent_for_any_correlation(rng, random_spd):
     E = 200
     x_i, x_j = _links(rng, E)
     J = random_spd(rng, E, 6, scale=0.004, cond=50)  # arbitrary correlated joint
-    Pi, Pj, C = J[:, :3, :3], J[:, 3:, 3:], J[:, :3, 3:]
+    Pi, Pj = J[:, :3, :3], J[:, 3:, 3:]
     m = make_filter("ekf").relative_moments(x_i, Pi, x_j, Pj, R)
     nu = np.zeros((E, 2))
     _, P_ci, _, w = fused_update(x_i, Pi, x_j, Pj, nu, m, R, "ci")
