@@ -119,7 +119,7 @@ class CLParams:
     fusion: FusionMethod = FusionMethod.NAIVE
     ci_criterion: CICriterion = CICriterion.TRACE
     cusum: bool = False
-    cusum_k: float | np.ndarray = 4.0
+    cusum_k: float | np.ndarray = 3.0
     cusum_h: float | np.ndarray = 20.0
     cusum_cap: float | None = None
     extra: dict = field(default_factory=dict, compare=False)

@@ -6,11 +6,15 @@ a robot process calls them with batch size 1, the simulator with every robot of 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from resloc.cl.detector import attack_detected, innovation_norm
+from resloc.cl.cusum import link_cusum
+from resloc.cl.cusum import nis as normalized_innovation_squared
+from resloc.cl.detector import InnovationNorm, attack_detected, innovation_norm
+from resloc.cl.fusion import FusionMethod, fuse_links
 from resloc.cl.kernels import fast_correct
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
@@ -73,6 +77,13 @@ class LinkBatch:
         ``Ds(i)``, ``Dc(i)`` for every robot of the batch.
     lambda2 : ndarray, shape (B,)
         Algebraic connectivity seen by every robot of the batch.
+    tamper : callable ``(rows, z_hat, S) -> z``, optional
+        Issue 6: an adversary that sees robot i's predicted measurement ``(len(rows), 2)``
+        and innovation covariance ``(len(rows), 2, 2)`` of ``rows`` and returns the
+        measurements i receives there (the stealthy attacker of
+        :mod:`resloc.world.adversary`, supplied by the simulator). None: ``z`` as is.
+    P_nb_ind : ndarray, shape (E, 3, 3), optional
+        Independent part of ``P_nb`` (split covariance intersection, transmitted with it).
     """
 
     i: np.ndarray
@@ -84,6 +95,8 @@ class LinkBatch:
     risk_s: np.ndarray
     risk_c: np.ndarray
     lambda2: np.ndarray
+    tamper: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
+    P_nb_ind: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.i)
@@ -170,8 +183,12 @@ def _decide(
     if cached:
         x_ref = np.where(known[:, None], memory.x[pos] if len(memory) else x_ref, x_ref)
         P_ref = np.where(known[:, None, None], memory.P[pos] if len(memory) else P_ref, P_ref)
-    m = filt.relative_moments(x_i, P_i, x_ref, P_ref, R)
-    nu = innovation(links.z[rows], m.z_hat)
+    if params.fusion is FusionMethod.TRACKED:  # issue 6: the tracked joint covariance
+        m = _joint(memory).moments(filt, x_i, x_ref, ii, links.j[rows], R)
+    else:
+        m = filt.relative_moments(x_i, P_i, x_ref, P_ref, R)
+    z_rows = links.z[rows] if links.tamper is None else links.tamper(rows, m.z_hat, m.S)
+    nu = innovation(z_rows, m.z_hat)
     n_trig = innovation_norm(nu, m.S, params.trigger_norm, params.noise_std)
     if params.detector_norm == params.trigger_norm:
         n_det = n_trig
@@ -182,6 +199,8 @@ def _decide(
         if params.detector
         else np.zeros(len(rows), bool)
     )
+    if params.cusum:
+        detected = detected | _cusum_alarm(nu, m.S, n_det, ii, links.j[rows], params, memory)
     accepted = ~detected
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
         size = np.where(known, memory.last_norm[pos] if len(memory) else 0.0, 0.0)
@@ -236,8 +255,35 @@ def _decide(
         m.z_hat[sub], m.S[sub], m.Pxz[sub] = fresh.z_hat, fresh.S, fresh.Pxz
         if m.H_i is not None:
             m.H_i[sub], m.R_eff[sub] = fresh.H_i, fresh.R_eff
-        nu[sub] = innovation(links.z[rows[sub]], fresh.z_hat)
+        nu[sub] = innovation(z_rows[sub], fresh.z_hat)
     return fuse, m, nu
+
+
+def _cusum_alarm(nu, S, n_det, ii, jj, params: CLParams, memory: LinkMemory | None):
+    """Issue 6: per-link CUSUM of the NIS (:mod:`resloc.cl.cusum`), state in ``memory``."""
+    if memory is None:
+        raise ValueError("detector CUSUM (params.cusum) needs a LinkMemory")
+    if params.detector_norm is InnovationNorm.NIS:
+        stat = n_det * n_det
+    else:
+        stat = normalized_innovation_squared(nu, S)
+    k = _at(params.cusum_k, ii)
+    alarm = link_cusum(memory.cusum, ii, jj, stat, k, _at(params.cusum_h, ii), params.cusum_cap)
+    # While a link's CUSUM alarms, its gate tightens to the CUSUM reference: measurements
+    # whose own NIS is above k are discarded, honest-looking ones still pass.
+    return alarm & (stat > k)
+
+
+def _joint(memory: LinkMemory | None):
+    """Issue 6: the team's joint covariance of ``tracked`` fusion."""
+    if memory is None or memory.joint is None:
+        raise ValueError("fusion 'tracked' needs memory.joint (a JointCovariance)")
+    return memory.joint
+
+
+def _reference_only(params: CLParams, links: LinkBatch) -> bool:
+    """Issue-6 options the compiled fast path does not implement (run the reference)."""
+    return params.fusion is not FusionMethod.NAIVE or params.cusum or links.tamper is not None
 
 
 def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, int]:
@@ -288,7 +334,9 @@ def correct(
     if E == 0:
         return x, P, LinkOutcome.empty(E)
     # Compiled path (numba) when it covers the filter and the options; else the reference.
-    fast = fast_correct(filt, x, P, links, params, memory)
+    fast = (
+        None if _reference_only(params, links) else fast_correct(filt, x, P, links, params, memory)
+    )
     if fast is not None:
         out = LinkOutcome(
             fast.norm,
@@ -303,6 +351,12 @@ def correct(
     out = LinkOutcome.empty(E)
     x = x.copy()
     P = P.copy()
+    if params.fusion is not FusionMethod.NAIVE and (
+        params.update_mode is UpdateMode.SUMMED or params.update_without_transmission
+    ):
+        raise ValueError(
+            f"fusion {params.fusion.value!r} needs sequential updates of transmitted estimates"
+        )
     if params.update_mode is UpdateMode.SUMMED:
         rows = np.arange(E)
         fuse, m, nu = _decide(filt, x[links.i], P[links.i], rows, links, params, memory, out)
@@ -335,10 +389,37 @@ def correct(
         if not fuse.any():
             continue
         f = np.flatnonzero(fuse)
-        x_new, P_new = kalman_update(x[ii[f]], P[ii[f]], nu[f], _take(m, f))
+        if params.fusion in (FusionMethod.NAIVE, FusionMethod.TRACKED):
+            x_new, P_new = kalman_update(x[ii[f]], P[ii[f]], nu[f], _take(m, f))
+            if params.fusion is FusionMethod.TRACKED:  # covariances from the joint
+                P_new = _joint(memory).update(
+                    ii[f], links.j[rows[f]], x[ii[f]], links.x_nb[rows[f]], _take(m, f), params.R
+                )
+        else:  # issue 6: covariance intersection (resloc.cl.fusion)
+            rf = rows[f]
+            x_new, P_new = fuse_links(
+                x[ii[f]],
+                P[ii[f]],
+                ii[f],
+                links.x_nb[rf],
+                links.P_nb[rf],
+                None if links.P_nb_ind is None else links.P_nb_ind[rf],
+                nu[f],
+                _take(m, f),
+                params.R,
+                params.fusion,
+                params.ci_criterion,
+                memory,
+            )
         P_new, n_rep = _ensure_pd(P_new)
         repairs += n_rep
         x[ii[f]] = x_new
         P[ii[f]] = P_new
     out.repairs = repairs
+    if params.fusion is FusionMethod.TRACKED:
+        P = _joint(memory).finish()  # the joint covariance's diagonal (resloc.cl.tracking)
+    if params.fusion is FusionMethod.SPLIT_CI and out.delivered.any():
+        # Issue 6, split CI: a delivered estimate is now held by a neighbour too, so its
+        # sender's independent part becomes dependent.
+        memory.independent[links.j[out.delivered]] = 0.0
     return x, P, out

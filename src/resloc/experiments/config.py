@@ -107,7 +107,7 @@ class DetectorSpec:
         max=0.5,
     )
     cusum: bool = _f(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
-    cusum_k: float = _f(4.0, "CUSUM reference (drift) in NIS units", gt=0.0)
+    cusum_k: float = _f(3.0, "CUSUM reference (drift) in NIS units", gt=0.0)
     cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0)
 
 
