@@ -628,6 +628,12 @@ def _markdown(res: CompareResult) -> str:
         "Methods and references: `docs/beyond.md`.",
         "",
     ]
+    if c["quick"]:
+        lines += [
+            "*--quick is a smoke test (zones moved onto the first 200 steps, while the filters "
+            "are still converging): its numbers and target checks are not the study's.*",
+            "",
+        ]
     if res.table:
         lines += [
             "### Method x scenario",
@@ -752,7 +758,9 @@ def _plot_roc(plt, result: CompareResult, path: Path) -> Path:
     for ax, attack in zip(axes, ("sdz_fixed", "sdz_stealthy"), strict=True):
         for gate, style in (("raw-norm", "o-"), ("nis", "s-")):
             rows = [r for r in result.roc if r["attack"] == attack and r["gate"] == gate]
-            rows.sort(key=lambda r: r["fpr"]["mean"] if math.isfinite(r["fpr"]["mean"]) else 0)
+            # Closed loop, the points need not be monotone: join them from the strictest
+            # threshold to the loosest (large rho / small p_fa first).
+            rows.sort(key=lambda r: -r["threshold"] if gate == "raw-norm" else r["threshold"])
             ax.plot(
                 [r["fpr"]["mean"] for r in rows],
                 [r["tpr"]["mean"] for r in rows],
