@@ -396,6 +396,28 @@ def _parse(data: dict) -> Scenario:
     )
 
 
+def read_toml(path: str | Path, kind: str = "scenario") -> dict:
+    """Read a TOML file, mapping every failure to one :class:`ConfigError` line.
+
+    Parameters
+    ----------
+    path : str or Path
+    kind : str
+        What the file is, for the message (``scenario``, ``sweep``, ...).
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such {kind} file") from None
+    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read {kind} file ({exc.__class__.__name__})") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+
+
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file.
 
@@ -404,18 +426,7 @@ def load_scenario(path: str | Path) -> Scenario:
     ConfigError
         Missing file, TOML syntax error, or invalid content (one line, names the field).
     """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such scenario file") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: cannot read scenario file ({exc.__class__.__name__})") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    return parse_scenario(data, source=str(p))
+    return parse_scenario(read_toml(path, "scenario"), source=str(Path(path)))
 
 
 def _plain(v: Any) -> Any:

@@ -36,7 +36,6 @@ import multiprocessing
 import os
 import queue
 import time
-import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from resloc.experiments.config import (
     default_scenario,
     load_scenario,
     parse_scenario,
+    read_toml,
     scenario_to_dict,
     set_dotted,
 )
@@ -288,16 +288,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
         Missing file, TOML syntax error, or invalid content (one line, names the field).
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such sweep file") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: cannot read sweep file ({exc.__class__.__name__})") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml(p, "sweep")
     return parse_sweep(data, source=str(p), base_dir=p.parent)
 
 
