@@ -11,7 +11,7 @@ import typer
 
 from resloc.errors import ResLocError
 
-__all__ = ["EXIT_BAD_INPUT", "fail", "handle_errors"]
+__all__ = ["EXIT_BAD_INPUT", "fail", "handle_errors", "step_progress"]
 
 #: Exit code for bad input (config, data file, argument).
 EXIT_BAD_INPUT = 2
@@ -34,3 +34,19 @@ def handle_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             raise fail(str(exc)) from None
 
     return wrapper
+
+
+def step_progress(enabled: bool):
+    """A transient rich progress bar on stderr counting steps (disabled: prints nothing)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    return Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} steps"),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        transient=True,
+        disable=not enabled,
+    )

@@ -10,7 +10,7 @@ from pathlib import Path
 import typer
 
 from resloc.cl.detector import InnovationNorm
-from resloc.cli.common import handle_errors
+from resloc.cli.common import handle_errors, step_progress
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
 
@@ -126,19 +126,7 @@ def mrclam_command(
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early if matplotlib is missing
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    err = Console(stderr=True)
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} steps"),
-        TimeRemainingColumn(),
-        console=err,
-        transient=True,
-        disable=not progress,
-    ) as bar:
+    with step_progress(progress) as bar:
         tasks: dict[str, int] = {}
 
         def report(name: str, k: int, n: int) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors
+from resloc.cli.common import handle_errors, step_progress
 
 __all__ = ["print_summary", "register", "run_command"]
 
@@ -91,21 +91,8 @@ def run_command(
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early, before the run, if matplotlib is missing
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    err = Console(stderr=True)
-    steps = scenario.run.steps
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} steps"),
-        TimeRemainingColumn(),
-        console=err,
-        transient=True,
-        disable=not progress,
-    ) as bar:
-        task = bar.add_task("simulating", total=steps)
+    with step_progress(progress) as bar:
+        task = bar.add_task("simulating", total=scenario.run.steps)
         result = run_scenario(
             scenario,
             filters=filters,

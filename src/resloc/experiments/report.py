@@ -279,13 +279,7 @@ def band_figure(
         ax.set_yscale("log")
     ax.set_xlabel("time (s)")
     ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
-    return Path(path)
+    return _finish(plt, fig, ax, title, path)
 
 
 def _yerr(est: Sequence[Estimate], logy: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -334,13 +328,7 @@ def errorbar_figure(
         ax.set_yscale("log")
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
-    return Path(path)
+    return _finish(plt, fig, ax, title, path)
 
 
 def xy_errorbar_figure(
@@ -410,6 +398,17 @@ def raster_figure(path: Path, raster: np.ndarray, time: np.ndarray, title: str) 
     ax.set_ylabel("robot")
     ax.yaxis.get_major_locator().set_params(integer=True)
     ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return Path(path)
+
+
+def _finish(plt, fig, ax, title: str, path) -> Path:
+    """Title, grid, legend, save and close a report figure."""
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)
