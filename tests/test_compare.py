@@ -55,9 +55,10 @@ def test_run_compare_tiny_and_report(tmp_path):
     assert ("sdz_stealthy", cmp.BEST) in keys and ("clean", cmp.PAPER) in keys
     row = next(r for r in res.table if r["scenario"] == "clean" and r["method"] == cmp.PAPER)
     assert row["msle"]["n"] == 2 and row["msle"]["mean"] > 0
-    assert {r["method"] for r in res.fusion} == {"naive", "tracked+nis+cusum"}
+    assert {r["method"] for r in res.fusion} == {"naive", cmp.NAIVE_REFERENCE, cmp.BEST}
     assert {r["mode"] for r in res.lambda2} == {"global", "distributed"}
-    assert any("fusion tracked+nis+cusum" in t["target"] for t in res.targets)
+    assert any(f"fusion {cmp.BEST}" in t["target"] for t in res.targets)
+    assert not any(f"fusion {cmp.NAIVE_REFERENCE}" in t["target"] for t in res.targets)
     md = res.markdown()
     for heading in ("### Method x scenario", "### Fusion consistency", "### Targets"):
         assert heading in md

@@ -1,4 +1,4 @@
-"""Consistent fusion (issue 6): covariance intersection, split CI, tracked cross-covariances."""
+"""Consistent fusion (issue 6): CI, split CI, tracked and factorized cross-covariances."""
 
 from __future__ import annotations
 
@@ -189,7 +189,7 @@ def test_joint_covariance_matches_brute_force(rng, random_spd):
     xs = xp.copy()
     ekf = make_filter("ekf")
     for i, j in ((np.array([0, 1]), np.array([2, 3])), (np.array([0]), np.array([1]))):
-        m = jc.moments(ekf, xs[i], xp[j], i, j, R)
+        m = jc.moments(ekf, xs[i], None, xp[j], None, i, j, R)
         P_i = jc.current(i)
         for e in range(len(i)):  # brute-force moments from the stacked joint
             H_i, H_j = range_bearing_jacobians(xs[i[e]][None], xp[j[e]][None])
@@ -233,8 +233,89 @@ def test_tracked_moments_without_correlation_equal_the_filters(rng, random_spd, 
     x = np.column_stack([[0.0, 0.5, -0.4], [0.0, 0.3, 0.6], [0.1, -0.2, 2.0]])
     i, j = np.array([0, 1]), np.array([1, 2])
     filt = make_filter(kind)
-    m = jc.moments(filt, x[i], x[j], i, j, R)
+    m = jc.moments(filt, x[i], None, x[j], None, i, j, R)
     ref = filt.relative_moments(x[i], P0[i], x[j], P0[j], R)
     np.testing.assert_allclose(m.z_hat, ref.z_hat, atol=1e-12)
     np.testing.assert_allclose(m.S, ref.S, atol=1e-12)
     np.testing.assert_allclose(m.Pxz, ref.Pxz, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- factorized
+
+
+def _small_run(fusion: str, robots: int, filt: str = "ekf", steps: int = 120):
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.runner import run_scenario
+
+    sc = default_scenario().replace(
+        **{
+            "team.robots": robots,
+            "run.trials": 2,
+            "run.steps": steps,
+            "run.filters": [filt],
+            "run.dead_reckoning": False,
+            "estimator.fusion": fusion,
+            "trigger.enabled": False,  # fuse every measurement: the cross terms matter
+            "sdz": [],
+            "cdz": [],
+        }
+    )
+    return run_scenario(sc).estimators[filt]
+
+
+def test_factorized_equals_tracked_for_two_robots():
+    """With two robots no third-robot term exists: Luft et al.'s factors are exact, so the
+    EKF (whose covariance equals the joint's block) matches tracked fusion step by step."""
+    a = _small_run("tracked", 2)
+    b = _small_run("factorized", 2)
+    np.testing.assert_allclose(b.track, a.track, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(b.per_trial("nees_mean"), a.per_trial("nees_mean"), rtol=1e-8)
+    naive = _small_run("naive", 2)
+    assert np.abs(naive.track - a.track).max() > 1e-6  # the cross terms do matter
+
+
+def test_factorized_factors_follow_prediction_and_pair_updates(rng, random_spd):
+    """Factors: prediction left-multiplies by F_i; a pair that fused gets
+    C = [A_a, B_ac] P_pred [B_ca, A_c]^T stored as (C, I)."""
+    from resloc.cl.factorized import FactorizedCovariance
+    from resloc.models.motion import unicycle_state_jacobian, unicycle_step
+
+    N = 3
+    fc = FactorizedCovariance(N, N)
+    fc.sig[0, 1] = random_spd(rng, 1, 3, scale=0.01)[0]
+    fc.sig[1, 0] = np.eye(3)
+    x = np.column_stack([[0.0, 0.5, -0.4], [0.0, 0.3, 0.6], [0.1, -0.2, 2.0]])
+    u = np.column_stack([[0.1, 0.2, 0.0], [0.3, -0.5, 0.1]])
+    P_pred = random_spd(rng, N, 3, scale=0.003, cond=5)
+    F = unicycle_state_jacobian(x, u, 0.1)
+    sig_before = fc.sig.copy()
+    fc.predict(x, u, 0.1, np.zeros((N, 3, 3)), P_pred)
+    np.testing.assert_allclose(fc.sig[0, 1], F[0] @ sig_before[0, 1])
+    C01 = fc.cross(np.array([0]), np.array([1]))[0]
+    np.testing.assert_allclose(C01, F[0] @ sig_before[0, 1] @ F[1].T, atol=1e-15)
+    xp = unicycle_step(x, u, 0.1)
+    ekf = make_filter("ekf")
+    i, j = np.array([0]), np.array([1])
+    m = fc.moments(ekf, xp[i], P_pred[i], xp[j], P_pred[j], i, j, R)
+    fc.update(i, j, xp[i], xp[j], m, R, P_pred[i])
+    fc.finish(P_pred)
+    K = m.Pxz[0] @ np.linalg.inv(m.S[0])
+    H_i, H_j = range_bearing_jacobians(xp[i], xp[j])
+    A0, B01 = np.eye(3) - K @ H_i[0], -K @ H_j[0]
+    expect = A0 @ C01 + B01 @ P_pred[1]  # robot 1 did not update: A_1 = I, B_10 = 0
+    np.testing.assert_allclose(fc.sig[0, 1] @ fc.sig[1, 0].T, expect, atol=1e-15)
+    np.testing.assert_allclose(fc.sig[1, 0], np.eye(3))
+    assert not fc.sig[0, 2].any() and not fc.sig[2, 0].any()  # never correlated
+
+
+def test_valid_cross_shrinks_only_impossible_correlations(rng, random_spd):
+    from resloc.cl.factorized import valid_cross
+
+    Pi = random_spd(rng, 20, 3, scale=0.01, cond=10)
+    Pj = random_spd(rng, 20, 3, scale=0.01, cond=10)
+    C = rng.normal(size=(20, 3, 3)) * 0.05  # mostly far too large to be a cross-covariance
+    Cv = valid_cross(Pi, Pj, C)
+    J = np.block([[Pi, Cv], [np.swapaxes(Cv, -1, -2), Pj]])
+    assert np.linalg.eigvalsh(J)[:, 0].min() > 0
+    small = 1e-4 * C  # valid ones pass unchanged
+    np.testing.assert_array_equal(valid_cross(Pi, Pj, small), small)

@@ -61,12 +61,26 @@ class FusionMethod(enum.StrEnum):
     ``naive``: independent (the paper). ``ci``: covariance intersection of the joint.
     ``split_ci``: split covariance intersection (independent parts tracked per robot).
     ``tracked``: the cross-covariances are tracked (:mod:`resloc.cl.tracking`).
+    ``factorized``: tracked by factors each robot keeps (:mod:`resloc.cl.factorized`).
+    ``gauge``: the team's common rigid-body error modelled (:mod:`resloc.cl.gauge`).
     """
 
     NAIVE = "naive"
     CI = "ci"
     SPLIT_CI = "split_ci"
     TRACKED = "tracked"
+    FACTORIZED = "factorized"
+    GAUGE = "gauge"
+
+    @property
+    def tracks_cross(self) -> bool:
+        """Whether the method keeps cross-covariances (``memory.joint``)."""
+        return self in (FusionMethod.TRACKED, FusionMethod.FACTORIZED)
+
+    @property
+    def bookkeeping(self) -> bool:
+        """Whether every update is recorded in ``memory.joint`` (tracked, factorized, gauge)."""
+        return self.tracks_cross or self is FusionMethod.GAUGE
 
 
 class CICriterion(enum.StrEnum):

@@ -19,8 +19,9 @@ class LinkMemory:
     statistic of the detector (a :class:`LinkStatistic`, updated for every *evaluated* link,
     delivered or not), and ``independent``, the independent covariance parts ``(n_nodes, 3,
     3)`` of split covariance intersection (None until a caller initializes it, e.g. with the
-    initial covariances); ``joint``, the team's joint covariance of ``tracked`` fusion (a
-    :class:`~resloc.cl.tracking.JointCovariance`, None until initialized).
+    initial covariances); ``joint``, the cross-covariance bookkeeping of ``tracked`` fusion (a
+    :class:`~resloc.cl.tracking.JointCovariance`) or ``factorized`` fusion (a
+    :class:`~resloc.cl.factorized.FactorizedCovariance`), None until initialized.
 
     Parameters
     ----------
@@ -36,7 +37,7 @@ class LinkMemory:
         self.last_norm = np.empty(0)
         self.cusum = LinkStatistic(self.n_nodes)
         self.independent: np.ndarray | None = None
-        self.joint = None  # resloc.cl.tracking.JointCovariance for fusion = "tracked"
+        self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
 
     def __len__(self) -> int:
         return len(self.keys)

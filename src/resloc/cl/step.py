@@ -183,8 +183,8 @@ def _decide(
     if cached:
         x_ref = np.where(known[:, None], memory.x[pos] if len(memory) else x_ref, x_ref)
         P_ref = np.where(known[:, None, None], memory.P[pos] if len(memory) else P_ref, P_ref)
-    if params.fusion is FusionMethod.TRACKED:  # issue 6: the tracked joint covariance
-        m = _joint(memory).moments(filt, x_i, x_ref, ii, links.j[rows], R)
+    if params.fusion.tracks_cross:  # issue 6: tracked / factorized cross-covariances
+        m = _joint(memory).moments(filt, x_i, P_i, x_ref, P_ref, ii, links.j[rows], R)
     else:
         m = filt.relative_moments(x_i, P_i, x_ref, P_ref, R)
     z_rows = links.z[rows] if links.tamper is None else links.tamper(rows, m.z_hat, m.S)
@@ -275,9 +275,12 @@ def _cusum_alarm(nu, S, n_det, ii, jj, params: CLParams, memory: LinkMemory | No
 
 
 def _joint(memory: LinkMemory | None):
-    """Issue 6: the team's joint covariance of ``tracked`` fusion."""
+    """Issue 6: the bookkeeping of ``tracked`` / ``factorized`` / ``gauge`` fusion."""
     if memory is None or memory.joint is None:
-        raise ValueError("fusion 'tracked' needs memory.joint (a JointCovariance)")
+        raise ValueError(
+            "fusion 'tracked' / 'factorized' / 'gauge' needs memory.joint "
+            "(a JointCovariance / FactorizedCovariance / GaugeCovariance)"
+        )
     return memory.joint
 
 
@@ -389,11 +392,17 @@ def correct(
         if not fuse.any():
             continue
         f = np.flatnonzero(fuse)
-        if params.fusion in (FusionMethod.NAIVE, FusionMethod.TRACKED):
+        if params.fusion is FusionMethod.NAIVE or params.fusion.bookkeeping:
             x_new, P_new = kalman_update(x[ii[f]], P[ii[f]], nu[f], _take(m, f))
-            if params.fusion is FusionMethod.TRACKED:  # covariances from the joint
+            if params.fusion.bookkeeping:  # record the update (cross-covariances / gauge)
                 P_new = _joint(memory).update(
-                    ii[f], links.j[rows[f]], x[ii[f]], links.x_nb[rows[f]], _take(m, f), params.R
+                    ii[f],
+                    links.j[rows[f]],
+                    x[ii[f]],
+                    links.x_nb[rows[f]],
+                    _take(m, f),
+                    params.R,
+                    P_new,
                 )
         else:  # issue 6: covariance intersection (resloc.cl.fusion)
             rf = rows[f]
@@ -416,8 +425,8 @@ def correct(
         x[ii[f]] = x_new
         P[ii[f]] = P_new
     out.repairs = repairs
-    if params.fusion is FusionMethod.TRACKED:
-        P = _joint(memory).finish()  # the joint covariance's diagonal (resloc.cl.tracking)
+    if params.fusion.bookkeeping:
+        P = _joint(memory).finish(P)  # resloc.cl.tracking / .factorized / .gauge
     if params.fusion is FusionMethod.SPLIT_CI and out.delivered.any():
         # Issue 6, split CI: a delivered estimate is now held by a neighbour too, so its
         # sender's independent part becomes dependent.

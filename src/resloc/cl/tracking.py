@@ -22,8 +22,9 @@ maps ``Sigma_il <- F_i Sigma_il F_l^T`` (the diagonal: the filters' predicted ``
 
 This is the centralized-equivalent bookkeeping: it needs the team's joint covariance, which a
 distributed team does not have. Luft et al.'s factorization ``Sigma_il = sigma_il sigma_li^T``
-with an approximation for third robots is its distributed realization (not implemented here;
-``docs/beyond.md``). It is the reference for what cross-covariance tracking can achieve.
+with an approximation for third robots is its distributed realization
+(:mod:`resloc.cl.factorized`, ``fusion = "factorized"``). This module is the reference for what
+cross-covariance tracking can achieve.
 """
 
 from __future__ import annotations
@@ -36,7 +37,69 @@ from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing, range_bearing_jacobians
 from resloc.models.motion import unicycle_state_jacobian
 
-__all__ = ["JointCovariance"]
+__all__ = ["JointCovariance", "joint_moments"]
+
+
+def joint_moments(
+    filt,
+    x_i: np.ndarray,
+    P_i: np.ndarray,
+    x_j: np.ndarray,
+    P_j: np.ndarray,
+    C: np.ndarray,
+    R: np.ndarray,
+) -> Moments:
+    """Moments of ``z_ij`` (eq. 3) under a correlated joint ``[[P_i, C], [C^T, P_j]]``.
+
+    A sigma-point filter draws its 6-D points (its own rule) from the joint covariance; the
+    EKF linearizes: ``S = H J H^T + R``, ``P^xz = J[:3] H^T``. Shared by ``tracked``
+    (:class:`JointCovariance`) and ``factorized`` (:mod:`resloc.cl.factorized`) fusion.
+
+    Parameters
+    ----------
+    filt : GaussianFilter
+    x_i, x_j : ndarray, shape (E, 3)
+        Observer's current estimate, neighbour's transmitted estimate.
+    P_i, P_j, C : ndarray, shape (E, 3, 3)
+        Their covariances and cross-covariance ``cov(e_i, e_j)``.
+    R : ndarray, shape (2, 2)
+
+    Returns
+    -------
+    Moments
+        Without Jacobians (the update is ``P - K S K^T``).
+    """
+    E = len(x_i)
+    J = np.empty((E, 6, 6))
+    J[:, :3, :3] = P_i
+    J[:, :3, 3:] = C
+    J[:, 3:, :3] = np.swapaxes(C, -1, -2)
+    J[:, 3:, 3:] = P_j
+    J = symmetrize(J)
+    rule = getattr(filt, "rule6", None)
+    if rule is None:  # EKF: linearization
+        H_i, H_j = range_bearing_jacobians(x_i, x_j)
+        H = np.concatenate([H_i, H_j], axis=2)  # (E, 2, 6)
+        S = H @ J @ np.swapaxes(H, -1, -2) + R
+        Pxz = J[:, :3, :] @ np.swapaxes(H, -1, -2)
+        return Moments(range_bearing(x_i, x_j), symmetrize(S), Pxz)
+    L = cholesky_jitter(J)
+    offsets = rule.unit[None] @ np.swapaxes(L, -1, -2)  # (E, m, 6)
+    Z = range_bearing(x_i[:, None, :] + offsets[..., :3], x_j[:, None, :] + offsets[..., 3:])
+    z_hat = np.empty((E, 2))
+    z_hat[:, 0] = Z[..., 0] @ rule.Wm
+    z_hat[:, 1] = (
+        circular_mean(Z[..., 1], rule.Wm)
+        if getattr(filt, "circular", True)
+        else wrap_angle(Z[..., 1] @ rule.Wm)
+    )
+    dZ = Z - z_hat[:, None, :]
+    dZ[..., 1] = wrap_angle(dZ[..., 1])
+    dX = offsets[..., :3] - (rule.Wm @ offsets[..., :3])[:, None, :]
+    dZw = np.swapaxes(dZ * rule.Wc[None, :, None], -1, -2)  # (E, 2, m)
+    S = dZw @ dZ + R
+    Pxz = np.swapaxes(dZw @ dX, -1, -2)
+    return Moments(z_hat, symmetrize(S), Pxz)
 
 
 class JointCovariance:
@@ -79,7 +142,14 @@ class JointCovariance:
         self.noise = np.zeros((B, 3, 3))
 
     # ------------------------------------------------------------------ step
-    def predict(self, x: np.ndarray, u: np.ndarray, dt: float, Q: np.ndarray) -> np.ndarray:
+    def predict(
+        self,
+        x: np.ndarray,
+        u: np.ndarray,
+        dt: float,
+        Q: np.ndarray,
+        P_pred: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Time update ``Sigma <- F Sigma F^T + blockdiag(Q)`` (eqs. 1-2, linearized at ``x``).
 
         Parameters
@@ -91,6 +161,8 @@ class JointCovariance:
         dt : float
         Q : ndarray, shape (B, 3, 3)
             Process noise.
+        P_pred : ndarray, optional
+            The filters' predicted covariances: ignored (the joint is the authority).
 
         Returns
         -------
@@ -138,21 +210,23 @@ class JointCovariance:
         self,
         filt,
         x_i: np.ndarray,
+        P_i: np.ndarray | None,
         x_j: np.ndarray,
+        P_j: np.ndarray | None,
         i: np.ndarray,
         j: np.ndarray,
         R: np.ndarray,
     ) -> Moments:
         """Moments of ``z_ij`` under the tracked joint ``[[P_i, C_ij], [C_ij^T, P_j]]``.
 
-        A sigma-point filter draws its 6-D points (its own rule) from the full joint
-        covariance; the EKF linearizes: ``S = H J H^T + R``, ``P^xz = J[:3] H^T``.
-
         Parameters
         ----------
         filt : GaussianFilter
         x_i : ndarray, shape (E, 3)
             Current estimates of the observers.
+        P_i, P_j : ignored
+            The joint's own blocks are used (same signature as
+            :meth:`~resloc.cl.factorized.FactorizedCovariance.moments`).
         x_j : ndarray, shape (E, 3)
             Transmitted (predicted) estimates.
         i, j : ndarray of int, shape (E,)
@@ -162,42 +236,12 @@ class JointCovariance:
         Returns
         -------
         Moments
-            Without Jacobians: the update is ``P - K S K^T``; the covariances themselves come
-            from the bookkeeping (:meth:`update`).
+            See :func:`joint_moments`.
         """
-        E = len(i)
-        J = np.zeros((E, 6, 6))
         ms = self._m_sigma()
-        C = self.cross(i, j, ms)
-        J[:, :3, :3] = self.current(i, ms)
-        J[:, :3, 3:] = C
-        J[:, 3:, :3] = np.swapaxes(C, -1, -2)
-        J[:, 3:, 3:] = self._block(j)
-        J = symmetrize(J)
-        rule = getattr(filt, "rule6", None)
-        if rule is None:  # EKF: linearization
-            H_i, H_j = range_bearing_jacobians(x_i, x_j)
-            H = np.concatenate([H_i, H_j], axis=2)  # (E, 2, 6)
-            S = H @ J @ np.swapaxes(H, -1, -2) + R
-            Pxz = J[:, :3, :] @ np.swapaxes(H, -1, -2)
-            return Moments(range_bearing(x_i, x_j), symmetrize(S), Pxz)
-        L = cholesky_jitter(J)
-        offsets = rule.unit[None] @ np.swapaxes(L, -1, -2)  # (E, m, 6)
-        Z = range_bearing(x_i[:, None, :] + offsets[..., :3], x_j[:, None, :] + offsets[..., 3:])
-        z_hat = np.empty((E, 2))
-        z_hat[:, 0] = Z[..., 0] @ rule.Wm
-        z_hat[:, 1] = (
-            circular_mean(Z[..., 1], rule.Wm)
-            if getattr(filt, "circular", True)
-            else wrap_angle(Z[..., 1] @ rule.Wm)
+        return joint_moments(
+            filt, x_i, self.current(i, ms), x_j, self._block(j), self.cross(i, j, ms), R
         )
-        dZ = Z - z_hat[:, None, :]
-        dZ[..., 1] = wrap_angle(dZ[..., 1])
-        dX = offsets[..., :3] - (rule.Wm @ offsets[..., :3])[:, None, :]
-        dZw = np.swapaxes(dZ * rule.Wc[None, :, None], -1, -2)  # (E, 2, m)
-        S = dZw @ dZ + R
-        Pxz = np.swapaxes(dZw @ dX, -1, -2)
-        return Moments(z_hat, symmetrize(S), Pxz)
 
     def _block(self, j: np.ndarray) -> np.ndarray:
         """Predicted covariances ``Sigma_jj`` of robots ``j``, (E, 3, 3)."""
@@ -213,11 +257,15 @@ class JointCovariance:
         x_j: np.ndarray,
         m: Moments,
         R: np.ndarray,
+        P_new: np.ndarray | None = None,
     ) -> np.ndarray:
         """Record the updates of observers ``i`` (distinct) from ``j``'s predicted estimates.
 
         ``e_i <- (I - K H_i) e_i - K H_j e_j,pred - K v`` with the gain ``K = P^xz S^{-1}`` of
         the moments ``m`` the update used (:meth:`moments`) and the Jacobians at the means.
+
+        P_new : ignored
+            The filters' own updated covariances (the joint is the authority).
 
         Returns
         -------
@@ -238,8 +286,10 @@ class JointCovariance:
         )
         return self.current(i)
 
-    def finish(self) -> np.ndarray:
+    def finish(self, P: np.ndarray | None = None) -> np.ndarray:
         """End of the correction: ``Sigma <- M Sigma M^T + blockdiag(cov w)``.
+
+        ``P`` (the filters' corrected covariances) is ignored: the joint is the authority.
 
         Returns
         -------

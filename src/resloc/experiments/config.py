@@ -88,7 +88,8 @@ class EstimatorSpec:
     ukf_kappa: float = _f(0.0, "UKF kappa")
     fusion: FusionMethod = _f(
         FusionMethod.NAIVE,
-        "neighbour fusion: naive (paper), ci, split_ci or tracked (docs/beyond.md)",
+        "neighbour fusion: naive (paper), gauge, ci, split_ci, tracked or factorized "
+        "(docs/beyond.md)",
     )
     ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
 
@@ -360,12 +361,9 @@ def _parse(data: dict) -> Scenario:
             f"estimator.fusion: {est.fusion.value!r} fuses transmitted estimates only; "
             "set estimator.update_without_transmission = false"
         )
-    if (
-        est.fusion is FusionMethod.TRACKED
-        and est.neighbour_estimate is not NeighbourEstimate.CURRENT
-    ):
+    if est.fusion.tracks_cross and est.neighbour_estimate is not NeighbourEstimate.CURRENT:
         raise ConfigError(
-            "estimator.fusion: 'tracked' needs neighbour_estimate = \"current\" "
+            f'estimator.fusion: {est.fusion.value!r} needs neighbour_estimate = "current" '
             f"(now {est.neighbour_estimate.value!r})"
         )
     att: AttackSpec = parts["attack"]

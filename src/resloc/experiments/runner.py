@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
+from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.fusion import FusionMethod, propagate_independent
+from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
@@ -223,12 +225,16 @@ def run_scenario(
         for name in run.filters
     ]
     split = params.fusion is FusionMethod.SPLIT_CI
-    tracked = params.fusion is FusionMethod.TRACKED
+    tracked = params.fusion.bookkeeping
     for tr in tracks:
         if split:  # initial errors are independent across robots
             tr.memory.independent = P0.copy()
-        if tracked:
+        if params.fusion is FusionMethod.TRACKED:
             tr.memory.joint = JointCovariance(P0, N)
+        elif params.fusion is FusionMethod.FACTORIZED:
+            tr.memory.joint = FactorizedCovariance(len(P0), N)
+        elif params.fusion is FusionMethod.GAUGE:
+            tr.memory.joint = GaugeCovariance(x0, P0, N)
     dr = None
     if run.dead_reckoning:
         dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
@@ -255,7 +261,7 @@ def run_scenario(
                     np.asarray(params.process_floor_std),
                 )
             xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            if tracked:  # the joint covariance is the authority on covariances
+            if tracked:  # cross-covariances / gauge (tracked: the joint is the authority on P)
                 Pp = tr.memory.joint.predict(
                     tr.x,
                     ws.u_meas,
@@ -266,6 +272,7 @@ def run_scenario(
                         np.asarray(params.odometry_std),
                         np.asarray(params.process_floor_std),
                     ),
+                    Pp,
                 )
             if scenario.trigger.risk_source is RiskSource.ESTIMATED:
                 risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
@@ -439,4 +446,7 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        s["nees"][k] = nees(ws.pose, tr.x, tr.P).reshape(T, N).mean(axis=1)
+        P = tr.P
+        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
+            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+        s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)

@@ -1,0 +1,220 @@
+"""Decentralized cross-covariance tracking by factors (the ``factorized`` fusion method).
+
+The recursive decentralized cooperative localization of Luft, Schubert, Roumeliotis &
+Burgard ("Recursive decentralized localization for multi-robot systems with asynchronous
+pairwise communication", IJRR 2018), on the paper's protocol (robot i updates only itself
+from ``z_ij`` and j's transmitted estimate).
+
+Every robot i stores, besides ``(x_i, P_i)``, one 3x3 factor ``sigma_il`` per teammate l; the
+cross-covariance is never stored whole, it is the product of two factors held by two robots:
+
+    ``cov(e_i, e_l) = sigma_il sigma_li^T``  (initially 0: independent initial errors).
+
+* prediction (local): ``sigma_il <- F_i sigma_il`` for every l, because
+  ``F_i sigma_il sigma_li^T F_l^T`` is the predicted cross-covariance;
+* a message of j on link (i, j) carries, besides ``(x_j, P_j)`` (predicted), the one factor
+  ``sigma_ji`` that j keeps for i: 9 numbers; robot i forms ``C_ij = sigma_ij sigma_ji^T``
+  and makes a Schmidt ("consider") update of ``x_i`` with the joint ``[[P_i, C_ij],
+  [C_ij^T, P_j]]`` (:func:`~resloc.cl.tracking.joint_moments`: the filter's own points or
+  linearization);
+* that update maps i's error ``e_i <- G e_i - K H_j e_j + noise`` with ``G = I - K H_i``
+  (Jacobians at the means): robot i left-multiplies every factor it holds by ``G`` and keeps
+  ``B_ij = -K H_j`` (later updates of i in the same step left-multiply it too);
+* end of the step, for every pair that fused in either direction, an acknowledgement on the
+  link that just delivered carries the partner's ``(A, B, P_pred)`` (27 numbers): with
+  ``A_i`` the product of i's ``G`` in the step, the pair's new cross-covariance is
+  ``C = [A_i, B_ij] [[P_i, P_ij], [P_ji, P_j]]_pred [B_ji, A_j]^T``; the lower id stores
+  ``sigma = C``, the other ``sigma = I`` (Luft et al.'s convention).
+
+What a robot cannot know is dropped (Luft et al.'s approximation): the terms of its
+cross-covariance with l that go through a third robot's error (``B_ij cov(e_j, e_l)``), i.e.
+a robot's factors are corrected only by its own gain. :mod:`resloc.cl.tracking` keeps the
+same quantities exactly (the team's joint covariance) and is the reference; this module is
+what a team of separate robot processes can run. ``docs/beyond.md`` reports both.
+
+Storage is dense per team (``(B, N, 3, 3)``: robot b's factor for teammate l), as in Luft
+et al. (a robot keeps one factor per teammate).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from resloc.cl.tracking import joint_moments
+from resloc.filters.base import Moments
+from resloc.linalg import cholesky_jitter, solve_spd
+from resloc.models.measurement import range_bearing_jacobians
+from resloc.models.motion import unicycle_state_jacobian
+
+__all__ = ["FactorizedCovariance"]
+
+
+def valid_cross(
+    P_i: np.ndarray, P_j: np.ndarray, C: np.ndarray, cap: float = 1.0 - 1e-6
+) -> np.ndarray:
+    """Shrink cross-covariances so that the joint ``[[P_i, C], [C^T, P_j]]`` stays valid.
+
+    The joint is positive definite iff the correlation ``L_i^{-1} C L_j^{-T}`` (``L`` the
+    Cholesky factors) has all singular values below 1. Approximate factors can violate it;
+    those ``C`` are scaled by ``cap / sigma_max``.
+
+    Parameters
+    ----------
+    P_i, P_j, C : ndarray, shape (E, 3, 3)
+
+    Returns
+    -------
+    ndarray, shape (E, 3, 3)
+    """
+    Li, Lj = cholesky_jitter(P_i), cholesky_jitter(P_j)
+    corr = np.linalg.solve(Li, np.swapaxes(np.linalg.solve(Lj, np.swapaxes(C, -1, -2)), -1, -2))
+    smax = np.linalg.norm(corr, ord=2, axis=(-2, -1))
+    scale = np.where(smax > cap, cap / np.maximum(smax, 1e-300), 1.0)
+    return C * scale[:, None, None]
+
+
+class FactorizedCovariance:
+    """The factors ``sigma_il`` of T teams of N robots (robot ``b`` is ``b % N`` of team
+    ``b // N``), with one step's bookkeeping.
+
+    Parameters
+    ----------
+    batch : int
+        Number of robots in the batch, ``T * N``.
+    robots : int
+        Team size N.
+    """
+
+    def __init__(self, batch: int, robots: int) -> None:
+        self.N = int(robots)
+        if batch % self.N:
+            raise ValueError(f"batch of {batch} robots is not a multiple of the team size {self.N}")
+        self.B = int(batch)
+        self.sig = np.zeros((self.B, self.N, 3, 3))
+        self._start_step(np.zeros((self.B, 3, 3)))
+
+    def _start_step(self, P_pred: np.ndarray) -> None:
+        self.sig_pred = self.sig.copy()  # what j's messages carry this step
+        self.P_pred = P_pred.copy()
+        self.A = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
+        self.Bm = np.zeros((self.B, self.N, 3, 3))
+        self.fused = np.zeros((self.B, self.N), dtype=bool)
+
+    def _local(self, b: np.ndarray) -> np.ndarray:
+        return np.asarray(b) % self.N
+
+    # ------------------------------------------------------------------ step
+    def predict(
+        self, x: np.ndarray, u: np.ndarray, dt: float, Q: np.ndarray, P_pred: np.ndarray
+    ) -> np.ndarray:
+        """Time update of the factors, ``sigma_il <- F_i sigma_il`` (eq. 2 linearized at ``x``).
+
+        Parameters
+        ----------
+        x : ndarray, shape (B, 3)
+            Estimates before the prediction.
+        u : ndarray, shape (B, 2)
+        dt : float
+        Q : ndarray, shape (B, 3, 3)
+            Process noise (unused: it is independent across robots).
+        P_pred : ndarray, shape (B, 3, 3)
+            The filters' predicted covariances (kept: each robot's own filter is the
+            authority on its ``P_i``).
+
+        Returns
+        -------
+        ndarray, shape (B, 3, 3)
+            ``P_pred`` unchanged.
+        """
+        del Q
+        F = unicycle_state_jacobian(x, u, dt)
+        self.sig = np.einsum("bac,blcd->blad", F, self.sig)
+        self._start_step(P_pred)
+        return P_pred
+
+    def cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """``cov(e_i now, e_j predicted) = sigma_ij sigma_ji,pred^T``, shape (E, 3, 3)."""
+        return self.sig[i, self._local(j)] @ np.swapaxes(self.sig_pred[j, self._local(i)], -1, -2)
+
+    def moments(self, filt, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
+        """Moments of ``z_ij`` under ``[[P_i, C_ij], [C_ij^T, P_j]]``, ``C_ij`` from factors.
+
+        Parameters
+        ----------
+        filt : GaussianFilter
+        x_i, P_i : ndarray, shapes (E, 3), (E, 3, 3)
+            Observers' current estimates.
+        x_j, P_j : ndarray, shapes (E, 3), (E, 3, 3)
+            Transmitted (predicted) estimates.
+        i, j : ndarray of int, shape (E,)
+        R : ndarray, shape (2, 2)
+        """
+        C = valid_cross(P_i, P_j, self.cross(i, j))
+        return joint_moments(filt, x_i, P_i, x_j, P_j, C, R)
+
+    def update(self, i, j, x_i, x_j, m: Moments, R, P_new: np.ndarray) -> np.ndarray:
+        """Record the updates of observers ``i`` (distinct) from ``j``'s predicted estimates.
+
+        Parameters
+        ----------
+        i, j : ndarray of int, shape (E,)
+        x_i, x_j : ndarray, shape (E, 3)
+            The estimates the update linearized at (i's before the update).
+        m : Moments
+            The moments the update used (its gain ``K = P^xz S^{-1}``).
+        R : ndarray, shape (2, 2)
+            Unused (i's measurement noise is independent of every other robot).
+        P_new : ndarray, shape (E, 3, 3)
+            The filters' updated covariances.
+
+        Returns
+        -------
+        ndarray, shape (E, 3, 3)
+            ``P_new`` unchanged.
+        """
+        del R
+        K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
+        H_i, H_j = range_bearing_jacobians(x_i, x_j)
+        G = np.eye(3) - K @ H_i
+        self.sig[i] = np.einsum("eac,elcd->elad", G, self.sig[i])
+        self.Bm[i] = np.einsum("eac,elcd->elad", G, self.Bm[i])
+        jl = self._local(j)
+        self.Bm[i, jl] -= K @ H_j
+        self.A[i] = G @ self.A[i]
+        self.fused[i, jl] = True
+        return P_new
+
+    def finish(self, P: np.ndarray) -> np.ndarray:
+        """End of the correction: the factors of every pair that fused this step.
+
+        Parameters
+        ----------
+        P : ndarray, shape (B, 3, 3)
+            The filters' corrected covariances.
+
+        Returns
+        -------
+        ndarray, shape (B, 3, 3)
+            ``P`` unchanged.
+        """
+        b, lj = np.nonzero(self.fused)
+        if b.size:
+            team0 = b - self._local(b)
+            a_ = np.minimum(b, team0 + lj)
+            c_ = np.maximum(b, team0 + lj)
+            pairs = np.unique(np.stack([a_, c_], axis=1), axis=0)
+            a, c = pairs[:, 0], pairs[:, 1]
+            la, lc = self._local(a), self._local(c)
+            T = lambda M: np.swapaxes(M, -1, -2)  # noqa: E731
+            P_ac = self.sig_pred[a, lc] @ T(self.sig_pred[c, la])
+            A_a, A_c = self.A[a], self.A[c]
+            B_ac, B_ca = self.Bm[a, lc], self.Bm[c, la]
+            C = (
+                A_a @ self.P_pred[a] @ T(B_ca)
+                + A_a @ P_ac @ T(A_c)
+                + B_ac @ T(P_ac) @ T(B_ca)
+                + B_ac @ self.P_pred[c] @ T(A_c)
+            )
+            self.sig[a, lc] = C
+            self.sig[c, la] = np.eye(3)
+        return P
