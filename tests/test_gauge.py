@@ -140,3 +140,39 @@ def test_gauge_keeps_the_paper_estimates_and_makes_them_consistent(filt):
     n_gauge = gauge.per_trial("nees_mean").mean()
     assert n_naive > 50.0
     assert 1.0 < n_gauge < 8.0, n_gauge
+
+
+def test_gauge_sums_by_consensus_converge_to_the_exact_ones(rng, random_spd):
+    """Every robot's own G: consensus keeps the team's sum of contributions exactly and, on a
+    connected graph, converges to it; once the fit L has converged, increments are exact."""
+    N = 5
+    x = _poses(rng, N)
+    P0 = random_spd(rng, N, 3, scale=0.003, cond=5)
+    exact = GaugeCovariance(x, P0, N)
+    cons = GaugeCovariance(x, P0, N, rounds=200)
+    i, j = np.array([0, 1, 2, 3]), np.array([1, 2, 3, 4])  # a path: connected, not complete
+    cons.exchange(i, j)
+    J = gauge_jacobian(x)
+    np.testing.assert_allclose(
+        cons.M_hat, np.broadcast_to((np.swapaxes(J, -1, -2) @ J).mean(0), (N, 3, 3)), rtol=1e-8
+    )
+    G_all = cons.robot_G()
+    np.testing.assert_allclose(G_all, np.broadcast_to(G_all[0], G_all.shape), rtol=1e-8)
+    Q = random_spd(rng, N, 3, scale=1e-5)
+    u = np.zeros((N, 2))
+    before_exact, before_cons = exact.G[0].copy(), cons.robot_G()[0].copy()
+    exact.predict(x, u, 0.1, Q, P0)
+    cons.predict(x, u, 0.1, Q, P0)
+    cons.exchange(i, j)
+    np.testing.assert_allclose(
+        cons.robot_G()[0] - before_cons, exact.G[0] - before_exact, rtol=1e-7
+    )
+    assert cons.messages == 2 * 200 * 2 * len(i)
+
+
+def test_gauge_consensus_in_a_run_stays_consistent():
+    exact = _run("gauge", steps=200, filt="ekf")
+    cons = _run("gauge", steps=200, filt="ekf", **{"estimator.gauge_sums": "consensus"})
+    np.testing.assert_array_equal(cons.track, exact.track)  # estimates never depend on G
+    a, b = exact.per_trial("nees_mean").mean(), cons.per_trial("nees_mean").mean()
+    assert 0.5 * a < b < 1.5 * a, (a, b)

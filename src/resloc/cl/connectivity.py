@@ -33,7 +33,55 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["DistributedLambda2"]
+__all__ = ["DistributedLambda2", "MetropolisMixer"]
+
+
+class MetropolisMixer:
+    """One round of average consensus on an undirected graph, Metropolis weights.
+
+    ``W_ab = 1 / (1 + max(deg_a, deg_b))`` on edges, ``W_aa = 1 - sum_b W_ab``: doubly
+    stochastic, so a round keeps the sum over each connected component (Xiao, Boyd & Lall
+    2005). Shared by the distributed ``lambda2`` and the gauge sums (:mod:`resloc.cl.gauge`).
+
+    Parameters
+    ----------
+    i, j : ndarray of int, shape (E,)
+        Edges (each undirected edge once or in both directions; self-loops ignored).
+    n : int
+        Number of nodes.
+    """
+
+    def __init__(self, i: np.ndarray, j: np.ndarray, n: int) -> None:
+        self.n = int(n)
+        a = np.concatenate([i, j]).astype(np.int64)
+        b = np.concatenate([j, i]).astype(np.int64)
+        if a.size:
+            key = np.unique(a * self.n + b)
+            a, b = key // self.n, key % self.n
+            keep = a != b
+            a, b = a[keep], b[keep]
+        self.a, self.b = a, b  # directed edges a <- b
+        self.deg = np.bincount(a, minlength=self.n).astype(float)
+        self.w = 1.0 / (1.0 + np.maximum(self.deg[a], self.deg[b]))
+        self.w_self = 1.0 - np.bincount(a, weights=self.w, minlength=self.n)
+
+    @property
+    def messages(self) -> int:
+        """Directed messages per round (one per edge direction)."""
+        return int(self.a.size)
+
+    def laplacian(self, v: np.ndarray) -> np.ndarray:
+        """``(L v)_a = deg_a v_a - sum_{b in N_a} v_b``, shape (n,)."""
+        return self.deg * v - np.bincount(self.a, weights=v[self.b], minlength=self.n)
+
+    def mix(self, s: np.ndarray) -> np.ndarray:
+        """``W s`` for ``s`` of shape (n, ...)."""
+        flat = s.reshape(self.n, -1)
+        out = self.w_self[:, None] * flat
+        contrib = self.w[:, None] * flat[self.b]
+        for c in range(flat.shape[1]):
+            out[:, c] += np.bincount(self.a, weights=contrib[:, c], minlength=self.n)
+        return out.reshape(s.shape)
 
 
 class DistributedLambda2:
@@ -97,26 +145,8 @@ class DistributedLambda2:
         ndarray, shape (n,)
             Each robot's estimate of its component's ``lambda2`` (0 when isolated).
         """
-        n = self.n
-        a = np.concatenate([i, j]).astype(np.int64)
-        b = np.concatenate([j, i]).astype(np.int64)
-        if a.size:
-            key = np.unique(a * n + b)
-            a, b = key // n, key % n
-            keep = a != b
-            a, b = a[keep], b[keep]
-        deg = np.bincount(a, minlength=n).astype(float)
-        w = 1.0 / (1.0 + np.maximum(deg[a], deg[b]))  # Metropolis weights, edge a -> b
-        w_self = 1.0 - np.bincount(a, weights=w, minlength=n)
-
-        def lap(v: np.ndarray) -> np.ndarray:
-            return deg * v - np.bincount(a, weights=v[b], minlength=n)
-
-        def mix(s: np.ndarray) -> np.ndarray:
-            out = w_self[:, None] * s
-            for c in range(s.shape[1]):
-                out[:, c] += np.bincount(a, weights=w * s[b, c], minlength=n)
-            return out
+        graph = MetropolisMixer(i, j, self.n)
+        lap, mix, deg = graph.laplacian, graph.mix, graph.deg
 
         def signals(Ly: np.ndarray) -> np.ndarray:
             return np.stack([self.y, self.y * self.y, self.y * Ly], axis=1)
@@ -138,5 +168,5 @@ class DistributedLambda2:
                 est = np.where(var > 1e-12, mean_yly / var, 0.0)
             est = np.where(np.isfinite(est), np.clip(est, 0.0, self.n_max), 0.0)
             self.estimate = np.where(deg > 0, est, 0.0)
-            self.messages += int(a.size)
+            self.messages += graph.messages
         return self.estimate.copy()

@@ -37,15 +37,18 @@ least-squares rigid-body fit of the errors). A robot's consistent covariance is
 Every addition to ``G`` is a sum over robots of terms each robot computes from its own
 quantities, its ``L_i`` and, for ``Delta_m``, the ``L_i B_im`` of the robots that fused m's
 estimate (9 numbers sent back on the link that delivered): one average-consensus quantity
-per step (``(sum_l J_l^T J_l)`` is another, for ``L_i``). This module computes those sums
-exactly per team: the value an average consensus converges to (``docs/beyond.md``). The
-estimates never depend on ``G``.
+per step (``(sum_l J_l^T J_l)`` is another, for ``L_i``). By default this module computes
+those sums exactly per team (the value an average consensus converges to); with ``rounds``
+every robot runs the dynamic average consensus itself over the communication graph and has
+its own ``G`` (``estimator.gauge_sums = "consensus"``, ``docs/beyond.md``). The estimates
+never depend on ``G``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from resloc.cl.connectivity import MetropolisMixer
 from resloc.filters.base import Moments
 from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing_jacobians
@@ -91,25 +94,55 @@ class GaugeCovariance:
         Initial covariances (independent across robots).
     robots : int
         Team size N.
+    rounds : int, optional
+        None (default): the team sums are exact (what a consensus converges to). An int:
+        every robot keeps its own estimates of the two team averages (``J^T J`` and the
+        cumulative ``G`` contributions) by dynamic average consensus (Zhu & Martinez 2010,
+        Metropolis weights), ``rounds`` neighbour exchanges per step (:meth:`exchange`);
+        then each robot has its own ``G_b = N * mean``.
     """
 
-    def __init__(self, x0: np.ndarray, P0: np.ndarray, robots: int) -> None:
+    def __init__(
+        self, x0: np.ndarray, P0: np.ndarray, robots: int, rounds: int | None = None
+    ) -> None:
         self.N = int(robots)
         if len(P0) % self.N:
             raise ValueError(
                 f"batch of {len(P0)} robots is not a multiple of the team size {self.N}"
             )
+        if rounds is not None and int(rounds) < 1:
+            raise ValueError(f"rounds must be >= 1, got {rounds}")
         self.B = len(P0)
         self.T = self.B // self.N
-        self.G = self._spread(x0, P0)
-        self._start_step(x0, P0)
+        self.rounds = None if rounds is None else int(rounds)
+        self.messages = 0
+        if self.rounds is None:
+            self.G = np.zeros((self.T, 3, 3))
+        else:  # per-robot consensus states: own value until the first exchange
+            J = gauge_jacobian(x0)
+            self.phi_M = np.swapaxes(J, -1, -2) @ J
+            self.M_hat = self.phi_M.copy()
+            self.C_hat = np.zeros((self.B, 3, 3))
+        L = self._fit(x0)
+        self._add(L @ P0 @ np.swapaxes(L, -1, -2))
+        self._start_step(L, P0)
 
     # ------------------------------------------------------------------ helpers
     def _fit(self, x: np.ndarray) -> np.ndarray:
-        """``L_i = (sum_l J_l^T J_l)^{-1} J_i^T`` of every robot (its team's fit), (B, 3, 3)."""
+        """``L_i = (sum_l J_l^T J_l)^{-1} J_i^T`` of every robot (its team's fit), (B, 3, 3).
+
+        With consensus, ``sum_l J_l^T J_l`` is the robot's own estimate ``N * M_hat``
+        (its tracker follows the change of its own signal at once).
+        """
         J = gauge_jacobian(x)
-        JtJ = (np.swapaxes(J, -1, -2) @ J).reshape(self.T, self.N, 3, 3).sum(axis=1)
-        return _spd_inverse(JtJ)[self._team()] @ np.swapaxes(J, -1, -2)
+        JtJ = np.swapaxes(J, -1, -2) @ J
+        if self.rounds is None:
+            M = self._team_sum(JtJ)[self._team()]
+        else:
+            self.M_hat = self.M_hat + JtJ - self.phi_M
+            self.phi_M = JtJ
+            M = self.N * self.M_hat
+        return _spd_inverse(M) @ np.swapaxes(J, -1, -2)
 
     def _team(self) -> np.ndarray:
         return np.arange(self.B) // self.N
@@ -117,13 +150,37 @@ class GaugeCovariance:
     def _team_sum(self, terms: np.ndarray) -> np.ndarray:
         return terms.reshape(self.T, self.N, 3, 3).sum(axis=1)
 
-    def _spread(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """``sum_i L_i P_i L_i^T`` per team, (T, 3, 3)."""
-        L = self._fit(x)
-        return symmetrize(self._team_sum(L @ P @ np.swapaxes(L, -1, -2)))
+    def _add(self, terms: np.ndarray) -> None:
+        """Add every robot's contribution ``terms: (B, 3, 3)`` to its team's ``G``."""
+        if self.rounds is None:
+            self.G = symmetrize(self.G + self._team_sum(terms))
+        else:  # dynamic average consensus: the tracker follows its own signal's change
+            self.C_hat = self.C_hat + terms
 
-    def _start_step(self, x: np.ndarray, D_pred: np.ndarray) -> None:
-        self.L = self._fit(x)
+    def robot_G(self) -> np.ndarray:
+        """``G`` as each robot knows it, shape (B, 3, 3)."""
+        if self.rounds is None:
+            return self.G[self._team()]
+        return symmetrize(self.N * self.C_hat)
+
+    def exchange(self, i: np.ndarray, j: np.ndarray) -> None:
+        """Consensus rounds on this step's communication edges ``(i, j)`` (no-op when exact).
+
+        Parameters
+        ----------
+        i, j : ndarray of int, shape (E,)
+            Links that can carry a message this step.
+        """
+        if self.rounds is None:
+            return
+        graph = MetropolisMixer(i, j, self.B)
+        for _ in range(self.rounds):
+            self.M_hat = graph.mix(self.M_hat)
+            self.C_hat = graph.mix(self.C_hat)
+            self.messages += graph.messages
+
+    def _start_step(self, L: np.ndarray, D_pred: np.ndarray) -> None:
+        self.L = L
         self.D_pred = D_pred.copy()
         self.A = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
         self.noise = np.zeros((self.B, 3, 3))
@@ -146,7 +203,7 @@ class GaugeCovariance:
         ndarray, shape (B, 3, 3)
         """
         J = gauge_jacobian(x)
-        return symmetrize(P + J @ self.G[self._team()] @ np.swapaxes(J, -1, -2))
+        return symmetrize(P + J @ self.robot_G() @ np.swapaxes(J, -1, -2))
 
     # ------------------------------------------------------------------ step
     def predict(
@@ -174,8 +231,9 @@ class GaugeCovariance:
             ``P_pred`` unchanged.
         """
         del u, dt
-        self.G = symmetrize(self.G + self._spread(x, Q))
-        self._start_step(x, P_pred)
+        L = self._fit(x)
+        self._add(L @ Q @ np.swapaxes(L, -1, -2))
+        self._start_step(L, P_pred)
         return P_pred
 
     def update(self, i, j, x_i, x_j, m: Moments, R, P_new: np.ndarray) -> np.ndarray:
@@ -229,6 +287,5 @@ class GaugeCovariance:
         if len(self.obs):
             np.add.at(leak, self.nbr, self.L[self.obs] @ self.Bij)
         T_ = np.swapaxes
-        add = leak @ self.D_pred @ T_(leak, -1, -2) + self.L @ self.noise @ T_(self.L, -1, -2)
-        self.G = symmetrize(self.G + self._team_sum(add))
+        self._add(leak @ self.D_pred @ T_(leak, -1, -2) + self.L @ self.noise @ T_(self.L, -1, -2))
         return P

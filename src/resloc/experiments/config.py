@@ -92,6 +92,11 @@ class EstimatorSpec:
         "(docs/beyond.md)",
     )
     ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
+    gauge_sums: str = _f(
+        "exact",
+        "gauge fusion's team sums: exact, or each robot's own by neighbour consensus",
+    )
+    gauge_rounds: int = _f(3, "gauge sums by consensus: neighbour exchanges per step", min=1)
 
 
 @dataclass(frozen=True)
@@ -351,6 +356,10 @@ def _parse(data: dict) -> Scenario:
             f'set detector.norm = "nis" (now {det.norm.value!r}) or false_alarm = 0'
         )
     est: EstimatorSpec = parts["estimator"]
+    if est.gauge_sums not in ("exact", "consensus"):
+        raise ConfigError(
+            f"estimator.gauge_sums: {est.gauge_sums!r} is not one of exact, consensus"
+        )
     if est.fusion is not FusionMethod.NAIVE and est.update_mode is not UpdateMode.SEQUENTIAL:
         raise ConfigError(
             f'estimator.fusion: {est.fusion.value!r} needs update_mode = "sequential" '

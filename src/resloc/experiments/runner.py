@@ -234,7 +234,8 @@ def run_scenario(
         elif params.fusion is FusionMethod.FACTORIZED:
             tr.memory.joint = FactorizedCovariance(len(P0), N)
         elif params.fusion is FusionMethod.GAUGE:
-            tr.memory.joint = GaugeCovariance(x0, P0, N)
+            rounds = est.gauge_rounds if est.gauge_sums == "consensus" else None
+            tr.memory.joint = GaugeCovariance(x0, P0, N, rounds)
     dr = None
     if run.dead_reckoning:
         dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
@@ -292,6 +293,8 @@ def run_scenario(
                 **hooks.link_extras(ws, tr.memory),
             )
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
+            if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
+                tr.memory.joint.exchange(*hooks.comm_edges(ws))
             tr.wall += time.perf_counter() - t0
             _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
@@ -351,6 +354,12 @@ class _Hooks:
             self.dl2 = DistributedLambda2(
                 world.B, float(world.n), scenario.trigger.lambda2_rounds, y0=y0
             )
+
+    def comm_edges(self, ws) -> tuple[np.ndarray, np.ndarray]:
+        """This step's links that can carry a message (in radio range, not jammed)."""
+        p = ws.pose[:, :2]
+        ok = (np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius) & ws.channel_ok
+        return ws.i[ok], ws.j[ok]
 
     def lambda2(self, ws) -> np.ndarray:
         """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
