@@ -40,10 +40,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.tracking import joint_moments
+from resloc.cl.tracking import joint_moments, update_map
 from resloc.filters.base import Moments
-from resloc.linalg import cholesky_jitter, solve_spd
-from resloc.models.measurement import range_bearing_jacobians
+from resloc.linalg import cholesky_jitter
 from resloc.models.motion import unicycle_state_jacobian
 
 __all__ = ["FactorizedCovariance"]
@@ -173,13 +172,11 @@ class FactorizedCovariance:
             ``P_new`` unchanged.
         """
         del R
-        K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
-        H_i, H_j = range_bearing_jacobians(x_i, x_j)
-        G = np.eye(3) - K @ H_i
+        _, G, KH_j = update_map(m, x_i, x_j)
         self.sig[i] = np.einsum("eac,elcd->elad", G, self.sig[i])
         self.Bm[i] = np.einsum("eac,elcd->elad", G, self.Bm[i])
         jl = self._local(j)
-        self.Bm[i, jl] -= K @ H_j
+        self.Bm[i, jl] -= KH_j
         self.A[i] = G @ self.A[i]
         self.fused[i, jl] = True
         return P_new

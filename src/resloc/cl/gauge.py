@@ -7,12 +7,14 @@ rotated by ``phi`` about the origin, so for every link
     ``H_i J_i + H_j J_j = 0``,  ``J_i = [[1, 0, -y_i], [0, 1, x_i], [0, 0, 1]]``
 
 (:func:`gauge_jacobian` maps the rigid-body error ``g = (t_x, t_y, phi)`` into robot i's pose
-error; eq. 3 and its Jacobians). The paper's naive fusion forgets this: it treats a
-neighbour's estimate as an independent absolute fix, so its covariances shrink below the
-team's common error, which no relative measurement can reduce. Measured (17 robots, clean
-arc-turn, CKF, naive fusion): NEES 764 against the true error, **2.05** against the error
-with the team's least-squares rigid-body error removed: the naive covariance ``D_i`` is
-consistent for the relative error and misses the common one only.
+error; eq. 3 and its Jacobians): ``[J_1; ...; J_N]`` spans the unobservable subspace of
+relative-measurement CL (Huang, Mourikis & Roumeliotis, Autonomous Robots 2011). The paper's
+naive fusion forgets this: it treats a neighbour's estimate as an independent absolute fix,
+so its covariances shrink below the team's common error, which no relative measurement can
+reduce. Measured (17 robots, clean arc-turn, CKF, naive fusion): NEES 764 against the true
+error, **2.05** against the error with the team's least-squares rigid-body error removed:
+the naive covariance ``D_i`` is consistent for the relative error and misses the common one
+only.
 
 The ``gauge`` method keeps the paper's estimates and filters (same gains, same relative
 accuracy, same detector and trigger) and tracks what they miss: the covariance ``G`` of the
@@ -49,9 +51,9 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl.connectivity import MetropolisMixer
+from resloc.cl.tracking import update_map
 from resloc.filters.base import Moments
-from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
-from resloc.models.measurement import range_bearing_jacobians
+from resloc.linalg import cholesky_jitter, symmetrize
 
 __all__ = ["GaugeCovariance", "gauge_jacobian"]
 
@@ -255,10 +257,9 @@ class GaugeCovariance:
         ndarray, shape (E, 3, 3)
             ``P_new`` unchanged (the estimates and ``D_i`` are the filters').
         """
-        K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
-        H_i, H_j = range_bearing_jacobians(x_i, x_j)
+        K, G_i, KH_j = update_map(m, x_i, x_j)
         Gain = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
-        Gain[i] = np.eye(3) - K @ H_i
+        Gain[i] = G_i
         if len(self.obs):  # i's earlier B_ik this step see i's new gain
             self.Bij = Gain[self.obs] @ self.Bij
         self.A[i] = Gain[i] @ self.A[i]
@@ -267,7 +268,7 @@ class GaugeCovariance:
         )
         self.obs = np.concatenate([self.obs, i])
         self.nbr = np.concatenate([self.nbr, j])
-        self.Bij = np.concatenate([self.Bij, -K @ H_j])
+        self.Bij = np.concatenate([self.Bij, -KH_j])
         return P_new
 
     def finish(self, P: np.ndarray) -> np.ndarray:

@@ -37,7 +37,30 @@ from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing, range_bearing_jacobians
 from resloc.models.motion import unicycle_state_jacobian
 
-__all__ = ["JointCovariance", "joint_moments"]
+__all__ = ["JointCovariance", "joint_moments", "update_map"]
+
+
+def update_map(m: Moments, x_i: np.ndarray, x_j: np.ndarray):
+    """The linear map of one relative update, ``e_i <- (I - K H_i) e_i - K H_j e_j - K v``.
+
+    Parameters
+    ----------
+    m : Moments
+        The moments the update used (its gain ``K = P^xz S^{-1}``).
+    x_i, x_j : ndarray, shape (E, 3)
+        The estimates the Jacobians are taken at (eq. 3; i's before the update).
+
+    Returns
+    -------
+    K : ndarray, shape (E, 3, 2)
+    G : ndarray, shape (E, 3, 3)
+        ``I - K H_i``.
+    KH_j : ndarray, shape (E, 3, 3)
+        ``K H_j``.
+    """
+    K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)
+    H_i, H_j = range_bearing_jacobians(x_i, x_j)
+    return K, np.eye(3) - K @ H_i, K @ H_j
 
 
 def joint_moments(
@@ -273,13 +296,11 @@ class JointCovariance:
             The observers' covariances after the update (positive semi-definite by
             construction for any gain).
         """
-        K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
-        H_i, H_j = range_bearing_jacobians(x_i, x_j)
-        IKH = np.eye(3) - K @ H_i
+        K, IKH, KH_j = update_map(m, x_i, x_j)
         Mi = IKH @ self.M[i]
         cols = 3 * (j % self.N)[:, None] + np.arange(3)[None, :]  # (E, 3)
         e = np.arange(len(i))[:, None, None]
-        Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= K @ H_j
+        Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= KH_j
         self.M[i] = Mi
         self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
             K, -1, -2
