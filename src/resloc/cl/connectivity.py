@@ -33,7 +33,35 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["DistributedLambda2", "MetropolisMixer"]
+__all__ = ["DistributedLambda2", "MetropolisMixer", "metropolis_mix_one"]
+
+
+def metropolis_weights(deg_a: np.ndarray, deg_b: np.ndarray) -> np.ndarray:
+    """Metropolis weight of edge a <- b, ``1 / (1 + max(deg_a, deg_b))``."""
+    return 1.0 / (1.0 + np.maximum(deg_a, deg_b))
+
+
+def metropolis_mix_one(
+    s: np.ndarray, degree: int, received: np.ndarray, degrees: np.ndarray
+) -> np.ndarray:
+    """One node's consensus round, ``s <- W_aa s + sum_b W_ab s_b`` (:class:`MetropolisMixer`
+    for one robot's process).
+
+    Parameters
+    ----------
+    s : ndarray
+        This node's state.
+    degree : int
+        Its number of neighbours.
+    received : ndarray, shape (K, *s.shape)
+        The neighbours' states.
+    degrees : ndarray, shape (K,)
+        The neighbours' degrees.
+    """
+    w = metropolis_weights(float(degree), np.asarray(degrees, float)).reshape(
+        (-1,) + (1,) * np.ndim(s)
+    )
+    return (1.0 - w.sum()) * s + (w * received).sum(axis=0)
 
 
 class MetropolisMixer:
@@ -62,7 +90,7 @@ class MetropolisMixer:
             a, b = a[keep], b[keep]
         self.a, self.b = a, b  # directed edges a <- b
         self.deg = np.bincount(a, minlength=self.n).astype(float)
-        self.w = 1.0 / (1.0 + np.maximum(self.deg[a], self.deg[b]))
+        self.w = metropolis_weights(self.deg[a], self.deg[b])
         self.w_self = 1.0 - np.bincount(a, weights=self.w, minlength=self.n)
 
     @property

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.connectivity import MetropolisMixer
+from resloc.cl.connectivity import MetropolisMixer, metropolis_mix_one
 from resloc.cl.tracking import update_map
 from resloc.filters.base import Moments
 from resloc.linalg import cholesky_jitter, symmetrize
@@ -102,20 +102,33 @@ class GaugeCovariance:
         cumulative ``G`` contributions) by dynamic average consensus (Zhu & Martinez 2010,
         Metropolis weights), ``rounds`` neighbour exchanges per step (:meth:`exchange`);
         then each robot has its own ``G_b = N * mean``.
+    local : bool
+        One robot's process (:class:`~resloc.cl.node.RobotNode`, batch size 1): consensus
+        only; the acknowledgements of the robots that fused this robot's estimate arrive
+        from outside (:meth:`acks` to send, :meth:`close` with what was received) and the
+        consensus runs one exchange per :meth:`mix_local` call.
     """
 
     def __init__(
-        self, x0: np.ndarray, P0: np.ndarray, robots: int, rounds: int | None = None
+        self,
+        x0: np.ndarray,
+        P0: np.ndarray,
+        robots: int,
+        rounds: int | None = None,
+        local: bool = False,
     ) -> None:
         self.N = int(robots)
-        if len(P0) % self.N:
+        self.local = bool(local)
+        if self.local:
+            rounds = 1 if rounds is None else rounds
+        elif len(P0) % self.N:
             raise ValueError(
                 f"batch of {len(P0)} robots is not a multiple of the team size {self.N}"
             )
         if rounds is not None and int(rounds) < 1:
             raise ValueError(f"rounds must be >= 1, got {rounds}")
         self.B = len(P0)
-        self.T = self.B // self.N
+        self.T = max(self.B // self.N, 1)
         self.rounds = None if rounds is None else int(rounds)
         self.messages = 0
         if self.rounds is None:
@@ -284,9 +297,54 @@ class GaugeCovariance:
         ndarray, shape (B, 3, 3)
             ``P`` unchanged.
         """
+        if self.local:  # wait for the neighbours' acknowledgements (close)
+            return P
         leak = self.L @ (self.A - np.eye(3))
         if len(self.obs):
-            np.add.at(leak, self.nbr, self.L[self.obs] @ self.Bij)
+            np.add.at(leak, self.nbr, self.acks()[1])
+        self._close(leak)
+        return P
+
+    def acks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The acknowledgements this step's updates owe: ``L_i B_ij`` to each neighbour j.
+
+        Returns
+        -------
+        j : ndarray of int, shape (E,)
+            The neighbours whose estimates were fused (ids as given to :meth:`update`).
+        ack : ndarray, shape (E, 3, 3)
+        """
+        return self.nbr.copy(), self.L[self.obs] @ self.Bij
+
+    def close(self, received: np.ndarray) -> None:
+        """End of a robot process's step (``local``): its leak with the acknowledgements
+        ``received: (K, 3, 3)`` of the robots that fused its estimate this step."""
+        if not self.local:
+            raise ValueError("close() is for a local (one robot's) gauge; finish() closes a batch")
+        leak = self.L @ (self.A - np.eye(3)) + np.asarray(received).reshape(-1, 3, 3).sum(axis=0)
+        self._close(leak)
+
+    def _close(self, leak: np.ndarray) -> None:
         T_ = np.swapaxes
         self._add(leak @ self.D_pred @ T_(leak, -1, -2) + self.L @ self.noise @ T_(self.L, -1, -2))
-        return P
+
+    def message(self) -> np.ndarray:
+        """What a consensus exchange carries: ``[M_hat, C_hat]``, shape (B, 2, 3, 3)."""
+        return np.stack([self.M_hat, self.C_hat], axis=1)
+
+    def mix_local(self, degree: int, received: np.ndarray, degrees: np.ndarray) -> None:
+        """One consensus exchange of a robot process (``local``).
+
+        Parameters
+        ----------
+        degree : int
+            This robot's number of neighbours in the exchange.
+        received : ndarray, shape (K, 2, 3, 3)
+            The neighbours' :meth:`message` (K = ``degree``).
+        degrees : ndarray of int, shape (K,)
+            Their numbers of neighbours (Metropolis weights need both ends).
+        """
+        state = self.message()[0]
+        mixed = metropolis_mix_one(state, degree, np.asarray(received), np.asarray(degrees))
+        self.M_hat, self.C_hat = mixed[None, 0], mixed[None, 1]
+        self.messages += int(degree)

@@ -13,10 +13,13 @@ import dataclasses
 
 import numpy as np
 
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, LinkOutcome, correct, predict
 from resloc.filters.base import GaussianFilter
+from resloc.models.motion import process_noise
 
 __all__ = ["RobotNode"]
 
@@ -39,6 +42,9 @@ class RobotNode:
     n_ids : int
         Size of the id space of neighbours (ids are ``0 .. n_ids - 1``); sizes the link
         memory's keys.
+    team_size : int, optional
+        Needed with ``params.fusion = "gauge"``: the team size N (the gauge covariance is
+        ``N`` times a consensus average; :mod:`resloc.cl.gauge`).
 
     Attributes
     ----------
@@ -46,6 +52,11 @@ class RobotNode:
     P : ndarray, shape (1, 3, 3)
     memory : LinkMemory
         What this robot remembers per neighbour (used by ``last_sent`` / ``cached``).
+
+    Gauge fusion (``params.fusion = "gauge"``) adds two exchanges per step after
+    :meth:`correct`: the acknowledgements (:meth:`gauge_acks` to send, :meth:`gauge_close`
+    with those received) and consensus rounds (:meth:`gauge_message`, :meth:`gauge_mix`);
+    :attr:`covariance` is then the consistent covariance ``P + J G J^T``.
     """
 
     def __init__(
@@ -56,6 +67,7 @@ class RobotNode:
         x0: np.ndarray,
         P0: np.ndarray,
         n_ids: int = 1 << 20,
+        team_size: int | None = None,
     ) -> None:
         self.robot_id = int(robot_id)
         self.filt = filt
@@ -63,6 +75,50 @@ class RobotNode:
         self.x = np.asarray(x0, dtype=float).reshape(1, 3).copy()
         self.P = np.asarray(P0, dtype=float).reshape(1, 3, 3).copy()
         self.memory = LinkMemory(n_ids)
+        if params.fusion is FusionMethod.GAUGE:
+            if team_size is None:
+                raise ValueError("fusion 'gauge' needs team_size (the team's number of robots)")
+            self.memory.joint = GaugeCovariance(self.x, self.P, int(team_size), local=True)
+        elif params.fusion not in (FusionMethod.NAIVE, FusionMethod.CI):
+            raise ValueError(
+                f"fusion {params.fusion.value!r} is not available in a robot process "
+                "(RobotNode runs naive, gauge and ci fusion)"
+            )
+
+    @property
+    def gauge(self) -> GaugeCovariance | None:
+        """The gauge bookkeeping (``fusion = "gauge"``), else None."""
+        return self.memory.joint if isinstance(self.memory.joint, GaugeCovariance) else None
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """This robot's consistent covariance, shape (3, 3): ``P`` (naive fusion's) plus the
+        team's gauge part with gauge fusion."""
+        g = self.gauge
+        return (self.P if g is None else g.reported(self.x, self.P))[0].copy()
+
+    def gauge_acks(self) -> list[tuple[int, np.ndarray]]:
+        """After :meth:`correct`: ``(j, ack)`` for each neighbour j whose estimate this robot
+        fused this step; deliver ``ack`` (3x3) to robot j's :meth:`gauge_close`."""
+        j, ack = self.gauge.acks()
+        return [(int(a), b) for a, b in zip(j, ack, strict=True)]
+
+    def gauge_close(self, received: list[np.ndarray]) -> None:
+        """Close the step's gauge bookkeeping with the acknowledgements received."""
+        self.gauge.close(np.asarray(received, dtype=float).reshape(-1, 3, 3))
+
+    def gauge_message(self) -> np.ndarray:
+        """One consensus exchange's payload, shape (2, 3, 3)."""
+        return self.gauge.message()[0]
+
+    def gauge_mix(self, received: list[np.ndarray], degrees: list[int]) -> None:
+        """One consensus exchange with this step's communication neighbours: their
+        :meth:`gauge_message` and their numbers of neighbours."""
+        self.gauge.mix_local(
+            len(received),
+            np.asarray(received, dtype=float).reshape(-1, 2, 3, 3),
+            np.asarray(degrees, dtype=float),
+        )
 
     @property
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +128,14 @@ class RobotNode:
     def predict(self, u: np.ndarray, dt: float) -> None:
         """Time update from measured odometry ``u = (v, omega)``, shape (2,)."""
         u = np.asarray(u, dtype=float).reshape(1, 2)
+        x_before = self.x
         self.x, self.P = predict(self.filt, self.x, self.P, u, dt, self.params)
+        if self.gauge is not None:
+            p = self.params
+            Q = process_noise(
+                x_before, dt, np.asarray(p.odometry_std), np.asarray(p.process_floor_std)
+            )
+            self.P = self.gauge.predict(x_before, u, dt, Q, self.P)
 
     def correct(
         self,
