@@ -214,8 +214,7 @@ def test_robot_nodes_run_gauge_fusion_with_acks_and_consensus() -> None:
         hist_b.append((x.copy(), memory.joint.reported(x, P)))
     # robot by robot
     nodes = [
-        RobotNode(b, filt, params, x0[b], P0[b], n_ids=world.B, team_size=N)
-        for b in range(world.B)
+        RobotNode(b, filt, params, x0[b], P0[b], n_ids=world.B, team_size=N) for b in range(world.B)
     ]
     with pytest.raises(ValueError, match="team_size"):
         RobotNode(0, filt, params, x0[0], P0[0])
