@@ -172,3 +172,37 @@ def test_runner_stealthy_passes_the_paper_detector():
     assert s["detector_recall"] < 0.05
     clean = run_scenario(base.replace(**{"sdz": []})).summary()["ekf"]
     assert s["msle_mean"] > 10 * clean["msle_mean"]
+
+
+def test_largest_linear_step_brute_force(rng):
+    from resloc.world.adversary import largest_linear_step
+
+    w0 = rng.normal(size=(200, 2)) * 0.4
+    v = rng.normal(size=(200, 2))
+    c = np.full(200, 0.45)
+    a = largest_linear_step(w0, v, c)
+    grid = np.linspace(0.0, 20.0, 20001)
+    for e in range(200):
+        ok = (np.abs(w0[e][None] + grid[:, None] * v[e][None]) <= c[e] + 1e-12).all(axis=1)
+        best = grid[ok].max() if ok[0] else 0.0
+        assert abs(min(a[e], 20.0) - best) <= 2e-3, e
+
+
+def test_stealthy_tamper_respects_the_mean_shift_test(rng):
+    from resloc.cl.cusum import whiten
+
+    E = 50
+    z_hat = np.column_stack([np.full(E, 0.5), np.zeros(E)])
+    S = np.broadcast_to(np.diag([1e-4, 1e-2]), (E, 2, 2)).copy()
+    z = z_hat + rng.normal(size=(E, 2)) * np.sqrt([1e-4, 1e-2])
+    tamper = stealthy_tamper(
+        z, np.ones(E, bool), np.zeros(E, int), [1.0, 0.0], 0.9, np.array([10.0, 1.0]),
+        True, "nis", 3.0, STD, 3.0, StealthKnowledge.FULL, 0.5,
+    )  # fmt: skip
+    out = tamper(np.arange(E), z_hat, S)
+    w_honest, w = whiten(z - z_hat, S), whiten(out - z_hat, S)
+    inside = (np.abs(w_honest) <= 0.45).all(axis=1)
+    assert (np.abs(w[inside]) <= 0.45 + 1e-9).all()
+    assert (out[inside, 0] >= z[inside, 0] - 1e-15).all()  # pushes along +range only
+    np.testing.assert_allclose(out[~inside], z[~inside], atol=1e-12)  # abstains otherwise
+    assert inside.any() and (~inside).any()

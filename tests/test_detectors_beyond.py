@@ -133,3 +133,73 @@ def test_correct_cusum_discards_persistent_bias():
         assert not out.detected[0]
     with pytest.raises(ValueError, match="LinkMemory"):
         correct(filt, x, P, links, params, None)
+
+
+# ------------------------------------------------------------------ mean-shift CUSUM
+
+
+def test_whiten_is_the_cholesky_inverse(rng, random_spd):
+    from resloc.cl.cusum import whiten
+
+    S = random_spd(rng, 30, 2, scale=0.01, cond=20)
+    nu = rng.normal(size=(30, 2)) * 0.1
+    w = whiten(nu, S)
+    L = np.linalg.cholesky(S)
+    np.testing.assert_allclose(w, np.linalg.solve(L, nu[:, :, None])[:, :, 0], atol=1e-12)
+    np.testing.assert_allclose((w * w).sum(1), nis(nu, S), rtol=1e-9)  # |w|^2 = NIS
+
+
+def test_link_statistic_vectors():
+    st = LinkStatistic(10, width=4)
+    assert st.get(np.array([1]), np.array([2])).shape == (1, 4)
+    st.set(np.array([1, 3]), np.array([2, 2]), np.array([[1.0, 2, 3, 4], [5, 6, 7, 8]]))
+    np.testing.assert_array_equal(
+        st.get(np.array([3, 1, 0]), np.array([2, 2, 0])),
+        [[5, 6, 7, 8], [1, 2, 3, 4], [0, 0, 0, 0]],
+    )
+
+
+def test_mean_cusum_catches_a_signed_bias_the_nis_cusum_cannot(rng):
+    """A 1-sigma range bias: mean NIS 3 (never above the NIS CUSUM's k = 3 on average), but
+    the signed test on w_r alarms within tens of measurements; honest links stay quiet."""
+    from resloc.cl.cusum import link_mean_cusum
+
+    i, j = np.array([0]), np.array([1])
+    store, store_nis = LinkStatistic(4, width=4), LinkStatistic(4)
+    first = None
+    for t in range(400):
+        w = rng.normal(size=(1, 2)) + np.array([[1.0, 0.0]])
+        link_cusum(store_nis, i, j, (w * w).sum(1), 3.0, 20.0)
+        discard = link_mean_cusum(store, i, j, w, 0.5, 8.0)[0]
+        g = store.get(i, j)[0]
+        if first is None and g[0] > 8.0:
+            first = t
+        if g[0] > 8.0:  # alarmed: discards exactly the measurements pushing up beyond k
+            assert discard == (w[0, 0] > 0.5)
+    assert first is not None and first < 60
+    assert store.get(i, j)[0, 1] < 8.0  # the other side stays quiet
+    honest, st2 = 0, LinkStatistic(4, width=4)
+    for _ in range(3000):
+        honest += int(link_mean_cusum(st2, i, j, rng.normal(size=(1, 2)), 0.5, 8.0)[0])
+    assert honest <= 5
+
+
+def test_correct_mean_cusum_discards_a_one_sigma_bias():
+    filt = make_filter("ekf")
+    rho = math.sqrt(chi2_gate(0.01))
+    x, P, links, _ = _two_robot_links(np.array([[0.0, 0.0]]), rho, False)
+    S = filt.relative_moments(x[[0]], P[[0]], x[[1]], P[[1]], CLParams().R).S[0]
+    bias = np.array([[1.2 * math.sqrt(S[0, 0]), 0.0]])  # NIS ~ 1.4: under k = 3 of the NIS test
+    params = CLParams(detector_norm="nis", rho=rho, trigger=False, cusum=True, mean_cusum=True)
+    memory = LinkMemory(2)
+    detected = []
+    for _ in range(40):
+        _, _, links, _ = _two_robot_links(bias, rho, False)
+        _, _, out = correct(filt, x, P, links, params, memory)
+        detected.append(bool(out.detected[0]))
+    assert not detected[0] and detected[-1]
+    nis_only = CLParams(detector_norm="nis", rho=rho, trigger=False, cusum=True)
+    memory2 = LinkMemory(2)
+    for _ in range(40):
+        _, _, out = correct(filt, x, P, links, nis_only, memory2)
+        assert not out.detected[0]

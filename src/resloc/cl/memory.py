@@ -15,13 +15,14 @@ class LinkMemory:
     ``i * n_nodes + j`` kept sorted; look-ups are vectorized with ``searchsorted``, so memory
     grows with the number of links actually used, never ``N x N``.
 
-    Two optional extensions (issue 6, ``docs/beyond.md``): ``cusum``, the per-link CUSUM
+    Optional extensions (issue 6, ``docs/beyond.md``): ``cusum``, the per-link CUSUM
     statistic of the detector (a :class:`LinkStatistic`, updated for every *evaluated* link,
-    delivered or not), and ``independent``, the independent covariance parts ``(n_nodes, 3,
-    3)`` of split covariance intersection (None until a caller initializes it, e.g. with the
-    initial covariances); ``joint``, the cross-covariance bookkeeping of ``tracked`` fusion (a
-    :class:`~resloc.cl.tracking.JointCovariance`) or ``factorized`` fusion (a
-    :class:`~resloc.cl.factorized.FactorizedCovariance`), None until initialized.
+    delivered or not); ``mean_cusum``, the four signed CUSUMs of the whitened innovation
+    (``+w_r, -w_r, +w_b, -w_b``, likewise); ``independent``, the independent covariance parts
+    ``(n_nodes, 3, 3)`` of split covariance intersection (None until a caller initializes it,
+    e.g. with the initial covariances); ``joint``, the bookkeeping of ``tracked``,
+    ``factorized`` or ``gauge`` fusion (:mod:`resloc.cl.tracking`, :mod:`resloc.cl.factorized`,
+    :mod:`resloc.cl.gauge`), None until initialized.
 
     Parameters
     ----------
@@ -36,6 +37,7 @@ class LinkMemory:
         self.P = np.empty((0, 3, 3))
         self.last_norm = np.empty(0)
         self.cusum = LinkStatistic(self.n_nodes)
+        self.mean_cusum = LinkStatistic(self.n_nodes, width=4)
         self.independent: np.ndarray | None = None
         self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
 
@@ -91,18 +93,22 @@ class LinkMemory:
 
 
 class LinkStatistic:
-    """A sparse per-link scalar keyed by ``(i, j)`` (e.g. a CUSUM statistic), 0 when unseen.
+    """A sparse per-link statistic keyed by ``(i, j)`` (e.g. a CUSUM statistic), 0 when unseen.
 
     Parameters
     ----------
     n_nodes : int
         Size of the id space of ``j``.
+    width : int, optional
+        None: one scalar per link (values ``(E,)``); an int: a vector per link
+        (values ``(E, width)``).
     """
 
-    def __init__(self, n_nodes: int) -> None:
+    def __init__(self, n_nodes: int, width: int | None = None) -> None:
         self.n_nodes = int(n_nodes)
         self.keys = np.empty(0, dtype=np.int64)
-        self.values = np.empty(0)
+        self.shape = () if width is None else (int(width),)
+        self.values = np.empty((0, *self.shape))
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -111,12 +117,13 @@ class LinkStatistic:
         return np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
 
     def get(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """Values of links ``(i, j)``, shape (E,); 0 for links never stored."""
+        """Values of links ``(i, j)``, shape (E,) or (E, width); 0 for links never stored."""
         k = self._keys(i, j)
         if not len(self.keys):
-            return np.zeros(len(k))
+            return np.zeros((len(k), *self.shape))
         pos = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
-        return np.where(self.keys[pos] == k, self.values[pos], 0.0)
+        hit = (self.keys[pos] == k).reshape((-1,) + (1,) * len(self.shape))
+        return np.where(hit, self.values[pos], 0.0)
 
     def set(self, i: np.ndarray, j: np.ndarray, values: np.ndarray) -> None:
         """Insert or overwrite links ``(i, j)`` (distinct within one call), shape (E,)."""

@@ -85,7 +85,8 @@ class CLParams:
         With ``cached`` neighbour estimates: fuse an accepted but untriggered measurement
         with the cached estimate of j (no message). Off in the paper.
     fusion : FusionMethod
-        ``naive`` (the paper), ``ci`` or ``split_ci`` (:mod:`resloc.cl.fusion`, issue 6).
+        ``naive`` (the paper) or an issue-6 method: ``gauge``, ``tracked``, ``factorized``,
+        ``ci``, ``split_ci`` (:mod:`resloc.cl.fusion`).
     ci_criterion : CICriterion
         What the CI weight minimises: posterior ``trace`` or ``det`` of ``P_i``.
     cusum : bool
@@ -96,6 +97,12 @@ class CLParams:
         CUSUM reference (drift) and alarm threshold, in NIS units.
     cusum_cap : float or None
         Upper bound of the CUSUM statistic (None: ``2 cusum_h``).
+    mean_cusum : bool
+        Also run the signed (mean-shift) CUSUMs of the whitened innovation and discard, while
+        one alarms, measurements pushing its way beyond ``mean_cusum_k`` (needs a
+        LinkMemory). Off in the paper.
+    mean_cusum_k, mean_cusum_h : float or ndarray (B,)
+        Its reference and alarm threshold, in innovation standard deviations.
     """
 
     range_std: float = 0.005
@@ -122,6 +129,9 @@ class CLParams:
     cusum_k: float | np.ndarray = 3.0
     cusum_h: float | np.ndarray = 20.0
     cusum_cap: float | None = None
+    mean_cusum: bool = False
+    mean_cusum_k: float | np.ndarray = 0.5
+    mean_cusum_h: float | np.ndarray = 8.0
     extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from resloc.cl.cusum import link_cusum
+from resloc.cl.cusum import link_cusum, link_mean_cusum, whiten
 from resloc.cl.cusum import nis as normalized_innovation_squared
 from resloc.cl.detector import InnovationNorm, attack_detected, innovation_norm
 from resloc.cl.fusion import FusionMethod, fuse_links
@@ -201,6 +201,17 @@ def _decide(
     )
     if params.cusum:
         detected = detected | _cusum_alarm(nu, m.S, n_det, ii, links.j[rows], params, memory)
+    if params.mean_cusum:
+        if memory is None:
+            raise ValueError("detector mean CUSUM (params.mean_cusum) needs a LinkMemory")
+        detected = detected | link_mean_cusum(
+            memory.mean_cusum,
+            ii,
+            links.j[rows],
+            whiten(nu, m.S),
+            _at(params.mean_cusum_k, ii),
+            _at(params.mean_cusum_h, ii),
+        )
     accepted = ~detected
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
         size = np.where(known, memory.last_norm[pos] if len(memory) else 0.0, 0.0)
@@ -286,7 +297,12 @@ def _joint(memory: LinkMemory | None):
 
 def _reference_only(params: CLParams, links: LinkBatch) -> bool:
     """Issue-6 options the compiled fast path does not implement (run the reference)."""
-    return params.fusion is not FusionMethod.NAIVE or params.cusum or links.tamper is not None
+    return (
+        params.fusion is not FusionMethod.NAIVE
+        or params.cusum
+        or params.mean_cusum
+        or links.tamper is not None
+    )
 
 
 def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, int]:

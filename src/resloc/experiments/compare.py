@@ -64,12 +64,12 @@ class Method:
 _NIS = {"detector.norm": "nis", "detector.false_alarm": 0.01}
 
 _NIS_CUSUM = {**_NIS, "detector.cusum": True}
+_MEAN = {"detector.mean_cusum": True}
 
 #: The main table's methods (the paper first).
 METHODS: tuple[Method, ...] = (
     Method("paper", "paper: naive fusion, raw-norm gate", {}),
     Method("ci", "CI fusion, raw-norm gate", {"estimator.fusion": "ci"}),
-    Method("tracked", "tracked fusion, raw-norm gate", {"estimator.fusion": "tracked"}),
     Method(
         "tracked+nis+cusum",
         "tracked, NIS gate + CUSUM",
@@ -80,6 +80,11 @@ METHODS: tuple[Method, ...] = (
         "gauge+nis+cusum",
         "gauge, NIS gate + CUSUM",
         {"estimator.fusion": "gauge", **_NIS_CUSUM},
+    ),
+    Method(
+        "gauge+nis+cusum+mean",
+        "gauge, NIS gate + CUSUM + mean-shift CUSUM",
+        {"estimator.fusion": "gauge", **_NIS_CUSUM, **_MEAN},
     ),
 )
 
@@ -111,6 +116,16 @@ FUSION_METHODS: tuple[Method, ...] = (
         "gauge+nis+cusum",
         "gauge, NIS gate + CUSUM",
         {"estimator.fusion": "gauge", **_NIS_CUSUM},
+    ),
+    Method(
+        "gauge(consensus)+nis+cusum",
+        "gauge with consensus sums, NIS gate + CUSUM",
+        {"estimator.fusion": "gauge", "estimator.gauge_sums": "consensus", **_NIS_CUSUM},
+    ),
+    Method(
+        "gauge+nis+cusum+mean",
+        "gauge, NIS gate + CUSUM + mean-shift CUSUM",
+        {"estimator.fusion": "gauge", **_NIS_CUSUM, **_MEAN},
     ),
 )
 
@@ -173,7 +188,7 @@ EXTRA_SCENARIOS: tuple[StudyScenario, ...] = (
 DEFAULT = StudyScenario("default", "default (SDZ random + CDZ)", {})
 
 #: The best combination (the target's subject) and its reference.
-BEST = "gauge+nis+cusum"
+BEST = "gauge+nis+cusum+mean"
 PAPER = "paper"
 
 #: ROC sweeps: raw-norm thresholds rho, NIS gate false-alarm probabilities.

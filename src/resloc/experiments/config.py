@@ -115,6 +115,11 @@ class DetectorSpec:
     cusum: bool = _f(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
     cusum_k: float = _f(3.0, "CUSUM reference (drift) in NIS units", gt=0.0)
     cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0)
+    mean_cusum: bool = _f(
+        False, "also discard while a signed CUSUM of the whitened innovation exceeds mean_cusum_h"
+    )
+    mean_cusum_k: float = _f(0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0)
+    mean_cusum_h: float = _f(8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0)
 
 
 @dataclass(frozen=True)
@@ -179,6 +184,9 @@ class Scenario:
             cusum=d.cusum,
             cusum_k=d.cusum_k,
             cusum_h=d.cusum_h,
+            mean_cusum=d.mean_cusum,
+            mean_cusum_k=d.mean_cusum_k,
+            mean_cusum_h=d.mean_cusum_h,
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -397,6 +397,7 @@ class _Hooks:
                 p.noise_std,
                 p.cusum_k if p.cusum else None,
                 a.stealth_knowledge,
+                p.mean_cusum_k if p.mean_cusum else None,
             )
         return extra
 

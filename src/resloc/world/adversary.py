@@ -11,7 +11,9 @@ persistent), with the largest ``a >= 0`` such that every test stays at
 * a norm gate ``||Lambda + a d||_W <= margin rho`` with ``W = I`` (``euclidean``),
   ``diag(1/sigma^2)`` (``scaled``) or ``S^{-1}`` (``nis``);
 * with ``knowledge = full`` and a CUSUM on the NIS, also ``NIS <= margin k`` (the CUSUM's
-  reference: any mean NIS above ``k`` raises the alarm eventually).
+  reference: any mean NIS above ``k`` raises the alarm eventually);
+* with ``knowledge = full`` and the mean-shift CUSUM, also ``|w_c| <= margin k_m`` for both
+  components of the whitened innovation ``w = L^{-1} (Lambda + a d)`` (linear in ``a``).
 
 Each constraint is a quadratic ``a^2 d'Wd + 2 a d'W Lambda + Lambda'W Lambda - c^2 <= 0``;
 ``a`` is the smallest of their largest roots (0 when the honest measurement already fails a
@@ -29,6 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from resloc.cl.cusum import whiten
 from resloc.cl.detector import InnovationNorm
 from resloc.linalg import solve_spd
 from resloc.world.attacks import apply_injection
@@ -36,6 +39,7 @@ from resloc.world.attacks import apply_injection
 __all__ = [
     "ReplayBuffer",
     "StealthKnowledge",
+    "largest_linear_step",
     "largest_stealthy_step",
     "stealthy_tamper",
 ]
@@ -84,6 +88,30 @@ def largest_stealthy_step(
     return np.where(ok, np.maximum(root, 0.0), 0.0)
 
 
+def largest_linear_step(w0: np.ndarray, v: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Largest ``a >= 0`` with ``|w0_k + a v_k| <= c`` for every component k, per row.
+
+    Parameters
+    ----------
+    w0 : ndarray, shape (E, n)
+        Honest whitened innovations.
+    v : ndarray, shape (E, n)
+        Whitened injection direction.
+    c : ndarray, shape (E,)
+        Bound.
+
+    Returns
+    -------
+    ndarray, shape (E,)
+        0 where the honest value already violates a bound.
+    """
+    c = np.asarray(c, dtype=float)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hi = np.where(v > 0, (c - w0) / v, np.where(v < 0, (-c - w0) / v, np.inf))
+    ok = (np.abs(w0) <= c).all(axis=1)
+    return np.where(ok, np.maximum(hi.min(axis=1), 0.0), 0.0)
+
+
 def _metric(kind: InnovationNorm, S: np.ndarray, noise_std: np.ndarray) -> np.ndarray:
     E = S.shape[0]
     if kind is InnovationNorm.EUCLIDEAN:
@@ -106,6 +134,7 @@ def stealthy_tamper(
     noise_std: np.ndarray,
     cusum_k: float | np.ndarray | None = None,
     knowledge: StealthKnowledge = StealthKnowledge.FULL,
+    mean_cusum_k: float | np.ndarray | None = None,
 ) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """The stealthy attacker of one step against one victim estimator, as a ``tamper`` hook.
 
@@ -134,6 +163,8 @@ def stealthy_tamper(
     cusum_k : float or ndarray, shape (B,), optional
         The victim's CUSUM reference (None: no CUSUM).
     knowledge : StealthKnowledge
+    mean_cusum_k : float or ndarray, shape (B,), optional
+        The victim's mean-shift CUSUM reference (None: no such test).
 
     Returns
     -------
@@ -172,6 +203,11 @@ def stealthy_tamper(
         if cusum_k is not None and knowledge is StealthKnowledge.FULL:
             W = _metric(InnovationNorm.NIS, S[h], noise_std)
             a = np.minimum(a, largest_stealthy_step(nu, d, W, margin * per_robot(cusum_k, obs)))
+        if mean_cusum_k is not None and knowledge is StealthKnowledge.FULL:
+            Sh = S[h]
+            w0 = whiten(nu, Sh)
+            v = whiten(np.broadcast_to(d, nu.shape).copy(), Sh)
+            a = np.minimum(a, largest_linear_step(w0, v, margin * per_robot(mean_cusum_k, obs)))
         a = np.where(np.isfinite(a), a, 0.0)
         out[h] = apply_injection(zr, a[:, None] * d[None, :])
         return out
