@@ -174,8 +174,11 @@ def test_mean_cusum_catches_a_signed_bias_the_nis_cusum_cannot(rng):
         g = store.get(i, j)[0]
         if first is None and g[0] > 8.0:
             first = t
-        if g[0] > 8.0:  # alarmed: discards exactly the measurements pushing up beyond k
-            assert discard == (w[0, 0] > 0.5)
+        # While a component alarms (either sign), measurements beyond k on either side go.
+        expect = ((g[:2] > 8.0).any() and abs(w[0, 0]) > 0.5) or (
+            (g[2:] > 8.0).any() and abs(w[0, 1]) > 0.5
+        )
+        assert discard == expect
     assert first is not None and first < 60
     assert store.get(i, j)[0, 1] < 8.0  # the other side stays quiet
     honest, st2 = 0, LinkStatistic(4, width=4)
@@ -203,3 +206,14 @@ def test_correct_mean_cusum_discards_a_one_sigma_bias():
     for _ in range(40):
         _, _, out = correct(filt, x, P, links, nis_only, memory2)
         assert not out.detected[0]
+
+
+def test_mean_cusum_ignores_what_the_gate_rejected():
+    from resloc.cl.cusum import link_mean_cusum
+
+    i, j = np.array([0, 1]), np.array([1, 0])
+    store = LinkStatistic(4, width=4)
+    w = np.array([[50.0, 0.0], [50.0, 0.0]])  # gross outliers
+    link_mean_cusum(store, i, j, w, 0.5, 8.0, passed=np.array([False, True]))
+    np.testing.assert_array_equal(store.get(i[:1], j[:1]), [[0, 0, 0, 0]])
+    assert store.get(i[1:], j[1:])[0, 0] == 16.0  # capped at 2h

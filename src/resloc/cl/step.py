@@ -194,11 +194,12 @@ def _decide(
         n_det = n_trig
     else:
         n_det = innovation_norm(nu, m.S, params.detector_norm, params.noise_std)
-    detected = (
+    gated = (
         attack_detected(n_det, _at(params.rho, ii))
         if params.detector
         else np.zeros(len(rows), bool)
     )
+    detected = gated
     if params.cusum:
         detected = detected | _cusum_alarm(nu, m.S, n_det, ii, links.j[rows], params, memory)
     if params.mean_cusum:
@@ -211,6 +212,7 @@ def _decide(
             whiten(nu, m.S),
             _at(params.mean_cusum_k, ii),
             _at(params.mean_cusum_h, ii),
+            ~gated,
         )
     accepted = ~detected
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
