@@ -64,6 +64,28 @@ def run_batched(filt, params, world, x0, P0, steps):
     return history
 
 
+def correct_nodes(nodes, ws):
+    """Every node corrects from its own links and its neighbours' predicted estimates."""
+    sent = [node.estimate for node in nodes]
+    outs = []
+    for b, node in enumerate(nodes):
+        rows = np.flatnonzero(ws.i == b)
+        nb = ws.j[rows]
+        outs.append(
+            node.correct(
+                nb,
+                ws.z[rows],
+                np.array([sent[j][0] for j in nb]).reshape(-1, 3),
+                np.array([sent[j][1] for j in nb]).reshape(-1, 3, 3),
+                ws.channel_ok[rows],
+                ws.risk_s[b],
+                ws.risk_c[b],
+                ws.lambda2[b],
+            )
+        )
+    return outs
+
+
 def run_nodes(filt, params, world, x0, P0, steps):
     """One RobotNode per robot; each gets only its own links and its neighbours' predicted
     estimates (what their transmissions carry)."""
@@ -72,23 +94,7 @@ def run_nodes(filt, params, world, x0, P0, steps):
     for ws in steps:
         for node, u in zip(nodes, ws.u_meas, strict=True):
             node.predict(u, world.dt)
-        sent = [node.estimate for node in nodes]
-        outs = []
-        for b, node in enumerate(nodes):
-            rows = np.flatnonzero(ws.i == b)
-            nb = ws.j[rows]
-            outs.append(
-                node.correct(
-                    nb,
-                    ws.z[rows],
-                    np.array([sent[j][0] for j in nb]).reshape(-1, 3),
-                    np.array([sent[j][1] for j in nb]).reshape(-1, 3, 3),
-                    ws.channel_ok[rows],
-                    ws.risk_s[b],
-                    ws.risk_c[b],
-                    ws.lambda2[b],
-                )
-            )
+        outs = correct_nodes(nodes, ws)
         x = np.concatenate([node.x for node in nodes])
         P = np.concatenate([node.P for node in nodes])
         history.append((x, P, outs))
@@ -221,20 +227,7 @@ def test_robot_nodes_run_gauge_fusion_with_acks_and_consensus() -> None:
     for k, ws in enumerate(ws_list):
         for node, u in zip(nodes, ws.u_meas, strict=True):
             node.predict(u, world.dt)
-        sent = [node.estimate for node in nodes]
-        for b, node in enumerate(nodes):
-            rows = np.flatnonzero(ws.i == b)
-            nb = ws.j[rows]
-            node.correct(
-                nb,
-                ws.z[rows],
-                np.array([sent[j][0] for j in nb]).reshape(-1, 3),
-                np.array([sent[j][1] for j in nb]).reshape(-1, 3, 3),
-                ws.channel_ok[rows],
-                ws.risk_s[b],
-                ws.risk_c[b],
-                ws.lambda2[b],
-            )
+        correct_nodes(nodes, ws)
         inbox: list[list[np.ndarray]] = [[] for _ in nodes]
         for node in nodes:
             for j, ack in node.gauge_acks():
