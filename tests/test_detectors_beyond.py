@@ -82,10 +82,15 @@ def test_config_false_alarm_sets_rho_and_validates():
         default_scenario().replace(**{"detector.cusum_h": 0.0})
     with pytest.raises(ConfigError, match=r"estimator\.fusion"):
         default_scenario().replace(**{"estimator.fusion": "ci", "estimator.update_mode": "summed"})
-    with pytest.raises(ConfigError, match=r"estimator\.fusion"):
-        default_scenario().replace(
-            **{"estimator.fusion": "tracked", "estimator.neighbour_estimate": "cached"}
-        )
+    for fusion in ("tracked", "factorized", "gauge"):
+        with pytest.raises(ConfigError, match=r"estimator\.fusion"):
+            default_scenario().replace(
+                **{"estimator.fusion": fusion, "estimator.neighbour_estimate": "cached"}
+            )
+    with pytest.raises(ConfigError, match=r"estimator\.gauge_sums"):
+        default_scenario().replace(**{"estimator.gauge_sums": "gossip"})
+    with pytest.raises(ConfigError, match=r"detector\.mean_cusum_k"):
+        default_scenario().replace(**{"detector.mean_cusum_k": 0.0})
     p = default_scenario().replace(**{"detector.cusum": True, "detector.cusum_k": 3.0})
     assert p.cl_params().cusum and p.cl_params().cusum_k == 3.0
     assert not default_scenario().cl_params().cusum  # the paper's detector by default

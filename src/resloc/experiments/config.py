@@ -378,7 +378,7 @@ def _parse(data: dict) -> Scenario:
             f"estimator.fusion: {est.fusion.value!r} fuses transmitted estimates only; "
             "set estimator.update_without_transmission = false"
         )
-    if est.fusion.tracks_cross and est.neighbour_estimate is not NeighbourEstimate.CURRENT:
+    if est.fusion.bookkeeping and est.neighbour_estimate is not NeighbourEstimate.CURRENT:
         raise ConfigError(
             f'estimator.fusion: {est.fusion.value!r} needs neighbour_estimate = "current" '
             f"(now {est.neighbour_estimate.value!r})"
