@@ -39,6 +39,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.filters.base import Moments
+from resloc.filters.update import kalman_gain
 from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing_jacobians
 from resloc.models.motion import process_noise, unicycle_state_jacobian
@@ -344,7 +345,7 @@ def fused_update(
     extra_j = H_j @ D_j @ HjT
     S = symmetrize(m.S + H_i @ D_i @ HiT + extra_j)
     Pxz = m.Pxz + D_i @ HiT
-    K = np.swapaxes(solve_spd(S, np.swapaxes(Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
+    K = kalman_gain(S, Pxz)
     x_new = x_i + np.einsum("eij,ej->ei", K, nu)
     x_new[:, 2] = wrap_angle(x_new[:, 2])
     if m.H_i is not None and m.R_eff is not None:  # EKF: Joseph form

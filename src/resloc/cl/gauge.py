@@ -53,7 +53,7 @@ import numpy as np
 from resloc.cl.connectivity import MetropolisMixer, metropolis_mix_one
 from resloc.cl.tracking import update_map
 from resloc.filters.base import Moments
-from resloc.linalg import cholesky_jitter, symmetrize
+from resloc.linalg import solve_spd, symmetrize
 
 __all__ = ["GaugeCovariance", "gauge_jacobian"]
 
@@ -75,13 +75,6 @@ def gauge_jacobian(x: np.ndarray) -> np.ndarray:
     J[:, 0, 2] = -x[:, 1]
     J[:, 1, 2] = x[:, 0]
     return J
-
-
-def _spd_inverse(A: np.ndarray) -> np.ndarray:
-    """Inverse of SPD matrices via Cholesky with jitter, ``(..., 3, 3)``."""
-    L = cholesky_jitter(A)
-    Linv = np.linalg.inv(L)
-    return symmetrize(np.swapaxes(Linv, -1, -2) @ Linv)
 
 
 class GaugeCovariance:
@@ -150,14 +143,14 @@ class GaugeCovariance:
         (its tracker follows the change of its own signal at once).
         """
         J = gauge_jacobian(x)
-        JtJ = np.swapaxes(J, -1, -2) @ J
-        if self.rounds is None:
-            M = self._team_sum(JtJ)[self._team()]
-        else:
-            self.M_hat = self.M_hat + JtJ - self.phi_M
-            self.phi_M = JtJ
-            M = self.N * self.M_hat
-        return _spd_inverse(M) @ np.swapaxes(J, -1, -2)
+        Jt = np.swapaxes(J, -1, -2)
+        JtJ = Jt @ J
+        if self.rounds is None:  # one inverse per team
+            M = self._team_sum(JtJ)
+            return solve_spd(M, np.broadcast_to(np.eye(3), M.shape).copy())[self._team()] @ Jt
+        self.M_hat = self.M_hat + JtJ - self.phi_M
+        self.phi_M = JtJ
+        return solve_spd(self.N * self.M_hat, Jt)
 
     def _team(self) -> np.ndarray:
         return np.arange(self.B) // self.N
@@ -271,12 +264,13 @@ class GaugeCovariance:
             ``P_new`` unchanged (the estimates and ``D_i`` are the filters').
         """
         K, G_i, KH_j = update_map(m, x_i, x_j)
-        Gain = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
-        Gain[i] = G_i
         if len(self.obs):  # i's earlier B_ik this step see i's new gain
-            self.Bij = Gain[self.obs] @ self.Bij
-        self.A[i] = Gain[i] @ self.A[i]
-        self.noise[i] = Gain[i] @ self.noise[i] @ np.swapaxes(Gain[i], -1, -2) + K @ R @ (
+            row = np.full(self.B, -1)
+            row[i] = np.arange(len(i))
+            mine = row[self.obs] >= 0
+            self.Bij[mine] = G_i[row[self.obs[mine]]] @ self.Bij[mine]
+        self.A[i] = G_i @ self.A[i]
+        self.noise[i] = G_i @ self.noise[i] @ np.swapaxes(G_i, -1, -2) + K @ R @ (
             np.swapaxes(K, -1, -2)
         )
         self.obs = np.concatenate([self.obs, i])

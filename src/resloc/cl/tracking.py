@@ -33,7 +33,8 @@ import numpy as np
 
 from resloc.angles import circular_mean, wrap_angle
 from resloc.filters.base import Moments
-from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
+from resloc.filters.update import kalman_gain
+from resloc.linalg import cholesky_jitter, symmetrize
 from resloc.models.measurement import range_bearing, range_bearing_jacobians
 from resloc.models.motion import unicycle_state_jacobian
 
@@ -58,7 +59,7 @@ def update_map(m: Moments, x_i: np.ndarray, x_j: np.ndarray):
     KH_j : ndarray, shape (E, 3, 3)
         ``K H_j``.
     """
-    K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)
+    K = kalman_gain(m.S, m.Pxz)
     H_i, H_j = range_bearing_jacobians(x_i, x_j)
     return K, np.eye(3) - K @ H_i, K @ H_j
 

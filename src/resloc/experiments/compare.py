@@ -759,25 +759,29 @@ def save_compare(result: CompareResult, out: Path, plots: bool = True) -> list[P
     p = out / "compare.md"
     p.write_text(result.markdown() + "\n", encoding="utf-8")
     written.append(p)
-    p = out / "roc.csv"
-    with p.open("w", encoding="utf-8") as fh:
-        fh.write("attack,gate,threshold_name,threshold,tpr,fpr,msle\n")
-        for r in result.roc:
-            fh.write(
+    nan = float("nan")
+    tables = {
+        "roc.csv": (
+            "attack,gate,threshold_name,threshold,tpr,fpr,msle",
+            (
                 f"{r['attack']},{r['gate']},{r['threshold_name']},{r['threshold']:g},"
-                f"{r['tpr']['mean']:.6g},{r['fpr']['mean']:.6g},{r['msle']['mean']:.6g}\n"
-            )
-    written.append(p)
-    p = out / "lambda2.csv"
-    with p.open("w", encoding="utf-8") as fh:
-        fh.write("robots,mode,comm_rate,lambda2_true_mean,lambda2_abs_rel_error\n")
-        for r in result.lambda2:
-            fh.write(
+                f"{r['tpr']['mean']:.6g},{r['fpr']['mean']:.6g},{r['msle']['mean']:.6g}"
+                for r in result.roc
+            ),
+        ),
+        "lambda2.csv": (
+            "robots,mode,comm_rate,lambda2_true_mean,lambda2_abs_rel_error",
+            (
                 f"{r['robots']},{r['mode']},{r['comm_rate']['mean']:.6g},"
-                f"{r.get('lambda2_true_mean', float('nan')):.6g},"
-                f"{r.get('lambda2_abs_rel_error', float('nan')):.6g}\n"
-            )
-    written.append(p)
+                f"{r.get('lambda2_true_mean', nan):.6g},{r.get('lambda2_abs_rel_error', nan):.6g}"
+                for r in result.lambda2
+            ),
+        ),
+    }
+    for name, (header, rows) in tables.items():
+        p = out / name
+        p.write_text("".join(f"{line}\n" for line in (header, *rows)), encoding="utf-8")
+        written.append(p)
     if plots and result.roc:
         try:
             from resloc.experiments.plots import pyplot

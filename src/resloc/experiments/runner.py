@@ -225,7 +225,7 @@ def run_scenario(
         for name in run.filters
     ]
     split = params.fusion is FusionMethod.SPLIT_CI
-    tracked = params.fusion.bookkeeping
+    bookkeeping = params.fusion.bookkeeping
     for tr in tracks:
         if split:  # initial errors are independent across robots
             tr.memory.independent = P0.copy()
@@ -262,7 +262,7 @@ def run_scenario(
                     np.asarray(params.process_floor_std),
                 )
             xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            if tracked:  # cross-covariances / gauge (tracked: the joint is the authority on P)
+            if bookkeeping:  # cross-covariances / gauge (tracked: the joint is the authority on P)
                 Pp = tr.memory.joint.predict(
                     tr.x,
                     ws.u_meas,

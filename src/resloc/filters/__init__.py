@@ -13,7 +13,13 @@ from resloc.filters.sigma_points import (
     cubature_rule,
     merwe_scaled_rule,
 )
-from resloc.filters.update import covariance_is_pd, innovation, kalman_update, repair_covariance
+from resloc.filters.update import (
+    covariance_is_pd,
+    innovation,
+    kalman_gain,
+    kalman_update,
+    repair_covariance,
+)
 
 __all__ = [
     "ExtendedFilter",
@@ -25,6 +31,7 @@ __all__ = [
     "covariance_is_pd",
     "cubature_rule",
     "innovation",
+    "kalman_gain",
     "kalman_update",
     "make_filter",
     "merwe_scaled_rule",

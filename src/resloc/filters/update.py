@@ -8,7 +8,7 @@ from resloc.angles import wrap_angle
 from resloc.filters.base import Moments
 from resloc.linalg import solve_spd, symmetrize
 
-__all__ = ["covariance_is_pd", "innovation", "kalman_update", "repair_covariance"]
+__all__ = ["covariance_is_pd", "innovation", "kalman_gain", "kalman_update", "repair_covariance"]
 
 
 def innovation(z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
@@ -25,6 +25,23 @@ def innovation(z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
     nu = z - z_hat
     nu[:, 1] = wrap_angle(nu[:, 1])
     return nu
+
+
+def kalman_gain(S: np.ndarray, Pxz: np.ndarray) -> np.ndarray:
+    """Kalman gain ``K = P^xz (P^zz)^{-1}`` by a Cholesky solve.
+
+    Parameters
+    ----------
+    S : ndarray, shape (E, 2, 2)
+        Innovation covariances ``P^zz``.
+    Pxz : ndarray, shape (E, 3, 2)
+        State-measurement cross-covariances.
+
+    Returns
+    -------
+    ndarray, shape (E, 3, 2)
+    """
+    return np.swapaxes(solve_spd(S, np.swapaxes(Pxz, -1, -2)), -1, -2)
 
 
 def kalman_update(
@@ -50,7 +67,7 @@ def kalman_update(
     -------
     x, P : ndarray, shapes (E, 3), (E, 3, 3)
     """
-    K = np.swapaxes(solve_spd(m.S, np.swapaxes(m.Pxz, -1, -2)), -1, -2)  # (E, 3, 2)
+    K = kalman_gain(m.S, m.Pxz)
     x_new = x + np.einsum("eij,ej->ei", K, nu)
     x_new[:, 2] = wrap_angle(x_new[:, 2])
     if m.H_i is not None and m.R_eff is not None:
