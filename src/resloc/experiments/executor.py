@@ -1,0 +1,507 @@
+"""One parallel executor for every study (``reproduce``, ``compare``, ``sweep``).
+
+A study is a set of *cells* (a resolved scenario, a seed, a filter: whatever determines one
+result), computed by *tasks* (one task may compute several cells, e.g. the seeds of one
+scenario batched in one simulation). A :class:`Study` reads the cells it already has from a
+:class:`~resloc.experiments.store.ResultStore`, runs the tasks for the others on a backend,
+writes every finished cell to the store as soon as its task returns, and reports progress
+over cells.
+
+Backends (chosen once, in :func:`open_backend`):
+
+* ``serial``: in this process (``--jobs 1``, or one task);
+* ``dask``: Dask distributed. By default an embedded ``LocalCluster`` of ``--jobs`` worker
+  processes (one thread each, on 127.0.0.1, dashboard off); with ``--scheduler
+  tcp://HOST:PORT`` the workers of an existing cluster. Needs ``pip install
+  'resloc[cluster]'``.
+
+A failing task does not stop the others: its cells are reported as :class:`CellFailure`
+(with the task's context and the traceback). A worker that dies mid-task has its task
+resubmitted (up to :data:`RESUBMIT` times). SIGINT/SIGTERM stop the cluster and its
+workers; the finished cells stay in the store, so running the study again resumes it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import threading
+import traceback
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from resloc.errors import ConfigError
+from resloc.experiments.store import ResultStore
+
+__all__ = [
+    "RESUBMIT",
+    "THREAD_ENV",
+    "CellFailure",
+    "Study",
+    "StudyFailedError",
+    "StudyInterrupted",
+    "StudyStats",
+    "Task",
+    "default_jobs",
+    "open_backend",
+    "prepare_worker",
+]
+
+#: Environment of worker processes: one BLAS/OpenMP/numba thread each (the parallelism is
+#: across processes).
+THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
+}
+#: How many times a task whose worker died is submitted again.
+RESUBMIT = 3
+_INSTALL_HINT = "pip install 'resloc[cluster]'"
+
+ProgressFn = Callable[[float, float], None]
+
+
+def default_jobs() -> int:
+    """Worker processes by default: the CPUs this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# --------------------------------------------------------------------------- tasks
+@dataclass(frozen=True)
+class Task:
+    """A unit of work: ``fn(*args)`` returns one result per key of ``keys``, in order.
+
+    Attributes
+    ----------
+    fn : callable
+        A module-level (picklable) function.
+    args : tuple
+        Its arguments (picklable).
+    keys : tuple of str
+        Store keys of the cells it computes.
+    label : str
+        Short human-readable name (progress, failures).
+    context : dict
+        What a failure report shows about the task (e.g. the scenario as TOML, seeds).
+    cost : float
+        Relative cost; tasks are submitted most expensive first.
+    """
+
+    fn: Callable[..., Sequence[Any]]
+    args: tuple
+    keys: tuple[str, ...]
+    label: str
+    context: dict = field(default_factory=dict)
+    cost: float = 1.0
+
+
+@dataclass
+class CellFailure:
+    """A cell whose task raised: its key, the task, the error and the traceback."""
+
+    key: str
+    label: str
+    context: dict
+    error: str
+    traceback: str
+
+    def to_dict(self) -> dict:
+        """Plain mapping for JSON."""
+        return {
+            "key": self.key,
+            "label": self.label,
+            "context": self.context,
+            "error": self.error,
+            "traceback": self.traceback,
+        }
+
+
+@dataclass
+class StudyStats:
+    """What a study did: cells read from the store, computed, failed; backend and workers."""
+
+    cells: int = 0
+    from_store: int = 0
+    computed: int = 0
+    failed: int = 0
+    resubmitted: int = 0
+    backend: str = "serial"
+    workers: int = 1
+
+    def to_dict(self) -> dict:
+        """Plain mapping for JSON."""
+        return dict(self.__dict__)
+
+
+class StudyInterrupted(KeyboardInterrupt):
+    """SIGINT/SIGTERM during a study; the finished cells are in the store."""
+
+    def __init__(self, stats: StudyStats, store: ResultStore | None) -> None:
+        where = f" in {store.root}" if store is not None else ""
+        super().__init__(
+            f"interrupted: {stats.from_store + stats.computed} of {stats.cells} cells "
+            f"finished{where}; run the same command again to resume"
+        )
+        self.stats = stats
+
+
+class StudyFailedError(RuntimeError):
+    """Some cells of a study failed; ``failures`` holds each one's context and traceback."""
+
+    def __init__(self, failures: list[CellFailure], stats: StudyStats) -> None:
+        first = failures[0]
+        super().__init__(
+            f"{stats.failed} of {stats.cells} cells failed (the others are in the store); "
+            f"first: {first.label}: {first.error}"
+        )
+        self.failures = failures
+        self.stats = stats
+
+
+_PREPARED = False
+
+
+def prepare_worker() -> None:
+    """Set up a worker process once: one BLAS/OpenMP thread (when ``threadpoolctl`` is
+    available; worker processes also start with :data:`THREAD_ENV`) and the compiled
+    kernels loaded (from numba's on-disk cache when the client warmed them up)."""
+    global _PREPARED
+    if _PREPARED:
+        return
+    _PREPARED = True
+    for k, v in THREAD_ENV.items():
+        os.environ.setdefault(k, v)
+    with contextlib.suppress(ImportError):
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    warm_up_kernels()
+
+
+def warm_up_kernels() -> None:
+    """Compile the optional numba kernels once (here), so that workers load them from the
+    on-disk cache instead of compiling them again in parallel."""
+    try:
+        from resloc.cl import kernels
+    except ImportError:  # pragma: no cover - numba is optional
+        return
+    warm = getattr(kernels, "warm_up", None)
+    if warm is not None:
+        warm()
+
+
+def _run_task(fn: Callable[..., Sequence[Any]], args: tuple, in_worker: bool = True):
+    """Run one task where it lands: ``("ok", results)`` or ``("error", text, traceback)``.
+
+    Exceptions are returned, not raised, so that a deterministic failure is reported once
+    (not retried by the scheduler) and looks the same on every backend.
+    """
+    if in_worker:
+        prepare_worker()
+    try:
+        results = list(fn(*args))
+    except Exception as exc:  # every failure of user work is reported
+        return ("error", f"{type(exc).__name__}: {exc}", traceback.format_exc())
+    return ("ok", results)
+
+
+# --------------------------------------------------------------------------- backends
+class _Backend:
+    """Runs tasks; yields ``(task, outcome)`` as they finish (``outcome`` from
+    :func:`_run_task`)."""
+
+    name = "serial"
+    workers = 1
+    resubmitted = 0
+
+    def run(self, tasks: list[Task]) -> Iterator[tuple[Task, tuple]]:
+        for task in tasks:
+            yield task, _run_task(task.fn, task.args, in_worker=False)
+
+
+class _DaskBackend(_Backend):
+    """Tasks on a Dask ``Client`` (embedded ``LocalCluster`` or an existing scheduler)."""
+
+    name = "dask"
+
+    def __init__(self, client, workers: int) -> None:
+        self.client = client
+        self.workers = workers
+
+    def run(self, tasks: list[Task]) -> Iterator[tuple[Task, tuple]]:
+        from distributed import as_completed
+
+        run_id = uuid.uuid4().hex[:8]
+        attempts: dict[int, int] = {}
+
+        def submit(n: int):
+            attempts[n] = attempts.get(n, 0) + 1
+            return self.client.submit(
+                _run_task,
+                tasks[n].fn,
+                tasks[n].args,
+                key=f"resloc-{run_id}-{n}-{attempts[n]}",
+                pure=False,
+                priority=-n,
+            )
+
+        futures = {submit(n): n for n in range(len(tasks))}
+        pending = as_completed(list(futures), loop=self.client.loop)
+        try:
+            for fut in pending:
+                n = futures.pop(fut)
+                if fut.status == "error":
+                    exc = fut.exception()
+                    tb = "".join(traceback.format_tb(fut.traceback()))
+                    if type(exc).__name__ == "KilledWorker" and attempts[n] <= RESUBMIT:
+                        self.resubmitted += 1
+                        new = submit(n)
+                        futures[new] = n
+                        pending.add(new)
+                        continue
+                    outcome: tuple = ("error", f"{type(exc).__name__}: {exc}", tb)
+                elif fut.status == "cancelled":
+                    outcome = ("error", "CancelledError: the cluster cancelled the task", "")
+                else:
+                    outcome = fut.result()
+                fut.release()
+                yield tasks[n], outcome
+        finally:
+            for fut in futures:
+                fut.cancel()
+
+
+@contextlib.contextmanager
+def _quiet_dask_logs() -> Iterator[None]:
+    """Dask logs worker start/stop and closing streams at INFO/WARNING; keep stderr for the
+    progress bar and real errors."""
+    loggers = [logging.getLogger(n) for n in ("distributed", "tornado", "asyncio")]
+    saved = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, saved, strict=True):
+            lg.setLevel(level)
+
+
+def _import_distributed(reason: str):
+    try:
+        import distributed
+    except ImportError:
+        raise ConfigError(f"{reason} needs Dask distributed: {_INSTALL_HINT}") from None
+    return distributed
+
+
+def dask_available() -> bool:
+    """True when the ``cluster`` extra (dask distributed) is installed."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def _local_cluster(workers: int) -> Iterator[_DaskBackend]:
+    distributed = _import_distributed(f"--jobs {workers}")
+    warm_up_kernels()  # compile once here; workers load numba's on-disk cache
+    with _quiet_dask_logs():
+        cluster = distributed.LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            scheduler_port=0,
+            dashboard_address=None,  # its default binds 0.0.0.0:8787
+            worker_dashboard_address=None,
+            silence_logs=logging.ERROR,
+            env=dict(THREAD_ENV),
+        )
+        try:
+            client = distributed.Client(cluster, set_as_default=False)
+            try:
+                yield _DaskBackend(client, workers)
+            finally:
+                client.close(timeout=10)
+        finally:
+            cluster.close(timeout=10)
+
+
+def _check_address(address: str) -> None:
+    if not address.startswith(("tcp://", "tls://")) or ":" not in address.split("://", 1)[1]:
+        raise ConfigError(
+            f"--scheduler {address}: expected tcp://HOST:PORT (the address `dask scheduler` prints)"
+        )
+
+
+@contextlib.contextmanager
+def _external_cluster(address: str, timeout: float) -> Iterator[_DaskBackend]:
+    _check_address(address)
+    distributed = _import_distributed(f"--scheduler {address}")
+    with _quiet_dask_logs():
+        try:
+            client = distributed.Client(address, timeout=timeout, set_as_default=False)
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(
+                f"--scheduler {address}: cannot connect ({type(exc).__name__}); is "
+                "`dask scheduler` running there?"
+            ) from None
+        try:
+            workers = len(client.scheduler_info()["workers"])
+            if workers == 0:
+                client.wait_for_workers(1, timeout=timeout)
+                workers = len(client.scheduler_info()["workers"])
+            yield _DaskBackend(client, workers)
+        finally:
+            client.close(timeout=10)
+
+
+@contextlib.contextmanager
+def open_backend(
+    jobs: int | None, scheduler: str | None, tasks: int, timeout: float = 30.0
+) -> Iterator[_Backend]:
+    """The backend for ``tasks`` tasks.
+
+    ``scheduler`` set: that Dask cluster. Otherwise ``jobs`` (default: the CPUs) capped by
+    the tasks and the CPUs; one worker runs in this process, more start an embedded
+    ``LocalCluster``. Without the ``cluster`` extra, an explicit ``jobs > 1`` is a
+    :class:`ConfigError` and the default falls back to serial.
+    """
+    if scheduler:
+        with _external_cluster(scheduler, timeout) as backend:
+            yield backend
+        return
+    explicit = jobs is not None
+    workers = max(1, min(int(jobs) if explicit else default_jobs(), tasks, default_jobs()))
+    if workers > 1 and not explicit and not dask_available():
+        workers = 1  # documented fallback: the default never requires the extra
+    if workers == 1:
+        yield _Backend()
+        return
+    with _local_cluster(workers) as backend:
+        yield backend
+
+
+@contextlib.contextmanager
+def _sigterm_raises_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into KeyboardInterrupt (main thread only), so that both signals stop the
+    cluster the same way."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+# --------------------------------------------------------------------------- studies
+class Study:
+    """Cells of one study: read from the store or computed on the backend.
+
+    Parameters
+    ----------
+    jobs : int, optional
+        Worker processes of the embedded cluster (default: the CPUs).
+    scheduler : str, optional
+        ``tcp://HOST:PORT`` of an existing Dask scheduler.
+    store : ResultStore, optional
+        Where cells are read and written (``None``: nothing is kept).
+    progress : callable(done, total), optional
+        Called with finished cells / all cells.
+    """
+
+    def __init__(
+        self,
+        jobs: int | None = None,
+        scheduler: str | None = None,
+        store: ResultStore | None = None,
+        progress: ProgressFn | None = None,
+    ) -> None:
+        self.jobs = jobs
+        self.scheduler = scheduler
+        self.store = store
+        self.progress = progress
+        self.stats = StudyStats()
+        self.failures: list[CellFailure] = []
+
+    def lookup(self, key: str) -> tuple[bool, Any]:
+        """``(True, value)`` when the store has the cell."""
+        if self.store is None:
+            return False, None
+        return self.store.get(key)
+
+    def run(self, tasks: list[Task], cells: int, from_store: int = 0) -> dict[str, Any]:
+        """Run ``tasks`` and return ``{key: result}`` for every cell they computed.
+
+        Parameters
+        ----------
+        tasks : list of Task
+            Only the work still to do (the caller looked its cells up first).
+        cells : int
+            All cells of the study (progress total).
+        from_store : int
+            Cells the caller read from the store.
+
+        Raises
+        ------
+        StudyInterrupted
+            On SIGINT/SIGTERM, after the cluster is stopped.
+        """
+        st = self.stats
+        st.cells, st.from_store = cells, from_store
+        done = float(from_store)
+        self._report(done)
+        results: dict[str, Any] = {}
+        order = sorted(tasks, key=lambda t: -t.cost)
+        try:
+            with (
+                _sigterm_raises_interrupt(),
+                open_backend(self.jobs, self.scheduler, len(order)) as backend,
+            ):
+                st.backend, st.workers = backend.name, backend.workers
+                for task, outcome in backend.run(order):
+                    if outcome[0] == "ok":
+                        values = outcome[1]
+                        if len(values) != len(task.keys):
+                            raise RuntimeError(
+                                f"task {task.label} returned {len(values)} results for "
+                                f"{len(task.keys)} cells"
+                            )
+                        for key, value in zip(task.keys, values, strict=True):
+                            if self.store is not None:
+                                self.store.put(key, value)
+                            results[key] = value
+                        st.computed += len(task.keys)
+                    else:
+                        _, error, tb = outcome
+                        self.failures += [
+                            CellFailure(k, task.label, task.context, error, tb) for k in task.keys
+                        ]
+                        st.failed += len(task.keys)
+                    done += len(task.keys)
+                    self._report(done)
+                st.resubmitted = backend.resubmitted
+        except KeyboardInterrupt:
+            raise StudyInterrupted(st, self.store) from None
+        return results
+
+    def _report(self, done: float) -> None:
+        if self.progress is not None:
+            self.progress(done, float(max(self.stats.cells, 1)))
