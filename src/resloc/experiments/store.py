@@ -35,12 +35,18 @@ __all__ = [
     "ResultStore",
     "canonical_json",
     "cell_key",
+    "default_store",
 ]
 
-#: Default store directory (relative to the working directory).
+#: Default store directory (relative to the working directory); ``$RESLOC_STORE`` overrides it.
 DEFAULT_STORE = Path("runs") / ".store"
 _MAGIC = b"RESLOC-CELL 1 "
 _LAYOUT = "v1"
+
+
+def default_store() -> Path:
+    """``$RESLOC_STORE`` if set, else :data:`DEFAULT_STORE`."""
+    return Path(os.environ.get("RESLOC_STORE") or DEFAULT_STORE)
 
 
 class CorruptEntryWarning(UserWarning):
@@ -89,15 +95,15 @@ class ResultStore:
 
     Parameters
     ----------
-    root : Path
-        Store directory (created on the first write).
+    root : Path, optional
+        Store directory (created on the first write; default :func:`default_store`).
     read : bool
         ``False`` ignores existing entries (``--fresh``): every cell is recomputed, and
         written again.
     """
 
-    def __init__(self, root: str | Path = DEFAULT_STORE, read: bool = True) -> None:
-        self.root = Path(root)
+    def __init__(self, root: str | Path | None = None, read: bool = True) -> None:
+        self.root = Path(root) if root is not None else default_store()
         self.read = bool(read)
 
     def path(self, key: str) -> Path:

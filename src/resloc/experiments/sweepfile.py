@@ -303,10 +303,10 @@ def parse_sweep(data: dict, source: str = "sweep", base_dir: Path | None = None)
             )
     parameter, values = _axes(source, sweep)
     if len({canonical_json(v) for v in values}) != len(values):
-        field = "sweep.values" if isinstance(parameter, str) else "sweep.grid/zip"
-        raise ConfigError(
-            f"{source}: {field}: {list(values)!r} lists a {'value' if isinstance(parameter, str) else 'point'} twice"
+        field, what = (
+            ("sweep.values", "value") if isinstance(parameter, str) else ("sweep.grid/zip", "point")
         )
+        raise ConfigError(f"{source}: {field}: {list(values)!r} lists a {what} twice")
     metric = sweep.get("metric", "msle_mean")
     if metric not in METRICS:
         raise ConfigError(f"{source}: sweep.metric: {metric!r} is not one of {', '.join(METRICS)}")
