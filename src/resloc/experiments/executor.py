@@ -331,11 +331,25 @@ def _local_cluster(workers: int) -> Iterator[_DaskBackend]:
         try:
             client = distributed.Client(cluster, set_as_default=False)
             try:
+                client.register_plugin(_embedded_worker_plugin(distributed), name="resloc")
                 yield _DaskBackend(client, workers)
             finally:
                 client.close(timeout=10)
         finally:
             cluster.close(timeout=10)
+
+
+def _embedded_worker_plugin(distributed):
+    """A worker plugin for the embedded cluster: its workers ignore SIGINT (a Ctrl-C in the
+    terminal reaches the whole process group; the client then stops them in order, without
+    a traceback from every worker)."""
+
+    class IgnoreInterrupt(distributed.WorkerPlugin):
+        def setup(self, worker) -> None:
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    return IgnoreInterrupt()
 
 
 def _check_address(address: str) -> None:
@@ -488,7 +502,7 @@ class Study:
                             if self.store is not None:
                                 self.store.put(key, value)
                             results[key] = value
-                        st.computed += len(task.keys)
+                            st.computed += 1
                     else:
                         _, error, tb = outcome
                         self.failures += [
