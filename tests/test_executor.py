@@ -124,10 +124,10 @@ def test_failed_cell_in_sweep_results_then_resumed(tmp_path, monkeypatch):
     store = tmp_path / "store"
     real = cells_mod.simulate_cells
 
-    def flaky(scenario, first_trial, trials, estimators):
+    def flaky(scenario, *args):
         if scenario.detector.rho == 0.5:
             raise FloatingPointError("diverged at rho 0.5")
-        return real(scenario, first_trial, trials, estimators)
+        return real(scenario, *args)
 
     monkeypatch.setattr(cells_mod, "simulate_cells", flaky)
     out = tmp_path / "out"
@@ -182,7 +182,7 @@ def test_backend_choice_and_missing_extra(monkeypatch):
     with pytest.raises(ConfigError, match=r"--jobs 2 needs Dask .*pip install 'resloc\[cluster\]'"):
         with open_backend(jobs=2, scheduler=None, tasks=10):
             pass
-    with pytest.raises(ConfigError, match="--scheduler tcp://127.0.0.1:1"):
+    with pytest.raises(ConfigError, match=r"--scheduler tcp://127\.0\.0\.1:1"):
         with open_backend(jobs=None, scheduler="tcp://127.0.0.1:1", tasks=10):
             pass
 

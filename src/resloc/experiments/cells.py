@@ -98,14 +98,27 @@ def _estimators(scenario: Scenario) -> list[str]:
 
 
 def simulate_cells(
-    scenario: Scenario, first_trial: int, trials: int, estimators: tuple[str, ...]
+    scenario: Scenario,
+    first_trial: int,
+    trials: int,
+    estimators: tuple[str, ...],
+    wanted: tuple[tuple[int, str], ...] | None = None,
 ) -> list[SimCell]:
     """Simulate trials ``first_trial .. first_trial + trials - 1`` with ``estimators``.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    first_trial, trials : int
+    estimators : tuple of str
+        Run together (filters and ``dr``).
+    wanted : tuple of (trial, estimator), optional
+        The cells to return, in this order (default: every trial and estimator).
 
     Returns
     -------
     list of SimCell
-        Trial-major, estimators in the given order.
+        ``wanted`` order, or trial-major with estimators in the given order.
     """
     filters = [e for e in estimators if e != DEAD_RECKONING]
     run = scenario.replace(
@@ -116,25 +129,26 @@ def simulate_cells(
         }
     )
     res = run_scenario(run, first_trial=first_trial)
+    if wanted is None:
+        wanted = tuple((first_trial + t, name) for t in range(trials) for name in estimators)
     cells = []
-    for t in range(trials):
-        trial = first_trial + t
-        for name in estimators:
-            est = res.estimators[name]
-            first = trial == 0
-            cells.append(
-                SimCell(
-                    name,
-                    trial,
-                    {k: v[:, t].copy() for k, v in est.series.items()},
-                    {k: int(v[t]) for k, v in est.totals.items()},
-                    est.wall_time / trials,
-                    est.raster if first else None,
-                    est.track if first else None,
-                    res.truth if first else None,
-                    res.time if first else None,
-                )
+    for trial, name in wanted:
+        t = trial - first_trial
+        est = res.estimators[name]
+        first = trial == 0
+        cells.append(
+            SimCell(
+                name,
+                trial,
+                {k: v[:, t].copy() for k, v in est.series.items()},
+                {k: int(v[t]) for k, v in est.totals.items()},
+                est.wall_time / trials,
+                est.raster if first else None,
+                est.track if first else None,
+                res.truth if first else None,
+                res.time if first else None,
             )
+        )
     return cells
 
 
@@ -244,16 +258,17 @@ def run_scenarios(
         for chunk in _chunks(sorted(per), batch):
             wanted = set().union(*(per[t] for t in chunk))
             names = tuple(e for e in _ESTIMATOR_ORDER if e in wanted)
+            # Only the missing cells are returned (a stored cell is never rewritten).
+            cells = tuple((t, name) for t in chunk for name in names if name in per[t])
             keys = []
-            for t in chunk:
-                for name in names:
-                    key = sim_key(data, t, name)
-                    keys.append(key)
-                    index[key] = (gid, t, name)
+            for t, name in cells:
+                key = sim_key(data, t, name)
+                keys.append(key)
+                index[key] = (gid, t, name)
             tasks.append(
                 Task(
                     simulate_cells,
-                    (base, chunk[0], len(chunk), names),
+                    (base, chunk[0], len(chunk), names, cells),
                     tuple(keys),
                     f"{base.run.name} seeds {chunk[0]}..{chunk[-1]}",
                     {"scenario": data, "trials": [chunk[0], chunk[-1]], "estimators": names},

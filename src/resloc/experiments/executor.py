@@ -324,6 +324,9 @@ def _local_cluster(workers: int) -> Iterator[_DaskBackend]:
             host="127.0.0.1",
             scheduler_port=0,
             dashboard_address=None,  # its default binds 0.0.0.0:8787
+            # The scheduler's HTTP endpoints (health, metrics) would try port 8787 on the
+            # host; any free loopback port instead.
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
             worker_dashboard_address=None,
             silence_logs=logging.ERROR,
             env=dict(THREAD_ENV),
