@@ -109,9 +109,9 @@ class SweepSpec:
         """A point as text: ``0.2`` (one parameter) or ``rho=0.2, alpha=0.1``."""
         if isinstance(self.parameter, str):
             return _fmt_value(value)
-        return ", ".join(
-            f"{k.rsplit('.', 1)[-1]}={_fmt_value(v)}" for k, v in self.assignments(value).items()
-        )
+        short = [k.rsplit(".", 1)[-1] for k in self.parameter]
+        names = [k if short.count(s) > 1 else s for k, s in zip(self.parameter, short, strict=True)]
+        return ", ".join(f"{n}={_fmt_value(v)}" for n, v in zip(names, value, strict=True))
 
     @property
     def axis_label(self) -> str:
