@@ -21,8 +21,6 @@ from resloc.experiments.executor import THREAD_ENV, Study
 from resloc.experiments.store import ResultStore
 from resloc.experiments.sweep import METRICS, parse_sweep, run_sweep
 
-pytest.importorskip("distributed")
-
 BIN = Path(sys.executable).parent
 SPEC = {
     "sweep": {
