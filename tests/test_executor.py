@@ -10,8 +10,8 @@ from typer.testing import CliRunner
 
 from resloc.cli.app import app
 from resloc.errors import ConfigError
+from resloc.experiments import backends
 from resloc.experiments import cells as cells_mod
-from resloc.experiments import executor
 from resloc.experiments.cells import run_scenarios
 from resloc.experiments.config import parse_scenario
 from resloc.experiments.executor import Study, StudyFailedError, Task, open_backend
@@ -172,10 +172,10 @@ def test_reproduce_with_a_failed_cell_writes_failures(tmp_path, monkeypatch):
 def test_backend_choice_and_missing_extra(monkeypatch):
     with open_backend(jobs=8, scheduler=None, tasks=1) as backend:
         assert backend.name == "serial"  # capped by the tasks
-    monkeypatch.setattr(executor, "default_jobs", lambda: 1)
+    monkeypatch.setattr(backends, "default_jobs", lambda: 1)
     with open_backend(jobs=8, scheduler=None, tasks=10) as backend:
         assert backend.name == "serial"  # capped by the CPUs
-    monkeypatch.setattr(executor, "default_jobs", lambda: 4)
+    monkeypatch.setattr(backends, "default_jobs", lambda: 4)
     monkeypatch.setitem(sys.modules, "distributed", None)  # the extra is not installed
     with open_backend(jobs=None, scheduler=None, tasks=10) as backend:
         assert backend.name == "serial"  # the documented fallback of the default

@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
             False, "--quick", help="Smoke-test size: 2 seeds, 200 steps, fewer methods."
         ),
         seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per cell [default: 10, quick 2]."
+            None, "--seeds", min=1, help="Seeds per cell \\[default: 10, quick 2]."
         ),
         jobs: int | None = JOBS,
         scheduler: str | None = SCHEDULER,
@@ -76,7 +76,7 @@ def register(app: typer.Typer) -> None:
             CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
         ),
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/compare-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/compare-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write roc.png."),

@@ -82,7 +82,7 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def reproduce(
         seeds: int | None = typer.Option(
-            None, "--seeds", min=2, help="Seeds per experiment [default: 10; 2 with --quick]."
+            None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
         ),
         jobs: int | None = JOBS,
         scheduler: str | None = SCHEDULER,
@@ -92,10 +92,10 @@ def register(app: typer.Typer) -> None:
             False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
         ),
         steps: int | None = typer.Option(
-            None, "--steps", min=1, help="Steps per run [default: the scenario's]."
+            None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
         ),
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/reproduce-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/reproduce-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         progress: bool = typer.Option(

@@ -26,7 +26,7 @@ JOBS = typer.Option(
     "--jobs",
     "-j",
     min=1,
-    help="Worker processes of the embedded Dask cluster [default: CPUs; 1: in this process].",
+    help="Worker processes of the embedded Dask cluster \\[default: the CPUs; 1: in this process].",
 )
 SCHEDULER = typer.Option(
     None,
@@ -36,7 +36,8 @@ SCHEDULER = typer.Option(
 STORE = typer.Option(
     None,
     "--store",
-    help="Result store: finished cells are kept here and never recomputed [default: runs/.store].",
+    help="Result store: finished cells are kept here and never recomputed "
+    "\\[default: $RESLOC_STORE, else runs/.store].",
 )
 FRESH = typer.Option(
     False, "--fresh", help="Ignore the result store's cells (recompute all, store them again)."

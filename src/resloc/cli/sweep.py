@@ -99,11 +99,11 @@ def register(app: typer.Typer) -> None:
     def sweep(
         path: Path = typer.Argument(
             ...,
-            help="Sweep file: a scenario file plus [sweep] (parameter and values, or "
-            "[sweep.grid] / [sweep.zip]).",
+            help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
+            "\\[sweep.grid] / \\[sweep.zip]).",
         ),
         seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per value [default: the file's run.trials]."
+            None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
         ),
         steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
         jobs: int | None = JOBS,
@@ -111,7 +111,7 @@ def register(app: typer.Typer) -> None:
         store: Path | None = STORE,
         fresh: bool = FRESH,
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/sweep-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/sweep-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
