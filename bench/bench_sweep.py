@@ -16,7 +16,10 @@ Measures
   the time per cell is the executor's overhead per task), ``jobs`` workers and in-process;
 * ``noop`` (Dask executor only): tasks that do nothing, on the embedded cluster.
 
-Times include starting the workers (the pool's processes, the LocalCluster).
+``*_start_*`` is a run of 2 cells/tasks (starting the workers); ``*_marginal_*`` is
+(run of n - run of 2) / (n - 2): the cost of one more task. ``*_cpu_*`` counts the CPU
+seconds of this process and its workers (children), which other jobs sharing the machine
+disturb less than wall time.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import resource  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -40,6 +44,12 @@ from resloc.experiments.config import parse_scenario  # noqa: E402
 from resloc.experiments.sweep import parse_sweep, run_scenarios, run_sweep  # noqa: E402
 
 RHOS = [round(0.2 + 0.02 * k, 2) for k in range(50)]
+
+
+def _cpu_seconds() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def _noop(x):
@@ -55,10 +65,15 @@ def sweep500(jobs: int, store_variants: bool = True) -> dict:
     )
     cells = len(spec.values) * spec.base.run.trials
     out: dict = {"cells": cells, "robots": spec.base.world.team.robots, "steps": 300}
+    cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
     ref = run_sweep(spec, jobs=jobs)
     out["no_store_s"] = time.perf_counter() - t0
     out["no_store_cells_per_s"] = cells / out["no_store_s"]
+    # CPU seconds of this process and its finished children (the workers): less sensitive
+    # than wall time to other jobs sharing the machine.
+    out["no_store_cpu_s"] = _cpu_seconds() - cpu0
+    out["no_store_cells_per_cpu_s"] = cells / out["no_store_cpu_s"]
     if not store_variants:
         return out
     try:
@@ -90,14 +105,18 @@ def tiny(jobs: int, n: int) -> dict:
     t0 = time.perf_counter()
     run_scenarios(scenarios, jobs=1)
     out["serial_ms_per_cell"] = 1e3 * (time.perf_counter() - t0) / n
-    times = {}
+    times, cpu = {}, {}
     for size in (2, n):
+        cpu0 = _cpu_seconds()
         t0 = time.perf_counter()
         run_scenarios(scenarios[:size], jobs=jobs)
         times[size] = time.perf_counter() - t0
+        cpu[size] = _cpu_seconds() - cpu0
     out["parallel_start_s"] = times[2]
     out["parallel_total_s"] = times[n]
     out["parallel_marginal_ms_per_cell"] = 1e3 * (times[n] - times[2]) / (n - 2)
+    out["parallel_start_cpu_s"] = cpu[2]
+    out["parallel_marginal_cpu_ms_per_cell"] = 1e3 * (cpu[n] - cpu[2]) / (n - 2)
     return out
 
 
@@ -106,17 +125,21 @@ def noop(jobs: int, n: int) -> dict | None:
         from resloc.experiments.executor import Study, Task
     except ImportError:
         return None
-    times = {}
+    times, cpu = {}, {}
     for size in (2, n):  # 2 tasks: the smallest study that starts the cluster
         tasks = [Task(_noop, (k,), (f"k{k}",), f"noop {k}") for k in range(size)]
+        cpu0 = _cpu_seconds()
         t0 = time.perf_counter()
         Study(jobs=jobs).run(tasks, cells=size)
         times[size] = time.perf_counter() - t0
+        cpu[size] = _cpu_seconds() - cpu0
     return {
         "tasks": n,
         "start_s": times[2],
         "total_s": times[n],
         "marginal_ms_per_task": 1e3 * (times[n] - times[2]) / (n - 2),
+        "start_cpu_s": cpu[2],
+        "marginal_cpu_ms_per_task": 1e3 * (cpu[n] - cpu[2]) / (n - 2),
     }
 
 

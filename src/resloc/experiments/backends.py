@@ -214,11 +214,23 @@ def dask_available() -> bool:
     return True
 
 
+#: Slower housekeeping for the embedded cluster (its workers inherit the config): an idle
+#: 2-worker cluster used 0.056 CPU-s per second with Dask's defaults (event-loop tick every
+#: 20 ms, system monitor every 0.5 s, memory monitor every 0.1 s), 0.032 with these.
+_EMBEDDED_CONFIG = {
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
+
 @contextlib.contextmanager
 def _local_cluster(workers: int) -> Iterator[_DaskBackend]:
     distributed = _import_distributed(f"--jobs {workers}")
     warm_up_kernels()  # compile once here; workers load numba's on-disk cache
-    with _quiet_dask_logs():
+    import dask
+
+    with _quiet_dask_logs(), dask.config.set(_EMBEDDED_CONFIG):
         cluster = distributed.LocalCluster(
             n_workers=workers,
             threads_per_worker=1,
