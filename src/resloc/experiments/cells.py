@@ -16,6 +16,7 @@ change one), the trial index, the estimator and the package version.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 
@@ -88,9 +89,14 @@ def group_data(scenario: Scenario) -> dict:
     return data
 
 
-def sim_key(group: dict, trial: int, estimator: str) -> str:
-    """Store key of a simulation cell (``group`` from the scenario, see module doc)."""
+def sim_key(group: str, trial: int, estimator: str) -> str:
+    """Store key of a simulation cell; ``group`` is the SHA-256 of the canonical JSON of
+    :func:`group_data` (see module doc), computed once per scenario."""
     return cell_key("sim", scenario=group, trial=int(trial), estimator=estimator)
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 def _estimators(scenario: Scenario) -> list[str]:
@@ -221,25 +227,26 @@ def run_scenarios(
         ``dr`` when it asks for dead reckoning).
     """
     study = study if study is not None else Study(jobs=jobs, progress=progress)
-    groups: dict[str, tuple[Scenario, dict]] = {}
+    groups: dict[str, tuple[Scenario, dict, str]] = {}
     needed: dict[str, dict[int, set[str]]] = {}
+    gids = []
     for s in scenarios:
         data = group_data(s)
         gid = canonical_json(data)
-        groups.setdefault(gid, (s, data))
+        gids.append(gid)
+        groups.setdefault(gid, (s, data, _digest(gid)))
         per = needed.setdefault(gid, {})
         for t in range(s.run.trials):
             per.setdefault(t, set()).update(_estimators(s))
 
     got: dict[str, dict[tuple[int, str], SimCell]] = {gid: {} for gid in groups}
     missing: dict[str, dict[int, set[str]]] = {}
-    total = hits = 0
+    hits = 0
     for gid, per in needed.items():
-        data = groups[gid][1]
+        digest = groups[gid][2]
         for t, names in per.items():
             for name in names:
-                total += 1
-                found, value = study.lookup(sim_key(data, t, name))
+                found, value = study.lookup(sim_key(digest, t, name))
                 if found:
                     got[gid][(t, name)] = value
                     hits += 1
@@ -254,7 +261,7 @@ def run_scenarios(
     tasks: list[Task] = []
     index: dict[str, tuple[str, int, str]] = {}
     for gid, per in missing.items():
-        base, data = groups[gid]
+        base, data, digest = groups[gid]
         for chunk in _chunks(sorted(per), batch):
             wanted = set().union(*(per[t] for t in chunk))
             names = tuple(e for e in _ESTIMATOR_ORDER if e in wanted)
@@ -262,7 +269,7 @@ def run_scenarios(
             cells = tuple((t, name) for t in chunk for name in names if name in per[t])
             keys = []
             for t, name in cells:
-                key = sim_key(data, t, name)
+                key = sim_key(digest, t, name)
                 keys.append(key)
                 index[key] = (gid, t, name)
             tasks.append(
@@ -283,8 +290,7 @@ def run_scenarios(
 
     truth_cache: dict = {}
     out: list[RunResult | None] = []
-    for s in scenarios:
-        gid = canonical_json(group_data(s))
+    for s, gid in zip(scenarios, gids, strict=True):
         cells = got[gid]
         complete = all((t, e) in cells for t in range(s.run.trials) for e in _estimators(s))
         out.append(_assemble(s, cells, truth_cache, gid) if complete else None)
