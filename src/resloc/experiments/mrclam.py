@@ -609,6 +609,8 @@ class MRCLAMEstimate:
     per_robot : dict of str to ndarray, each shape (N,)
     overall : dict of str to float
     wall_time : float
+    cov : ndarray of float32, shape (K + 1, N, 3, 3), optional
+        Covariances at the step times (for exports).
     """
 
     name: str
@@ -621,6 +623,7 @@ class MRCLAMEstimate:
     per_robot: dict[str, np.ndarray] = field(default_factory=dict)
     overall: dict[str, float] = field(default_factory=dict)
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
 
 
 @dataclass
@@ -641,6 +644,10 @@ class MRCLAMResult:
     zones : dict of str to list of Zone
     estimators : dict of str to MRCLAMEstimate
     wall_time : float
+    measurements : dict of str to ndarray, each shape (M,)
+        The replayed measurements (for exports): ``step``, observer ``i``, target ``j``
+        (robot index, or ``N + landmark index``), ``attacked``; the estimators' ``links``
+        give each one's outcome, row for row.
     """
 
     config: MRCLAMConfig
@@ -653,6 +660,7 @@ class MRCLAMResult:
     zones: dict[str, list[Zone]]
     estimators: dict[str, MRCLAMEstimate]
     wall_time: float = 0.0
+    measurements: dict[str, np.ndarray] = field(default_factory=dict)
 
     def summary(self) -> dict[str, dict[str, float]]:
         """``{estimator: overall stats}``."""
@@ -862,7 +870,17 @@ def _score(
         "wall_time_s": wall,
     }
     return MRCLAMEstimate(
-        name, track, pos_err, heading_err, nees_v, msle_v, links, per_robot, overall, wall
+        name,
+        track,
+        pos_err,
+        heading_err,
+        nees_v,
+        msle_v,
+        links,
+        per_robot,
+        overall,
+        wall,
+        cov.astype(np.float32),
     )
 
 
@@ -950,6 +968,7 @@ def run_mrclam(
         zones,
         estimators,
         time.perf_counter() - t_start,
+        {"step": rp.step, "i": rp.obs, "j": rp.target, "attacked": rp.attacked},
     )
 
 
@@ -966,7 +985,8 @@ def save_mrclam(
     Files: ``summary.json`` (configuration, data description, overall and per-robot
     statistics), ``per_robot.csv`` (one row per estimator and robot, plus ``all``),
     ``timeseries.csv`` (per ``sample_period``: time, robot, true and estimated poses and
-    errors) and, with matplotlib, ``trajectories.png`` and ``errors.png``.
+    errors), ``recording.npz`` (every step, for ``resloc export``) and, with matplotlib,
+    ``trajectories.png`` and ``errors.png``.
 
     Returns
     -------
@@ -1023,6 +1043,9 @@ def save_mrclam(
                     row += [f"{e.pos_err[k, r]:.4f}", f"{e.nees[k, r]:.4g}"]
                 w.writerow(row)
     written.append(p)
+    from resloc.experiments.recording import RECORDING_FILE, recording_from_mrclam
+
+    written.append(recording_from_mrclam(result).save(out / RECORDING_FILE))
     if plots:
         written.append(plot_mrclam_trajectories(result, out / "trajectories.png"))
         written.append(plot_mrclam_errors(result, out / "errors.png"))

@@ -35,6 +35,8 @@ DEAD_RECKONING = "dr"
 
 #: Per-step series recorded for every estimator, each of shape (steps, T).
 SERIES = ("msle", "rmse", "nees", "candidates", "triggered", "delivered", "detected", "attacked")
+#: Per-link flags recorded for trial 0 (exports replay them).
+LINK_FLAGS = ("attacked", "detected", "triggered", "delivered", "fused")
 #: Per-trial totals, each of shape (T,).
 TOTALS = (
     "candidates",
@@ -71,6 +73,11 @@ class EstimatorResult:
         Estimated poses of trial 0.
     wall_time : float
         Seconds spent in this estimator's predict/correct.
+    cov : ndarray of float32, shape (steps + 1, N, 3, 3), optional
+        Covariances of trial 0 (as reported: with gauge fusion ``D_i + J_i G J_i^T``).
+    links : dict of str to ndarray, each shape (M,), optional
+        Every sensed link of trial 0 over the run: ``step`` (1-based), ``i``, ``j``,
+        ``attacked``, ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports).
     """
 
     name: str
@@ -79,6 +86,8 @@ class EstimatorResult:
     raster: np.ndarray
     track: np.ndarray
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
+    links: dict[str, np.ndarray] | None = None
 
     def summary(self) -> dict[str, float]:
         """Scalar summary: means over steps and trials, final values, rates, detector scores."""
@@ -157,7 +166,18 @@ class _Track:
         self.raster = np.zeros((steps, N), dtype=np.int8)
         self.track = np.zeros((steps + 1, N, 3))
         self.track[0] = x0[:N]
+        self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
+        self.cov[0] = P0[:N]
+        self.link_log: list[tuple] = []
         self.wall = 0.0
+
+    def links(self) -> dict[str, np.ndarray]:
+        """The link log of trial 0 as flat arrays (see :class:`EstimatorResult`)."""
+        names = ("step", "i", "j", *LINK_FLAGS)
+        if not self.link_log:
+            return {n: np.zeros(0, np.int32 if n in ("step", "i", "j") else bool) for n in names}
+        cols = [np.concatenate(c) for c in zip(*self.link_log, strict=True)]
+        return dict(zip(names, cols, strict=True))
 
 
 def run_scenario(
@@ -307,7 +327,7 @@ def run_scenario(
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, tr.links()
         )
     return RunResult(
         scenario,
@@ -450,13 +470,23 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["repairs"][0] += out.repairs
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
+        flags = (att, out.detected, out.triggered, out.delivered, out.fused)
+        tr.link_log.append(
+            (
+                np.full(int(own.sum()), k + 1, np.int32),
+                ws.i[own].astype(np.int32),
+                ws.j[own].astype(np.int32),
+                *(f[own] for f in flags),
+            )
+        )
     tr.track[k + 1] = tr.x[:N]
+    P = tr.P
+    if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
+        P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+    tr.cov[k + 1] = P[:N]
     if record:
         pos_t = ws.pose[:, :2].reshape(T, N, 2)
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        P = tr.P
-        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
         s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)
