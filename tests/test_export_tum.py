@@ -13,25 +13,20 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from export_helpers import make_run_dir
 from resloc.cli.app import app
 from resloc.experiments.config import default_scenario, dump_scenario
-from resloc.experiments.output import save_run
 from resloc.experiments.recording import Recording
-from resloc.experiments.runner import run_scenario
 from resloc.export import ExportFormat, export_run_dir
 from resloc.export.geometry import align_se2, aligned_errors
 from resloc.export.tum import read_tum
 
 runner = CliRunner()
-STEPS = 260  # the team reaches the SDZ (detector rejections) after ~210 steps
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory) -> Path:
-    sc = default_scenario().replace(**{"run.steps": STEPS, "run.filters": ["ckf", "ekf"]})
-    out = tmp_path_factory.mktemp("run")
-    save_run(run_scenario(sc), out, plots=False)
-    return out
+    return make_run_dir(tmp_path_factory.mktemp("run"))
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +51,7 @@ def test_tum_files_hold_every_pose_with_w_last(run_dir, tum):
         yaw = 2 * np.arctan2(traj.orientations_quat_wxyz[:, 3], traj.orientations_quat_wxyz[:, 0])
         dyaw = np.angle(np.exp(1j * (yaw - rec.estimates["ckf"][:, r, 2])))
         assert np.abs(dyaw).max() < 1e-6
-        stamps, poses = read_tum(tum.path / f"{robot}.groundtruth.txt")
+        _stamps, poses = read_tum(tum.path / f"{robot}.groundtruth.txt")
         np.testing.assert_allclose(poses[:, :2], rec.truth[:, r, :2], atol=1e-6)
     assert len(list(tum.path.glob("*.txt"))) == 17 * 4  # truth, ckf, ekf, dr
 
@@ -121,7 +116,7 @@ def test_team_alignment_recovers_a_common_rigid_motion():
     err = aligned_errors(truth, est, np.ones((50, 6), bool))
     assert err.raw.min() > 0.5
     assert err.team.max() < 0.02 and err.per_robot.max() < 0.02
-    Rb, tb = align_se2(est[..., :2].reshape(-1, 2), truth[..., :2].reshape(-1, 2))
+    Rb, _tb = align_se2(est[..., :2].reshape(-1, 2), truth[..., :2].reshape(-1, 2))
     np.testing.assert_allclose(Rb, R.T, atol=5e-3)
     # One robot off on its own: team alignment keeps it, per-robot alignment hides it.
     est[:, 2, :2] += np.array([0.5, 0.0])
@@ -136,7 +131,7 @@ def test_old_run_directory_gives_tum_and_a_one_line_error_for_the_bag(run_dir, t
         (old / f).write_bytes((run_dir / f).read_bytes())
     res = runner.invoke(app, ["export", str(old), "--format", "tum"])
     assert res.exit_code == 0, res.output
-    stamps, poses = read_tum(old / "export" / "tum" / "robot5.ckf.txt")
+    _stamps, poses = read_tum(old / "export" / "tum" / "robot5.ckf.txt")
     rec = Recording.load(run_dir / "recording.npz")
     np.testing.assert_allclose(poses[:, :2], rec.estimates["ckf"][:, 4, :2], atol=2e-5)
     for fmt in ("rosbag", "foxglove", "html"):
