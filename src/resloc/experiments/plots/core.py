@@ -1,6 +1,6 @@
 """What every figure shares: the lazy ``pyplot``, one style per estimator, saving.
 
-Figures use matplotlib's constrained layout (no ``tight_layout`` pass at save time).
+Figures use matplotlib's constrained layout, which places the axes once, at draw time.
 """
 
 from __future__ import annotations
