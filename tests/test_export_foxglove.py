@@ -11,7 +11,7 @@ import pytest
 
 from export_helpers import make_run_dir
 from resloc.experiments.recording import Recording
-from resloc.export import ExportFormat, export_run_dir
+from resloc.export import ExportFormat, ExportOptions, export_run_dir
 from resloc.export.geometry import covariance_ellipse
 
 pytest.importorskip("mcap", reason="the export extra is installed by make test")
@@ -25,7 +25,9 @@ def run_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def scene(run_dir, tmp_path_factory):
-    (res,) = export_run_dir(run_dir, [ExportFormat.FOXGLOVE], tmp_path_factory.mktemp("exp"))
+    every_step = ExportOptions(rate=1000.0)
+    out = tmp_path_factory.mktemp("exp")
+    (res,) = export_run_dir(run_dir, [ExportFormat.FOXGLOVE], out, options=every_step)
     from mcap.reader import make_reader
 
     topics: dict[str, list] = {}
@@ -122,3 +124,15 @@ def test_layout_file_shows_the_scene_topics(scene):
             assert path["value"].split(".")[0] == "/metrics"
             key = path["value"].split(".")[1]
             assert key in topics["/metrics"][0][2]
+
+
+def test_default_rate_is_ten_frames_per_second(run_dir, tmp_path):
+    from mcap.reader import make_reader
+
+    (res,) = export_run_dir(run_dir, [ExportFormat.FOXGLOVE], tmp_path)
+    with open(res.path, "rb") as fh:
+        stamps = [m.log_time for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/tf"]
+    rec = Recording.load(run_dir / "recording.npz")
+    dt = np.diff(stamps) * 1e-9
+    assert stamps[-1] == round(rec.time[-1] * 1e9)  # the last step is always a frame
+    assert np.median(dt) == pytest.approx(0.099, abs=0.001)  # 3 steps of 33 ms

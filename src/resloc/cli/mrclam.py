@@ -147,7 +147,7 @@ def mrclam_command(
     print_mrclam_summary(result)
     with atomic_output_dir(out, overwrite) as tmp:
         save_mrclam(result, tmp, plots=plots)
-        write_exports(tmp, export)
+    write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (summary.json, per_robot.csv, timeseries.csv, plots)")
     return result
 

@@ -105,7 +105,7 @@ def run_command(
     print_summary(result)
     with atomic_output_dir(out, overwrite) as tmp:
         save_run(result, tmp, plots=plots)
-        write_exports(tmp, export)
+    write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (scenario.toml, summary.json, timeseries.csv, plots)")
     return result
 

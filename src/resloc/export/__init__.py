@@ -67,7 +67,8 @@ class ExportOptions:
         Estimator drawn as "the" estimate (``/tf``, viewer default); None: the first filter.
     rate : float or None
         Highest output rate (Hz) of the bag, the Foxglove scene and the viewer; None: every
-        step (the viewer still keeps at most ``max_frames``). TUM files keep every step.
+        step for the bag, 10 Hz for the scene, at most ``max_frames`` for the viewer. TUM
+        files keep every step.
     max_frames : int
         Most frames in the HTML viewer (its data is inlined in the page).
     """

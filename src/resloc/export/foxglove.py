@@ -15,6 +15,8 @@ Topics (``<est>`` is each estimator; frame ``map``):
   the Plot panel (``/metrics.msle.ckf``).
 
 Every frame republishes every entity (same ``id``), so seeking anywhere shows the full scene.
+Frames are written at ``--rate`` Hz, by default :data:`DEFAULT_RATE` (10 Hz); links and
+rejections accumulate over the steps between two frames.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from resloc.export.geometry import covariance_ellipse
 
 __all__ = ["SCHEMAS", "write"]
 
+#: Frames per second when ``--rate`` is not given (a scene, not data: keeps files small).
+DEFAULT_RATE = 10.0
 ESTIMATOR_RGB = {
     "ckf": (0.12, 0.47, 0.71),
     "ukf": (1.0, 0.5, 0.05),
@@ -202,7 +206,7 @@ def write(rec, target: Path, options) -> dict:
     """Write the scene ``target`` (one MCAP file). Returns message counts per topic."""
     from mcap.writer import Writer
 
-    steps = frame_steps(rec.time, options.rate)
+    steps = frame_steps(rec.time, options.rate if options.rate is not None else DEFAULT_RATE)
     chosen = options.estimator or (rec.filters[0] if rec.filters else next(iter(rec.estimates)))
     span = np.ptp(rec.truth[..., :2][rec.valid], axis=0).max() if rec.valid.any() else 1.0
     unit = max(float(span), 0.5) / 60.0  # arrow size: a sixtieth of the arena
