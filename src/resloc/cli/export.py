@@ -118,16 +118,19 @@ def register(app: typer.Typer) -> None:
             help="tum, rosbag, foxglove, html or all (repeat, or comma-separate).",
         ),
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Export directory [default: RUN_DIR/export]."
+            None, "--out", "-o", help="Export directory (default: RUN_DIR/export)."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing exports."),
         estimator: str | None = typer.Option(
-            None, "--estimator", "-e", help="Estimator on /tf and shown first [default: first]."
+            None,
+            "--estimator",
+            "-e",
+            help="Estimator on /tf and shown first (default: the first filter).",
         ),
         rate: float | None = typer.Option(
             None,
             "--rate",
-            help="Highest rate (Hz) of the bag, scene and viewer [default: every step].",
+            help="Highest rate (Hz) of bag, scene, viewer (default: every step; scene 10 Hz).",
         ),
     ) -> None:
         """Export a run for evo (TUM), ROS 2 (MCAP bag), Foxglove, or a browser (HTML)."""
