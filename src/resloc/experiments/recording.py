@@ -12,6 +12,7 @@ packed into one byte.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,8 +23,11 @@ from resloc.errors import DataError
 __all__ = [
     "LINK_FLAGS",
     "RECORDING_FILE",
+    "LinkLog",
     "Recording",
     "ZoneDisc",
+    "link_columns",
+    "pack_outcomes",
     "recording_from_mrclam",
     "recording_from_run",
 ]
@@ -35,6 +39,49 @@ FORMAT_VERSION = 1
 #: Per-link, per-estimator outcomes, in bit order.
 LINK_FLAGS = ("detected", "triggered", "delivered", "fused")
 _TRIU = np.triu_indices(3)
+#: Columns of a link log shared by every estimator of a run (the world's links).
+LINK_COLUMNS = ("step", "i", "j", "attacked")
+
+
+def pack_outcomes(*flags: np.ndarray) -> np.ndarray:
+    """One byte per link holding the :data:`LINK_FLAGS` (in that order), shape (M,)."""
+    packed = np.zeros(len(flags[0]), np.uint8)
+    for bit, f in enumerate(flags):
+        packed |= np.asarray(f, np.uint8) << bit
+    return packed
+
+
+def link_columns(rows: list[tuple]) -> dict[str, np.ndarray]:
+    """The :data:`LINK_COLUMNS` of a run from per-step ``(step, i, j, attacked)`` rows."""
+    if not rows:
+        empty = (np.int32, np.int32, np.int32, bool)
+        return {k: np.zeros(0, t) for k, t in zip(LINK_COLUMNS, empty, strict=True)}
+    columns = zip(*rows, strict=True)
+    return {k: np.concatenate(col) for k, col in zip(LINK_COLUMNS, columns, strict=True)}
+
+
+class LinkLog(Mapping):
+    """Every sensed link of one team over a run, with one estimator's outcome on each.
+
+    ``log["step"]``, ``log["i"]``, ``log["j"]``, ``log["attacked"]`` are the world's links
+    (the same arrays for every estimator of a run); ``log["triggered"]`` and the other
+    :data:`LINK_FLAGS` are unpacked from one byte per link on access. Each shape (M,).
+    """
+
+    def __init__(self, shared: dict[str, np.ndarray], packed: np.ndarray):
+        self.shared = shared
+        self.packed = packed
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key in self.shared:
+            return self.shared[key]
+        return (self.packed >> LINK_FLAGS.index(key)) & 1 == 1
+
+    def __iter__(self) -> Iterator[str]:
+        return iter((*LINK_COLUMNS, *LINK_FLAGS))
+
+    def __len__(self) -> int:
+        return len(LINK_COLUMNS) + len(LINK_FLAGS)
 
 
 @dataclass(frozen=True)
@@ -145,10 +192,7 @@ class Recording:
                 arrays[f"link__{key}"] = np.asarray(self.links[key], np.int32)
             arrays["link__attacked"] = np.asarray(self.links["attacked"], bool)
             for name, flags in self.outcomes.items():
-                packed = np.zeros(len(self.links["step"]), np.uint8)
-                for bit, key in enumerate(LINK_FLAGS):
-                    packed |= np.asarray(flags[key], np.uint8) << bit
-                arrays[f"outcome__{name}"] = packed
+                arrays[f"outcome__{name}"] = pack_outcomes(*(flags[k] for k in LINK_FLAGS))
         path = Path(path)
         np.savez_compressed(path, **arrays)
         return path
@@ -212,14 +256,13 @@ def recording_from_run(result) -> Recording:
     K, N = truth.shape[:2]
     estimates = {n: e.track for n, e in result.estimators.items()}
     covariances = {n: e.cov for n, e in result.estimators.items() if e.cov is not None}
-    logged = [e.links for e in result.estimators.values() if e.links and len(e.links["step"])]
+    logged = [e.links for e in result.estimators.values() if e.links is not None]
     links, outcomes = None, {}
     if logged:
-        ref = logged[0]
-        links = {k: ref[k] for k in ("step", "i", "j", "attacked")}
-        M = len(ref["step"])
+        links = {k: logged[0][k] for k in LINK_COLUMNS}
+        M = len(links["step"])
         for name, e in result.estimators.items():
-            if not e.links or not len(e.links["step"]):  # dead reckoning: no link used
+            if e.links is None:  # dead reckoning: no link used
                 outcomes[name] = {k: np.zeros(M, bool) for k in LINK_FLAGS}
             else:
                 outcomes[name] = {k: e.links[k] for k in LINK_FLAGS}

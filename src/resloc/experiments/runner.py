@@ -22,6 +22,7 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.models.motion import process_noise
 from resloc.world.adversary import stealthy_tamper
@@ -35,8 +36,6 @@ DEAD_RECKONING = "dr"
 
 #: Per-step series recorded for every estimator, each of shape (steps, T).
 SERIES = ("msle", "rmse", "nees", "candidates", "triggered", "delivered", "detected", "attacked")
-#: Per-link flags recorded for trial 0 (exports replay them).
-LINK_FLAGS = ("attacked", "detected", "triggered", "delivered", "fused")
 #: Per-trial totals, each of shape (T,).
 TOTALS = (
     "candidates",
@@ -75,9 +74,10 @@ class EstimatorResult:
         Seconds spent in this estimator's predict/correct.
     cov : ndarray of float32, shape (steps + 1, N, 3, 3), optional
         Covariances of trial 0 (as reported: with gauge fusion ``D_i + J_i G J_i^T``).
-    links : dict of str to ndarray, each shape (M,), optional
-        Every sensed link of trial 0 over the run: ``step`` (1-based), ``i``, ``j``,
-        ``attacked``, ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports).
+    links : LinkLog, optional
+        Every sensed link of trial 0 over the run, each shape (M,): ``step`` (1-based),
+        ``i``, ``j``, ``attacked`` (shared by the estimators) and this estimator's
+        ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports and figures).
     """
 
     name: str
@@ -87,7 +87,7 @@ class EstimatorResult:
     track: np.ndarray
     wall_time: float = 0.0
     cov: np.ndarray | None = None
-    links: dict[str, np.ndarray] | None = None
+    links: LinkLog | None = None
 
     def summary(self) -> dict[str, float]:
         """Scalar summary: means over steps and trials, final values, rates, detector scores."""
@@ -168,16 +168,8 @@ class _Track:
         self.track[0] = x0[:N]
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
-        self.link_log: list[tuple] = []
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
         self.wall = 0.0
-
-    def links(self) -> dict[str, np.ndarray]:
-        """The link log of trial 0 as flat arrays (see :class:`EstimatorResult`)."""
-        names = ("step", "i", "j", *LINK_FLAGS)
-        if not self.link_log:
-            return {n: np.zeros(0, np.int32 if n in ("step", "i", "j") else bool) for n in names}
-        cols = [np.concatenate(c) for c in zip(*self.link_log, strict=True)]
-        return dict(zip(names, cols, strict=True))
 
 
 def run_scenario(
@@ -262,9 +254,19 @@ def run_scenario(
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
+    trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
         truth[k + 1] = ws.pose[:N]
+        own = ws.i < N
+        trial0_links.append(
+            (
+                np.full(int(own.sum()), k + 1, np.int32),
+                ws.i[own].astype(np.int32),
+                ws.j[own].astype(np.int32),
+                ws.attacked[own],
+            )
+        )
         team_i = team[ws.i]
         candidates = np.bincount(team_i, minlength=T)
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
@@ -324,10 +326,12 @@ def run_scenario(
             _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
+    shared = link_columns(trial0_links)
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
+        log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, tr.links()
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, log
         )
     return RunResult(
         scenario,
@@ -470,15 +474,8 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["repairs"][0] += out.repairs
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
-        flags = (att, out.detected, out.triggered, out.delivered, out.fused)
-        tr.link_log.append(
-            (
-                np.full(int(own.sum()), k + 1, np.int32),
-                ws.i[own].astype(np.int32),
-                ws.j[own].astype(np.int32),
-                *(f[own] for f in flags),
-            )
-        )
+        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
+        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
     tr.track[k + 1] = tr.x[:N]
     P = tr.P
     if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
