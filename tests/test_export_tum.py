@@ -147,6 +147,13 @@ def test_export_command_validates_and_refuses_to_overwrite(run_dir, tmp_path):
     assert res.exit_code == 2 and "unknown format 'png'" in res.stderr
     res = runner.invoke(app, ["export", str(tmp_path / "nope"), "--format", "tum"])
     assert res.exit_code == 2 and "not a directory" in res.stderr
+    res = runner.invoke(app, ["export", str(run_dir), "-F", "html", "--estimator", "ukf"])
+    assert res.exit_code == 2 and "--estimator 'ukf'" in res.stderr and "ckf, ekf, dr" in res.stderr
+    res = runner.invoke(app, ["export", str(run_dir), "-F", "html", "--rate", "0"])
+    assert res.exit_code == 2 and "--rate" in res.stderr
+    res = runner.invoke(app, ["export", str(run_dir)])
+    assert res.exit_code == 2 and "--format" in res.stderr
+    assert not (run_dir / "export").exists()
     res = runner.invoke(app, ["export", str(run_dir), "-F", "tum", "-o", str(tmp_path / "e")])
     assert res.exit_code == 0 and "team-aligned" in res.output
     res = runner.invoke(app, ["export", str(run_dir), "-F", "tum", "-o", str(tmp_path / "e")])
