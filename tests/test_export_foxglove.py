@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export_helpers import make_run_dir
+from export_helpers import make_mrclam_dir, make_run_dir
 from resloc.experiments.recording import Recording
 from resloc.export import ExportFormat, ExportOptions, export_run_dir
 from resloc.export.geometry import covariance_ellipse
@@ -136,3 +136,25 @@ def test_default_rate_is_ten_frames_per_second(run_dir, tmp_path):
     dt = np.diff(stamps) * 1e-9
     assert stamps[-1] == round(rec.time[-1] * 1e9)  # the last step is always a frame
     assert np.median(dt) == pytest.approx(0.099, abs=0.001)  # 3 steps of 33 ms
+
+
+def test_mrclam_scene_removes_robots_without_ground_truth(tmp_path):
+    from mcap.reader import make_reader
+
+    run = make_mrclam_dir(tmp_path / "m", duration=60.0)
+    rec = Recording.load(run / "recording.npz")
+    (res,) = export_run_dir(run, [ExportFormat.FOXGLOVE], options=ExportOptions(rate=1000.0))
+    gone = []
+    with open(res.path, "rb") as fh:
+        for sc, _, message in make_reader(fh).iter_messages(topics=["/scene/truth"]):
+            msg = json.loads(message.data)
+            schema = json.loads(sc.data)
+            assert undeclared(msg, schema) == []
+            gone += [(message.log_time, d["id"]) for d in msg["deletions"]]
+            shown = {e["id"] for e in msg["entities"]}
+            assert shown.isdisjoint(d["id"] for d in msg["deletions"])
+    k, r = np.nonzero(~rec.valid)
+    expected = {
+        (round((rec.t0 + rec.time[a]) * 1e9), rec.robots[b]) for a, b in zip(k, r, strict=True)
+    }
+    assert set(gone) == expected and len(expected) > 0

@@ -111,6 +111,14 @@ _ENTITY = _obj(
         "texts": {"type": "array", "items": _TEXT},
     },
 )
+_DELETION = _obj(
+    "foxglove.SceneEntityDeletion",
+    {
+        "timestamp": _TIME,
+        "type": {"type": "integer", "description": "0 MATCHING_ID, 1 ALL"},
+        "id": {"type": "string"},
+    },
+)
 _TRANSFORM = _obj(
     "foxglove.FrameTransform",
     {
@@ -126,7 +134,7 @@ SCHEMAS = {
     "foxglove.SceneUpdate": _obj(
         "foxglove.SceneUpdate",
         {
-            "deletions": {"type": "array", "items": _obj(None, {})},
+            "deletions": {"type": "array", "items": _DELETION},
             "entities": {"type": "array", "items": _ENTITY},
         },
     ),
@@ -266,7 +274,13 @@ def write(rec, target: Path, options) -> dict:
                 for r, robot in enumerate(rec.robots)
                 if rec.valid[k, r]
             ]
-            put("/scene/truth", "foxglove.SceneUpdate", {"deletions": [], "entities": truth}, ns)
+            # A robot without ground truth at this step (MRCLAM gaps) is removed, not left stale.
+            gone = [
+                {"timestamp": stamp, "type": 0, "id": robot}
+                for r, robot in enumerate(rec.robots)
+                if not rec.valid[k, r]
+            ]
+            put("/scene/truth", "foxglove.SceneUpdate", {"deletions": gone, "entities": truth}, ns)
             window = (rec.links["step"] > prev) & (rec.links["step"] <= k)
             metrics = {
                 "time_s": float(rec.time[k]),
