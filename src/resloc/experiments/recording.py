@@ -119,7 +119,8 @@ class Recording:
         Empty for run directories written before recordings existed.
     links : dict of str to ndarray, each shape (M,), or None
         Every sensed link: ``step`` (index into ``time``), observer ``i``, target ``j`` (a
-        robot index, or ``N + landmark index``) and ``attacked``. None when not recorded.
+        robot index, or ``N + landmark index``) and ``attacked``, sorted by ``step``. None when
+        not recorded.
     outcomes : dict of str to dict of str to ndarray of bool, each shape (M,)
         Per estimator, the :data:`LINK_FLAGS` of every link (rows as in ``links``).
     zones : list of ZoneDisc

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.export.frames import frame_steps, msle_series, position_errors
+from resloc.export.frames import frame_steps, msle_series, position_errors, step_rows
 from resloc.export.geometry import covariance_ellipse
 
 __all__ = ["SCHEMAS", "write"]
@@ -210,10 +210,154 @@ def _lines(points: list[tuple], rgb, thickness: float) -> dict:
 
 
 # ----------------------------------------------------------------------------- writer
+def _cylinder(x: float, y: float, yaw: float, size: tuple, color: dict, z: float = 0.0) -> dict:
+    return {
+        "pose": _pose(x, y, yaw, z),
+        "size": {"x": size[0], "y": size[1], "z": size[2]},
+        "bottom_scale": 1.0,
+        "top_scale": 1.0,
+        "color": color,
+    }
+
+
+def _update(entities: list[dict], deletions: list[dict] | None = None) -> dict:
+    return {"deletions": deletions or [], "entities": entities}
+
+
+def zones_update(rec, stamp: dict) -> dict:
+    """``/scene/zones``: SDZs red, CDZs blue (ids ``sdz1``, ``cdz1``, ...)."""
+    entities, seen = [], {"sdz": 0, "cdz": 0}
+    for z in rec.zones:
+        seen[z.kind] = seen.get(z.kind, 0) + 1
+        rgb = (0.9, 0.1, 0.1) if z.kind == "sdz" else (0.1, 0.2, 0.9)
+        disc = _cylinder(
+            float(z.center[0]),
+            float(z.center[1]),
+            0.0,
+            (2 * z.radius, 2 * z.radius, 0.005),
+            _color(rgb, 0.18),
+            -0.01,
+        )
+        entities.append(
+            _entity(
+                stamp,
+                f"{z.kind}{seen[z.kind]}",
+                cylinders=[disc],
+                texts=[_text(z.center, z.kind.upper())],
+            )
+        )
+    return _update(entities)
+
+
+def truth_update(rec, k: int, stamp: dict, unit: float) -> dict:
+    """``/scene/truth``: true poses; a robot without ground truth at step ``k`` (MRCLAM gaps)
+    is deleted, not left stale."""
+    entities, gone = [], []
+    for r, robot in enumerate(rec.robots):
+        if not rec.valid[k, r]:
+            gone.append({"timestamp": stamp, "type": 0, "id": robot})
+            continue
+        entities.append(
+            _entity(
+                stamp,
+                robot,
+                arrows=[_arrow(rec.truth[k, r], (0.2, 0.2, 0.2), unit, 0.8)],
+                texts=[_text(rec.truth[k, r, :2] + 1.5 * unit, robot)],
+            )
+        )
+    return _update(entities, gone)
+
+
+def estimate_update(rec, name: str, ellipses: np.ndarray, k: int, stamp: dict, unit: float):
+    """``/scene/<est>``: estimated poses with their 95 % ellipses (``ellipses: (K, N, 3)``)."""
+    rgb = ESTIMATOR_RGB.get(name, (0.6, 0.2, 0.7))
+    track = rec.estimates[name][k]
+    entities = []
+    for r, robot in enumerate(rec.robots):
+        a, b, angle = (float(v) for v in ellipses[k, r])
+        x, y = float(track[r, 0]), float(track[r, 1])
+        disc = _cylinder(x, y, angle, (2 * a, 2 * b, 0.002), _color(rgb, 0.25))
+        entities.append(
+            _entity(stamp, robot, arrows=[_arrow(track[r], rgb, unit)], cylinders=[disc])
+        )
+    return _update(entities)
+
+
+def link_updates(rec, name: str, rows: np.ndarray, k: int, stamp: dict):
+    """``/scene/<est>/links`` and ``/rejections`` for the link ``rows`` since the previous
+    frame, drawn between the estimated positions at step ``k`` (landmarks where they are).
+
+    Returns
+    -------
+    links, rejections : dict
+    sent, rejected : int
+    """
+    flags = rec.outcomes[name]
+    sent = rows[flags["triggered"][rows]]
+    rejected = rows[flags["detected"][rows]]
+    pos = np.vstack([rec.estimates[name][k, :, :2], rec.landmarks])
+    i, j = rec.links["i"], rec.links["j"]
+
+    def segments(sel: np.ndarray) -> list:
+        return [pt for e in sel for pt in (pos[j[e]], pos[i[e]])]
+
+    delivered = flags["delivered"][sent]
+    lines = [
+        _lines(segments(sel), rgb, 2.0)
+        for sel, rgb in ((sent[delivered], (0.1, 0.7, 0.2)), (sent[~delivered], (1.0, 0.55, 0.0)))
+        if len(sel)
+    ]
+    rej = [_lines(segments(rejected), (0.9, 0.0, 0.0), 3.0)] if len(rejected) else []
+    return (
+        _update([_entity(stamp, "links", lines=lines)]),
+        _update([_entity(stamp, "rejections", lines=rej)]),
+        len(sent),
+        len(rejected),
+    )
+
+
+def transforms(rec, name: str, k: int, stamp: dict) -> dict:
+    """``/tf``: ``map -> robotN/base_link`` at estimator ``name``'s poses."""
+    return {
+        "transforms": [
+            {
+                "timestamp": stamp,
+                "parent_frame_id": "map",
+                "child_frame_id": f"{robot}/base_link",
+                "translation": {"x": float(p[0]), "y": float(p[1]), "z": 0.0},
+                "rotation": _pose(0.0, 0.0, float(p[2]))["orientation"],
+            }
+            for robot, p in zip(rec.robots, rec.estimates[name][k], strict=True)
+        ]
+    }
+
+
+class _JsonMcap:
+    """An MCAP writer of JSON messages with the :data:`SCHEMAS`, counting per topic."""
+
+    def __init__(self, fh):
+        from mcap.writer import Writer
+
+        self.mcap = Writer(fh)
+        self.mcap.start(profile="", library="resloc")
+        self.schemas = {
+            name: self.mcap.register_schema(name, "jsonschema", json.dumps(s).encode())
+            for name, s in SCHEMAS.items()
+        }
+        self.channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+
+    def put(self, topic: str, schema: str, msg: dict, ns: int) -> None:
+        if topic not in self.channels:
+            self.channels[topic] = self.mcap.register_channel(topic, "json", self.schemas[schema])
+            self.counts[topic] = 0
+        data = json.dumps(msg, separators=(",", ":")).encode()
+        self.mcap.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns)
+        self.counts[topic] += 1
+
+
 def write(rec, target: Path, options) -> dict:
     """Write the scene ``target`` (one MCAP file). Returns message counts per topic."""
-    from mcap.writer import Writer
-
     steps = frame_steps(rec.time, options.rate if options.rate is not None else DEFAULT_RATE)
     chosen = options.estimator or (rec.filters[0] if rec.filters else next(iter(rec.estimates)))
     span = np.ptp(rec.truth[..., :2][rec.valid], axis=0).max() if rec.valid.any() else 1.0
@@ -221,67 +365,16 @@ def write(rec, target: Path, options) -> dict:
     msle = {n: msle_series(rec, n) for n in rec.estimates}
     errors = {n: position_errors(rec, n) for n in rec.estimates}
     ellipses = {n: covariance_ellipse(c) for n, c in rec.covariances.items()}
-    landmarks = rec.landmarks
-    counts: dict[str, int] = {}
+    scene = "foxglove.SceneUpdate"
     with open(target, "wb") as fh:
-        mcap = Writer(fh)
-        mcap.start(profile="", library="resloc")
-        schema_ids = {
-            name: mcap.register_schema(name, "jsonschema", json.dumps(s).encode())
-            for name, s in SCHEMAS.items()
-        }
-        channels: dict[str, int] = {}
-
-        def put(topic: str, schema: str, msg: dict, ns: int) -> None:
-            if topic not in channels:
-                channels[topic] = mcap.register_channel(topic, "json", schema_ids[schema])
-                counts[topic] = 0
-            data = json.dumps(msg, separators=(",", ":")).encode()
-            mcap.add_message(channels[topic], log_time=ns, data=data, publish_time=ns)
-            counts[topic] += 1
-
+        out = _JsonMcap(fh)
         prev = -1
         for k in steps:
             ns = round((rec.t0 + float(rec.time[k])) * 1e9)
             stamp = {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-            zones = [
-                _entity(
-                    stamp,
-                    f"{z.kind}{sum(o.kind == z.kind for o in rec.zones[: n + 1])}",
-                    cylinders=[
-                        {
-                            "pose": _pose(float(z.center[0]), float(z.center[1]), 0.0, -0.01),
-                            "size": {"x": 2 * z.radius, "y": 2 * z.radius, "z": 0.005},
-                            "bottom_scale": 1.0,
-                            "top_scale": 1.0,
-                            "color": _color(
-                                (0.9, 0.1, 0.1) if z.kind == "sdz" else (0.1, 0.2, 0.9), 0.18
-                            ),
-                        }
-                    ],
-                    texts=[_text(z.center, z.kind.upper())],
-                )
-                for n, z in enumerate(rec.zones)
-            ]
-            put("/scene/zones", "foxglove.SceneUpdate", {"deletions": [], "entities": zones}, ns)
-            truth = [
-                _entity(
-                    stamp,
-                    robot,
-                    arrows=[_arrow(rec.truth[k, r], (0.2, 0.2, 0.2), unit, 0.8)],
-                    texts=[_text(rec.truth[k, r, :2] + 1.5 * unit, robot)],
-                )
-                for r, robot in enumerate(rec.robots)
-                if rec.valid[k, r]
-            ]
-            # A robot without ground truth at this step (MRCLAM gaps) is removed, not left stale.
-            gone = [
-                {"timestamp": stamp, "type": 0, "id": robot}
-                for r, robot in enumerate(rec.robots)
-                if not rec.valid[k, r]
-            ]
-            put("/scene/truth", "foxglove.SceneUpdate", {"deletions": gone, "entities": truth}, ns)
-            window = (rec.links["step"] > prev) & (rec.links["step"] <= k)
+            out.put("/scene/zones", scene, zones_update(rec, stamp), ns)
+            out.put("/scene/truth", scene, truth_update(rec, k, stamp, unit), ns)
+            rows = step_rows(rec.links["step"], prev, k)
             metrics = {
                 "time_s": float(rec.time[k]),
                 "msle": {n: _finite(m[k]) for n, m in msle.items()},
@@ -292,68 +385,19 @@ def write(rec, target: Path, options) -> dict:
                 "transmitted": {},
                 "rejected": {},
             }
-            for name, track in rec.estimates.items():
-                rgb = ESTIMATOR_RGB.get(name, (0.6, 0.2, 0.7))
-                a, b, ang = ellipses[name][k].T
-                est = [
-                    _entity(
-                        stamp,
-                        robot,
-                        arrows=[_arrow(track[k, r], rgb, unit)],
-                        cylinders=[
-                            {
-                                "pose": _pose(
-                                    float(track[k, r, 0]), float(track[k, r, 1]), float(ang[r])
-                                ),
-                                "size": {"x": 2 * float(a[r]), "y": 2 * float(b[r]), "z": 0.002},
-                                "bottom_scale": 1.0,
-                                "top_scale": 1.0,
-                                "color": _color(rgb, 0.25),
-                            }
-                        ],
-                    )
-                    for r, robot in enumerate(rec.robots)
-                ]
-                put(
-                    f"/scene/{name}", "foxglove.SceneUpdate", {"deletions": [], "entities": est}, ns
-                )
-                flags = rec.outcomes[name]
-                sent = np.flatnonzero(window & flags["triggered"])
-                rejected = np.flatnonzero(window & flags["detected"])
-                pos = np.vstack([track[k, :, :2], landmarks])
-                i, j = rec.links["i"], rec.links["j"]
-                ok = flags["delivered"][sent]
-                link_prims = []
-                for mask, rgb_l in ((ok, (0.1, 0.7, 0.2)), (~ok, (1.0, 0.55, 0.0))):
-                    pts = [pt for e in sent[mask] for pt in (pos[j[e]], pos[i[e]])]
-                    if pts:
-                        link_prims.append(_lines(pts, rgb_l, 2.0))
-                links_msg = {
-                    "deletions": [],
-                    "entities": [_entity(stamp, "links", lines=link_prims)],
-                }
-                put(f"/scene/{name}/links", "foxglove.SceneUpdate", links_msg, ns)
-                rej_pts = [pt for e in rejected for pt in (pos[j[e]], pos[i[e]])]
-                rej = [_lines(rej_pts, (0.9, 0.0, 0.0), 3.0)] if rej_pts else []
-                rej_msg = {"deletions": [], "entities": [_entity(stamp, "rejections", lines=rej)]}
-                put(f"/scene/{name}/rejections", "foxglove.SceneUpdate", rej_msg, ns)
-                metrics["transmitted"][name] = len(sent)
-                metrics["rejected"][name] = len(rejected)
-            tfs = [
-                {
-                    "timestamp": stamp,
-                    "parent_frame_id": "map",
-                    "child_frame_id": f"{robot}/base_link",
-                    "translation": {"x": float(p[0]), "y": float(p[1]), "z": 0.0},
-                    "rotation": _pose(0.0, 0.0, float(p[2]))["orientation"],
-                }
-                for robot, p in zip(rec.robots, rec.estimates[chosen][k], strict=True)
-            ]
-            put("/tf", "foxglove.FrameTransforms", {"transforms": tfs}, ns)
-            put("/metrics", "resloc.Metrics", metrics, ns)
+            for name in rec.estimates:
+                est = estimate_update(rec, name, ellipses[name], k, stamp, unit)
+                out.put(f"/scene/{name}", scene, est, ns)
+                links, rejections, sent, rejected = link_updates(rec, name, rows, k, stamp)
+                out.put(f"/scene/{name}/links", scene, links, ns)
+                out.put(f"/scene/{name}/rejections", scene, rejections, ns)
+                metrics["transmitted"][name] = sent
+                metrics["rejected"][name] = rejected
+            out.put("/tf", "foxglove.FrameTransforms", transforms(rec, chosen, k, stamp), ns)
+            out.put("/metrics", "resloc.Metrics", metrics, ns)
             prev = k
-        mcap.finish()
-    return {"topics": counts, "steps": len(steps), "tf_estimator": chosen}
+        out.mcap.finish()
+    return {"topics": out.counts, "steps": len(steps), "tf_estimator": chosen}
 
 
 def _text(xy, text: str) -> dict:

@@ -6,7 +6,7 @@ import numpy as np
 
 from resloc.experiments.metrics import msle
 
-__all__ = ["frame_steps", "msle_series", "position_errors"]
+__all__ = ["frame_steps", "msle_series", "position_errors", "step_rows"]
 
 
 def frame_steps(time: np.ndarray, rate: float | None, max_frames: int | None = None) -> np.ndarray:
@@ -34,6 +34,12 @@ def frame_steps(time: np.ndarray, rate: float | None, max_frames: int | None = N
     if idx[-1] != K - 1:
         idx = np.append(idx, K - 1)
     return idx
+
+
+def step_rows(step: np.ndarray, after: int, upto: int) -> np.ndarray:
+    """Rows of a link log (sorted by ``step``) with ``after < step <= upto``, shape (M',)."""
+    lo = np.searchsorted(step, after, side="right")
+    return np.arange(lo, np.searchsorted(step, upto, side="right"))
 
 
 def position_errors(rec, name: str) -> np.ndarray:

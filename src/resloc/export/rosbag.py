@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.export.frames import frame_steps
+from resloc.export.frames import frame_steps, step_rows
 
 __all__ = ["LINK_EVENTS_MSG", "LINK_EVENTS_TYPE", "typestore", "write"]
 
@@ -67,110 +67,130 @@ def _compose_inverse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([x, y, dth], axis=-1)
 
 
+class _Messages:
+    """Builds the ROS 2 messages of one step (types from :func:`typestore`)."""
+
+    def __init__(self, store):
+        self.T = store.types
+
+    def stamp(self, ns: int):
+        return self.T["builtin_interfaces/msg/Time"](
+            sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000
+        )
+
+    def header(self, stamp, frame: str):
+        return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def _quat(self, theta: float):
+        half = 0.5 * float(theta)
+        return self.T["geometry_msgs/msg/Quaternion"](
+            x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))
+        )
+
+    def pose(self, p: np.ndarray):
+        point = self.T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=0.0)
+        return self.T["geometry_msgs/msg/Pose"](position=point, orientation=self._quat(p[2]))
+
+    def pose_with_covariance(self, stamp, p: np.ndarray, cov36: np.ndarray):
+        body = self.T["geometry_msgs/msg/PoseWithCovariance"](pose=self.pose(p), covariance=cov36)
+        return self.T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+            header=self.header(stamp, "map"), pose=body
+        )
+
+    def pose_stamped(self, stamp, p: np.ndarray):
+        return self.T["geometry_msgs/msg/PoseStamped"](
+            header=self.header(stamp, "map"), pose=self.pose(p)
+        )
+
+    def transform(self, stamp, parent: str, child: str, p: np.ndarray):
+        shift = self.T["geometry_msgs/msg/Vector3"](x=float(p[0]), y=float(p[1]), z=0.0)
+        return self.T["geometry_msgs/msg/TransformStamped"](
+            header=self.header(stamp, parent),
+            child_frame_id=child,
+            transform=self.T["geometry_msgs/msg/Transform"](
+                translation=shift, rotation=self._quat(p[2])
+            ),
+        )
+
+    def tf(self, rec, k: int, stamp, chosen: str):
+        """REP-105 frames of every robot at step ``k`` (see the module docstring)."""
+        odom = rec.estimates.get("dr")
+        out = []
+        for r, robot in enumerate(rec.robots):
+            if rec.valid[k, r]:
+                out.append(self.transform(stamp, "map", f"{robot}/ground_truth", rec.truth[k, r]))
+            base = odom[k, r] if odom is not None else np.zeros(3)
+            correction = _compose_inverse(rec.estimates[chosen][k, r], base)
+            out.append(self.transform(stamp, "map", f"{robot}/odom", correction))
+            out.append(self.transform(stamp, f"{robot}/odom", f"{robot}/base_link", base))
+        return self.T["tf2_msgs/msg/TFMessage"](transforms=out)
+
+    def link_events(self, rec, name: str, rows: np.ndarray, stamp, names: np.ndarray):
+        """The ``rows`` of ``rec.links`` on which something happened, for estimator ``name``."""
+        flags, links = rec.outcomes[name], rec.links
+        # Events only: a link that was not attacked, rejected or triggered is silent.
+        rows = rows[links["attacked"][rows] | flags["detected"][rows] | flags["triggered"][rows]]
+        return self.T[LINK_EVENTS_TYPE](
+            header=self.header(stamp, "map"),
+            estimator=name,
+            observer=names[links["i"][rows]].tolist(),
+            target=names[links["j"][rows]].tolist(),
+            attacked=links["attacked"][rows].astype(bool),
+            detected=flags["detected"][rows],
+            triggered=flags["triggered"][rows],
+            delivered=flags["delivered"][rows],
+            fused=flags["fused"][rows],
+        )
+
+
 def write(rec, target: Path, options) -> dict:
     """Write the bag directory ``target`` (``metadata.yaml`` + one ``.mcap``).
 
     Returns
     -------
     dict
-        ``topics`` (name to message count) and ``steps`` written.
+        ``topics`` (name to message count), ``steps`` written, the ``/tf`` estimator.
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     store = typestore()
-    T = store.types
-    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
-    Point, Quat = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
-    Pose, Vec3 = T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/Vector3"]
-    PoseCov = T["geometry_msgs/msg/PoseWithCovariance"]
-    PoseCovStamped = T["geometry_msgs/msg/PoseWithCovarianceStamped"]
-    PoseStamped = T["geometry_msgs/msg/PoseStamped"]
-    Transform, TransformStamped = (
-        T["geometry_msgs/msg/Transform"],
-        T["geometry_msgs/msg/TransformStamped"],
-    )
-    TFMessage, LinkEvents = T["tf2_msgs/msg/TFMessage"], T[LINK_EVENTS_TYPE]
-
+    make = _Messages(store)
     chosen = options.estimator or (rec.filters[0] if rec.filters else next(iter(rec.estimates)))
     steps = frame_steps(rec.time, options.rate)
-    N = rec.n_robots
     names = np.array(
         list(rec.robots) + [f"landmark{m + 1}" for m in range(len(rec.landmarks))], dtype=object
     )
-    odom = rec.estimates.get("dr")
-    counts: dict[str, int] = {}
-
-    def pose(p: np.ndarray):
-        half = 0.5 * float(p[2])
-        return Pose(
-            position=Point(x=float(p[0]), y=float(p[1]), z=0.0),
-            orientation=Quat(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))),
-        )
-
-    def tf(stamp, parent: str, child: str, p: np.ndarray):
-        half = 0.5 * float(p[2])
-        return TransformStamped(
-            header=Header(stamp=stamp, frame_id=parent),
-            child_frame_id=child,
-            transform=Transform(
-                translation=Vec3(x=float(p[0]), y=float(p[1]), z=0.0),
-                rotation=Quat(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))),
-            ),
-        )
-
+    cov36 = {n: pose_covariance_6x6(c) for n, c in rec.covariances.items()}
+    conns, counts = {}, {}
     with Writer(Path(target), version=9, storage_plugin=StoragePlugin.MCAP) as bag:
-        conns = {}
 
-        def connection(topic: str, msgtype: str):
+        def put(topic: str, msg, ns: int) -> None:
+            msgtype = msg.__msgtype__
             if topic not in conns:
                 conns[topic] = bag.add_connection(topic, msgtype, typestore=store)
                 counts[topic] = 0
-            return conns[topic]
-
-        def put(topic: str, msgtype: str, msg, ns: int) -> None:
-            bag.write(connection(topic, msgtype), ns, store.serialize_cdr(msg, msgtype))
+            bag.write(conns[topic], ns, store.serialize_cdr(msg, msgtype))
             counts[topic] += 1
 
-        cov36 = {n: pose_covariance_6x6(c) for n, c in rec.covariances.items()}
         prev = -1
         for k in steps:
             ns = round((rec.t0 + float(rec.time[k])) * 1e9)
-            stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-            transforms = []
+            stamp = make.stamp(ns)
             for r, robot in enumerate(rec.robots):
                 for name, track in rec.estimates.items():
-                    msg = PoseCovStamped(
-                        header=Header(stamp=stamp, frame_id="map"),
-                        pose=PoseCov(pose=pose(track[k, r]), covariance=cov36[name][k, r]),
-                    )
-                    put(f"/{robot}/{name}/pose", PoseCovStamped.__msgtype__, msg, ns)
+                    msg = make.pose_with_covariance(stamp, track[k, r], cov36[name][k, r])
+                    put(f"/{robot}/{name}/pose", msg, ns)
                 if rec.valid[k, r]:
-                    msg = PoseStamped(
-                        header=Header(stamp=stamp, frame_id="map"), pose=pose(rec.truth[k, r])
+                    put(
+                        f"/{robot}/ground_truth/pose", make.pose_stamped(stamp, rec.truth[k, r]), ns
                     )
-                    put(f"/{robot}/ground_truth/pose", PoseStamped.__msgtype__, msg, ns)
-                    transforms.append(tf(stamp, "map", f"{robot}/ground_truth", rec.truth[k, r]))
-                base = odom[k, r] if odom is not None else np.zeros(3)
-                correction = _compose_inverse(rec.estimates[chosen][k, r], base)
-                transforms.append(tf(stamp, "map", f"{robot}/odom", correction))
-                transforms.append(tf(stamp, f"{robot}/odom", f"{robot}/base_link", base))
-            put("/tf", TFMessage.__msgtype__, TFMessage(transforms=transforms), ns)
-            window = (rec.links["step"] > prev) & (rec.links["step"] <= k)
-            for name, flags in rec.outcomes.items():
-                # Events only: a link that was not attacked, rejected or triggered is silent.
-                event = rec.links["attacked"] | flags["detected"] | flags["triggered"]
-                rows = np.flatnonzero(window & event)
-                msg = LinkEvents(
-                    header=Header(stamp=stamp, frame_id="map"),
-                    estimator=name,
-                    observer=names[rec.links["i"][rows]].tolist(),
-                    target=names[np.minimum(rec.links["j"][rows], len(names) - 1)].tolist(),
-                    attacked=rec.links["attacked"][rows].astype(bool),
-                    detected=flags["detected"][rows],
-                    triggered=flags["triggered"][rows],
-                    delivered=flags["delivered"][rows],
-                    fused=flags["fused"][rows],
+            put("/tf", make.tf(rec, k, stamp, chosen), ns)
+            rows = step_rows(rec.links["step"], prev, k)
+            for name in rec.outcomes:
+                put(
+                    f"/resloc/{name}/link_events",
+                    make.link_events(rec, name, rows, stamp, names),
+                    ns,
                 )
-                put(f"/resloc/{name}/link_events", LINK_EVENTS_TYPE, msg, ns)
             prev = k
-    return {"topics": counts, "steps": len(steps), "tf_estimator": chosen, "robots": N}
+    return {"topics": counts, "steps": len(steps), "tf_estimator": chosen}
