@@ -198,3 +198,17 @@ print(sorted(m for m in sys.modules if m.split(".")[0] in heavy))
     )
     assert out.stdout.strip() == "[]"
     assert json.loads((tmp_path / "o" / "summary.json").read_text())["steps"] == 5
+
+
+def test_mrclam_writes_exports_directly(tmp_path):
+    from export_helpers import MRCLAM_FIXTURE
+
+    out = tmp_path / "m"
+    args = ["mrclam", str(MRCLAM_FIXTURE), "-f", "ckf", "--duration", "20", "--no-plots"]
+    res = runner.invoke(app, [*args, "--no-progress", "-o", str(out), "--export", "tum"])
+    assert res.exit_code == 0, res.output
+    stamps, poses = read_tum(out / "export" / "tum" / "robot3.ckf.txt")
+    rec = Recording.load(out / "recording.npz")
+    np.testing.assert_allclose(stamps, rec.t0 + rec.time, atol=2e-6)
+    np.testing.assert_allclose(poses[:, :2], rec.estimates["ckf"][:, 2, :2], atol=2e-6)
+    assert "team-aligned" in res.output
