@@ -22,6 +22,7 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.models.motion import process_noise
 from resloc.world.adversary import stealthy_tamper
@@ -71,6 +72,12 @@ class EstimatorResult:
         Estimated poses of trial 0.
     wall_time : float
         Seconds spent in this estimator's predict/correct.
+    cov : ndarray of float32, shape (steps + 1, N, 3, 3), optional
+        Covariances of trial 0 (as reported: with gauge fusion ``D_i + J_i G J_i^T``).
+    links : LinkLog, optional
+        Every sensed link of trial 0 over the run, each shape (M,): ``step`` (1-based),
+        ``i``, ``j``, ``attacked`` (shared by the estimators) and this estimator's
+        ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports and figures).
     """
 
     name: str
@@ -79,6 +86,8 @@ class EstimatorResult:
     raster: np.ndarray
     track: np.ndarray
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
+    links: LinkLog | None = None
 
     def summary(self) -> dict[str, float]:
         """Scalar summary: means over steps and trials, final values, rates, detector scores."""
@@ -157,6 +166,9 @@ class _Track:
         self.raster = np.zeros((steps, N), dtype=np.int8)
         self.track = np.zeros((steps + 1, N, 3))
         self.track[0] = x0[:N]
+        self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
+        self.cov[0] = P0[:N]
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
         self.wall = 0.0
 
 
@@ -242,9 +254,19 @@ def run_scenario(
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
+    trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
         truth[k + 1] = ws.pose[:N]
+        own = ws.i < N
+        trial0_links.append(
+            (
+                np.full(int(own.sum()), k + 1, np.int32),
+                ws.i[own].astype(np.int32),
+                ws.j[own].astype(np.int32),
+                ws.attacked[own],
+            )
+        )
         team_i = team[ws.i]
         candidates = np.bincount(team_i, minlength=T)
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
@@ -304,10 +326,12 @@ def run_scenario(
             _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
+    shared = link_columns(trial0_links)
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
+        log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, log
         )
     return RunResult(
         scenario,
@@ -450,13 +474,16 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["repairs"][0] += out.repairs
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
+        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
+        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
     tr.track[k + 1] = tr.x[:N]
+    P = tr.P
+    if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
+        P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+    tr.cov[k + 1] = P[:N]
     if record:
         pos_t = ws.pose[:, :2].reshape(T, N, 2)
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        P = tr.P
-        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
         s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)
