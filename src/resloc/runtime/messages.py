@@ -203,7 +203,7 @@ FLAG_DETECTED, FLAG_TRIGGERED, FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD = 1, 2, 4,
 _NON_FINITE_OK = {(Kind.REPORT, "norm")}  # a discarded link's threshold norm may be nan
 
 
-class MalformedBody(ValueError):
+class MalformedBodyError(ValueError):
     """The body does not match its kind's schema (message names the field)."""
 
 
@@ -229,47 +229,47 @@ def _encode_field(spec: Any, value: Any) -> Any:
 def _decode_field(kind: Kind, name: str, spec: Any, value: Any) -> Any:
     if isinstance(spec, Array):
         if not isinstance(value, bytes):
-            raise MalformedBody(f"{name}: not bytes")
+            raise MalformedBodyError(f"{name}: not bytes")
         item = np.dtype(spec.dtype).itemsize
         fixed = math.prod(d for d in spec.shape if d != -1)
         if len(value) % (item * fixed):
-            raise MalformedBody(f"{name}: {len(value)} bytes is not a whole number of rows")
+            raise MalformedBodyError(f"{name}: {len(value)} bytes is not a whole number of rows")
         a = np.frombuffer(value, dtype=spec.dtype)
         shape = tuple(len(a) // fixed if d == -1 else d for d in spec.shape)
         if math.prod(shape) != len(a):
-            raise MalformedBody(f"{name}: {len(a)} values do not fit shape {spec.shape}")
+            raise MalformedBodyError(f"{name}: {len(a)} values do not fit shape {spec.shape}")
         a = a.reshape(shape).astype(spec.dtype[1:], copy=True)
         if a.dtype.kind == "f" and (kind, name) not in _NON_FINITE_OK and not np.isfinite(a).all():
-            raise MalformedBody(f"{name}: non-finite value")
+            raise MalformedBodyError(f"{name}: non-finite value")
         return a
     if spec == INT:
         if not isinstance(value, int) or isinstance(value, bool):
-            raise MalformedBody(f"{name}: not an integer")
+            raise MalformedBodyError(f"{name}: not an integer")
         return value
     if spec == FLOAT:
         if not isinstance(value, float | int) or isinstance(value, bool):
-            raise MalformedBody(f"{name}: not a number")
+            raise MalformedBodyError(f"{name}: not a number")
         if not math.isfinite(value):
-            raise MalformedBody(f"{name}: non-finite value")
+            raise MalformedBodyError(f"{name}: non-finite value")
         return float(value)
     if spec == BOOL:
         if not isinstance(value, bool):
-            raise MalformedBody(f"{name}: not a boolean")
+            raise MalformedBodyError(f"{name}: not a boolean")
         return value
     if spec == STR:
         if not isinstance(value, str) or len(value) > 4096:
-            raise MalformedBody(f"{name}: not a string")
+            raise MalformedBodyError(f"{name}: not a string")
         return value
     if spec == BLOBS:
         if not isinstance(value, list) or not all(isinstance(b, bytes) for b in value):
-            raise MalformedBody(f"{name}: not a list of byte strings")
+            raise MalformedBodyError(f"{name}: not a list of byte strings")
         return value
     if spec == COUNTS:
         if not isinstance(value, dict) or not all(
             isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
             for k, v in value.items()
         ):
-            raise MalformedBody(f"{name}: not a map of counts")
+            raise MalformedBodyError(f"{name}: not a map of counts")
         return value
     raise TypeError(spec)
 
@@ -283,18 +283,18 @@ def encode_body(kind: Kind, body: dict) -> bytes:
 
 
 def decode_body(kind: Kind, raw: bytes) -> dict:
-    """Decode and validate a body; raises :class:`MalformedBody`."""
+    """Decode and validate a body; raises :class:`MalformedBodyError`."""
     try:
         data = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=1 << 24)
     except Exception as exc:  # msgpack raises many types on garbage
-        raise MalformedBody(f"undecodable body ({exc.__class__.__name__})") from None
+        raise MalformedBodyError(f"undecodable body ({exc.__class__.__name__})") from None
     spec = FIELDS[kind]
     if not isinstance(data, dict) or set(data) != set(spec):
-        raise MalformedBody("fields do not match the schema")
+        raise MalformedBodyError("fields do not match the schema")
     body = {k: _decode_field(kind, k, spec[k], data[k]) for k in spec}
     for group in _ROWS.get(kind, ()):
         if len({len(body[k]) for k in group}) != 1:
-            raise MalformedBody(f"{'/'.join(group)}: lengths differ")
+            raise MalformedBodyError(f"{'/'.join(group)}: lengths differ")
     return body
 
 
@@ -481,7 +481,7 @@ class Verifier:
                 return None
         try:
             body = decode_body(kind, payload[HEADER.size :])
-        except MalformedBody:
+        except MalformedBodyError:
             self._reject(RejectReason.MALFORMED)
             return None
         if stream is None or epoch > stream.epoch:  # first contact or a restarted sender

@@ -26,12 +26,12 @@ __all__ = ["connect_bus", "exit_now", "main"]
 EXIT_OK, EXIT_BAD_INPUT, EXIT_LOST = 0, 2, 3
 
 
-class Terminated(Exception):
+class TerminatedError(Exception):
     """SIGTERM (or SIGINT) asked this process to stop."""
 
 
 def _on_signal(signum, frame) -> None:
-    raise Terminated(signal.Signals(signum).name)
+    raise TerminatedError(signal.Signals(signum).name)
 
 
 def install_signal_handlers(ignore_sigint: bool = True) -> None:
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> None:
     except ResLocError as exc:
         print(f"error: {role}: {exc}", file=sys.stderr)
         code = EXIT_BAD_INPUT
-    except Terminated:
+    except TerminatedError:
         code = EXIT_OK
     exit_now(code)
 

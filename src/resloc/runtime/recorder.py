@@ -35,7 +35,6 @@ from resloc.runtime.messages import (
     FLAG_DELIVERED,
     FLAG_DETECTED,
     FLAG_FUSED,
-    FLAG_HEARD,
     FLAG_TRIGGERED,
     RECORDER,
     Kind,
@@ -44,7 +43,6 @@ from resloc.runtime.messages import (
 from resloc.runtime.options import SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
 from resloc.runtime.team import team_setup
-from resloc.runtime.transport import Bus
 
 __all__ = ["Recording", "run_recorder"]
 
