@@ -2,7 +2,7 @@
 
 Every message on the wire, robot-to-robot or infrastructure, is one frame::
 
-    header (40 bytes, little-endian struct ``HEADER``)
+    header (36 bytes, little-endian struct ``HEADER``)
         magic      2s   b"RL"
         version    u8   SCHEMA_VERSION (1)
         kind       u8   a :class:`Kind`
