@@ -98,6 +98,7 @@ def run_swarm(
     robots_per_process: int = 1,
     progress: Callable[[int, int], None] | None = None,
     log_dir: Path | None = None,
+    watch: Callable[[int, dict[str, subprocess.Popen]], None] | None = None,
 ) -> SwarmResult:
     """Run one swarm to its end.
 
@@ -112,6 +113,8 @@ def run_swarm(
     progress : callable(k, steps), optional
     log_dir : Path, optional
         Where the children's logs go (default: a temporary directory, kept on failure).
+    watch : callable(k, processes), optional
+        Called with every progress step and the child processes by name (fault drills).
 
     Returns
     -------
@@ -171,6 +174,8 @@ def run_swarm(
                         cmd = msg.body["cmd"]
                         if cmd == "progress" and progress is not None:
                             progress(msg.body["n"], steps)
+                        if cmd == "progress" and watch is not None:
+                            watch(msg.body["n"], procs)
                         elif cmd == "end":
                             end = msg.body["arg"]
                         elif cmd == "written":
