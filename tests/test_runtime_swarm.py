@@ -19,14 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("zenoh")
-
-from resloc.experiments.config import default_scenario, dump_scenario  # noqa: E402
-from resloc.experiments.runner import run_scenario  # noqa: E402
-from resloc.runtime.options import Mode, SwarmOptions  # noqa: E402
-from resloc.runtime.swarm import SwarmError, run_swarm, stop_process  # noqa: E402
-from resloc.runtime.transport import free_endpoint  # noqa: E402
-from resloc.world.world import World  # noqa: E402
+from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.runner import run_scenario
+from resloc.runtime.options import Mode, SwarmOptions
+from resloc.runtime.swarm import SwarmError, run_swarm, stop_process
+from resloc.runtime.transport import free_endpoint
+from resloc.world.world import World
 
 TOL = 1e-9
 
@@ -135,7 +133,7 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
     opts = swarm_options(tmp_path, sc, "ckf", mode=Mode.REALTIME)
     result = run_swarm(opts, [free_endpoint()], 2, log_dir=tmp_path / "logs")
     assert result.end == "complete"
-    runtime, summary, est = load_outputs(Path(opts.out))
+    runtime, summary, _ = load_outputs(Path(opts.out))
     assert runtime["mode"] == "realtime" and runtime["steps_completed"] == 90
     assert np.isfinite(summary["estimators"]["ckf"]["msle_mean"])
     counters = runtime["robot_counters"]
@@ -149,8 +147,8 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
 def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int, mode: str) -> subprocess.Popen:
     cmd = [
         sys.executable,
-        "-m",
-        "resloc.cli.app",
+        "-c",
+        "from resloc.cli.app import main; main()",
         "robot",
         "--id",
         str(rid),
@@ -193,7 +191,7 @@ def test_killed_robot_leaves_the_others_localizing_and_rejoins(tmp_path) -> None
         for proc in restarted:
             stop_process(proc, 10.0)
     assert killed and restarted and result.end == "complete"
-    runtime, summary, est = load_outputs(Path(opts.out))
+    runtime, _, est = load_outputs(Path(opts.out))
     fed = est["fed"]
     others = [0, 1, 2, 4]
     assert fed[1:, others].mean() > 0.97  # the others kept reporting every step
@@ -237,5 +235,5 @@ def test_lost_recorder_ends_the_run_and_leaves_its_last_snapshot(tmp_path) -> No
     with pytest.raises(SwarmError, match="recorder"):
         run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs", watch=drill)
     assert time.monotonic() - t0 < 120
-    runtime, summary, _ = load_outputs(Path(opts.out))
+    runtime, _, _ = load_outputs(Path(opts.out))
     assert runtime["partial"] and 0 < runtime["steps_completed"] <= killed[0] + 5
