@@ -222,9 +222,8 @@ class Recording:
         return {
             "schema_version": 1,
             "mode": self.options.mode.value,
-            "end": self.end_reason or "complete",
-            "partial": bool(self.end_reason and self.end_reason != "complete")
-            or K < self.team.steps,
+            "end": self.end_reason or f"running (snapshot after step {K})",
+            "partial": self.end_reason != "complete" or K < self.team.steps,
             "steps_completed": K,
             "steps_planned": self.team.steps,
             "robots": N,

@@ -217,7 +217,8 @@ def run_swarm(
     out = Path(options.out)
     runtime = _read_json(out / "runtime.json")
     summary = _read_json(out / "summary.json")
-    end = runtime.get("end") or end or "unknown"
+    if not end.endswith("lost"):  # the recorder's account, unless it or the world died
+        end = runtime.get("end") or end or "unknown"
     result = SwarmResult(out, end, runtime, summary, interrupted, codes, work)
     if end != "complete" and not end.startswith("interrupted"):
         logs = "; ".join(
