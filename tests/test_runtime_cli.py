@@ -42,8 +42,10 @@ def _one_line_error(result, *words: str) -> None:
 
 def test_swarm_bad_input_is_one_line_exit_2(tmp_path) -> None:
     key = tmp_path / "k"
-    res = runner.invoke(app, ["swarm", "--listen", "udp:bogus", "--key-file", str(key),
-                              "--out", str(tmp_path / "o")])
+    res = runner.invoke(
+        app,
+        ["swarm", "--listen", "udp:bogus", "--key-file", str(key), "--out", str(tmp_path / "o")],
+    )
     _one_line_error(res, "--listen", "tcp/127.0.0.1:7447")
     full = tmp_path / "full"
     full.mkdir()
@@ -53,10 +55,14 @@ def test_swarm_bad_input_is_one_line_exit_2(tmp_path) -> None:
     assert (full / "x").read_text() == "keep"
     sc = tmp_path / "two.toml"
     sc.write_text(dump_scenario(default_scenario().replace(**{"run.trials": 2})))
-    res = runner.invoke(app, ["swarm", str(sc), "--key-file", str(key), "--out", str(tmp_path / "o")])
+    res = runner.invoke(
+        app, ["swarm", str(sc), "--key-file", str(key), "--out", str(tmp_path / "o")]
+    )
     _one_line_error(res, "run.trials")
     sc.write_text(dump_scenario(default_scenario().replace(**{"estimator.fusion": "tracked"})))
-    res = runner.invoke(app, ["swarm", str(sc), "--key-file", str(key), "--out", str(tmp_path / "o")])
+    res = runner.invoke(
+        app, ["swarm", str(sc), "--key-file", str(key), "--out", str(tmp_path / "o")]
+    )
     _one_line_error(res, "estimator.fusion")
     os.chmod(key, 0o644)
     res = runner.invoke(app, ["swarm", "--key-file", str(key), "--out", str(tmp_path / "o")])
@@ -76,11 +82,25 @@ def test_robot_bad_input_is_one_line_exit_2(tmp_path) -> None:
     _one_line_error(
         runner.invoke(app, [*base, "--id", "0", "--connect", "tcp/127.0.0.1"]), "--connect"
     )
-    res = runner.invoke(app, ["robot", "--id", "0", "--config", str(tmp_path / "no.toml"),
-                              "--connect", "tcp/127.0.0.1:9", "--key-file", str(key)])
+    res = runner.invoke(
+        app,
+        [
+            "robot",
+            "--id",
+            "0",
+            "--config",
+            str(tmp_path / "no.toml"),
+            "--connect",
+            "tcp/127.0.0.1:9",
+            "--key-file",
+            str(key),
+        ],
+    )
     _one_line_error(res, "--config")
     # Nobody listens on port 9 of the loopback: the session cannot link.
-    res = runner.invoke(app, [*base, "--id", "0", "--connect", "tcp/127.0.0.1:9"])
+    res = runner.invoke(
+        app, [*base, "--id", "0", "--connect", "tcp/127.0.0.1:9", "--connect-timeout", "1"]
+    )
     _one_line_error(res, "tcp/127.0.0.1:9")
 
 
@@ -102,14 +122,31 @@ def _children_of(tmp_path: Path) -> list[int]:
 
 def test_ctrl_c_stops_every_process_and_writes_partial_results(tmp_path) -> None:
     sc = tmp_path / "sc.toml"
-    sc.write_text(dump_scenario(default_scenario().replace(**{"team.robots": 4, "run.steps": 100000})))
+    sc.write_text(
+        dump_scenario(default_scenario().replace(**{"team.robots": 4, "run.steps": 100000}))
+    )
     out = tmp_path / "out"
     env = dict(os.environ, TMPDIR=str(tmp_path))
-    cmd = [sys.executable, "-c", "from resloc.cli.app import main; main()", "swarm", str(sc),
-           "--out", str(out), "--key-file", str(tmp_path / "k"), "--no-progress", "--no-plots",
-           "--robots-per-process", "2", "--filter", "ekf"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-                            start_new_session=True)
+    cmd = [
+        sys.executable,
+        "-c",
+        "from resloc.cli.app import main; main()",
+        "swarm",
+        str(sc),
+        "--out",
+        str(out),
+        "--key-file",
+        str(tmp_path / "k"),
+        "--no-progress",
+        "--no-plots",
+        "--robots-per-process",
+        "2",
+        "--filter",
+        "ekf",
+    ]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, start_new_session=True
+    )
     try:
         deadline = time.monotonic() + 90
         while not (out / "runtime.json").exists() and time.monotonic() < deadline:

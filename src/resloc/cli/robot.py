@@ -21,6 +21,7 @@ def robot_command(
     jam_acks: bool,
     max_age_steps: int,
     run_id: str,
+    connect_timeout: float = 10.0,
 ) -> int:
     """Run robot ``robot_id`` until the run ends; returns the exit code."""
     from resloc.cli.swarm import key_file_path, require_zenoh
@@ -48,6 +49,7 @@ def robot_command(
         mode=Mode(mode),
         jam_acks=jam_acks,
         max_age_steps=max_age_steps,
+        connect_timeout_s=connect_timeout,
     )
     load_or_create_key(options.key_file)
     install_signal_handlers(ignore_sigint=False)
@@ -76,6 +78,9 @@ def register(app: typer.Typer) -> None:
         jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
         max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
         run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
+        connect_timeout: float = typer.Option(
+            10.0, "--connect-timeout", min=0.1, help="Seconds to wait for a link to the router."
+        ),
     ) -> None:
         """Run one robot: join (or re-join) a running swarm."""
         if filter not in ("ckf", "ukf", "ekf"):
@@ -83,7 +88,16 @@ def register(app: typer.Typer) -> None:
         if mode not in ("lockstep", "realtime"):
             raise fail(f"--mode {mode!r}: use lockstep or realtime")
         code = robot_command(
-            robot_id, config, connect, key_file, filter, mode, jam_acks, max_age_steps, run_id
+            robot_id,
+            config,
+            connect,
+            key_file,
+            filter,
+            mode,
+            jam_acks,
+            max_age_steps,
+            run_id,
+            connect_timeout,
         )
         from resloc.runtime.process import exit_now
 

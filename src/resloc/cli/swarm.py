@@ -154,6 +154,9 @@ def swarm_command(
         overwrite=overwrite,
         plots=plots,
     )
+    from resloc.runtime.messages import load_or_create_key
+
+    load_or_create_key(options.key_file)  # created (0600) or checked before anything runs
     if replay is not None:
         if scenario_path is not None:
             raise ConfigError("SCENARIO and --replay: give one of them")

@@ -48,6 +48,8 @@ class SwarmOptions:
         Lockstep: how long the world and radio wait for a silent (alive) robot before
         dropping it from the step.
     startup_timeout_s : float
+    connect_timeout_s : float
+        How long a process tries to link to the router before giving up.
     out : str
         Recorder output directory.
     overwrite : bool
@@ -78,6 +80,7 @@ class SwarmOptions:
     windows: tuple = (0.4, 0.15, 0.1)
     barrier_timeout_s: float = 30.0
     startup_timeout_s: float = 120.0
+    connect_timeout_s: float = 10.0
     out: str = ""
     overwrite: bool = False
     plots: bool = False

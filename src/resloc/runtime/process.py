@@ -44,7 +44,7 @@ def install_signal_handlers(ignore_sigint: bool = True) -> None:
 def connect_bus(options: SwarmOptions, sender: int) -> Bus:
     """Open this process's verified session and bus (client of the run's router)."""
     key = load_or_create_key(options.key_file)
-    session = open_session("client", [], list(options.connect), timeout_s=10.0)
+    session = open_session("client", [], list(options.connect), options.connect_timeout_s)
     return Bus(session, options.run_id, Codec(key, sender), Verifier(key, options.max_age_s))
 
 
