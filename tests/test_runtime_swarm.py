@@ -237,3 +237,36 @@ def test_lost_recorder_ends_the_run_and_leaves_its_last_snapshot(tmp_path) -> No
     assert time.monotonic() - t0 < 120
     runtime, _, _ = load_outputs(Path(opts.out))
     assert runtime["partial"] and 0 < runtime["steps_completed"] <= killed[0] + 5
+
+
+FIXTURE = Path(__file__).parent / "fixtures" / "mrclam" / "MRCLAM_Dataset6_60s"
+
+
+def test_replay_five_robot_processes_localize_from_recorded_data(tmp_path) -> None:
+    """MRCLAM over the wire: five robot processes, scored against the motion-capture
+    ground truth like ``resloc mrclam --no-landmarks`` in one process."""
+    from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam
+
+    opts = SwarmOptions(
+        replay=str(FIXTURE),
+        replay_seconds=30.0,
+        replay_dt=0.1,
+        filter="ckf",
+        key_file=str(tmp_path / "team.key"),
+        out=str(tmp_path / "out"),
+    )
+    result = run_swarm(opts, [free_endpoint()], 1, log_dir=tmp_path / "logs")
+    assert result.end == "complete"
+    runtime = json.loads((Path(opts.out) / "runtime.json").read_text())
+    overall = json.loads((Path(opts.out) / "summary.json").read_text())["overall"]["ckf"]
+    assert runtime["robots"] == 5 and runtime["steps_completed"] == 300
+    assert (Path(opts.out) / "per_robot.csv").is_file()
+    ref = run_mrclam(
+        FIXTURE, MRCLAMConfig(filters=("ckf",), dt=0.1, duration=30.0, landmarks=False)
+    ).summary()
+    assert overall["robot_measurements"] == ref["ckf"]["robot_measurements"] > 50
+    assert overall["robot_fused"] > 0.5 * overall["robot_measurements"]
+    # Same data, same filter; links of a step are fused in neighbour order (not time order)
+    assert overall["position_rmse"] == pytest.approx(ref["ckf"]["position_rmse"], rel=0.05)
+    assert overall["position_rmse"] < ref["dr"]["position_rmse"]
+    assert runtime["wire_by_kind"]["estimate"]["messages"] == 5 * 300

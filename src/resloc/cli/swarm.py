@@ -60,6 +60,19 @@ def print_swarm_summary(result) -> None:
 
     console = Console(width=None if sys.stdout.isatty() else 130)
     rt = result.runtime
+    for name, s in result.summary.get("overall", {}).items():  # a replay, scored on truth
+        table = Table(title=f"swarm replay ({rt.get('mode')}): {name.upper()}")
+        for col in ("RMSE (m)", "heading (deg)", "MSLE", "NEES", "comm rate", "fused"):
+            table.add_column(col, justify="right")
+        table.add_row(
+            _fmt(s["position_rmse"], ".4f"),
+            _fmt(s["heading_rmse_deg"], ".2f"),
+            _fmt(s["msle_mean"], ".4f"),
+            _fmt(s["nees_mean"], ".3g"),
+            _fmt(s["comm_rate"], ".3f"),
+            str(s["robot_fused"]),
+        )
+        console.print(table)
     for name, s in result.summary.get("estimators", {}).items():
         table = Table(
             title=f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "

@@ -65,7 +65,9 @@ class SwarmOptions:
     replay_seconds : float
         Replay only the first seconds (0: all).
     robots : int
-        Team size (filled in by the supervisor).
+        Team size (filled in by the supervisor for a replay).
+    replay_steps : int
+        Steps of the replay (filled in by the supervisor).
     """
 
     run_id: str = "team"
@@ -90,6 +92,7 @@ class SwarmOptions:
     replay_dt: float = 0.1
     replay_seconds: float = 0.0
     robots: int = 0
+    replay_steps: int = 0
 
     def save(self, path: Path) -> Path:
         data = asdict(self)

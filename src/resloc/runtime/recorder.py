@@ -110,44 +110,59 @@ class Recording:
         return done
 
     # ------------------------------------------------------------------ result
-    def assemble(self):
-        """The :class:`~resloc.experiments.runner.RunResult` of the steps so far, the
-        estimates and the per-robot errors."""
-        from resloc.experiments.runner import EstimatorResult, RunResult, _record, _Track
+    def estimates(self):
+        """Reported estimates of the steps so far, carried forward where a robot did not
+        report (dead, or late in realtime).
 
-        K, N, dt = self.steps_done, self.n, self.team.dt
-        scenario = self.team.scenario.replace(
-            **{
-                "run.steps": max(K, 1),
-                "run.filters": [self.team.filter_name],
-                "run.dead_reckoning": False,
-            }
-        )
+        Returns
+        -------
+        X : ndarray, shape (K + 1, N, 3)
+        P : ndarray, shape (K + 1, N, 3, 3)
+        fed : ndarray of bool, shape (K + 1, N)
+            The robot reported this step.
+        truth : ndarray, shape (K + 1, N, 3)
+        missing : int
+            Reports of fed robots that never came.
+        """
+        K, N = self.steps_done, self.n
         X = np.empty((K + 1, N, 3))
         P = np.empty((K + 1, N, 3, 3))
         X[0], P[0] = self.x0, self.P0
         fed = np.zeros((K + 1, N), dtype=bool)
-        missing = 0
-        tr = _Track(self.team.filter_name, None, self.x0, self.P0, K, 1, N)
         truth = np.empty((K + 1, N, 3))
         truth[0] = self.truth[0]["pose"] if 0 in self.truth else np.nan
+        missing = 0
         for k in range(1, K + 1):
-            t = self.truth[k]
-            truth[k] = t["pose"]
+            truth[k] = self.truth[k]["pose"]
             X[k], P[k] = X[k - 1], P[k - 1]
-            i, j = t["i"], t["j"]
-            E = len(i)
-            flags = np.zeros(E, dtype=np.uint8)
-            norm = np.full(E, np.nan)
-            row = {(int(a), int(c)): e for e, (a, c) in enumerate(zip(i, j, strict=True))}
-            repairs = 0
-            for r in t["fed"]:
+            for r in self.truth[k]["fed"]:
                 rep = self.reports.get(k, {}).get(int(r))
                 if rep is None:
                     missing += 1
                     continue
                 fed[k, r] = True
                 X[k, r], P[k, r] = rep["x"], rep["P"]
+        return X, P, fed, truth, missing
+
+    def run_result(self, X: np.ndarray, P: np.ndarray):
+        """The :class:`~resloc.experiments.runner.RunResult` of the steps so far, its
+        metrics computed by the runner's own per-step bookkeeping."""
+        from resloc.experiments.runner import EstimatorResult, RunResult, _record, _Track
+
+        K, N, name = self.steps_done, self.n, self.team.filter_name
+        scenario = self.team.scenario.replace(
+            **{"run.steps": max(K, 1), "run.filters": [name], "run.dead_reckoning": False}
+        )
+        tr = _Track(name, None, self.x0, self.P0, K, 1, N)
+        for k in range(1, K + 1):
+            t = self.truth[k]
+            i, j = t["i"], t["j"]
+            E = len(i)
+            flags = np.zeros(E, dtype=np.uint8)
+            norm = np.full(E, np.nan)
+            row = {(int(a), int(c)): e for e, (a, c) in enumerate(zip(i, j, strict=True))}
+            repairs = 0
+            for r, rep in self.reports.get(k, {}).items():
                 repairs += rep["rep"]
                 for c, f, nv in zip(rep["j"], rep["flags"], rep["norm"], strict=True):
                     e = row.get((int(r), int(c)))
@@ -164,27 +179,33 @@ class Recording:
             )
             tr.x, tr.P = X[k], P[k]
             ws = SimpleNamespace(pose=t["pose"], i=i, j=j, attacked=t["att"].astype(bool))
-            ci = np.zeros(E, dtype=np.int64)
-            _record(
-                tr, k - 1, ws, out, ci, np.array([E]), np.array([ws.attacked.sum()]), 1, N, True
-            )
-        est = EstimatorResult(self.team.filter_name, tr.series, tr.totals, tr.raster, tr.track)
-        walls = [
-            self.truth_time[k] - self.truth_time[k - 1]
-            for k in range(2, K + 1)
-            if k in self.truth_time and k - 1 in self.truth_time
-        ]
-        result = RunResult(
+            attacked = np.array([ws.attacked.sum()])
+            _record(tr, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True)
+        est = EstimatorResult(name, tr.series, tr.totals, tr.raster, tr.track)
+        return RunResult(
             scenario,
-            {self.team.filter_name: est},
-            truth,
-            dt * np.arange(1, K + 1),
+            {name: est},
+            self._truth_array(K),
+            self.team.dt * np.arange(1, K + 1),
             time.monotonic() - self.started,
             {"robots": N, "trials": 1},
         )
-        return result, X, P, fed, truth, missing, walls
 
-    def runtime_summary(self, result, fed, truth, X, missing, walls) -> dict:
+    def _truth_array(self, K: int) -> np.ndarray:
+        return np.stack([self.truth[k]["pose"] for k in range(K + 1)])
+
+    def trigger_counts(self) -> tuple[int, int]:
+        """Sensed links (candidates) and attempted transmissions the robots reported."""
+        K = self.steps_done
+        candidates = sum(len(self.truth[k]["i"]) for k in range(1, K + 1))
+        triggered = sum(
+            int(((rep["flags"] & FLAG_TRIGGERED) > 0).sum())
+            for k in range(1, K + 1)
+            for rep in self.reports.get(k, {}).values()
+        )
+        return candidates, triggered
+
+    def runtime_summary(self, X, fed, truth, missing, msle_mean: float) -> dict:
         K, N, dt = self.steps_done, self.n, self.team.dt
         seconds = max(K * dt, 1e-12)
         by_kind = {}
@@ -199,7 +220,7 @@ class Recording:
                 "copies_delivered": sum(self.wire[(r, kd, "copies")] for r in range(N)),
                 "copies_lost": sum(self.wire[(r, kd, "lost")] for r in range(N)),
             }
-        s = result.summary()[self.team.filter_name]
+        candidates, triggered = self.trigger_counts()
         err = np.hypot(*(X[:, :, :2] - truth[:, :, :2]).transpose(2, 0, 1))
         rejoin = []
         for ev in self.rejoins:
@@ -215,10 +236,15 @@ class Recording:
                     "error_m_final": float(err[K, r]) if ks else None,
                 }
             )
-        counts = collections.Counter()
+        counts: collections.Counter = collections.Counter()
         for c in self.counters.values():
             counts.update({k: v for k, v in c.items() if k != "cpu_ms_process"})
         cpu = {str(r): c.get("cpu_ms_process", 0) / 1000.0 for r, c in self.counters.items()}
+        walls = [
+            self.truth_time[k] - self.truth_time[k - 1]
+            for k in range(2, K + 1)
+            if k in self.truth_time and k - 1 in self.truth_time
+        ]
         return {
             "schema_version": 1,
             "mode": self.options.mode.value,
@@ -237,17 +263,17 @@ class Recording:
             },
             "wire_by_kind": by_kind,
             "trigger": {
-                "comm_rate": s["comm_rate"],
-                "triggered_links_per_robot_per_s": s["transmissions"] / N / seconds,
-                "candidates": s["candidates"],
-                "transmissions": s["transmissions"],
+                "comm_rate": triggered / candidates if candidates else None,
+                "triggered_links_per_robot_per_s": triggered / N / seconds,
+                "candidates": candidates,
+                "transmissions": triggered,
             },
             "robot_counters": dict(counts),
             "radio_rejected": self.radio_counts,
             "missing_reports": missing,
             "cpu_s_by_robot_process": cpu,
             "rejoins": rejoin,
-            "msle_mean": s["msle_mean"],
+            "msle_mean": msle_mean,
         }
 
     def save(self, out: Path, plots: bool, overwrite: bool) -> bool:
@@ -256,11 +282,25 @@ class Recording:
             with atomic_output_dir(out, overwrite) as tmp:
                 write_json(tmp / "runtime.json", {"end": self.end_reason, "steps_completed": 0})
             return False
-        result, X, P, fed, truth, missing, walls = self.assemble()
-        summary = self.runtime_summary(result, fed, truth, X, missing, walls)
+        X, P, fed, truth, missing = self.estimates()
+        name = self.team.filter_name
         with atomic_output_dir(out, overwrite) as tmp:
-            save_run(result, tmp, plots=plots)
-            write_json(tmp / "runtime.json", summary)
+            if self.team.mrclam is not None:  # scored against the dataset's ground truth
+                from resloc.experiments.mrclam import save_mrclam
+                from resloc.runtime.replay import score_replay
+
+                wall = time.monotonic() - self.started
+                result = score_replay(
+                    self.team, self.options.replay, X, P, self.reports, self.steps_done, wall
+                )
+                save_mrclam(result, tmp, plots=plots)
+            else:
+                result = self.run_result(X, P)
+                save_run(result, tmp, plots=plots)
+            msle_mean = result.summary()[name]["msle_mean"]
+            write_json(
+                tmp / "runtime.json", self.runtime_summary(X, fed, truth, missing, msle_mean)
+            )
             np.savez_compressed(tmp / "estimates.npz", x=X, P=P, truth=truth, fed=fed)
             self._write_wire(tmp / "wire.csv", self.steps_done * self.team.dt)
             err = np.hypot(*(X[:, :, :2] - truth[:, :, :2]).transpose(2, 0, 1))

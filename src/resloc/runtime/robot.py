@@ -267,8 +267,11 @@ class RobotAgent:
         flags = np.where(heard, FLAG_HEARD, 0).astype(np.uint8)
         norm = np.full(len(j), np.nan)
         repairs = 0
-        if heard.any():
-            h = np.flatnonzero(heard)
+        for rows, params in self.team.link_params(s["z"]):
+            h = rows[heard[rows]]
+            if not len(h):
+                continue
+            self.node.params = params
             out = self.node.correct(
                 j[h],
                 s["z"][h],
@@ -287,7 +290,8 @@ class RobotAgent:
             ):
                 flags[h] |= np.where(arr, bit, 0).astype(np.uint8)
             norm[h] = out.norm
-            repairs = int(out.repairs)
+            repairs += int(out.repairs)
+        self.node.params = self.team.params
         self.outcome = (j, flags, norm, repairs)
 
     def finish_step(self) -> None:

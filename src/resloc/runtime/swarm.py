@@ -133,13 +133,9 @@ def run_swarm(
         check_endpoint(ep, "--connect")
     load_or_create_key(options.key_file)
     team = team_setup(options)
+    steps = team.steps
     if options.replay:
-        from resloc.runtime.replay import replay_steps
-
-        steps = replay_steps(options, team)
-    else:
-        steps = team.steps
-    options.robots = team.robots
+        options.robots, options.replay_steps = team.robots, team.steps
     work = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="resloc-swarm-"))
     work.mkdir(parents=True, exist_ok=True)
     if not listen and not options.connect:

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from resloc.cl.fusion import FusionMethod
 from resloc.cl.params import CLParams
 from resloc.errors import ConfigError
@@ -50,6 +52,15 @@ class TeamSetup:
     gauge_rounds: int
     scenario: Scenario | None = None
     mrclam: object | None = None
+
+    def link_params(self, z: np.ndarray) -> list[tuple[np.ndarray, CLParams]]:
+        """This step's links ``z: (E, 2)`` grouped by the parameters they are fused with
+        (one group; a replay groups them by range-noise level, as ``resloc mrclam``)."""
+        if self.mrclam is not None:
+            from resloc.runtime.replay import replay_link_params
+
+            return replay_link_params(self, z)
+        return [(np.arange(len(z)), self.params)]
 
     def make_filter(self) -> GaussianFilter:
         if self.scenario is None:
@@ -97,10 +108,18 @@ def team_setup(options: SwarmOptions) -> TeamSetup:
             duration=options.replay_seconds or None,
             landmarks=False,
         )
+        robots, steps = options.robots, options.replay_steps
+        if not robots:  # the supervisor: read the dataset once and tell the others
+            from resloc.runtime.replay import load_replay
+
+            rp = load_replay(
+                options.replay, TeamSetup(0, cfg.dt, 0, cfg.cl_params(), "", 0, None, cfg)
+            )
+            robots, steps = rp.dataset.n_robots, rp.steps
         return TeamSetup(
-            robots=options.robots or 5,
+            robots=robots,
             dt=cfg.dt,
-            steps=0,
+            steps=steps,
             params=cfg.cl_params(),
             filter_name=options.filter,
             gauge_rounds=0,
