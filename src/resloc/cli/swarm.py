@@ -142,6 +142,7 @@ def swarm_command(
     replay_dt: float,
     plots: bool,
     progress: bool,
+    external: str = "",
 ):
     """Parse, run :func:`~resloc.runtime.swarm.run_swarm`, print, map errors."""
     require_zenoh()
@@ -152,6 +153,12 @@ def swarm_command(
     from resloc.runtime.swarm import SwarmError, run_swarm
     from resloc.runtime.team import check_supported
 
+    try:
+        external_ids = tuple(int(v) for v in external.split(",") if v.strip())
+    except ValueError:
+        raise ConfigError(
+            f"--external-robots {external!r}: give robot ids separated by commas, e.g. 3,4"
+        ) from None
     if out is None:
         out = Path("runs") / ("swarm-" + _dt.datetime.now().strftime("%Y%m%d-%H%M%S"))
     check_output_dir(out, overwrite)
@@ -202,6 +209,7 @@ def swarm_command(
                 robots_per_process,
                 progress=lambda k, n: bar.update(task, completed=k, total=n),
                 log_dir=work / "logs",
+                external=external_ids,
             )
         except SwarmError as exc:
             print(f"error: {exc}", file=sys.stderr)
@@ -276,6 +284,11 @@ def register(app: typer.Typer) -> None:
         ),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
         progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar."),
+        external: str = typer.Option(
+            "",
+            "--external-robots",
+            help="Robot ids started elsewhere with resloc robot (another host), e.g. 3,4.",
+        ),
     ) -> None:
         """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
         if not run_id.replace("-", "").replace("_", "").isalnum():
@@ -300,4 +313,5 @@ def register(app: typer.Typer) -> None:
             replay_dt,
             plots,
             progress and sys.stderr.isatty(),
+            external,
         )

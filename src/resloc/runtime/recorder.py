@@ -239,6 +239,7 @@ class Recording:
         counts: collections.Counter = collections.Counter()
         for c in self.counters.values():
             counts.update({k: v for k, v in c.items() if k != "cpu_ms_process"})
+        # CPU seconds of each robot's process since its START (shared by its K robots)
         cpu = {str(r): c.get("cpu_ms_process", 0) / 1000.0 for r, c in self.counters.items()}
         walls = [
             self.truth_time[k] - self.truth_time[k - 1]
@@ -272,6 +273,7 @@ class Recording:
             "radio_rejected": self.radio_counts,
             "missing_reports": missing,
             "cpu_s_by_robot_process": cpu,
+            "cpu_per_step_ms_by_robot_process": {r: 1000 * v / max(K, 1) for r, v in cpu.items()},
             "rejoins": rejoin,
             "msle_mean": msle_mean,
         }

@@ -99,6 +99,7 @@ def run_swarm(
     progress: Callable[[int, int], None] | None = None,
     log_dir: Path | None = None,
     watch: Callable[[int, dict[str, subprocess.Popen]], None] | None = None,
+    external: tuple[int, ...] = (),
 ) -> SwarmResult:
     """Run one swarm to its end.
 
@@ -115,6 +116,9 @@ def run_swarm(
         Where the children's logs go (default: a temporary directory, kept on failure).
     watch : callable(k, processes), optional
         Called with every progress step and the child processes by name (fault drills).
+    external : tuple of int
+        Robots this supervisor does not start: they run elsewhere (``resloc robot`` on
+        another host) and the world waits for them at start-up.
 
     Returns
     -------
@@ -133,6 +137,11 @@ def run_swarm(
         check_endpoint(ep, "--connect")
     load_or_create_key(options.key_file)
     team = team_setup(options)
+    bad = [b for b in external if not 0 <= b < team.robots]
+    if bad:
+        from resloc.errors import ConfigError
+
+        raise ConfigError(f"--external-robots {bad[0]}: the team has robots 0..{team.robots - 1}")
     steps = team.steps
     if options.replay:
         options.robots, options.replay_steps = team.robots, team.steps
@@ -158,9 +167,11 @@ def run_swarm(
         for role in ("recorder", "radio", "world"):
             procs[role] = spawn(role, opts_path, None, work / f"{role}.log")
         K = max(1, int(robots_per_process))
-        for lo in range(0, team.robots, K):
-            ids = ",".join(str(b) for b in range(lo, min(lo + K, team.robots)))
-            procs[f"robots {ids}"] = spawn("robot", opts_path, ids, work / f"robot-{lo}.log")
+        local = [b for b in range(team.robots) if b not in set(external)]
+        for lo in range(0, len(local), K):
+            group = local[lo : lo + K]
+            ids = ",".join(str(b) for b in group)
+            procs[f"robots {ids}"] = spawn("robot", opts_path, ids, work / f"robot-{group[0]}.log")
         while not written:
             try:
                 item = bus.get(0.2)
