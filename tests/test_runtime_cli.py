@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from typer.testing import CliRunner
 
 from resloc.cli.app import app
@@ -171,3 +172,67 @@ def test_ctrl_c_stops_every_process_and_writes_partial_results(tmp_path) -> None
     summary = json.loads((out / "summary.json").read_text())
     assert summary["steps"] == runtime["steps_completed"] > 0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+
+
+def test_two_hosts_through_an_external_router(tmp_path) -> None:
+    """The README's zenohd set-up on the loopback: a router of its own (a Zenoh session in
+    router mode stands in for zenohd), the swarm without a router (``--connect``) and robot 4
+    started separately with ``resloc robot`` (``--external-robots 4``)."""
+    from resloc.runtime.transport import free_endpoint, open_session
+
+    endpoint = free_endpoint()
+    router = open_session("router", [endpoint], [])
+    sc = tmp_path / "sc.toml"
+    sc.write_text(dump_scenario(default_scenario().replace(**{"team.robots": 5, "run.steps": 40})))
+    key = tmp_path / "k"
+    robot = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from resloc.cli.app import main; main()",
+            "robot",
+            "--id",
+            "4",
+            "--config",
+            str(sc),
+            "--connect",
+            endpoint,
+            "--key-file",
+            str(key),
+            "--filter",
+            "ekf",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        res = runner.invoke(
+            app,
+            [
+                "swarm",
+                str(sc),
+                "--connect",
+                endpoint,
+                "--external-robots",
+                "4",
+                "--key-file",
+                str(key),
+                "--out",
+                str(tmp_path / "out"),
+                "--no-plots",
+                "--filter",
+                "ekf",
+            ],
+        )
+        code = robot.wait(timeout=30)
+    finally:
+        stop_process(robot, 5.0)
+        router.close()
+    assert res.exit_code == 0, res.output
+    assert code == 0, robot.stdout.read().decode()
+    runtime = json.loads((tmp_path / "out" / "runtime.json").read_text())
+    assert runtime["end"] == "complete" and runtime["steps_completed"] == 40
+    est = dict(np.load(tmp_path / "out" / "estimates.npz"))
+    assert est["fed"][1:, 4].all()  # the external robot took part in every step
+    assert "estimate" in res.output and "MSLE" in res.output

@@ -323,16 +323,23 @@ def load_or_create_key(path: str | Path) -> bytes:
     """
     p = Path(path)
     if not p.exists():
+        # Written to a private temporary file, then linked into place: a process that
+        # starts at the same time sees no key or the whole key, never half of it.
+        tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
         try:
-            fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:
-            return load_or_create_key(p)  # another process created it first
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "w", encoding="ascii") as fh:
+                fh.write(secrets.token_hex(KEY_BYTES) + "\n")
+            try:
+                os.link(tmp, p)
+            except FileExistsError:
+                pass  # another process created it first: use theirs
+            finally:
+                tmp.unlink()
         except OSError as exc:
             raise ConfigError(
                 f"--key-file {p}: cannot create ({exc.strerror}); choose a writable path"
             ) from None
-        with os.fdopen(fd, "w", encoding="ascii") as fh:
-            fh.write(secrets.token_hex(KEY_BYTES) + "\n")
     try:
         mode = p.stat().st_mode & 0o777
         text = p.read_text(encoding="ascii").strip()
