@@ -189,7 +189,9 @@ def run_swarm(
                             written = True
                 rec = procs["recorder"].poll()
                 if rec is not None and not written:
-                    end = end or "recorder process lost"
+                    if rec == 0:  # it wrote and left; its notice was lost on the way
+                        break
+                    end = "recorder process lost"
                     break
                 if procs["world"].poll() is not None and not end:
                     # a world that died without its end notice: the recorder sees its token go
