@@ -170,7 +170,7 @@ def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int, mode: str) -> subpr
 
 
 def test_killed_robot_leaves_the_others_localizing_and_rejoins(tmp_path) -> None:
-    sc = hot_scenario(260, **{"run.filters": ["ckf"]})
+    sc = hot_scenario(400, **{"run.filters": ["ckf"]})  # a restart takes seconds under load
     endpoint = free_endpoint()
     opts = swarm_options(tmp_path, sc, "ckf", mode=Mode.REALTIME, run_id="faults")
     opts.connect = [endpoint]
@@ -182,7 +182,7 @@ def test_killed_robot_leaves_the_others_localizing_and_rejoins(tmp_path) -> None
             proc = procs["robots 3"]
             os.kill(proc.pid, signal.SIGKILL)
             killed.append(k)
-        elif killed and not restarted and k >= killed[0] + 10:
+        elif killed and not restarted and k >= killed[0] + 2:
             restarted.append(_robot_cli(tmp_path, opts, 3, "realtime"))
 
     try:

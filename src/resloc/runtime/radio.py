@@ -38,6 +38,8 @@ __all__ = ["StepChannel", "run_radio"]
 
 #: Phase number of the realtime neighbour-table delivery.
 NEIGHBOURS_PHASE = 0
+#: Phase number of a realtime delivery of forwarded frames (of any kind and step).
+FORWARDED_PHASE = 255
 
 
 class StepChannel:
@@ -86,6 +88,7 @@ class Radio:
         self.alive: set[int] = set()
         self.stats: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
         self.dropped_unknown_step = 0
+        self.outbox: dict[int, list[Message]] = collections.defaultdict(list)
         self.ended = False
         self.world_seen = False
 
@@ -170,12 +173,21 @@ class Radio:
         c[(msg.sender, int(msg.kind), "lost")] += lost
 
     def forward(self, msg: Message) -> None:
-        """Realtime: route one frame now."""
+        """Realtime: route one frame into the receivers' outboxes (sent by :meth:`flush`)."""
         got, lost = self.channels[msg.step].route(msg, self.options.jam_acks)
         self._count(msg.step, msg, got, lost)
-        rnd = int(msg.body["round"]) if msg.kind is Kind.CONSENSUS else 0
         for r in got:
-            self._deliver(r, msg.step, int(msg.kind), rnd, [msg.raw])
+            self.outbox[r].append(msg)
+
+    def flush(self) -> None:
+        """Realtime: one DELIVERY per receiver with every frame routed to it since the last
+        flush (called whenever the radio's inbox is empty: batching without waiting)."""
+        for r, msgs in self.outbox.items():
+            if msgs:
+                k = max(m.step for m in msgs)
+                if k in self.channels:
+                    self._deliver(r, k, FORWARDED_PHASE, 0, [m.raw for m in msgs])
+        self.outbox.clear()
 
     def try_deliver(self, k: int) -> None:
         """Lockstep: deliver every complete phase of step ``k``, in order."""
@@ -224,7 +236,11 @@ class Radio:
                 "bytes": col["bytes"],
                 "copies": col["copies"],
                 "jammed": col["lost"],
-                "cnt": self.bus.verifier.counts() | {"unknown_step": self.dropped_unknown_step},
+                "cnt": self.bus.verifier.counts()
+                | {
+                    "unknown_step": self.dropped_unknown_step,
+                    "cpu_ms": int(1000 * time.process_time()),
+                },
             },
         )
 
@@ -237,15 +253,17 @@ class Radio:
         bus.declare_alive(bus.key("alive", "radio"))
         while not self.ended:
             item = bus.get(0.5)
-            if item is None:
-                continue
-            if item[0] == "alive" and item[1].endswith("/alive/world"):
-                self.world_seen = self.world_seen or item[2]
-                if not item[2] and self.world_seen:
-                    print("radio: world process lost; stopping", flush=True)
-                    return EXIT_LOST
-                continue
-            self.handle(item)
+            while item is not None:
+                if item[0] == "alive" and item[1].endswith("/alive/world"):
+                    self.world_seen = self.world_seen or item[2]
+                    if not item[2] and self.world_seen:
+                        print("radio: world process lost; stopping", flush=True)
+                        return EXIT_LOST
+                else:
+                    self.handle(item)
+                item = bus.get(0)  # drain what is queued, then deliver it in batches
+            if self.realtime:
+                self.flush()
         for k in sorted(self.stats):
             self.flush_stats(k)
         time.sleep(0.1)

@@ -68,7 +68,7 @@ class RobotAgent:
         self.phase: tuple[Kind, int] | None = None  # what this robot waits for
         self.deadline = 0.0
         self.sensors: dict | None = None
-        self.neighbours: list[int] = []
+        self.tables: dict[int, list[int]] = {}  # communication neighbours per step
         self.estimates: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self.acks: dict[int, np.ndarray] = {}
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
@@ -101,6 +101,11 @@ class RobotAgent:
             {"cmd": "ready", "arg": "", "n": self.id},
             sender=self.id,
         )
+
+    @property
+    def neighbours(self) -> list[int]:
+        """This step's communication neighbours (the radio's neighbour table)."""
+        return self.tables.get(self.step, [])
 
     # ------------------------------------------------------------------ phases
     def on_sensors(self, msg: Message) -> None:
@@ -138,9 +143,10 @@ class RobotAgent:
     def on_delivery(self, msg: Message) -> None:
         """Frames the radio delivered to this robot (each verified here, as received)."""
         body = msg.body
-        if body["phase"] == NEIGHBOURS_PHASE or body["phase"] == int(Kind.ESTIMATE):
-            if msg.step == self.step:
-                self.neighbours = [int(v) for v in body["nb"]]
+        if body["phase"] in (NEIGHBOURS_PHASE, int(Kind.ESTIMATE)):  # the neighbour table
+            self.tables[msg.step] = [int(v) for v in body["nb"]]
+            for old in [k for k in self.tables if k < msg.step - 2]:
+                del self.tables[old]
         for frame in body["msgs"]:
             inner = self.inner.open(frame, self.bus.key("radio", "in"))
             if inner is None or inner.sender >= self.team.robots or inner.sender == self.id:
