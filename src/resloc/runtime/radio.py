@@ -17,7 +17,8 @@ the in-process simulator see the same channel:
 
 Lockstep: the radio waits until every fed, alive robot has sent its frame of a phase, then
 delivers the phase (one DELIVERY per robot, frames sorted by sender). Realtime: it forwards
-each frame as soon as the step's channel is known. Per step it reports messages, bytes,
+each frame as soon as the step's channel is known, the frames queued together in one DELIVERY
+per receiver. Per step it reports messages, bytes,
 delivered copies and lost copies per sender and kind to the recorder (``STATS``).
 """
 
