@@ -136,6 +136,8 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
     runtime, summary, _ = load_outputs(Path(opts.out))
     assert runtime["mode"] == "realtime" and runtime["steps_completed"] == 90
     assert np.isfinite(summary["estimators"]["ckf"]["msle_mean"])
+    lockstep = run_scenario(sc.replace(**{"run.dead_reckoning": False})).summary()["ckf"]
+    assert runtime["msle_mean_lockstep"] == pytest.approx(lockstep["msle_mean"], rel=1e-9)
     counters = runtime["robot_counters"]
     for name in ("unheard",):
         assert name in counters

@@ -100,6 +100,14 @@ def print_swarm_summary(result) -> None:
             _fmt((rt.get("wall_time_per_step_s") or {}).get("mean"), ".4f"),
         )
         console.print(table)
+    if rt.get("msle_mean_lockstep") is not None:
+        console.print(
+            f"realtime MSLE {rt['msle_mean']:.3e} beside {rt['msle_mean_lockstep']:.3e} in "
+            f"lockstep (same scenario, seed and steps); links unheard: "
+            f"{rt['robot_counters'].get('unheard', 0)} of {rt['trigger']['candidates']}, "
+            f"late estimates used: {rt['robot_counters'].get('estimates_late_used', 0)}, "
+            f"stale dropped: {rt['robot_counters'].get('estimates_stale_dropped', 0)}"
+        )
     wire = Table(title="on the wire, per robot per second of simulated time")
     for col in ("kind", "messages/s", "bytes/s", "copies delivered", "copies lost"):
         wire.add_column(col, justify="left" if col == "kind" else "right")

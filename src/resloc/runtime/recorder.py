@@ -40,7 +40,7 @@ from resloc.runtime.messages import (
     Kind,
     Message,
 )
-from resloc.runtime.options import SwarmOptions
+from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
 from resloc.runtime.team import team_setup
 
@@ -279,7 +279,24 @@ class Recording:
             "msle_mean": msle_mean,
         }
 
-    def save(self, out: Path, plots: bool, overwrite: bool) -> bool:
+    def lockstep_msle(self) -> float | None:
+        """Realtime runs: the MSLE of the same scenario, seed and steps in lockstep, i.e. of
+        the in-process simulator (which a lockstep swarm equals to 1e-9), to report beside
+        the realtime MSLE. None for lockstep runs and replays."""
+        if self.options.mode is Mode.LOCKSTEP or self.team.scenario is None:
+            return None
+        from resloc.experiments.runner import run_scenario
+
+        sc = self.team.scenario.replace(
+            **{
+                "run.steps": self.steps_done,
+                "run.filters": [self.team.filter_name],
+                "run.dead_reckoning": False,
+            }
+        )
+        return run_scenario(sc).summary()[self.team.filter_name]["msle_mean"]
+
+    def save(self, out: Path, plots: bool, overwrite: bool, final: bool = False) -> bool:
         """Write everything received so far into ``out`` (atomically). False if no step."""
         if self.steps_done < 1 or np.isnan(self.x0).any():
             with atomic_output_dir(out, overwrite) as tmp:
@@ -301,9 +318,10 @@ class Recording:
                 result = self.run_result(X, P)
                 save_run(result, tmp, plots=plots)
             msle_mean = result.summary()[name]["msle_mean"]
-            write_json(
-                tmp / "runtime.json", self.runtime_summary(X, fed, truth, missing, msle_mean)
-            )
+            summary = self.runtime_summary(X, fed, truth, missing, msle_mean)
+            if final:
+                summary["msle_mean_lockstep"] = self.lockstep_msle()
+            write_json(tmp / "runtime.json", summary)
             np.savez_compressed(tmp / "estimates.npz", x=X, P=P, truth=truth, fed=fed)
             self._write_wire(tmp / "wire.csv", self.steps_done * self.team.dt)
             err = np.hypot(*(X[:, :, :2] - truth[:, :, :2]).transpose(2, 0, 1))
@@ -391,7 +409,7 @@ def run_recorder(options: SwarmOptions) -> int:
             if now - last_save > options.checkpoint_s and rec.steps_done > saved_steps:
                 rec.save(out, plots=False, overwrite=True if saved_steps else overwrite)
                 saved_steps, last_save = rec.steps_done, time.monotonic()
-        rec.save(out, plots=options.plots, overwrite=True if saved_steps else overwrite)
+        rec.save(out, plots=options.plots, overwrite=True if saved_steps else overwrite, final=True)
         bus.send(
             bus.key("control", "recorder"),
             Kind.CONTROL,
