@@ -26,6 +26,9 @@ class RecordingBus:
     def key(self, *parts) -> str:
         return "/".join([self.root, *(str(p) for p in parts)])
 
+    def declare(self, key) -> None:
+        pass
+
     def send(self, key, kind, step, body, sender=None) -> bytes:
         self.sent.append((key, kind, step, body))
         return b""

@@ -139,8 +139,8 @@ class Bus:
     def key(self, *parts: Any) -> str:
         return "/".join([self.root, *(str(p) for p in parts)])
 
-    def put(self, key: str, frame: bytes) -> int:
-        """Publish ``frame`` on ``key`` (reliable, blocking congestion control)."""
+    def declare(self, key: str) -> Any:
+        """The publisher of ``key`` (reliable, blocking congestion control), declared once."""
         import zenoh
 
         pub = self._publishers.get(key)
@@ -151,7 +151,11 @@ class Bus:
                 reliability=zenoh.Reliability.RELIABLE,
             )
             self._publishers[key] = pub
-        pub.put(frame)
+        return pub
+
+    def put(self, key: str, frame: bytes) -> int:
+        """Publish ``frame`` on ``key`` (reliable, blocking congestion control)."""
+        self.declare(key).put(frame)
         self.sent_frames += 1
         self.sent_bytes += len(frame)
         return len(frame)
