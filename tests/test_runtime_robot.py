@@ -159,3 +159,20 @@ def test_lost_acknowledgement_closes_the_step_without_it_and_late_ones_are_count
         estimates.append((agent.node.x.copy(), agent.node.gauge.C_hat.copy()))
     np.testing.assert_array_equal(estimates[0][0], estimates[1][0])
     assert not np.allclose(estimates[0][1], estimates[1][1])  # G misses the lost share
+
+
+def test_a_lagging_robot_uses_the_estimate_of_its_own_step(tmp_path) -> None:
+    """A neighbour that is a step ahead must not push out the estimate of the step this
+    robot is closing (nor count as stale)."""
+    agent = agent_for(tmp_path, Mode.REALTIME)
+    agent.on_sensors(sensors(5, [1]))
+    agent.take(estimate(1, 5))
+    ahead = estimate(1, 6)
+    ahead.body["x"] = np.array([50.0, 0.5, 0.0])  # would wreck the update if used
+    agent.take(ahead)
+    agent.tick(agent.deadline + 1.0)
+    report = agent.bus.sent[-1][3]
+    assert report["flags"][0] & FLAG_HEARD
+    assert report["cnt"].get("estimates_stale_dropped", 0) == 0
+    assert report["cnt"].get("estimates_late_used", 0) == 0
+    assert abs(report["x"][0]) < 5.0
