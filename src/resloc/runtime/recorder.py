@@ -379,6 +379,7 @@ def run_recorder(options: SwarmOptions) -> int:
         bus.watch_liveliness(bus.key("alive", "world"))
         bus.declare_alive(bus.key("alive", "recorder"))
         last_save, saved_steps, world_seen = time.monotonic(), 0, False
+        interval = options.checkpoint_s
         overwrite = options.overwrite
         while not rec.end_reason:
             item = bus.get(0.25)
@@ -406,9 +407,11 @@ def run_recorder(options: SwarmOptions) -> int:
                 else:
                     rec.take(msg)
             now = time.monotonic()
-            if now - last_save > options.checkpoint_s and rec.steps_done > saved_steps:
+            if now - last_save > interval and rec.steps_done > saved_steps:
                 rec.save(out, plots=False, overwrite=True if saved_steps else overwrite)
                 saved_steps, last_save = rec.steps_done, time.monotonic()
+                # a long run's snapshot takes longer: never spend over a tenth of the time on it
+                interval = max(options.checkpoint_s, 10.0 * (last_save - now))
         rec.save(out, plots=options.plots, overwrite=True if saved_steps else overwrite, final=True)
         bus.send(
             bus.key("control", "recorder"),
