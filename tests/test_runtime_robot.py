@@ -43,7 +43,17 @@ def agent_for(tmp_path, mode: Mode, fusion: str = "naive", max_age: int = 2) -> 
     opts = SwarmOptions(scenario=str(path), filter="ekf", mode=mode, max_age_steps=max_age)
     agent = RobotAgent(0, team_setup(opts), opts, RecordingBus(), KEY)
     agent.on_start(
-        msg(Kind.START, 0, {"robot": 0, "x": np.zeros(3), "P": np.eye(3) * 0.01, "rejoin": False})
+        msg(
+            Kind.START,
+            0,
+            {
+                "robot": 0,
+                "x": np.zeros(3),
+                "P": np.eye(3) * 0.01,
+                "rejoin": False,
+                "rt": mode is Mode.REALTIME,
+            },
+        )
     )
     return agent
 

@@ -92,6 +92,7 @@ class RobotAgent:
         )
         self.phase = None
         self.estimates.clear()
+        self.realtime = bool(b["rt"])  # the run's mode, whatever this process was told
         self.warm_up()
         self.cpu0 = time.process_time()  # CPU of the run itself, not of the start-up
         if b["rejoin"]:

@@ -92,6 +92,7 @@ FIELDS: dict[Kind, dict[str, Any]] = {
         "x": Array(F8, (3,)),
         "P": Array(F8, (3, 3)),
         "rejoin": BOOL,
+        "rt": BOOL,
     },
     Kind.ESTIMATE: {"x": Array(F8, (3,)), "P": Array(F8, (3, 3))},
     Kind.ACK: {"to": Array(I8, (-1,)), "ack": Array(F8, (-1, 3, 3))},

@@ -94,7 +94,13 @@ class WorldProcess:
             self.bus.key("robot", b, "start"),
             Kind.START,
             self.step,
-            {"robot": b, "x": x, "P": P, "rejoin": rejoin},
+            {
+                "robot": b,
+                "x": x,
+                "P": P,
+                "rejoin": rejoin,
+                "rt": self.options.mode is Mode.REALTIME,
+            },
         )
         self.pending_start[b] = time.monotonic()
 
