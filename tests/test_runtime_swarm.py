@@ -146,7 +146,7 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
     assert runtime["wire_by_kind"]["estimate"]["messages"] > 0.9 * 5 * 90
 
 
-def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int, mode: str) -> subprocess.Popen:
+def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int) -> subprocess.Popen:
     cmd = [
         sys.executable,
         "-c",
@@ -162,8 +162,6 @@ def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int, mode: str) -> subpr
         opts.key_file,
         "--filter",
         opts.filter,
-        "--mode",
-        mode,
         "--run-id",
         opts.run_id,
     ]
@@ -185,7 +183,7 @@ def test_killed_robot_leaves_the_others_localizing_and_rejoins(tmp_path) -> None
             os.kill(proc.pid, signal.SIGKILL)
             killed.append(k)
         elif killed and not restarted and k >= killed[0] + 2:
-            restarted.append(_robot_cli(tmp_path, opts, 3, "realtime"))
+            restarted.append(_robot_cli(tmp_path, opts, 3))
 
     try:
         result = run_swarm(opts, [endpoint], 1, log_dir=tmp_path / "logs", watch=drill)

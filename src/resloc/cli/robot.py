@@ -17,7 +17,6 @@ def robot_command(
     connect: list[str],
     key_file: Path | None,
     filter_name: str,
-    mode: str,
     jam_acks: bool,
     max_age_steps: int,
     run_id: str,
@@ -29,7 +28,7 @@ def robot_command(
     require_zenoh()
     from resloc.errors import ConfigError
     from resloc.runtime.messages import load_or_create_key
-    from resloc.runtime.options import Mode, SwarmOptions
+    from resloc.runtime.options import SwarmOptions
     from resloc.runtime.process import install_signal_handlers
     from resloc.runtime.robot import run_robots
     from resloc.runtime.transport import check_endpoint
@@ -46,7 +45,6 @@ def robot_command(
         key_file=str(key_file_path(key_file)),
         scenario=str(config),
         filter=filter_name,
-        mode=Mode(mode),
         jam_acks=jam_acks,
         max_age_steps=max_age_steps,
         connect_timeout_s=connect_timeout,
@@ -74,7 +72,6 @@ def register(app: typer.Typer) -> None:
         ),
         key_file: Path | None = typer.Option(None, "--key-file", help="The team key."),
         filter: str = typer.Option("ckf", "--filter", "-f", help="ckf, ukf or ekf."),
-        mode: str = typer.Option("lockstep", "--mode", help="lockstep or realtime."),
         jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
         max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
         run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
@@ -82,18 +79,15 @@ def register(app: typer.Typer) -> None:
             10.0, "--connect-timeout", min=0.1, help="Seconds to wait for a link to the router."
         ),
     ) -> None:
-        """Run one robot: join (or re-join) a running swarm."""
+        """Run one robot: join (or re-join) a running swarm (it follows the run's mode)."""
         if filter not in ("ckf", "ukf", "ekf"):
             raise fail(f"--filter {filter!r}: use ckf, ukf or ekf")
-        if mode not in ("lockstep", "realtime"):
-            raise fail(f"--mode {mode!r}: use lockstep or realtime")
         code = robot_command(
             robot_id,
             config,
             connect,
             key_file,
             filter,
-            mode,
             jam_acks,
             max_age_steps,
             run_id,
