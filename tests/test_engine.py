@@ -39,7 +39,7 @@ FILTERS = {
     "ekf": make_filter("ekf"),
     "ckf-arith": SigmaPointFilter(FilterKind.CKF, cubature_rule(3), cubature_rule(6), False),
 }
-FIELDS = ("norm", "threshold", "detected", "triggered", "delivered", "fused", "repairs")
+FIELDS = ("norm", "threshold", "detected", "triggered", "delivered", "fused", "repaired", "repairs")
 
 
 def random_batch(seed: int, B: int = 40, outliers: float = 0.1, fail: float = 0.2):

@@ -134,7 +134,7 @@ class FastCorrection:
     triggered: np.ndarray
     delivered: np.ndarray
     fused: np.ndarray
-    repairs: int
+    repaired: np.ndarray
 
 
 _filter_specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -344,8 +344,8 @@ def fast_correct(filt, x, P, links, params: CLParams, memory=None) -> FastCorrec
     P_out = np.array(P, dtype=float, order="C", copy=True)
     norm = np.empty(E)
     threshold = np.empty(E)
-    flags = np.zeros((4, E), dtype=np.bool_)  # detected, triggered, delivered, fused
-    status, repairs = _correct_links(
+    flags = np.zeros((5, E), dtype=np.bool_)  # detected, triggered, delivered, fused, repaired
+    status = _correct_links(
         x_out,
         P_out,
         li,
@@ -374,12 +374,12 @@ def fast_correct(filt, x, P, links, params: CLParams, memory=None) -> FastCorrec
     )
     if status != OK:
         return None
-    detected, triggered, delivered, fused = flags
+    detected, triggered, delivered, fused, repaired = flags
     if last_sent and delivered.any():
         d = np.flatnonzero(delivered)
         memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], norm[d])
     return FastCorrection(
-        x_out, P_out, norm, threshold, detected, triggered, delivered, fused, int(repairs)
+        x_out, P_out, norm, threshold, detected, triggered, delivered, fused, repaired
     )
 
 
@@ -550,7 +550,7 @@ def _correct_links(
 ):  # fmt: skip
     """Every link of one step in row order; updates ``x, P`` in place.
 
-    Returns ``(status, repairs)``; on a non-OK status the outputs are partial and must be
+    Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
     E = li.shape[0]
@@ -567,7 +567,6 @@ def _correct_links(
     Pn = np.zeros((3, 3))
     T3 = np.zeros((3, 3))
     A3 = np.zeros((3, 3))
-    repairs = 0
     std0 = noise_std[0]
     std1 = noise_std[1]
     same_norm = det_norm == trig_norm
@@ -586,7 +585,7 @@ def _correct_links(
         if mode == 0:
             # ---- joint sigma points over [x_i; x_j], P = blockdiag(P_i, P_j)
             if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
-                return NOT_PD, repairs
+                return NOT_PD
             for k in range(m):
                 for a in range(6):
                     off[k, a] = 0.0
@@ -738,7 +737,7 @@ def _correct_links(
         nu1 = _wrap(z[e, 1] - zh1)
         l00, l10, l11 = _chol2(S00, S01, S11, jitter)
         if l00 == 0.0:
-            return NOT_PD, repairs
+            return NOT_PD
         n_trig = _norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
         n_det = n_trig if same_norm else _norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
         rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
@@ -806,8 +805,8 @@ def _correct_links(
                 T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
         if not _is_pd3(T3):
             _repair3(T3)
-            repairs += 1
+            flags[4, e] = True
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
-    return OK, repairs
+    return OK

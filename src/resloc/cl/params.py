@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -132,7 +132,6 @@ class CLParams:
     mean_cusum: bool = False
     mean_cusum_k: float | np.ndarray = 0.5
     mean_cusum_h: float | np.ndarray = 8.0
-    extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -120,8 +120,9 @@ class LinkOutcome:
         The transmission got through (``sigma_ij = 1``).
     fused : ndarray of bool, shape (E,)
         ``z_ij`` was used in a Kalman update.
-    repairs : int
-        Covariances that had to be projected back to positive definite.
+    repaired : ndarray of bool, shape (E,)
+        The observer's covariance had to be projected back to positive definite after this
+        link's update (``summed`` updates: on the robot's first fused link).
     """
 
     norm: np.ndarray
@@ -130,12 +131,16 @@ class LinkOutcome:
     triggered: np.ndarray
     delivered: np.ndarray
     fused: np.ndarray
-    repairs: int = 0
+    repaired: np.ndarray
+
+    @property
+    def repairs(self) -> int:
+        """Covariances that had to be projected back to positive definite."""
+        return int(np.count_nonzero(self.repaired))
 
     @classmethod
     def empty(cls, E: int) -> LinkOutcome:
-        f = np.zeros(E, dtype=bool)
-        return cls(np.full(E, np.nan), np.full(E, np.nan), f, f.copy(), f.copy(), f.copy())
+        return cls(np.full(E, np.nan), np.full(E, np.nan), *np.zeros((5, E), dtype=bool))
 
 
 def _at(v: float | np.ndarray, idx: np.ndarray) -> float | np.ndarray:
@@ -307,14 +312,13 @@ def _reference_only(params: CLParams, links: LinkBatch) -> bool:
     )
 
 
-def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, int]:
-    ok = covariance_is_pd(P)
-    if ok.all():
-        return P, 0
-    bad = ~ok
-    P = P.copy()
-    P[bad] = repair_covariance(P[bad])
-    return P, int(bad.sum())
+def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``P: (B, 3, 3)`` with its non-positive-definite members repaired, and which they were."""
+    bad = ~covariance_is_pd(P)
+    if bad.any():
+        P = P.copy()
+        P[bad] = repair_covariance(P[bad])
+    return P, bad
 
 
 def correct(
@@ -366,7 +370,7 @@ def correct(
             fast.triggered,
             fast.delivered,
             fast.fused,
-            fast.repairs,
+            fast.repaired,
         )
         return fast.x, fast.P, out
     out = LinkOutcome.empty(E)
@@ -393,16 +397,16 @@ def correct(
 
             x[:, 2] = wrap_angle(x[:, 2])
             # One repair per robot, not per link (ii repeats a robot with several links).
-            touched = np.unique(ii)
+            touched, first = np.unique(ii, return_index=True)
             Pt = P[touched]
-            P[touched], out.repairs = _ensure_pd(0.5 * (Pt + np.swapaxes(Pt, -1, -2)))
+            P[touched], bad = _ensure_pd(0.5 * (Pt + np.swapaxes(Pt, -1, -2)))
+            out.repaired[f[first[bad]]] = True
         return x, P, out
 
     start = np.searchsorted(links.i, links.i, side="left")
     rank = np.arange(E) - start
     order = np.argsort(rank, kind="stable")
     bounds = np.searchsorted(rank[order], np.arange(int(rank.max()) + 2))
-    repairs = 0
     for r in range(len(bounds) - 1):
         rows = order[bounds[r] : bounds[r + 1]]
         ii = links.i[rows]  # distinct within a round
@@ -438,11 +442,10 @@ def correct(
                 params.ci_criterion,
                 memory,
             )
-        P_new, n_rep = _ensure_pd(P_new)
-        repairs += n_rep
+        P_new, bad = _ensure_pd(P_new)
+        out.repaired[rows[f[bad]]] = True
         x[ii[f]] = x_new
         P[ii[f]] = P_new
-    out.repairs = repairs
     if params.fusion.bookkeeping:
         P = _joint(memory).finish(P)  # resloc.cl.tracking / .factorized / .gauge
     if params.fusion is FusionMethod.SPLIT_CI and out.delivered.any():

@@ -15,13 +15,21 @@ import numpy as np
 from resloc.cl.connectivity import DistributedLambda2
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.fusion import FusionMethod, propagate_independent
-from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.gauge import GaugeCovariance, GaugeSums
+from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
 from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
-from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.metrics import (
+    confusion_counts,
+    detector_rates,
+    msle,
+    nees,
+    position_rmse,
+    rate,
+)
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.models.motion import process_noise
 from resloc.world.adversary import stealthy_tamper
@@ -105,15 +113,10 @@ class EstimatorResult:
             "wall_time_s": self.wall_time,
             "steps": steps,
         }
-        det = {
-            "tp": int(t["tp"].sum()),
-            "fp": int(t["fp"].sum()),
-            "fn": int(t["fn"].sum()),
-            "tn": int(t["tn"].sum()),
-        }
-        out["detector_precision"] = rate(det["tp"], det["tp"] + det["fp"])
-        out["detector_recall"] = rate(det["tp"], det["tp"] + det["fn"])
-        out["detector_false_alarm"] = rate(det["fp"], det["fp"] + det["tn"])
+        scores = detector_rates(*(int(t[k].sum()) for k in ("tp", "fp", "fn", "tn")))
+        out["detector_precision"] = scores["precision"]
+        out["detector_recall"] = scores["recall"]
+        out["detector_false_alarm"] = scores["false_alarm_rate"]
         return out
 
     def per_trial(self, metric: str) -> np.ndarray:
@@ -198,15 +201,10 @@ def run_scenario(
             changes["run.seed"] = int(seed)
         scenario = scenario.replace(**changes)
     run = scenario.run
-    distributed = scenario.trigger.lambda2 == "distributed"
+    distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
-    world = World(
-        scenario.world,
-        run.trials,
-        run.seed,
-        "component" if distributed else scenario.trigger.lambda2,
-    )
+    world = World(scenario.world, run.trials, run.seed, scenario.trigger.lambda2.graph_mode)
     params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
@@ -234,7 +232,7 @@ def run_scenario(
         elif params.fusion is FusionMethod.FACTORIZED:
             tr.memory.joint = FactorizedCovariance(len(P0), N)
         elif params.fusion is FusionMethod.GAUGE:
-            rounds = est.gauge_rounds if est.gauge_sums == "consensus" else None
+            rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
             tr.memory.joint = GaugeCovariance(x0, P0, N, rounds)
     dr = None
     if run.dead_reckoning:
@@ -442,12 +440,9 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["detected"] += count(out.detected)
         tot["fused"] += count(out.fused)
         tot["attacked_fused"] += count(out.fused & att)
-        # Per-trial confusion counts.
-        tot["tp"] += count(out.detected & att)
-        tot["fp"] += count(out.detected & ~att)
-        tot["fn"] += count(~out.detected & att)
-        tot["tn"] += count(~out.detected & ~att)
-        tot["repairs"][0] += out.repairs
+        for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
+            tot[key] += per_trial
+        tot["repairs"] += count(out.repaired)
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
     tr.track[k + 1] = tr.x[:N]
