@@ -64,6 +64,8 @@ class FusionMethod(enum.StrEnum):
     ``tracked``: the cross-covariances are tracked (:mod:`resloc.cl.tracking`).
     ``factorized``: tracked by factors each robot keeps (:mod:`resloc.cl.factorized`).
     ``gauge``: the team's common rigid-body error modelled (:mod:`resloc.cl.gauge`).
+
+    Each method's behaviour is its strategy (:mod:`resloc.cl.fusion_methods`).
     """
 
     NAIVE = "naive"
@@ -72,16 +74,6 @@ class FusionMethod(enum.StrEnum):
     TRACKED = "tracked"
     FACTORIZED = "factorized"
     GAUGE = "gauge"
-
-    @property
-    def tracks_cross(self) -> bool:
-        """Whether the method keeps cross-covariances (``memory.joint``)."""
-        return self in (FusionMethod.TRACKED, FusionMethod.FACTORIZED)
-
-    @property
-    def bookkeeping(self) -> bool:
-        """Whether every update is recorded in ``memory.joint`` (tracked, factorized, gauge)."""
-        return self.tracks_cross or self is FusionMethod.GAUGE
 
 
 class CICriterion(enum.StrEnum):

@@ -13,13 +13,14 @@ import dataclasses
 
 import numpy as np
 
-from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
-from resloc.cl.step import LinkBatch, LinkOutcome, correct, predict
+from resloc.cl.step import correct, predict
+from resloc.errors import ConfigError
 from resloc.filters.base import GaussianFilter
-from resloc.models.motion import process_noise
 
 __all__ = ["RobotNode"]
 
@@ -45,6 +46,12 @@ class RobotNode:
     team_size : int, optional
         Needed with ``params.fusion = "gauge"``: the team size N (the gauge covariance is
         ``N`` times a consensus average; :mod:`resloc.cl.gauge`).
+
+    Raises
+    ------
+    ConfigError
+        When the fusion method does not run in one robot's process (the reason is the
+        strategy's :attr:`~resloc.cl.fusion_methods.FusionStrategy.node_refusal`).
 
     Attributes
     ----------
@@ -72,18 +79,16 @@ class RobotNode:
         self.robot_id = int(robot_id)
         self.filt = filt
         self.params = params
+        self.fusion: FusionStrategy = fusion_strategy(params.fusion)
+        if self.fusion.node_refusal is not None:
+            raise ConfigError(
+                f"fusion {params.fusion.value!r} does not run in a robot process: "
+                f"{self.fusion.node_refusal}"
+            )
         self.x = np.asarray(x0, dtype=float).reshape(1, 3).copy()
         self.P = np.asarray(P0, dtype=float).reshape(1, 3, 3).copy()
         self.memory = LinkMemory(n_ids)
-        if params.fusion is FusionMethod.GAUGE:
-            if team_size is None:
-                raise ValueError("fusion 'gauge' needs team_size (the team's number of robots)")
-            self.memory.joint = GaugeCovariance(self.x, self.P, int(team_size), local=True)
-        elif params.fusion not in (FusionMethod.NAIVE, FusionMethod.CI):
-            raise ValueError(
-                f"fusion {params.fusion.value!r} is not available in a robot process "
-                "(RobotNode runs naive, gauge and ci fusion)"
-            )
+        self.fusion.init(self.memory, self.x, self.P, team_size, local=True)
 
     @property
     def gauge(self) -> GaugeCovariance | None:
@@ -94,8 +99,7 @@ class RobotNode:
     def covariance(self) -> np.ndarray:
         """This robot's consistent covariance, shape (3, 3): ``P`` (naive fusion's) plus the
         team's gauge part with gauge fusion."""
-        g = self.gauge
-        return (self.P if g is None else g.reported(self.x, self.P))[0].copy()
+        return self.fusion.reported(self.memory, self.x, self.P)[0].copy()
 
     def gauge_acks(self) -> list[tuple[int, np.ndarray]]:
         """After :meth:`correct`: ``(j, ack)`` for each neighbour j whose estimate this robot
@@ -130,12 +134,7 @@ class RobotNode:
         u = np.asarray(u, dtype=float).reshape(1, 2)
         x_before = self.x
         self.x, self.P = predict(self.filt, self.x, self.P, u, dt, self.params)
-        if self.gauge is not None:
-            p = self.params
-            Q = process_noise(
-                x_before, dt, np.asarray(p.odometry_std), np.asarray(p.process_floor_std)
-            )
-            self.P = self.gauge.predict(x_before, u, dt, Q, self.P)
+        self.P = self.fusion.predict(self.memory, x_before, u, dt, self.params, self.P)
 
     def correct(
         self,

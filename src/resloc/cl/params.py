@@ -11,7 +11,13 @@ from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.errors import ConfigError
 
-__all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode"]
+__all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode", "at_robots"]
+
+
+def at_robots(value: float | np.ndarray, idx: np.ndarray) -> float | np.ndarray:
+    """A scalar parameter as is, or a per-robot parameter ``(B,)`` gathered at ``idx: (E,)``."""
+    a = np.asarray(value, dtype=float)
+    return a if a.ndim == 0 else a[idx]
 
 
 class UpdateMode(enum.StrEnum):

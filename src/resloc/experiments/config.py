@@ -22,6 +22,7 @@ from typing import Any
 from resloc.cl.cusum import chi2_gate
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.gauge import GaugeSums
 from resloc.cl.graph import Lambda2Source
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
@@ -356,21 +357,9 @@ def _parse(data: dict) -> Scenario:
             f'set detector.norm = "nis" (now {det.norm.value!r}) or false_alarm = 0'
         )
     est: EstimatorSpec = parts["estimator"]
-    if est.fusion is not FusionMethod.NAIVE and est.update_mode is not UpdateMode.SEQUENTIAL:
-        raise ConfigError(
-            f'estimator.fusion: {est.fusion.value!r} needs update_mode = "sequential" '
-            f"(now {est.update_mode.value!r})"
-        )
-    if est.fusion is not FusionMethod.NAIVE and est.update_without_transmission:
-        raise ConfigError(
-            f"estimator.fusion: {est.fusion.value!r} fuses transmitted estimates only; "
-            "set estimator.update_without_transmission = false"
-        )
-    if est.fusion.bookkeeping and est.neighbour_estimate is not NeighbourEstimate.CURRENT:
-        raise ConfigError(
-            f'estimator.fusion: {est.fusion.value!r} needs neighbour_estimate = "current" '
-            f"(now {est.neighbour_estimate.value!r})"
-        )
+    problem = fusion_strategy(est.fusion).problem(est)
+    if problem is not None:
+        raise ConfigError(f"estimator.fusion: {est.fusion.value!r} {problem}")
     att: AttackSpec = parts["attack"]
     if not any(abs(v) > 0.0 for v in att.stealth_direction):
         raise ConfigError(

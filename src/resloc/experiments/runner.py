@@ -13,14 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
-from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.fusion import FusionMethod, propagate_independent
-from resloc.cl.gauge import GaugeCovariance, GaugeSums
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.gauge import GaugeSums
 from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
-from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import (
     confusion_counts,
@@ -31,7 +29,6 @@ from resloc.experiments.metrics import (
     rate,
 )
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
-from resloc.models.motion import process_noise
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
@@ -222,18 +219,10 @@ def run_scenario(
         )
         for name in run.filters
     ]
-    split = params.fusion is FusionMethod.SPLIT_CI
-    bookkeeping = params.fusion.bookkeeping
+    fusion = fusion_strategy(params.fusion)
+    rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
     for tr in tracks:
-        if split:  # initial errors are independent across robots
-            tr.memory.independent = P0.copy()
-        if params.fusion is FusionMethod.TRACKED:
-            tr.memory.joint = JointCovariance(P0, N)
-        elif params.fusion is FusionMethod.FACTORIZED:
-            tr.memory.joint = FactorizedCovariance(len(P0), N)
-        elif params.fusion is FusionMethod.GAUGE:
-            rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
-            tr.memory.joint = GaugeCovariance(x0, P0, N, rounds)
+        fusion.init(tr.memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
         dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
@@ -248,31 +237,11 @@ def run_scenario(
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
+        comm_edges = hooks.comm_edges(ws)
         for tr in tracks:
             t0 = time.perf_counter()
-            if split:
-                tr.memory.independent = propagate_independent(
-                    tr.x,
-                    tr.memory.independent,
-                    ws.u_meas,
-                    dt,
-                    np.asarray(params.odometry_std),
-                    np.asarray(params.process_floor_std),
-                )
             xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            if bookkeeping:  # cross-covariances / gauge (tracked: the joint is the authority on P)
-                Pp = tr.memory.joint.predict(
-                    tr.x,
-                    ws.u_meas,
-                    dt,
-                    process_noise(
-                        tr.x,
-                        dt,
-                        np.asarray(params.odometry_std),
-                        np.asarray(params.process_floor_std),
-                    ),
-                    Pp,
-                )
+            Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
             if scenario.trigger.risk_source is RiskSource.ESTIMATED:
                 risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
                 risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
@@ -288,18 +257,18 @@ def run_scenario(
                 risk_s,
                 risk_c,
                 lambda2,
-                **hooks.link_extras(ws, tr.memory),
+                **fusion.link_fields(tr.memory, ws.j),
+                **hooks.link_extras(ws),
             )
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-            if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
-                tr.memory.joint.exchange(*hooks.comm_edges(ws))
+            fusion.exchange(tr.memory, *comm_edges)
             tr.wall += time.perf_counter() - t0
-            _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+            _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
             dr.wall += time.perf_counter() - t0
-            _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+            _record(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
     results = {}
@@ -324,8 +293,7 @@ class _Hooks:
       :class:`~resloc.cl.connectivity.DistributedLambda2` run on the communication graph
       (the world's true component value is kept to measure the error);
     * ``attack.kind = "stealthy"``: a ``LinkBatch.tamper`` per estimator that injects the
-      largest bias that estimator's detector accepts, on the links the world marked attacked;
-    * ``estimator.fusion = "split_ci"``: the transmitted independent parts ``P_nb_ind``.
+      largest bias that estimator's detector accepts, on the links the world marked attacked.
 
     The cl layer never imports the world: it only calls the hooks it is given.
     """
@@ -335,7 +303,6 @@ class _Hooks:
         self.world = world
         self.attack = scenario.world.attack
         self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
-        self.split = params.fusion is FusionMethod.SPLIT_CI
         self.comm_radius = scenario.world.sensing.comm_radius
         self.dl2: DistributedLambda2 | None = None
         self.l2_true: list[float] = []
@@ -375,11 +342,9 @@ class _Hooks:
         self.l2_abs_rel.append(float(rel.mean()) if ok.any() else float("nan"))
         return est
 
-    def link_extras(self, ws, memory: LinkMemory) -> dict:
+    def link_extras(self, ws) -> dict:
         """Optional ``LinkBatch`` fields for this step and estimator."""
         extra: dict = {}
-        if self.split:
-            extra["P_nb_ind"] = memory.independent[ws.j]
         if self.stealthy:
             p, a = self.params, self.attack
             extra["tamper"] = stealthy_tamper(
@@ -417,7 +382,7 @@ class _Hooks:
         }
 
 
-def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+def _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
     s["candidates"][k] = candidates
@@ -451,7 +416,5 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        P = tr.P
-        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+        P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
         s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)
