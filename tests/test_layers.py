@@ -42,3 +42,29 @@ def test_public_constants_are_defined_once() -> None:
     twice = {name: paths for name, paths in where.items() if len(paths) > 1}
     # COLORS (plots.py and report.py) goes when the plotting moves into one module.
     assert set(twice) <= {"COLORS"}, twice
+
+
+def _tests_the_fusion_method(node: ast.Compare) -> bool:
+    """``... .fusion <op> ...`` or a comparison with a ``FusionMethod`` member."""
+    for operand in (node.left, *node.comparators):
+        if isinstance(operand, ast.Attribute) and operand.attr == "fusion":
+            return True
+        if any(isinstance(n, ast.Name) and n.id == "FusionMethod" for n in ast.walk(operand)):
+            return True
+    return False
+
+
+def test_fusion_and_detector_options_are_dispatched_only_by_their_strategies() -> None:
+    """No comparison with the fusion method or a FusionMethod member, and no ``hasattr``
+    probing, outside the modules that declare the strategies."""
+    allowed = {"resloc/cl/fusion.py", "resloc/cl/fusion_methods.py"}
+    bad = []
+    for path, tree in _modules().items():
+        if path in allowed:
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Compare) and _tests_the_fusion_method(node):
+                bad.append(f"{path}:{node.lineno}")
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "hasattr":
+                bad.append(f"{path}:{node.lineno} hasattr")
+    assert not bad, bad

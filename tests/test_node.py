@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 from resloc.cl import LinkBatch, LinkMemory, ThresholdInnovation, correct, kernels, predict
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.node import RobotNode
+from resloc.errors import ConfigError
 from resloc.experiments.config import default_scenario
 from resloc.filters.base import make_filter
 from resloc.world.world import World
@@ -101,8 +104,9 @@ def run_nodes(filt, params, world, x0, P0, steps):
     return history
 
 
-def assert_same(batched, by_robot, ws_list) -> int:
-    """Compare step by step; returns the number of fused links (to check coverage)."""
+def assert_same(batched, by_robot, ws_list, compiled: bool) -> int:
+    """Compare step by step; returns the number of fused links (to check coverage).
+    ``compiled``: which path must have computed every non-empty correction."""
     fused = 0
     for k, ((xb, Pb, ob), (xn, Pn, outs), ws) in enumerate(
         zip(batched, by_robot, ws_list, strict=True)
@@ -117,6 +121,7 @@ def assert_same(batched, by_robot, ws_list) -> int:
                 np.testing.assert_array_equal(getattr(out, name), getattr(ob, name)[rows])
             np.testing.assert_allclose(out.norm, ob.norm[rows], rtol=0, atol=TOL)
         assert sum(o.repairs for o in outs) == ob.repairs
+        assert all(o.compiled is compiled for o in (ob, *outs) if len(o.norm)), k
         fused += int(ob.fused.sum())
     return fused
 
@@ -132,7 +137,7 @@ def test_robot_nodes_reproduce_the_batched_engine(kind: str, backend: str) -> No
     with kernels.use_backend(backend):
         batched = run_batched(filt, params, world, x0, P0, ws_list)
         by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
-    fused = assert_same(batched, by_robot, ws_list)
+    fused = assert_same(batched, by_robot, ws_list, compiled=backend == "numba")
     # The scenario exercises every branch: attacks detected, triggers, channel failures.
     outs = [h[2] for h in batched]
     assert sum(int(o.detected.sum()) for o in outs) > 0
@@ -157,7 +162,7 @@ def test_robot_nodes_with_last_sent_threshold_and_nis_norm(backend: str) -> None
     with kernels.use_backend(backend):
         batched = run_batched(filt, params, world, x0, P0, ws_list)
         by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
-    assert assert_same(batched, by_robot, ws_list) > 0
+    assert assert_same(batched, by_robot, ws_list, compiled=backend == "numba") > 0
 
 
 def test_node_sorts_its_links_and_returns_outcomes_in_given_order() -> None:
@@ -251,3 +256,36 @@ def test_robot_nodes_run_gauge_fusion_with_acks_and_consensus() -> None:
         assert np.abs(xb - xn).max() <= TOL, k
         assert np.abs(Pb - Pn).max() <= TOL, k
     assert sum(len(node.gauge_acks()) for node in nodes) > 0
+
+
+def test_robot_nodes_run_ci_fusion_like_the_batched_engine() -> None:
+    scenario = hot_scenario(12).replace(**{"estimator.fusion": "ci"})
+    params = scenario.cl_params()
+    world, x0, P0, ws_list = simulate(scenario, trials=1, seed=4)
+    filt = make_filter("ckf")
+    batched = run_batched(filt, params, world, x0, P0, ws_list)
+    by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
+    assert assert_same(batched, by_robot, ws_list, compiled=False) > 0
+
+
+@pytest.mark.parametrize("method", list(FusionMethod))
+def test_robot_node_runs_every_decentralizable_method_and_says_why_not(method) -> None:
+    """The node's verdict is the strategy's: it runs a method or refuses it with the
+    strategy's reason, one line."""
+    params = replace(default_scenario().cl_params(), fusion=method)
+    refusal = fusion_strategy(method).node_refusal
+    make = lambda: RobotNode(0, make_filter("ekf"), params, np.zeros(3), np.eye(3), team_size=3)  # noqa: E731
+    if refusal is None:
+        node = make()
+        node.predict(np.array([0.1, 0.0]), 0.1)
+        assert node.covariance.shape == (3, 3)
+        return
+    with pytest.raises(ConfigError) as info:
+        make()
+    assert refusal in str(info.value) and method.value in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_naive_ci_and_gauge_run_in_a_node() -> None:
+    runs = {m for m in FusionMethod if fusion_strategy(m).node_refusal is None}
+    assert {FusionMethod.NAIVE, FusionMethod.CI, FusionMethod.GAUGE} <= runs
