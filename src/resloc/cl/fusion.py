@@ -50,7 +50,6 @@ __all__ = [
     "FusionMethod",
     "ci_weights",
     "clip_independent",
-    "fuse_links",
     "fused_update",
     "propagate_independent",
 ]
@@ -389,62 +388,3 @@ def propagate_independent(
     F = unicycle_state_jacobian(x, u, dt)
     Q = process_noise(x, dt, np.asarray(odometry_std), np.asarray(floor_std))
     return symmetrize(F @ P_ind @ np.swapaxes(F, -1, -2) + Q)
-
-
-def fuse_links(
-    x_i: np.ndarray,
-    P_i: np.ndarray,
-    observer: np.ndarray,
-    x_j: np.ndarray,
-    P_j: np.ndarray,
-    Pj_ind: np.ndarray | None,
-    nu: np.ndarray,
-    m: Moments,
-    R: np.ndarray,
-    method: FusionMethod,
-    criterion: CICriterion,
-    memory,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The CL step's update for one round of links with a consistent fusion method.
-
-    Wraps :func:`fused_update`; with ``split_ci`` it reads robot i's independent part from
-    ``memory.independent[observer]`` and writes the posterior one back.
-
-    Parameters
-    ----------
-    x_i, P_i : ndarray, shapes (E, 3), (E, 3, 3)
-        Current estimates of the observers (distinct robots).
-    observer : ndarray of int, shape (E,)
-        Their indices into ``memory.independent``.
-    x_j, P_j : ndarray, shapes (E, 3), (E, 3, 3)
-        The transmitted estimates.
-    Pj_ind : ndarray, shape (E, 3, 3) or None
-        The transmitted independent parts (``split_ci``).
-    nu : ndarray, shape (E, 2)
-        Innovations of the naive moments.
-    m : Moments
-        The filter's naive moments of the same rows.
-    R : ndarray, shape (2, 2)
-    method : FusionMethod
-    criterion : CICriterion
-    memory : LinkMemory or None
-        Needed by ``split_ci`` (``memory.independent`` initialized).
-
-    Returns
-    -------
-    x, P : ndarray, shapes (E, 3), (E, 3, 3)
-    """
-    Pi_ind = None
-    if method is FusionMethod.SPLIT_CI:
-        if memory is None or memory.independent is None or Pj_ind is None:
-            raise ValueError(
-                "split_ci needs memory.independent (initialize it with the initial "
-                "covariances) and LinkBatch.P_nb_ind (the transmitted independent parts)"
-            )
-        Pi_ind = memory.independent[observer]
-    x_new, P_new, P_ind_new, _ = fused_update(
-        x_i, P_i, x_j, P_j, nu, m, R, method, criterion, Pi_ind, Pj_ind
-    )
-    if P_ind_new is not None:
-        memory.independent[observer] = P_ind_new
-    return x_new, P_new

@@ -25,7 +25,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.fusion import FusionMethod, fuse_links, propagate_independent
+from resloc.cl.fusion import FusionMethod, fused_update, propagate_independent
 from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, NeighbourEstimate, UpdateMode
@@ -40,6 +40,9 @@ __all__ = ["FUSION_STRATEGIES", "FusionStrategy", "fusion_strategy"]
 class FusionStrategy(Protocol):
     """How robot i fuses neighbour j's transmitted estimate, and what it keeps for that.
 
+    The method bodies here are the paper's ``naive`` fusion (estimates independent); a
+    strategy overrides what its method changes.
+
     Attributes
     ----------
     method : FusionMethod
@@ -50,15 +53,16 @@ class FusionStrategy(Protocol):
         method; otherwise why it does not.
     """
 
-    method: FusionMethod
-    compiled: bool
-    node_refusal: str | None
+    method: ClassVar[FusionMethod]
+    compiled: ClassVar[bool] = False
+    node_refusal: ClassVar[str | None] = None
 
     def problem(self, options: Any) -> str | None:
         """Why the method cannot run with ``options`` (anything with ``update_mode``,
         ``neighbour_estimate`` and ``update_without_transmission``: a
         :class:`~resloc.cl.params.CLParams` or the scenario's estimator section), naming the
         option and the fix; None when it can."""
+        return None
 
     def init(
         self,
@@ -87,10 +91,12 @@ class FusionStrategy(Protocol):
         prediction and odometry ``u: (B, 2)``; returns the covariances ``(B, 3, 3)`` the
         filters continue with (``P_pred``, the filters' own, unless the method is their
         authority)."""
+        return P_pred
 
     def link_fields(self, memory: LinkMemory, j: np.ndarray) -> dict[str, np.ndarray]:
-        """Extra :class:`~resloc.cl.step.LinkBatch` fields a transmission of the robots
+        """Extra :class:`~resloc.cl.links.LinkBatch` fields a transmission of the robots
         ``j: (E,)`` carries."""
+        return {}
 
     def moments(
         self,
@@ -106,6 +112,7 @@ class FusionStrategy(Protocol):
     ) -> Moments:
         """Moments of ``z_ij`` (eq. 3) of observers ``i`` at ``x_i: (E, 3)``, ``P_i``,
         from neighbours ``j`` at ``x_j``, ``P_j`` (the filter's own rule)."""
+        return filt.relative_moments(x_i, P_i, x_j, P_j, R)
 
     def update(
         self,
@@ -123,12 +130,14 @@ class FusionStrategy(Protocol):
     ) -> tuple[np.ndarray, np.ndarray]:
         """Update of distinct observers ``i: (E,)`` from innovations ``nu: (E, 2)`` and the
         moments ``m`` of :meth:`moments`; returns ``x: (E, 3)``, ``P: (E, 3, 3)``."""
+        return kalman_update(x_i, P_i, nu, m)
 
     def finish(
         self, memory: LinkMemory | None, P: np.ndarray, j: np.ndarray, delivered: np.ndarray
     ) -> np.ndarray:
         """End of the correction (links' neighbours ``j: (E,)``, which were ``delivered``);
         returns the corrected covariances ``(B, 3, 3)``."""
+        return P
 
     def exchange(self, memory: LinkMemory, i: np.ndarray, j: np.ndarray) -> None:
         """After the correction: consensus exchanges on this step's radio links ``(i, j)``."""
@@ -136,47 +145,18 @@ class FusionStrategy(Protocol):
     def reported(self, memory: LinkMemory | None, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """The covariance the method stands behind for estimates ``x: (B, 3)`` whose filters
         hold ``P: (B, 3, 3)``."""
+        return P
 
 
-class NaiveFusion:
+class NaiveFusion(FusionStrategy):
     """``naive`` (the paper): neighbours' estimates independent of the observer's."""
 
     method: ClassVar[FusionMethod] = FusionMethod.NAIVE
     compiled: ClassVar[bool] = True
-    node_refusal: ClassVar[str | None] = None
-
-    def problem(self, options: Any) -> str | None:
-        return None
-
-    def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
-        return None
-
-    def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
-        return P_pred
-
-    def link_fields(self, memory, j) -> dict[str, np.ndarray]:
-        return {}
-
-    def moments(self, filt, memory, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
-        return filt.relative_moments(x_i, P_i, x_j, P_j, R)
-
-    def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
-        return kalman_update(x_i, P_i, nu, m)
-
-    def finish(self, memory, P, j, delivered) -> np.ndarray:
-        return P
-
-    def exchange(self, memory, i, j) -> None:
-        return None
-
-    def reported(self, memory, x, P) -> np.ndarray:
-        return P
 
 
-class _TransmittedOnly(NaiveFusion):
+class _TransmittedOnly(FusionStrategy):
     """A consistent method: fuses a transmitted estimate, one link after the other."""
-
-    compiled: ClassVar[bool] = False
 
     def problem(self, options: Any) -> str | None:
         if options.update_mode is not UpdateMode.SEQUENTIAL:
@@ -192,9 +172,8 @@ class CIFusion(_TransmittedOnly):
     method: ClassVar[FusionMethod] = FusionMethod.CI
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
-        return fuse_links(
-            x_i, P_i, i, x_j, P_j, None, nu, m, params.R, self.method, params.ci_criterion, memory
-        )
+        criterion = params.ci_criterion
+        return fused_update(x_i, P_i, x_j, P_j, nu, m, params.R, self.method, criterion)[:2]
 
 
 class SplitCIFusion(_TransmittedOnly):
@@ -225,10 +204,16 @@ class SplitCIFusion(_TransmittedOnly):
         return {"P_nb_ind": memory.independent[j]}
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
-        criterion = params.ci_criterion
-        return fuse_links(
-            x_i, P_i, i, x_j, P_j, P_j_ind, nu, m, params.R, self.method, criterion, memory
-        )
+        if memory is None or memory.independent is None or P_j_ind is None:
+            raise ValueError(
+                "split_ci needs memory.independent (fusion_strategy('split_ci').init) and "
+                "LinkBatch.P_nb_ind (the transmitted independent parts)"
+            )
+        x_new, P_new, memory.independent[i], _ = fused_update(
+            x_i, P_i, x_j, P_j, nu, m, params.R, self.method, params.ci_criterion,
+            memory.independent[i], P_j_ind,
+        )  # fmt: skip
+        return x_new, P_new
 
     def finish(self, memory, P, j, delivered) -> np.ndarray:
         if delivered.any():
@@ -319,9 +304,6 @@ class GaugeFusion(_Bookkept):
         memory.joint = GaugeCovariance(
             x0, P0, _team_size(self.method, team_size), rounds, local=local
         )
-
-    def moments(self, filt, memory, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
-        return filt.relative_moments(x_i, P_i, x_j, P_j, R)
 
     def exchange(self, memory, i, j) -> None:
         self._joint(memory).exchange(i, j)

@@ -503,6 +503,28 @@ def _sigma_point_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, filt, R, jitter, work)
 
 
 @_jit
+def _sandwich(H, P, T):
+    """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
+    2 x 3 scratch)."""
+    for a in range(2):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += H[a, c] * P[c, b]
+            T[a, b] = s
+    q00 = 0.0
+    q01 = 0.0
+    q10 = 0.0
+    q11 = 0.0
+    for c in range(3):
+        q00 += T[0, c] * H[0, c]
+        q01 += T[0, c] * H[1, c]
+        q10 += T[1, c] * H[0, c]
+        q11 += T[1, c] * H[1, c]
+    return q00, q01, q10, q11
+
+
+@_jit
 def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, work):
     """First-order moments of eq. (3) with the range/bearing Jacobians at the means; fills
     ``work.Pxz`` and ``work.Hi``.
@@ -530,40 +552,12 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, work):
     zh0 = math.hypot(dx, dy)
     zh1 = _wrap(math.atan2(dy, dx) - xi2)
     # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
-    for a in range(2):
-        for b in range(3):
-            s = 0.0
-            for c in range(3):
-                s += Hj[a, c] * Pj[c, b]
-            T3[a, b] = s
-    rj00 = 0.0
-    rj01 = 0.0
-    rj10 = 0.0
-    rj11 = 0.0
-    for c in range(3):
-        rj00 += T3[0, c] * Hj[0, c]
-        rj01 += T3[0, c] * Hj[1, c]
-        rj10 += T3[1, c] * Hj[0, c]
-        rj11 += T3[1, c] * Hj[1, c]
+    rj00, rj01, rj10, rj11 = _sandwich(Hj, Pj, T3)
     rj00 += R[0, 0]
     rj01 += R[0, 1]
     rj10 += R[1, 0]
     rj11 += R[1, 1]
-    for a in range(2):
-        for b in range(3):
-            s = 0.0
-            for c in range(3):
-                s += Hi[a, c] * Pi[c, b]
-            T3[a, b] = s
-    si00 = 0.0
-    si01 = 0.0
-    si10 = 0.0
-    si11 = 0.0
-    for c in range(3):
-        si00 += T3[0, c] * Hi[0, c]
-        si01 += T3[0, c] * Hi[1, c]
-        si10 += T3[1, c] * Hi[0, c]
-        si11 += T3[1, c] * Hi[1, c]
+    si00, si01, si10, si11 = _sandwich(Hi, Pi, T3)
     S00 = si00 + rj00
     S01 = 0.5 * ((si01 + rj01) + (si10 + rj10))
     S11 = si11 + rj11
