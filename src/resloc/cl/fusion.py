@@ -40,7 +40,7 @@ import numpy as np
 from resloc.angles import wrap_angle
 from resloc.filters.base import Moments
 from resloc.filters.update import kalman_gain
-from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
+from resloc.linalg import cholesky_jitter, forward_substitution, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing_jacobians
 from resloc.models.motion import process_noise, unicycle_state_jacobian
 
@@ -236,7 +236,7 @@ def clip_independent(P: np.ndarray, P_ind: np.ndarray) -> np.ndarray:
     """
     L = cholesky_jitter(P)
     eye = np.broadcast_to(np.eye(3), P.shape)
-    Linv = _solve_lower(L, eye)
+    Linv = forward_substitution(L, eye)
     M = symmetrize(Linv @ P_ind @ np.swapaxes(Linv, -1, -2))
     lam = np.linalg.eigvalsh(M)
     top = lam[:, -1]
@@ -247,18 +247,6 @@ def clip_independent(P: np.ndarray, P_ind: np.ndarray) -> np.ndarray:
         w, V = np.linalg.eigh(symmetrize(out[neg]))
         out[neg] = np.einsum("bij,bj,bkj->bik", V, np.maximum(w, 0.0), V)
     return symmetrize(out)
-
-
-def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Forward substitution ``L X = B`` for lower-triangular ``L: (E, n, n)``, ``B: (E, n, k)``."""
-    n = L.shape[-1]
-    X = np.empty_like(B, dtype=float)
-    for r in range(n):
-        acc = B[:, r, :].astype(float, copy=True)
-        for c in range(r):
-            acc -= L[:, r, c, None] * X[:, c, :]
-        X[:, r, :] = acc / L[:, r, r, None]
-    return X
 
 
 def fused_update(
