@@ -181,13 +181,10 @@ class SplitCIFusion(_TransmittedOnly):
     ``memory.independent`` and in every transmission (``LinkBatch.P_nb_ind``)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.SPLIT_CI
-    node_refusal: ClassVar[str | None] = (
-        "a sender must learn that its estimate was delivered (its independent part then "
-        "becomes dependent), and RobotNode has no such acknowledgement yet"
-    )
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         memory.independent = np.array(P0, dtype=float)  # initial errors are independent
+        memory.local = local
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
         memory.independent = propagate_independent(
@@ -216,9 +213,9 @@ class SplitCIFusion(_TransmittedOnly):
         return x_new, P_new
 
     def finish(self, memory, P, j, delivered) -> np.ndarray:
-        if delivered.any():
-            # A delivered estimate is now held by a neighbour too, so its sender's
-            # independent part becomes dependent.
+        # A delivered estimate is now held by a neighbour too, so its sender's independent
+        # part becomes dependent (a robot's process learns it from an acknowledgement).
+        if delivered.any() and not memory.local:
             memory.independent[j[delivered]] = 0.0
         return P
 

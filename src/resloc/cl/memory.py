@@ -40,6 +40,8 @@ class LinkMemory:
         self.mean_cusum = LinkStatistic(self.n_nodes, width=4)
         self.independent: np.ndarray | None = None
         self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
+        # One robot's process: end-of-step exchanges arrive as messages, not from the batch.
+        self.local = False
 
     def __len__(self) -> int:
         return len(self.keys)

@@ -64,6 +64,11 @@ class RobotNode:
     :meth:`correct`: the acknowledgements (:meth:`gauge_acks` to send, :meth:`gauge_close`
     with those received) and consensus rounds (:meth:`gauge_message`, :meth:`gauge_mix`);
     :attr:`covariance` is then the consistent covariance ``P + J G J^T``.
+
+    Split covariance intersection (``params.fusion = "split_ci"``): a transmission also
+    carries :attr:`independent` (given to the receiver's :meth:`correct` as ``P_nb_ind``),
+    and after :meth:`correct` each neighbour in :meth:`delivery_acks` is told that its
+    estimate was fused (:meth:`delivery_close` with the number of such acknowledgements).
     """
 
     def __init__(
@@ -89,6 +94,7 @@ class RobotNode:
         self.P = np.asarray(P0, dtype=float).reshape(1, 3, 3).copy()
         self.memory = LinkMemory(n_ids)
         self.fusion.init(self.memory, self.x, self.P, team_size, local=True)
+        self._delivered_from = np.empty(0, dtype=np.int64)
 
     @property
     def gauge(self) -> GaugeCovariance | None:
@@ -125,6 +131,24 @@ class RobotNode:
         )
 
     @property
+    def independent(self) -> np.ndarray | None:
+        """The independent part of ``P``, shape (3, 3), with ``split_ci`` fusion (what a
+        transmission carries besides :attr:`estimate`), else None."""
+        ind = self.memory.independent
+        return None if ind is None else ind[0].copy()
+
+    def delivery_acks(self) -> list[int]:
+        """After :meth:`correct` with ``split_ci``: the neighbours whose estimates this robot
+        fused; tell each (its :meth:`delivery_close`)."""
+        return [int(j) for j in self._delivered_from]
+
+    def delivery_close(self, received: int) -> None:
+        """With ``split_ci``: ``received`` neighbours fused this robot's estimate this step,
+        so its independent part is now held by them too and becomes dependent."""
+        if received and self.memory.independent is not None:
+            self.memory.independent[:] = 0.0
+
+    @property
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """``(x, P)`` of shapes (3,), (3, 3): what a transmission of this robot carries."""
         return self.x[0].copy(), self.P[0].copy()
@@ -146,6 +170,7 @@ class RobotNode:
         risk_s: float,
         risk_c: float,
         lambda2: float,
+        P_nb_ind: np.ndarray | None = None,
     ) -> LinkOutcome:
         """Correction from this step's relative measurements of neighbours ``j``.
 
@@ -167,6 +192,9 @@ class RobotNode:
             ``Ds(i)``, ``Dc(i)`` of this robot.
         lambda2 : float
             Algebraic connectivity this robot sees.
+        P_nb_ind : ndarray, shape (E, 3, 3), optional
+            The neighbours' transmitted independent parts (``split_ci``: their
+            :attr:`independent`).
 
         Returns
         -------
@@ -185,8 +213,12 @@ class RobotNode:
             risk_s=np.array([risk_s], dtype=float),
             risk_c=np.array([risk_c], dtype=float),
             lambda2=np.array([lambda2], dtype=float),
+            P_nb_ind=None
+            if P_nb_ind is None
+            else np.asarray(P_nb_ind, dtype=float).reshape(-1, 3, 3)[order],
         )
         self.x, self.P, out = correct(self.filt, self.x, self.P, links, self.params, self.memory)
+        self._delivered_from = links.j[out.delivered]
         if np.array_equal(order, np.arange(len(j))):
             return out
         back = np.empty_like(order)
