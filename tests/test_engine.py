@@ -87,7 +87,10 @@ def run_both(filt, x, P, links, params, memories=(None, None)):
 
 
 def assert_equivalent(fast, ref, tol: float = 1e-9) -> None:
+    """The compiled kernel's correction ``fast`` equals the reference path's ``ref``; asserts
+    that each came from its path."""
     (xf, Pf, of), (xr, Pr, orf) = fast, ref
+    assert of.compiled and not orf.compiled, "compared the wrong paths"
     d = xf - xr
     d[:, 2] = wrap_angle(d[:, 2])
     assert np.abs(d).max() <= tol
