@@ -331,3 +331,13 @@ def test_robot_node_runs_every_decentralizable_method_and_says_why_not(method) -
 def test_naive_ci_split_ci_and_gauge_run_in_a_node() -> None:
     runs = {m for m in FusionMethod if fusion_strategy(m).node_refusal is None}
     assert runs == {FusionMethod.NAIVE, FusionMethod.CI, FusionMethod.SPLIT_CI, FusionMethod.GAUGE}
+
+
+def test_split_ci_node_without_transmitted_independent_parts_says_what_is_missing() -> None:
+    params = replace(default_scenario().cl_params(), fusion="split_ci", trigger=False)
+    node = RobotNode(0, make_filter("ekf"), params, np.zeros(3), 0.01 * np.eye(3))
+    assert node.independent.shape == (3, 3)
+    with pytest.raises(ValueError, match="P_nb_ind"):
+        node.correct(
+            [1], [[1.0, 0.0]], [[1.0, 0.0, 0.0]], [0.01 * np.eye(3)], [True], 0.0, 0.0, 1.0
+        )

@@ -203,8 +203,8 @@ class SplitCIFusion(_TransmittedOnly):
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
         if memory is None or memory.independent is None or P_j_ind is None:
             raise ValueError(
-                "split_ci needs memory.independent (fusion_strategy('split_ci').init) and "
-                "LinkBatch.P_nb_ind (the transmitted independent parts)"
+                "split_ci needs memory.independent (fusion_strategy('split_ci').init) and the "
+                "transmitted independent parts (LinkBatch.P_nb_ind; RobotNode.correct's P_nb_ind)"
             )
         x_new, P_new, memory.independent[i], _ = fused_update(
             x_i, P_i, x_j, P_j, nu, m, params.R, self.method, params.ci_criterion,

@@ -22,7 +22,8 @@ class LinkMemory:
     ``(n_nodes, 3, 3)`` of split covariance intersection (None until a caller initializes it,
     e.g. with the initial covariances); ``joint``, the bookkeeping of ``tracked``,
     ``factorized`` or ``gauge`` fusion (:mod:`resloc.cl.tracking`, :mod:`resloc.cl.factorized`,
-    :mod:`resloc.cl.gauge`), None until initialized.
+    :mod:`resloc.cl.gauge`), None until initialized; ``local``, True in one robot's process
+    (:class:`~resloc.cl.node.RobotNode`), where end-of-step exchanges arrive as messages.
 
     Parameters
     ----------
