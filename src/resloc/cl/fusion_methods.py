@@ -282,13 +282,11 @@ class FactorizedFusion(TrackedFusion):
     (:mod:`resloc.cl.factorized`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.FACTORIZED
-    node_refusal: ClassVar[str | None] = (
-        "its end-of-step exchange of factors between the robots of each pair is not a "
-        "RobotNode message yet (it runs in the batched simulator)"
-    )
+    node_refusal: ClassVar[str | None] = None
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
-        memory.joint = FactorizedCovariance(len(P0), _team_size(self.method, team_size))
+        team = _team_size(self.method, team_size)
+        memory.joint = FactorizedCovariance(len(P0), team, local=local)
 
 
 class GaugeFusion(_Bookkept):

@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.links import LinkBatch, LinkOutcome
@@ -69,6 +70,14 @@ class RobotNode:
     carries :attr:`independent` (given to the receiver's :meth:`correct` as ``P_nb_ind``),
     and after :meth:`correct` each neighbour in :meth:`delivery_acks` is told that its
     estimate was fused (:meth:`delivery_close` with the number of such acknowledgements).
+
+    Factorized cross-covariances (``params.fusion = "factorized"``, needs ``team_size``;
+    teammate ids modulo the team size index the factors): a transmission to neighbour i
+    also carries :meth:`factor_for` ``(i)`` (given to i's :meth:`correct` as ``factor_nb``);
+    after :meth:`correct`, the partners of the step are the robots in
+    :meth:`delivery_acks` and those whose acknowledgement said they fused this robot's
+    estimate; each sends this robot its :meth:`factor_message` for it, and
+    :meth:`factor_close` ends the step with them.
     """
 
     def __init__(
@@ -142,6 +151,26 @@ class RobotNode:
         fused; tell each (its :meth:`delivery_close`)."""
         return [int(j) for j in self._delivered_from]
 
+    def factor_for(self, j: int) -> np.ndarray:
+        """With ``factorized`` fusion: the factor this robot keeps for neighbour ``j``, shape
+        (3, 3), which its transmission to j carries."""
+        return self._factors().factor_for(j)
+
+    def factor_message(self, partner: int) -> np.ndarray:
+        """With ``factorized`` fusion, after :meth:`correct`: this robot's message to a partner
+        of the step, shape (4, 3, 3)."""
+        return self._factors().pair_message(partner)
+
+    def factor_close(self, messages: dict[int, np.ndarray]) -> None:
+        """With ``factorized`` fusion: end of the step with ``{partner id: its
+        factor_message(this robot)}`` from every partner."""
+        self._factors().close_pairs(self.robot_id, messages)
+
+    def _factors(self) -> FactorizedCovariance:
+        if not isinstance(self.memory.joint, FactorizedCovariance):
+            raise ConfigError(f"fusion {self.params.fusion.value!r} keeps no factors")
+        return self.memory.joint
+
     def delivery_close(self, received: int) -> None:
         """With ``split_ci``: ``received`` neighbours fused this robot's estimate this step,
         so its independent part is now held by them too and becomes dependent."""
@@ -171,6 +200,7 @@ class RobotNode:
         risk_c: float,
         lambda2: float,
         P_nb_ind: np.ndarray | None = None,
+        factor_nb: np.ndarray | None = None,
     ) -> LinkOutcome:
         """Correction from this step's relative measurements of neighbours ``j``.
 
@@ -195,6 +225,9 @@ class RobotNode:
         P_nb_ind : ndarray, shape (E, 3, 3), optional
             The neighbours' transmitted independent parts (``split_ci``: their
             :attr:`independent`).
+        factor_nb : ndarray, shape (E, 3, 3), optional
+            The factors the neighbours keep for this robot (``factorized``: their
+            :meth:`factor_for` ``(robot_id)``).
 
         Returns
         -------
@@ -202,6 +235,8 @@ class RobotNode:
             Per-link decisions, in the order of ``j``.
         """
         j = np.asarray(j, dtype=np.int64).reshape(-1)
+        if factor_nb is not None:
+            self._factors().receive(j, np.asarray(factor_nb, dtype=float).reshape(-1, 3, 3))
         order = np.argsort(j, kind="stable")
         links = LinkBatch(
             i=np.zeros(len(j), dtype=np.int64),
