@@ -185,16 +185,37 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
         return "the backend is numpy"
     if filter_kernel_spec(filt) is None:
         return f"the filter {type(filt).__name__} has no compiled twin"
-    if not fusion_strategy(params.fusion).compiled:
-        return f"fusion {params.fusion.value!r} has no compiled twin"
-    for stage in active_stages(params):
-        if not stage.compiled:
-            return f"the detector stage {stage.name!r} has no compiled twin"
-    for name, values in COMPILED_CHOICES.items():
-        if getattr(params, name) not in values:
-            return f"{name} {getattr(params, name).value!r} has no compiled twin"
+    refusal = _params_refusal(params)
+    if refusal is not None:
+        return refusal
     if links.tamper is not None:
         return "an adversary's tamper hook runs in Python"
     if links.P_nb_ind is not None:
         return "transmitted independent parts belong to split covariance intersection"
     return None
+
+
+_last_params: tuple = (None, None)
+
+
+def _params_refusal(params: CLParams) -> str | None:
+    """The options' part of :func:`kernel_refusal`, kept for the last ``params`` object (a
+    frozen dataclass: a run passes the same one every step)."""
+    global _last_params
+    ref, refusal = _last_params
+    if ref is not None and ref() is params:
+        return refusal
+    refusal = None
+    if not fusion_strategy(params.fusion).compiled:
+        refusal = f"fusion {params.fusion.value!r} has no compiled twin"
+    for stage in active_stages(params):
+        if refusal is None and not stage.compiled:
+            refusal = f"the detector stage {stage.name!r} has no compiled twin"
+    for name, values in COMPILED_CHOICES.items():
+        if refusal is None and getattr(params, name) not in values:
+            refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"
+    try:
+        _last_params = (weakref.ref(params), refusal)
+    except TypeError:  # not weakly referenceable: no cache
+        _last_params = (None, None)
+    return refusal

@@ -10,7 +10,7 @@ function it twins (``docs/algorithm.md`` maps every equation to both):
 ============================  ======================  =============================================
 kernel function               paper                   numpy twin
 ============================  ======================  =============================================
-:func:`_sigma_point_moments`  eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
+``_correct_links`` (block)    eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
 :func:`_linearized_moments`   eq. (3), linearized     ``ExtendedFilter.relative_moments``
 :func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
 :func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
@@ -28,6 +28,7 @@ strategies; the inputs are named structures (:class:`KernelLinks`, :class:`Kerne
 from __future__ import annotations
 
 import math
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -51,10 +52,15 @@ if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
 
     _jit = numba.njit(cache=True, nogil=True)
+    # The per-link pieces are inlined into the loop: a call that passes arrays (the named
+    # structures hold ~20) costs a reference-count update per array, per link.
+    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
 else:  # pragma: no cover - exercised only where numba is absent
 
     def _jit(func):
         return func
+
+    _jit_inline = _jit
 
 
 __all__ = [
@@ -125,23 +131,6 @@ class KernelOutputs(NamedTuple):
     flags: np.ndarray  # (5, E) bool: detected, triggered, delivered, fused, repaired
 
 
-class _Work(NamedTuple):
-    """Scratch arrays reused over the links."""
-
-    Li: np.ndarray
-    Lj: np.ndarray
-    off: np.ndarray
-    Z0: np.ndarray
-    Z1: np.ndarray
-    Pxz: np.ndarray
-    K: np.ndarray
-    Hi: np.ndarray
-    Hj: np.ndarray
-    Pn: np.ndarray
-    T3: np.ndarray
-    A3: np.ndarray
-
-
 def _per_robot(v) -> np.ndarray:
     """A scalar or per-robot gain as a contiguous float array of shape (1,) or (B,)."""
     return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
@@ -149,6 +138,36 @@ def _per_robot(v) -> np.ndarray:
 
 def _contiguous(a, dtype=float) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
+
+
+_last_prepared: tuple = (None, None)
+
+
+def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
+    """The gains ``(rho, alpha, gamma, zeta_s, zeta_c)`` and the options of ``params`` as
+    the kernel takes them, kept for the last ``params`` object (frozen)."""
+    global _last_prepared
+    ref, prepared = _last_prepared
+    if ref is not None and ref() is params:
+        return prepared
+    gains = params.rho, params.alpha, params.gamma, params.zeta_s, params.zeta_c
+    options = KernelOptions(
+        _contiguous(params.R),
+        _contiguous(params.noise_std),
+        bool(params.detector),
+        bool(params.trigger),
+        NORM_CODE[params.detector_norm],
+        NORM_CODE[params.trigger_norm],
+        float(params.risk_factor_floor),
+        params.threshold_innovation is ThresholdInnovation.LAST_SENT,
+        _JITTER,
+    )
+    prepared = (tuple(_per_robot(g) for g in gains), options)
+    try:
+        _last_prepared = (weakref.ref(params), prepared)
+    except TypeError:  # not weakly referenceable: no cache
+        _last_prepared = (None, None)
+    return prepared
 
 
 def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
@@ -195,13 +214,9 @@ def fast_correct(
     li = _contiguous(links.i, np.int64)
     lj = np.asarray(links.j, dtype=np.int64)
     E = len(li)
+    gains, options = _prepared(params)
     robots = KernelRobots(
-        _contiguous(links.risk_s),
-        _contiguous(links.risk_c),
-        _contiguous(links.lambda2),
-        *(_per_robot(g) for g in (params.rho, params.alpha, params.gamma)),
-        _per_robot(params.zeta_s),
-        _per_robot(params.zeta_c),
+        _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
     )
     if E == 0 or not _shapes_ok(x, P, links, robots):
         return None
@@ -218,17 +233,6 @@ def fast_correct(
         _contiguous(links.P_nb),
         _contiguous(links.channel_ok, np.bool_),
         last,
-    )
-    options = KernelOptions(
-        _contiguous(params.R),
-        _contiguous(params.noise_std),
-        bool(params.detector),
-        bool(params.trigger),
-        NORM_CODE[params.detector_norm],
-        NORM_CODE[params.trigger_norm],
-        float(params.risk_factor_floor),
-        last_sent,
-        _JITTER,
     )
     out = KernelOutputs(np.empty(E), np.empty(E), np.zeros((5, E), dtype=np.bool_))
     x_out = np.array(x, dtype=float, order="C", copy=True)
@@ -355,7 +359,7 @@ def _solve2(l00, l10, l11, b0, b1):
     return x0, x1
 
 
-@_jit
+@_jit_inline
 def _innovation_norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
     """Size of the innovation ``Lambda_ij`` of eq. (9) in the norm ``kind`` (a
     :data:`NORM_CODE`). Twin: :func:`resloc.cl.detector.innovation_norm`."""
@@ -406,103 +410,7 @@ def _repair3(P):
             P[r, c] = 0.5 * (A[r, c] + A[c, r])
 
 
-@_jit
-def _sigma_point_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, filt, R, jitter, work):
-    """Moments of ``z_ij`` (eq. 3) from the filter's sigma points over ``[x_i; x_j]`` with
-    ``P = blockdiag(P_i, P_j)`` (Algorithm 1, "Correction"); fills ``work.Pxz``.
-
-    Twin: :meth:`resloc.filters.sigma_points.SigmaPointFilter.relative_moments`.
-    Returns ``(ok, zh0, zh1, S00, S01, S11)``; ``ok`` False when a Cholesky factor fails.
-    """
-    Li, Lj, off, Z0, Z1, Pxz = work.Li, work.Lj, work.off, work.Z0, work.Z1, work.Pxz
-    Wm, Wc = filt.Wm, filt.Wc
-    m = Wm.shape[0]
-    if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
-        return False, 0.0, 0.0, 0.0, 0.0, 0.0
-    for k in range(m):
-        for a in range(6):
-            off[k, a] = 0.0
-        for t in range(filt.nz_cnt[k]):
-            b = filt.nz_idx[k, t]
-            u = filt.nz_val[k, t]
-            if b < 3:
-                for a in range(3):
-                    off[k, a] += Li[a, b] * u
-            else:
-                for a in range(3):
-                    off[k, 3 + a] += Lj[a, b - 3] * u
-    circular = filt.circular
-    zr = 0.0
-    ssin = 0.0
-    scos = 0.0
-    zb = 0.0
-    sin_i = 0.0
-    cos_i = 0.0
-    if circular:
-        sin_i = math.sin(xi2)
-        cos_i = math.cos(xi2)
-    for k in range(m):
-        dx = (xj0 + off[k, 3]) - (xi0 + off[k, 0])
-        dy = (xj1 + off[k, 4]) - (xi1 + off[k, 1])
-        r = math.sqrt(dx * dx + dy * dy)
-        th = xi2 + off[k, 2]
-        Z0[k] = r
-        Z1[k] = _wrap(math.atan2(dy, dx) - th)
-        zr += r * Wm[k]
-        if circular:
-            # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
-            if r > 0.0:
-                if off[k, 2] == 0.0:
-                    sn = sin_i
-                    cs = cos_i
-                else:
-                    sn = math.sin(th)
-                    cs = math.cos(th)
-                ssin += ((dy * cs - dx * sn) / r) * Wm[k]
-                scos += ((dx * cs + dy * sn) / r) * Wm[k]
-            else:
-                ssin += math.sin(Z1[k]) * Wm[k]
-                scos += math.cos(Z1[k]) * Wm[k]
-        else:
-            zb += Z1[k] * Wm[k]
-    zh0 = zr
-    zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
-    mx0 = 0.0
-    mx1 = 0.0
-    mx2 = 0.0
-    for k in range(m):
-        mx0 += off[k, 0] * Wm[k]
-        mx1 += off[k, 1] * Wm[k]
-        mx2 += off[k, 2] * Wm[k]
-    s00 = 0.0
-    s01 = 0.0
-    s11 = 0.0
-    for a in range(3):
-        Pxz[a, 0] = 0.0
-        Pxz[a, 1] = 0.0
-    for k in range(m):
-        d0 = Z0[k] - zh0
-        d1 = _wrap(Z1[k] - zh1)
-        w = Wc[k]
-        s00 += d0 * w * d0
-        s01 += d0 * w * d1
-        s11 += d1 * w * d1
-        g0 = off[k, 0] - mx0
-        g1 = off[k, 1] - mx1
-        g2 = off[k, 2] - mx2
-        Pxz[0, 0] += g0 * w * d0
-        Pxz[0, 1] += g0 * w * d1
-        Pxz[1, 0] += g1 * w * d0
-        Pxz[1, 1] += g1 * w * d1
-        Pxz[2, 0] += g2 * w * d0
-        Pxz[2, 1] += g2 * w * d1
-    S00 = s00 + R[0, 0]
-    S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
-    S11 = s11 + R[1, 1]
-    return True, zh0, zh1, S00, S01, S11
-
-
-@_jit
+@_jit_inline
 def _sandwich(H, P, T):
     """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
     2 x 3 scratch)."""
@@ -524,15 +432,15 @@ def _sandwich(H, P, T):
     return q00, q01, q10, q11
 
 
-@_jit
-def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, work):
+@_jit_inline
+def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     """First-order moments of eq. (3) with the range/bearing Jacobians at the means; fills
     ``work.Pxz`` and ``work.Hi``.
 
     Twin: :meth:`resloc.filters.ekf.ExtendedFilter.relative_moments`.
-    Returns ``(zh0, zh1, S00, S01, S11, re00, re01, re11)`` with ``R_eff = H_j P_j H_j^T + R``.
+    Returns ``(zh0, zh1, S00, S01, S11, re00, re01, re11)`` with ``R_eff = H_j P_j H_j^T + R``
+    (``T3``: scratch).
     """
-    Hi, Hj, T3, Pxz = work.Hi, work.Hj, work.T3, work.Pxz
     dx = xj0 - xi0
     dy = xj1 - xi1
     q = dx * dx + dy * dy
@@ -570,60 +478,39 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, work):
     return zh0, zh1, S00, S01, S11, rj00, 0.5 * (rj01 + rj10), rj11
 
 
-@_jit
+@_jit_inline
 def _gain(gain, i):
     """A scalar ``(1,)`` or per-robot ``(B,)`` gain of robot ``i``."""
     return gain[i] if gain.shape[0] > 1 else gain[0]
 
 
-@_jit
-def _event_threshold(robots, i, size, risk_floor):
-    """Adaptive threshold ``delta_ij`` of eq. (11) for observer ``i`` and innovation size
-    ``size``. Twin: :func:`resloc.cl.trigger.event_threshold`."""
-    risk = (
-        1.0
-        - _gain(robots.zeta_s, i) * robots.risk_s[i]
-        - _gain(robots.zeta_c, i) * (robots.risk_c[i])
-    )
-    if risk < risk_floor:
-        risk = risk_floor
-    l2 = robots.lambda2[i]
-    scale = _gain(robots.alpha, i) / l2 if l2 > 0.0 else math.inf
-    delta = scale * (1.0 + _gain(robots.gamma, i) * size) * risk
+@_jit_inline
+def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c, floor):
+    """Adaptive threshold ``delta_ij`` of eq. (11) of one link (the observer's gains, risks
+    and ``lambda2``; ``size``: the innovation size in the threshold).
+    Twin: :func:`resloc.cl.trigger.event_threshold`."""
+    risk = 1.0 - zeta_s * risk_s - zeta_c * risk_c
+    if risk < floor:
+        risk = floor
+    scale = alpha / lambda2 if lambda2 > 0.0 else math.inf
+    delta = scale * (1.0 + gamma * size) * risk
     if math.isnan(delta):
         delta = math.inf
     return delta
 
 
-@_jit
-def _decide_link(e, i, nu0, nu1, l00, l10, l11, links, robots, options, out):
-    """Detector (Algorithm 1), threshold (eq. 11), event condition (eq. 10) and channel
-    (eq. 8) of link ``e``; writes its decisions into ``out``. Returns whether it was
-    delivered (then fused). Twin: ``resloc.cl.step._decide`` (gate stage of
-    :mod:`resloc.cl.detection`)."""
-    std0 = options.noise_std[0]
-    std1 = options.noise_std[1]
-    n_trig = _innovation_norm(options.trigger_norm, nu0, nu1, std0, std1, l00, l10, l11)
-    if options.detector_norm == options.trigger_norm:
-        n_det = n_trig
-    else:
-        n_det = _innovation_norm(options.detector_norm, nu0, nu1, std0, std1, l00, l10, l11)
-    detected = options.detector and n_det > _gain(robots.rho, i)
-    size = links.last_norm[e] if options.last_sent else n_trig
-    delta = _event_threshold(robots, i, size, options.risk_factor_floor)
-    fire = (n_trig > delta) if options.trigger else True
+@_jit_inline
+def _decide_link(n_det, detector, rho, n_trig, delta, trigger, channel_ok):
+    """Detector (Algorithm 1: discard when the norm exceeds ``rho``), event condition
+    (eq. 10) and channel (eq. 8) of one link: ``(detected, triggered, delivered)``.
+    Twin: ``resloc.cl.step._decide`` (the gate stage of :mod:`resloc.cl.detection`)."""
+    detected = detector and n_det > rho
+    fire = (n_trig > delta) if trigger else True
     triggered = (not detected) and fire
-    delivered = triggered and links.channel_ok[e]
-    out.norm[e] = n_trig
-    out.threshold[e] = math.nan if detected else delta
-    out.flags[0, e] = detected
-    out.flags[1, e] = triggered
-    out.flags[2, e] = delivered
-    out.flags[3, e] = delivered
-    return delivered
+    return detected, triggered, triggered and channel_ok
 
 
-@_jit
+@_jit_inline
 def _kalman_gain(l00, l10, l11, Pxz, K):
     """``K = P^xz S^-1`` by the Cholesky factor of ``S``, into ``K``.
     Twin: :func:`resloc.filters.update.kalman_gain`."""
@@ -633,7 +520,7 @@ def _kalman_gain(l00, l10, l11, Pxz, K):
         K[a, 1] = k1
 
 
-@_jit
+@_jit_inline
 def _schur_update(Pi, K, S00, S01, S11, Pn):
     """``P - K S K^T`` into ``Pn`` (sigma-point filters).
     Twin: :func:`resloc.filters.update.kalman_update`."""
@@ -644,11 +531,10 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
             Pn[a, b] = Pi[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
 
 
-@_jit
-def _joseph_update(Pi, K, Hi, re00, re01, re11, work):
-    """Joseph form ``(I - K H) P (I - K H)^T + K R_eff K^T`` into ``work.Pn`` (EKF).
-    Twin: :func:`resloc.filters.update.kalman_update`."""
-    A3, T3, Pn = work.A3, work.T3, work.Pn
+@_jit_inline
+def _joseph_update(Pi, K, Hi, re00, re01, re11, A3, T3, Pn):
+    """Joseph form ``(I - K H) P (I - K H)^T + K R_eff K^T`` into ``Pn`` (EKF; ``A3``, ``T3``:
+    scratch). Twin: :func:`resloc.filters.update.kalman_update`."""
     for a in range(3):
         for b in range(3):
             A3[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
@@ -672,61 +558,172 @@ def _joseph_update(Pi, K, Hi, re00, re01, re11, work):
 def _correct_links(x, P, links, robots, filt, options, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
-    Returns the status; on a non-OK status the outputs are partial and must be discarded.
+    The structures are unpacked once, here: a field read inside the loop would cost a
+    reference-count update per field and link. Returns the status; on a non-OK status the
+    outputs are partial and must be discarded.
     """
-    m = filt.Wm.shape[0]
-    work = _Work(
-        np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((m, 6)), np.zeros(m), np.zeros(m),
-        np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((2, 3)), np.zeros((2, 3)),
-        np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)),
-    )  # fmt: skip
-    R = options.R
-    for e in range(links.i.shape[0]):
-        i = links.i[e]
+    li, z, x_nb, P_nb, channel_ok, last_norm = links
+    risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
+    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
+    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent, jitter = options
+    out_norm, out_threshold, flags = out
+    m = Wm.shape[0]
+    Li = np.zeros((3, 3))
+    Lj = np.zeros((3, 3))
+    off = np.zeros((m, 6))
+    Z0 = np.zeros(m)
+    Z1 = np.zeros(m)
+    Pxz = np.zeros((3, 2))
+    K = np.zeros((3, 2))
+    Hi = np.zeros((2, 3))
+    Hj = np.zeros((2, 3))
+    Pn = np.zeros((3, 3))
+    T3 = np.zeros((3, 3))
+    A3 = np.zeros((3, 3))
+    std0 = noise_std[0]
+    std1 = noise_std[1]
+    for e in range(li.shape[0]):
+        i = li[e]
         Pi = P[i]
-        Pj = links.P_nb[e]
+        Pj = P_nb[e]
         xi0 = x[i, 0]
         xi1 = x[i, 1]
         xi2 = x[i, 2]
-        xj0 = links.x_nb[e, 0]
-        xj1 = links.x_nb[e, 1]
+        xj0 = x_nb[e, 0]
+        xj1 = x_nb[e, 1]
         re00 = 0.0
         re01 = 0.0
         re11 = 0.0
-        if filt.linearized:
+        if linearized:
             zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
-                xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, work
+                xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz
             )
         else:
-            ok, zh0, zh1, S00, S01, S11 = _sigma_point_moments(
-                xi0, xi1, xi2, Pi, xj0, xj1, Pj, filt, R, options.jitter, work
-            )
-            if not ok:
+            # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
+            # P = blockdiag(P_i, P_j), written out here rather than as a function: the
+            # fifteen arrays a function would take cost ~15% of the CKF's correction in
+            # reference counts. Twin: SigmaPointFilter.relative_moments.
+            if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
                 return NOT_PD
+            for k in range(m):
+                for a in range(6):
+                    off[k, a] = 0.0
+                for t in range(nz_cnt[k]):
+                    b = nz_idx[k, t]
+                    u = nz_val[k, t]
+                    if b < 3:
+                        for a in range(3):
+                            off[k, a] += Li[a, b] * u
+                    else:
+                        for a in range(3):
+                            off[k, 3 + a] += Lj[a, b - 3] * u
+            zr = 0.0
+            ssin = 0.0
+            scos = 0.0
+            zb = 0.0
+            sin_i = 0.0
+            cos_i = 0.0
+            if circular:
+                sin_i = math.sin(xi2)
+                cos_i = math.cos(xi2)
+            for k in range(m):
+                dx = (xj0 + off[k, 3]) - (xi0 + off[k, 0])
+                dy = (xj1 + off[k, 4]) - (xi1 + off[k, 1])
+                r = math.sqrt(dx * dx + dy * dy)
+                th = xi2 + off[k, 2]
+                Z0[k] = r
+                Z1[k] = _wrap(math.atan2(dy, dx) - th)
+                zr += r * Wm[k]
+                if circular:
+                    # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
+                    if r > 0.0:
+                        if off[k, 2] == 0.0:
+                            sn = sin_i
+                            cs = cos_i
+                        else:
+                            sn = math.sin(th)
+                            cs = math.cos(th)
+                        ssin += ((dy * cs - dx * sn) / r) * Wm[k]
+                        scos += ((dx * cs + dy * sn) / r) * Wm[k]
+                    else:
+                        ssin += math.sin(Z1[k]) * Wm[k]
+                        scos += math.cos(Z1[k]) * Wm[k]
+                else:
+                    zb += Z1[k] * Wm[k]
+            zh0 = zr
+            zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
+            mx0 = 0.0
+            mx1 = 0.0
+            mx2 = 0.0
+            for k in range(m):
+                mx0 += off[k, 0] * Wm[k]
+                mx1 += off[k, 1] * Wm[k]
+                mx2 += off[k, 2] * Wm[k]
+            s00 = 0.0
+            s01 = 0.0
+            s11 = 0.0
+            for a in range(3):
+                Pxz[a, 0] = 0.0
+                Pxz[a, 1] = 0.0
+            for k in range(m):
+                d0 = Z0[k] - zh0
+                d1 = _wrap(Z1[k] - zh1)
+                w = Wc[k]
+                s00 += d0 * w * d0
+                s01 += d0 * w * d1
+                s11 += d1 * w * d1
+                g0 = off[k, 0] - mx0
+                g1 = off[k, 1] - mx1
+                g2 = off[k, 2] - mx2
+                Pxz[0, 0] += g0 * w * d0
+                Pxz[0, 1] += g0 * w * d1
+                Pxz[1, 0] += g1 * w * d0
+                Pxz[1, 1] += g1 * w * d1
+                Pxz[2, 0] += g2 * w * d0
+                Pxz[2, 1] += g2 * w * d1
+            S00 = s00 + R[0, 0]
+            S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
+            S11 = s11 + R[1, 1]
         # innovation, eq. (9)
-        nu0 = links.z[e, 0] - zh0
-        nu1 = _wrap(links.z[e, 1] - zh1)
-        l00, l10, l11 = _chol2(S00, S01, S11, options.jitter)
+        nu0 = z[e, 0] - zh0
+        nu1 = _wrap(z[e, 1] - zh1)
+        l00, l10, l11 = _chol2(S00, S01, S11, jitter)
         if l00 == 0.0:
             return NOT_PD
-        if not _decide_link(e, i, nu0, nu1, l00, l10, l11, links, robots, options, out):
+        n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
+        if det_norm == trig_norm:
+            n_det = n_trig
+        else:
+            n_det = _innovation_norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
+        delta = _event_threshold(
+            _gain(alpha, i), lambda2[i], _gain(gamma, i), last_norm[e] if last_sent else n_trig,
+            _gain(zeta_s, i), risk_s[i], _gain(zeta_c, i), risk_c[i], risk_floor,
+        )  # fmt: skip
+        detected, triggered, delivered = _decide_link(
+            n_det, detector, _gain(rho, i), n_trig, delta, trigger, channel_ok[e]
+        )
+        out_norm[e] = n_trig
+        out_threshold[e] = math.nan if detected else delta
+        flags[0, e] = detected
+        flags[1, e] = triggered
+        flags[2, e] = delivered
+        flags[3, e] = delivered
+        if not delivered:
             continue
-        K = work.K
-        _kalman_gain(l00, l10, l11, work.Pxz, K)
+        _kalman_gain(l00, l10, l11, Pxz, K)
         x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
         x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
         x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-        if filt.linearized:
-            _joseph_update(Pi, K, work.Hi, re00, re01, re11, work)
+        if linearized:
+            _joseph_update(Pi, K, Hi, re00, re01, re11, A3, T3, Pn)
         else:
-            _schur_update(Pi, K, S00, S01, S11, work.Pn)
-        T3 = work.T3
+            _schur_update(Pi, K, S00, S01, S11, Pn)
         for a in range(3):
             for b in range(3):
-                T3[a, b] = 0.5 * (work.Pn[a, b] + work.Pn[b, a])
+                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
         if not _is_pd3(T3):
             _repair3(T3)
-            out.flags[4, e] = True
+            flags[4, e] = True
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
