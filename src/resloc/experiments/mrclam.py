@@ -47,6 +47,7 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.datasets.mrclam import MRCLAMDataset, load_mrclam
 from resloc.errors import ConfigError
 from resloc.experiments.metrics import detector_scores, msle, nees, rate
+from resloc.experiments.runner import DEAD_RECKONING
 from resloc.filters.base import FilterKind, make_filter
 from resloc.models.measurement import range_bearing
 from resloc.world.attacks import (
@@ -72,9 +73,6 @@ __all__ = [
     "run_mrclam",
     "save_mrclam",
 ]
-
-#: Name of the odometry-only baseline.
-DEAD_RECKONING = "dr"
 
 
 @dataclass(frozen=True)

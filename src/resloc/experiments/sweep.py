@@ -46,7 +46,6 @@ import numpy as np
 from resloc.errors import ConfigError
 from resloc.experiments.config import (
     Scenario,
-    _toml_value,
     default_scenario,
     load_scenario,
     parse_scenario,
@@ -54,6 +53,7 @@ from resloc.experiments.config import (
     scenario_to_dict,
     set_dotted,
 )
+from resloc.experiments.config import toml_value as _toml_value
 from resloc.experiments.runner import DEAD_RECKONING, RunResult, run_scenario
 from resloc.experiments.stats import Estimate, mean_ci
 

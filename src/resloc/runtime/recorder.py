@@ -35,6 +35,7 @@ from resloc.runtime.messages import (
     FLAG_DELIVERED,
     FLAG_DETECTED,
     FLAG_FUSED,
+    FLAG_REPAIRED,
     FLAG_TRIGGERED,
     RECORDER,
     Kind,
@@ -161,9 +162,7 @@ class Recording:
             flags = np.zeros(E, dtype=np.uint8)
             norm = np.full(E, np.nan)
             row = {(int(a), int(c)): e for e, (a, c) in enumerate(zip(i, j, strict=True))}
-            repairs = 0
             for r, rep in self.reports.get(k, {}).items():
-                repairs += rep["rep"]
                 for c, f, nv in zip(rep["j"], rep["flags"], rep["norm"], strict=True):
                     e = row.get((int(r), int(c)))
                     if e is not None:
@@ -175,12 +174,14 @@ class Recording:
                 (flags & FLAG_TRIGGERED) > 0,
                 (flags & FLAG_DELIVERED) > 0,
                 (flags & FLAG_FUSED) > 0,
-                repairs,
+                (flags & FLAG_REPAIRED) > 0,
             )
             tr.x, tr.P = X[k], P[k]
             ws = SimpleNamespace(pose=t["pose"], i=i, j=j, attacked=t["att"].astype(bool))
             attacked = np.array([ws.attacked.sum()])
-            _record(tr, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True)
+            _record(
+                tr, None, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True
+            )
         est = EstimatorResult(name, tr.series, tr.totals, tr.raster, tr.track)
         return RunResult(
             scenario,
