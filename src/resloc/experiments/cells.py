@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -68,6 +69,10 @@ class SimCell:
         True poses, trial 0 only.
     time : ndarray, shape (steps,), or None
         Trial 0 only.
+    cov : ndarray of float32, shape (steps + 1, N, 3, 3), or None
+        Reported covariances, trial 0 only.
+    links : LinkLog or None
+        Every sensed link of trial 0 with this estimator's outcomes (trial 0 only).
     """
 
     estimator: str
@@ -79,6 +84,8 @@ class SimCell:
     track: np.ndarray | None = None
     truth: np.ndarray | None = None
     time: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    links: Any = None
 
 
 def group_data(scenario: Scenario) -> dict:
@@ -153,6 +160,8 @@ def simulate_cells(
                 est.track if first else None,
                 res.truth if first else None,
                 res.time if first else None,
+                est.cov if first else None,
+                est.links if first else None,
             )
         )
     return cells
@@ -189,6 +198,8 @@ def _assemble(
             per[0].raster,
             per[0].track,
             float(sum(c.wall_time for c in per)),
+            per[0].cov,
+            per[0].links,
         )
     first = cells[(0, _estimators(scenario)[0])]
     # One truth object per distinct simulation (callers count distinct runs by identity).

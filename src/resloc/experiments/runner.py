@@ -13,17 +13,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
-from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.fusion import FusionMethod, propagate_independent
-from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.gauge import GaugeSums
+from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
-from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import RiskSource, Scenario
-from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.metrics import (
+    confusion_counts,
+    detector_rates,
+    msle,
+    nees,
+    position_rmse,
+    rate,
+)
+from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
-from resloc.models.motion import process_noise
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
@@ -71,6 +77,12 @@ class EstimatorResult:
         Estimated poses of trial 0.
     wall_time : float
         Seconds spent in this estimator's predict/correct.
+    cov : ndarray of float32, shape (steps + 1, N, 3, 3), optional
+        Covariances of trial 0 (as reported: with gauge fusion ``D_i + J_i G J_i^T``).
+    links : LinkLog, optional
+        Every sensed link of trial 0 over the run, each shape (M,): ``step`` (1-based),
+        ``i``, ``j``, ``attacked`` (shared by the estimators) and this estimator's
+        ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports and figures).
     """
 
     name: str
@@ -79,6 +91,8 @@ class EstimatorResult:
     raster: np.ndarray
     track: np.ndarray
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
+    links: LinkLog | None = None
 
     def summary(self) -> dict[str, float]:
         """Scalar summary: means over steps and trials, final values, rates, detector scores."""
@@ -105,15 +119,10 @@ class EstimatorResult:
             "wall_time_s": self.wall_time,
             "steps": steps,
         }
-        det = {
-            "tp": int(t["tp"].sum()),
-            "fp": int(t["fp"].sum()),
-            "fn": int(t["fn"].sum()),
-            "tn": int(t["tn"].sum()),
-        }
-        out["detector_precision"] = rate(det["tp"], det["tp"] + det["fp"])
-        out["detector_recall"] = rate(det["tp"], det["tp"] + det["fn"])
-        out["detector_false_alarm"] = rate(det["fp"], det["fp"] + det["tn"])
+        scores = detector_rates(*(int(t[k].sum()) for k in ("tp", "fp", "fn", "tn")))
+        out["detector_precision"] = scores["precision"]
+        out["detector_recall"] = scores["recall"]
+        out["detector_false_alarm"] = scores["false_alarm_rate"]
         return out
 
     def per_trial(self, metric: str) -> np.ndarray:
@@ -157,6 +166,9 @@ class _Track:
         self.raster = np.zeros((steps, N), dtype=np.int8)
         self.track = np.zeros((steps + 1, N, 3))
         self.track[0] = x0[:N]
+        self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
+        self.cov[0] = P0[:N]
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
         self.wall = 0.0
 
 
@@ -203,14 +215,14 @@ def run_scenario(
             changes["run.seed"] = int(seed)
         scenario = scenario.replace(**changes)
     run = scenario.run
-    distributed = scenario.trigger.lambda2 == "distributed"
+    distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
     world = World(
         scenario.world,
         run.trials,
         run.seed,
-        "component" if distributed else scenario.trigger.lambda2,
+        scenario.trigger.lambda2.graph_mode,
         first_trial=first_trial,
     )
     params = scenario.cl_params() if params is None else params
@@ -230,57 +242,39 @@ def run_scenario(
         )
         for name in run.filters
     ]
-    split = params.fusion is FusionMethod.SPLIT_CI
-    bookkeeping = params.fusion.bookkeeping
+    fusion = fusion_strategy(params.fusion)
+    rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
     for tr in tracks:
-        if split:  # initial errors are independent across robots
-            tr.memory.independent = P0.copy()
-        if params.fusion is FusionMethod.TRACKED:
-            tr.memory.joint = JointCovariance(P0, N)
-        elif params.fusion is FusionMethod.FACTORIZED:
-            tr.memory.joint = FactorizedCovariance(len(P0), N)
-        elif params.fusion is FusionMethod.GAUGE:
-            rounds = est.gauge_rounds if est.gauge_sums == "consensus" else None
-            tr.memory.joint = GaugeCovariance(x0, P0, N, rounds)
+        fusion.init(tr.memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
         dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
+    trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
         truth[k + 1] = ws.pose[:N]
+        own = ws.i < N
+        trial0_links.append(
+            (
+                np.full(int(own.sum()), k + 1, np.int32),
+                ws.i[own].astype(np.int32),
+                ws.j[own].astype(np.int32),
+                ws.attacked[own],
+            )
+        )
         team_i = team[ws.i]
         candidates = np.bincount(team_i, minlength=T)
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
+        comm_edges = hooks.comm_edges(ws)
         for tr in tracks:
             t0 = time.perf_counter()
-            if split:
-                tr.memory.independent = propagate_independent(
-                    tr.x,
-                    tr.memory.independent,
-                    ws.u_meas,
-                    dt,
-                    np.asarray(params.odometry_std),
-                    np.asarray(params.process_floor_std),
-                )
             xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            if bookkeeping:  # cross-covariances / gauge (tracked: the joint is the authority on P)
-                Pp = tr.memory.joint.predict(
-                    tr.x,
-                    ws.u_meas,
-                    dt,
-                    process_noise(
-                        tr.x,
-                        dt,
-                        np.asarray(params.odometry_std),
-                        np.asarray(params.process_floor_std),
-                    ),
-                    Pp,
-                )
+            Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
             if scenario.trigger.risk_source is RiskSource.ESTIMATED:
                 risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
                 risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
@@ -296,24 +290,26 @@ def run_scenario(
                 risk_s,
                 risk_c,
                 lambda2,
-                **hooks.link_extras(ws, tr.memory),
+                **fusion.link_fields(tr.memory, ws.j),
+                **hooks.link_extras(ws),
             )
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-            if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
-                tr.memory.joint.exchange(*hooks.comm_edges(ws))
+            fusion.exchange(tr.memory, *comm_edges)
             tr.wall += time.perf_counter() - t0
-            _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+            _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
             dr.wall += time.perf_counter() - t0
-            _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+            _record(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
+    shared = link_columns(trial0_links)
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
+        log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, log
         )
     return RunResult(
         scenario,
@@ -332,8 +328,7 @@ class _Hooks:
       :class:`~resloc.cl.connectivity.DistributedLambda2` run on the communication graph
       (the world's true component value is kept to measure the error);
     * ``attack.kind = "stealthy"``: a ``LinkBatch.tamper`` per estimator that injects the
-      largest bias that estimator's detector accepts, on the links the world marked attacked;
-    * ``estimator.fusion = "split_ci"``: the transmitted independent parts ``P_nb_ind``.
+      largest bias that estimator's detector accepts, on the links the world marked attacked.
 
     The cl layer never imports the world: it only calls the hooks it is given.
     """
@@ -350,7 +345,6 @@ class _Hooks:
         self.world = world
         self.attack = scenario.world.attack
         self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
-        self.split = params.fusion is FusionMethod.SPLIT_CI
         self.comm_radius = scenario.world.sensing.comm_radius
         self.dl2: DistributedLambda2 | None = None
         self.l2_true: list[float] = []
@@ -390,11 +384,9 @@ class _Hooks:
         self.l2_abs_rel.append(float(rel.mean()) if ok.any() else float("nan"))
         return est
 
-    def link_extras(self, ws, memory: LinkMemory) -> dict:
+    def link_extras(self, ws) -> dict:
         """Optional ``LinkBatch`` fields for this step and estimator."""
         extra: dict = {}
-        if self.split:
-            extra["P_nb_ind"] = memory.independent[ws.j]
         if self.stealthy:
             p, a = self.params, self.attack
             extra["tamper"] = stealthy_tamper(
@@ -432,7 +424,7 @@ class _Hooks:
         }
 
 
-def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+def _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
     s["candidates"][k] = candidates
@@ -455,21 +447,19 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["detected"] += count(out.detected)
         tot["fused"] += count(out.fused)
         tot["attacked_fused"] += count(out.fused & att)
-        # Per-trial confusion counts.
-        tot["tp"] += count(out.detected & att)
-        tot["fp"] += count(out.detected & ~att)
-        tot["fn"] += count(~out.detected & att)
-        tot["tn"] += count(~out.detected & ~att)
-        tot["repairs"][0] += out.repairs
+        for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
+            tot[key] += per_trial
+        tot["repairs"] += count(out.repaired)
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
+        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
+        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
     tr.track[k + 1] = tr.x[:N]
+    P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
+    tr.cov[k + 1] = P[:N]
     if record:
         pos_t = ws.pose[:, :2].reshape(T, N, 2)
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        P = tr.P
-        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
         s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)

@@ -353,6 +353,7 @@ def _plots(result: SweepResult, out: Path) -> list[Path]:
                     run.time,
                     f"{first.upper()} transmissions, {label} = {spec.label(v)}\n"
                     f"(average communication rate = {_rate_text(cr)})",
+                    e.links,
                 )
             )
     return written

@@ -39,7 +39,6 @@ from typing import Any
 from resloc.errors import ConfigError
 from resloc.experiments.config import (
     Scenario,
-    _toml_value,
     default_scenario,
     load_scenario,
     parse_scenario,
@@ -47,6 +46,7 @@ from resloc.experiments.config import (
     scenario_to_dict,
     set_dotted,
 )
+from resloc.experiments.config import toml_value as _toml_value
 from resloc.experiments.store import canonical_json
 
 __all__ = [

@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
+from resloc.schema import spec_field as _f
 from resloc.world.adversary import StealthKnowledge
 from resloc.world.attacks import AttackKind, LinkScope
 from resloc.world.zones import RiskProfile
@@ -24,15 +25,6 @@ __all__ = [
     "WorldSpec",
     "ZoneSpec",
 ]
-
-
-def _f(default, doc: str, **bounds):
-    """A dataclass field with a default, a doc string and validation bounds."""
-    if isinstance(default, list | dict):
-        return field(
-            default_factory=lambda: type(default)(default), metadata={"doc": doc, **bounds}
-        )
-    return field(default=default, metadata={"doc": doc, **bounds})
 
 
 class FormationFrame(enum.StrEnum):
