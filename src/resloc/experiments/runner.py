@@ -179,6 +179,7 @@ def run_scenario(
     progress: Callable[[int, int], None] | None = None,
     metric_stride: int = 1,
     params: CLParams | None = None,
+    first_trial: int = 0,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -196,6 +197,10 @@ def run_scenario(
     params : CLParams, optional
         Estimator parameters to use instead of ``scenario.cl_params()`` (e.g. per-robot
         detector thresholds ``(T * N,)`` to sweep a threshold over the trials of one run).
+    first_trial : int
+        Simulate trials ``first_trial .. first_trial + run.trials - 1`` of the seed (trial
+        ``t`` is identical whichever trials are batched with it), so the seeds of one
+        scenario can be split across tasks and re-run alone.
 
     Returns
     -------
@@ -213,11 +218,17 @@ def run_scenario(
     distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
-    world = World(scenario.world, run.trials, run.seed, scenario.trigger.lambda2.graph_mode)
+    world = World(
+        scenario.world,
+        run.trials,
+        run.seed,
+        scenario.trigger.lambda2.graph_mode,
+        first_trial=first_trial,
+    )
     params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
-    hooks = _Hooks(scenario, params, world, distributed)
+    hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
     tracks = [
         _Track(
@@ -322,7 +333,14 @@ class _Hooks:
     The cl layer never imports the world: it only calls the hooks it is given.
     """
 
-    def __init__(self, scenario: Scenario, params: CLParams, world: World, distributed: bool):
+    def __init__(
+        self,
+        scenario: Scenario,
+        params: CLParams,
+        world: World,
+        distributed: bool,
+        first_trial: int = 0,
+    ):
         self.params = params
         self.world = world
         self.attack = scenario.world.attack
@@ -337,7 +355,7 @@ class _Hooks:
             y0 = np.concatenate(
                 [
                     np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
-                    for t in range(world.trials)
+                    for t in range(first_trial, first_trial + world.trials)
                 ]
             )
             self.dl2 = DistributedLambda2(
