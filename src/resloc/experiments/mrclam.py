@@ -729,10 +729,10 @@ def _run_estimator(
                     tgt = rp.target[sub]
                     if landmark:
                         x_nb, P_nb = lm_x[tgt - N], lm_P[tgt - N]
-                        prm = _level_params(cache_lm, params_lm, level_k, config)
+                        prm = level_params(cache_lm, params_lm, level_k, config)
                     else:
                         x_nb, P_nb = x[tgt], P[tgt]
-                        prm = _level_params(cache, params, level_k, config)
+                        prm = level_params(cache, params, level_k, config)
                     batch = LinkBatch(
                         rp.obs[sub],
                         tgt,
@@ -783,7 +783,7 @@ def range_noise_level(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
     )
 
 
-def _level_params(
+def level_params(
     cache: dict[int, CLParams], base: CLParams, level: int, config: MRCLAMConfig
 ) -> CLParams:
     """``base`` with ``range_std`` set to noise level ``level`` (memoized)."""
@@ -794,7 +794,7 @@ def _level_params(
     return prm
 
 
-def _score(
+def score_estimate(
     name: str,
     rp: Replay,
     track: np.ndarray,
@@ -925,7 +925,7 @@ def run_mrclam(
     for name in (DEAD_RECKONING, *config.filters):
         cb = None if progress is None else (lambda k, n, _name=name: progress(_name, k, n))
         track, cov, links, wall = _run_estimator(name, rp, config, cb)
-        estimators[name] = _score(name, rp, track, cov, links, wall)
+        estimators[name] = score_estimate(name, rp, track, cov, links, wall)
     info = {
         "dataset": data.name,
         "path": str(data.path),

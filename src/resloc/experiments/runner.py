@@ -152,7 +152,7 @@ class RunResult:
         return {name: est.summary() for name, est in self.estimators.items()}
 
 
-class _Track:
+class EstimatorTrack:
     """Mutable state of one estimator during a run."""
 
     def __init__(self, name: str, filt: GaussianFilter, x0, P0, steps: int, T: int, N: int):
@@ -231,7 +231,7 @@ def run_scenario(
     hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
     tracks = [
-        _Track(
+        EstimatorTrack(
             name,
             make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa),
             x0,
@@ -248,7 +248,7 @@ def run_scenario(
         fusion.init(tr.memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
-        dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+        dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
@@ -296,12 +296,12 @@ def run_scenario(
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
             fusion.exchange(tr.memory, *comm_edges)
             tr.wall += time.perf_counter() - t0
-            _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+            record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
             dr.wall += time.perf_counter() - t0
-            _record(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+            record_step(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
     shared = link_columns(trial0_links)
@@ -424,7 +424,7 @@ class _Hooks:
         }
 
 
-def _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
     s["candidates"][k] = candidates
