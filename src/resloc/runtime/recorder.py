@@ -150,9 +150,9 @@ class Recording:
         metrics computed by the runner's own per-step bookkeeping."""
         from resloc.experiments.runner import (
             EstimatorResult,
+            EstimatorTrack,
             RunResult,
             record_step,
-            EstimatorTrack,
         )
 
         K, N, name = self.steps_done, self.n, self.team.filter_name
