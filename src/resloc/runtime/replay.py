@@ -4,8 +4,8 @@ The world process loads the dataset and cuts it into steps with the code of ``re
 (:func:`~resloc.datasets.mrclam.load_mrclam`, :func:`~resloc.experiments.mrclam.prepare_replay`)
 and publishes each step's odometry and robot-to-robot range/bearing sightings to the robot
 processes; the recorder scores the robots' reported estimates against the motion-capture
-ground truth with the same scoring and writer (``score_estimate``, ``save_mrclam``). Landmark sightings
-are not replayed: they are absolute fixes, not robot-to-robot links (``resloc mrclam
+ground truth with the same scoring and writer (``score_estimate``, ``save_mrclam``).
+Landmark sightings are not replayed: they are absolute fixes, not robot-to-robot links (``resloc mrclam
 --no-landmarks`` is the in-process equivalent).
 """
 
