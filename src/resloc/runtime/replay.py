@@ -5,8 +5,8 @@ The world process loads the dataset and cuts it into steps with the code of ``re
 and publishes each step's odometry and robot-to-robot range/bearing sightings to the robot
 processes; the recorder scores the robots' reported estimates against the motion-capture
 ground truth with the same scoring and writer (``score_estimate``, ``save_mrclam``).
-Landmark sightings are not replayed: they are absolute fixes, not robot-to-robot links (``resloc mrclam
---no-landmarks`` is the in-process equivalent).
+Landmark sightings are not replayed: they are absolute fixes, not robot-to-robot links
+(``resloc mrclam --no-landmarks`` is the in-process equivalent).
 """
 
 from __future__ import annotations
