@@ -604,7 +604,8 @@ def _claims_team(rep: Reproduction, qn: str) -> list[Claim]:
     est = [mean_ci(row) for row in msle]
     note = (
         "The paper's MSLE sums N-1 pair terms per robot; per robot pair the change over the "
-        f"grid is {d_pair.format()}: {d_pair.verdict.value} that it falls."
+        f"grid is {d_pair.format()}, so 'the error per robot pair falls with N' "
+        f"{d_pair.verdict.value}."
     )
     out.append(
         Claim(

@@ -153,8 +153,9 @@ class Directional:
         """``"mean ± half (+x%); equivalent within ±5%: yes (from ±y%)"``."""
         eq = "yes" if self.equivalence.equivalent else "no"
         return (
-            f"{self.estimate.format(spec)} ({self.relative:+.2%}); equivalent within "
-            f"±{EQUIVALENCE_MARGIN:.0%}: {eq} (shown from ±{self.smallest_relative_margin:.2%})"
+            f"{self.estimate.format(spec)} ({_percent(self.relative)}); equivalent within "
+            f"±{EQUIVALENCE_MARGIN:.0%}: {eq} (shown from ±"
+            f"{_percent(self.smallest_relative_margin, signed=False)})"
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -166,6 +167,16 @@ class Directional:
             "equivalence": self.equivalence.to_dict(),
             "verdict": self.verdict.value,
         }
+
+
+def _percent(x: float, signed: bool = True) -> str:
+    """A relative value in percent, keeping one significant digit below 0.01%."""
+    sign = "+" if signed else ""
+    if not math.isfinite(x):
+        return "-"
+    if x == 0 or abs(x) >= 1e-4:
+        return f"{x:{sign}.2%}"
+    return f"{x * 100:{sign}.1g}%"
 
 
 def directional(effect, reference: float, side: str) -> Directional:
