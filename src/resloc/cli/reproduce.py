@@ -68,7 +68,12 @@ def print_claims(claims, rep) -> None:
     table.add_column("figure")
     table.add_column("claim")
     table.add_column("verdict")
-    style = {"holds": "green", "does not hold": "red", "inconclusive": "yellow"}
+    style = {
+        "holds": "green",
+        "does not hold": "red",
+        "not reproduced": "magenta",
+        "inconclusive": "yellow",
+    }
     for c in claims:
         v = c.verdict.value
         table.add_row(c.figure, c.short, f"[{style[v]}]{v}[/]")
