@@ -225,7 +225,7 @@ def test_empty_odometry_and_constant_time_are_refused(copy: Path):
     odo = copy / "Robot3_Odometry.dat"
     header = "".join(ln + "\n" for ln in odo.read_text().splitlines() if ln[0] == "#")
     odo.write_text(header)
-    with pytest.raises(DataError, match="Robot3_Odometry.dat: no data rows"):
+    with pytest.raises(DataError, match=r"Robot3_Odometry\.dat: no data rows"):
         load_mrclam(copy)
     odo.write_text(header + "1248444180.0 0.1 0.0\n" * 3 + "1248444180.0 0.2 0.0\n")
     with pytest.raises(DataError, match="all 4 rows have the same time"):

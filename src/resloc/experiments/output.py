@@ -88,9 +88,7 @@ def signals_as_exceptions() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------------- checks
-def check_output_dir(
-    out: Path, overwrite: bool = False, inputs: Sequence[str | Path] = ()
-) -> None:
+def check_output_dir(out: Path, overwrite: bool = False, inputs: Sequence[str | Path] = ()) -> None:
     """Check ``--out`` before any work (see the module doc); recover a killed run's leftovers.
 
     Parameters

@@ -6,7 +6,9 @@ outcomes (common random numbers), so their differences are the filters' own.
 
 from __future__ import annotations
 
+import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -20,15 +22,38 @@ from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
 from resloc.cl.tracking import JointCovariance
+from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import msle, nees, position_rmse, rate
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
+from resloc.linalg import symmetrize
 from resloc.models.motion import process_noise
+from resloc.validation import check_memory
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
-__all__ = ["DEAD_RECKONING", "EstimatorResult", "RunResult", "run_scenario"]
+__all__ = [
+    "DEAD_RECKONING",
+    "EstimatorResult",
+    "RunResult",
+    "check_run_size",
+    "divergence",
+    "run_bytes",
+    "run_scenario",
+]
+
+#: Bytes per robot kept by each estimator between steps (x, P, link memory).
+BYTES_PER_ROBOT_KEPT = 300
+#: Bytes per robot of the temporaries of one estimator's step (estimators step one after
+#: the other): predicted copies, sigma points, world pose and odometry.
+BYTES_PER_ROBOT_STEP = 1_000
+#: Bytes per sensing link in one step: the link batch and update temporaries, the k-d tree
+#: pairs and the sparse factorisation behind lambda2 of large components.
+BYTES_PER_LINK = 2_500
+#: Safety factor and fixed overhead (numpy temporaries, per-step Python lists) on top.
+RUN_MARGIN = 1.2
+RUN_OVERHEAD = 64e6
 
 #: Name of the odometry-only baseline in results.
 DEAD_RECKONING = "dr"
@@ -71,6 +96,11 @@ class EstimatorResult:
         Estimated poses of trial 0.
     wall_time : float
         Seconds spent in this estimator's predict/correct.
+    diverged : dict or None
+        If the estimator diverged: ``step`` (1-based), ``time_s``, ``trial``, ``robot`` and
+        ``reason`` (see :func:`divergence`). Its series and track are ``nan`` from that
+        step on and its summary's error statistics are ``nan``: an average over the steps
+        before the failure would look like a result.
     """
 
     name: str
@@ -79,9 +109,23 @@ class EstimatorResult:
     raster: np.ndarray
     track: np.ndarray
     wall_time: float = 0.0
+    diverged: dict | None = None
 
     def summary(self) -> dict[str, float]:
-        """Scalar summary: means over steps and trials, final values, rates, detector scores."""
+        """Scalar summary: means over steps and trials, final values, rates, detector scores
+        (error statistics ``nan`` and ``diverged_step`` set if the estimator diverged)."""
+        with warnings.catch_warnings():  # a diverged estimator has all-NaN final steps
+            warnings.filterwarnings("ignore", "Mean of empty slice", RuntimeWarning)
+            warnings.filterwarnings("ignore", "All-NaN slice", RuntimeWarning)
+            out = self._summary()
+        if self.diverged:
+            for key in ("msle_mean", "msle_final", "rmse_mean", "rmse_final"):
+                out[key] = float("nan")
+            out["nees_mean"] = out["nees_median"] = float("nan")
+            out["diverged_step"] = self.diverged["step"]
+        return out
+
+    def _summary(self) -> dict[str, float]:
         s, t = self.series, self.totals
         steps = s["msle"].shape[0]
         out = {
@@ -158,6 +202,49 @@ class _Track:
         self.track = np.zeros((steps + 1, N, 3))
         self.track[0] = x0[:N]
         self.wall = 0.0
+        self.diverged: dict | None = None
+        self.out = None
+        self.pending_P: np.ndarray | None = None
+
+    def stop(self, k: int, dt: float, N: int, P: np.ndarray, reason: str) -> None:
+        """Mark the estimator diverged at step index ``k`` (0-based) and blank its future."""
+        self.diverged = divergence(k, dt, N, P, reason)
+        self.track[k + 1 :] = np.nan
+        for arr in self.series.values():
+            arr[k:] = np.nan
+
+
+def expected_links(scenario: Scenario) -> float:
+    """Sensing links per step (all trials): each robot sees the lattice neighbours inside
+    the sensing radius, ``pi R^2 / spacing^2``, at most the rest of its team."""
+    team, radius = scenario.world.team, scenario.world.sensing.radius
+    per_robot = min(team.robots - 1, math.pi * radius**2 / team.spacing**2 + 4)
+    return scenario.run.trials * team.robots * per_robot
+
+
+def run_bytes(scenario: Scenario) -> float:
+    """Estimated peak memory (bytes) of :func:`run_scenario`: per estimator the batched
+    state and the links in flight, plus the recorded series ``(steps, T)`` and the trial-0
+    tracks ``(steps + 1, N, 3)`` (calibrated against measured peaks in
+    ``docs/reliability.md``)."""
+    run, n = scenario.run, scenario.world.team.robots
+    estimators = len(run.filters) + (1 if run.dead_reckoning else 0)
+    robots = run.trials * n
+    step = BYTES_PER_ROBOT_STEP * robots + BYTES_PER_LINK * expected_links(scenario)
+    records = 8.0 * (run.steps + 1) * (len(SERIES) * run.trials + 3 * n) + run.steps * n
+    kept = estimators * (BYTES_PER_ROBOT_KEPT * robots + records)
+    return RUN_MARGIN * (step + kept + 8.0 * (run.steps + 1) * 3 * n) + RUN_OVERHEAD
+
+
+def check_run_size(scenario: Scenario) -> None:
+    """Refuse (one line, before allocating) a run that needs more memory than this machine
+    can give it. Raises :class:`~resloc.errors.ConfigError`."""
+    run, team = scenario.run, scenario.world.team
+    check_memory(
+        run_bytes(scenario),
+        f"run.trials x team.robots = {run.trials} x {team.robots} robots over {run.steps} steps",
+        "lower team.robots, run.trials or run.steps (or split the trials over several runs)",
+    )
 
 
 def run_scenario(
@@ -197,6 +284,7 @@ def run_scenario(
         if seed is not None:
             changes["run.seed"] = int(seed)
         scenario = scenario.replace(**changes)
+    check_run_size(scenario)
     run = scenario.run
     distributed = scenario.trigger.lambda2 == "distributed"
     # With distributed estimates the world still computes the true (component) lambda2,
@@ -225,7 +313,6 @@ def run_scenario(
         for name in run.filters
     ]
     split = params.fusion is FusionMethod.SPLIT_CI
-    bookkeeping = params.fusion.bookkeeping
     for tr in tracks:
         if split:  # initial errors are independent across robots
             tr.memory.independent = P0.copy()
@@ -251,52 +338,23 @@ def run_scenario(
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
         for tr in tracks:
+            if tr.diverged is not None:
+                continue
             t0 = time.perf_counter()
-            if split:
-                tr.memory.independent = propagate_independent(
-                    tr.x,
-                    tr.memory.independent,
-                    ws.u_meas,
-                    dt,
-                    np.asarray(params.odometry_std),
-                    np.asarray(params.process_floor_std),
-                )
-            xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            if bookkeeping:  # cross-covariances / gauge (tracked: the joint is the authority on P)
-                Pp = tr.memory.joint.predict(
-                    tr.x,
-                    ws.u_meas,
-                    dt,
-                    process_noise(
-                        tr.x,
-                        dt,
-                        np.asarray(params.odometry_std),
-                        np.asarray(params.process_floor_std),
-                    ),
-                    Pp,
-                )
-            if scenario.trigger.risk_source is RiskSource.ESTIMATED:
-                risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
-                risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
-            else:
-                risk_s, risk_c = ws.risk_s, ws.risk_c
-            links = LinkBatch(
-                ws.i,
-                ws.j,
-                ws.z,
-                xp[ws.j],
-                Pp[ws.j],
-                ws.channel_ok,
-                risk_s,
-                risk_c,
-                lambda2,
-                **hooks.link_extras(ws, tr.memory),
-            )
-            tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-            if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
-                tr.memory.joint.exchange(*hooks.comm_edges(ws))
-            tr.wall += time.perf_counter() - t0
-            _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+            tr.pending_P = None
+            try:
+                _step_estimator(tr, ws, params, hooks, world, scenario, lambda2, dt)
+            except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
+                # One filter's failure must not cost the others' results: stop this one.
+                last = tr.pending_P if tr.pending_P is not None else tr.P
+                tr.stop(k, dt, N, last, str(exc))
+                continue
+            finally:
+                tr.wall += time.perf_counter() - t0
+            if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
+                tr.stop(k, dt, N, tr.P, "the estimate became NaN or infinite")
+                continue
+            _record(tr, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
@@ -307,7 +365,7 @@ def run_scenario(
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall
+            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.diverged
         )
     return RunResult(
         scenario,
@@ -317,6 +375,91 @@ def run_scenario(
         time.perf_counter() - t_start,
         {"robots": N, "trials": T, **hooks.meta()},
     )
+
+
+def _step_estimator(
+    tr: _Track, ws, params: CLParams, hooks: _Hooks, world: World, scenario: Scenario, lambda2, dt
+) -> None:
+    """One step (predict, links, correct) of one estimator; sets ``tr.x``, ``tr.P``,
+    ``tr.out`` (and ``tr.pending_P``, the predicted covariance, for divergence reports)."""
+    if params.fusion is FusionMethod.SPLIT_CI:
+        tr.memory.independent = propagate_independent(
+            tr.x,
+            tr.memory.independent,
+            ws.u_meas,
+            dt,
+            np.asarray(params.odometry_std),
+            np.asarray(params.process_floor_std),
+        )
+    xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
+    tr.pending_P = Pp
+    if (
+        params.fusion.bookkeeping
+    ):  # cross-covariances / gauge (tracked: the joint is the authority on P)
+        Pp = tr.memory.joint.predict(
+            tr.x,
+            ws.u_meas,
+            dt,
+            process_noise(
+                tr.x,
+                dt,
+                np.asarray(params.odometry_std),
+                np.asarray(params.process_floor_std),
+            ),
+            Pp,
+        )
+    if scenario.trigger.risk_source is RiskSource.ESTIMATED:
+        risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
+        risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
+    else:
+        risk_s, risk_c = ws.risk_s, ws.risk_c
+    links = LinkBatch(
+        ws.i,
+        ws.j,
+        ws.z,
+        xp[ws.j],
+        Pp[ws.j],
+        ws.channel_ok,
+        risk_s,
+        risk_c,
+        lambda2,
+        **hooks.link_extras(ws, tr.memory),
+    )
+    tr.x, tr.P, tr.out = correct(tr.filt, xp, Pp, links, params, tr.memory)
+    if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
+        tr.memory.joint.exchange(*hooks.comm_edges(ws))
+
+
+def divergence(k: int, dt: float, N: int, P: np.ndarray, reason: str) -> dict:
+    """Describe a divergence at step index ``k``: when, and which robot.
+
+    The failing computation may be inside a link update, so the robot is the one whose
+    covariance among ``P`` (shape ``(T * N, 3, 3)``, the last one computed) is non-finite
+    or closest to singular (smallest eigenvalue relative to its trace).
+
+    Returns
+    -------
+    dict
+        ``step`` (1-based), ``time_s``, ``trial``, ``robot``, ``min_eigenvalue``, ``reason``.
+    """
+    P = np.asarray(P, dtype=float)
+    finite = np.all(np.isfinite(P), axis=(-1, -2))
+    score = np.full(len(P), -np.inf)
+    if finite.any():
+        Pf = symmetrize(P[finite])
+        eig = np.linalg.eigvalsh(Pf)[:, 0]
+        trace = np.maximum(np.trace(Pf, axis1=-2, axis2=-1), 1e-300)
+        score[finite] = eig / trace
+    b = int(np.argmin(score)) if len(P) else 0
+    min_eig = float(np.linalg.eigvalsh(symmetrize(P[b]))[0]) if finite[b] else float("nan")
+    return {
+        "step": k + 1,
+        "time_s": round((k + 1) * dt, 9),
+        "trial": b // N,
+        "robot": b % N,
+        "min_eigenvalue": min_eig,
+        "reason": reason.splitlines()[0] if reason else "",
+    }
 
 
 class _Hooks:
