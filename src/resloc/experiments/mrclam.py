@@ -1081,9 +1081,14 @@ def save_mrclam(
                     row += [f"{e.pos_err[k, r]:.4f}", f"{e.nees[k, r]:.4g}"]
                 w.writerow(row)
     written.append(p)
-    if plots:
-        written.append(plot_mrclam_trajectories(result, out / "trajectories.png"))
-        written.append(plot_mrclam_errors(result, out / "errors.png"))
+    if plots:  # a figure that cannot be drawn is skipped with a warning, the data stay
+        from resloc.experiments.output import draw_plots
+
+        figures = ((plot_mrclam_trajectories, "trajectories"), (plot_mrclam_errors, "errors"))
+        for draw, name in figures:
+            written += draw_plots(
+                lambda d=draw, n=name: [d(result, out / f"{n}.png")], what=f"{name}.png"
+            )
     return written
 
 

@@ -72,7 +72,9 @@ def plot_trajectories(result, path: Path, estimator: str | None = None) -> Path:
     ax.set_ylim(-1.6, 1.6)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"{result.scenario.run.name}: trajectories (trial 0)")
+    # A user's name is text, not mathtext: "$" would start a formula (and may not parse).
+    name = result.scenario.run.name.replace("$", r"\$")
+    ax.set_title(f"{name}: trajectories (trial 0)")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
