@@ -86,6 +86,7 @@ class OneLineErrors(TyperGroup):
     multi-line box. ``resloc`` alone still prints the help."""
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        prog_name = prog_name or "resloc"  # not "-c" or "__main__.py" when run as a module
         if not standalone_mode:
             return super().main(args, prog_name, complete_var, standalone_mode, **extra)
         try:

@@ -73,7 +73,7 @@ def sweep_command(
     spec = load_sweep(path)
     if out is None:
         out = Path("runs") / f"sweep-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
     if plots:
         from resloc.experiments.plots import pyplot
 
@@ -82,7 +82,7 @@ def sweep_command(
     with progress_bar(f"sweep {spec.parameter} ({len(spec.values)} values)", progress) as upd:
         result = run_sweep(spec, seeds=seeds, steps=steps, jobs=jobs, progress=upd)
     print_sweep(result)
-    with atomic_output_dir(out, overwrite) as tmp:
+    with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_sweep(result, tmp, plots=plots)
     print(f"results written to {out}/ (sweep.toml, summary.json, sweep.csv, plots)")
     return result
