@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -277,3 +279,18 @@ def test_a_failure_while_writing_leaves_out_untouched(tmp_path):
         raise RuntimeError("disk full")
     assert [p.name for p in out.iterdir()] == ["old.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_a_signal_while_writing_removes_the_temporary(tmp_path, signum):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    stopped = (output.Terminated, KeyboardInterrupt)
+    with pytest.raises(stopped), output.atomic_output_dir(out, overwrite=True) as tmp:
+        (tmp / "half.csv").write_text("1,2")
+        os.kill(os.getpid(), signum)
+        time.sleep(5)  # the signal arrives here
+    assert [p.name for p in out.iterdir()] == ["old.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    assert signal.getsignal(signal.SIGTERM) is not None  # the previous handler is back
