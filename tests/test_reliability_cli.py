@@ -294,3 +294,24 @@ def test_a_signal_while_writing_removes_the_temporary(tmp_path, signum):
     assert [p.name for p in out.iterdir()] == ["old.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
     assert signal.getsignal(signal.SIGTERM) is not None  # the previous handler is back
+
+
+def test_mrclam_reports_dropped_and_reordered_rows_and_strict_refuses(tmp_path):
+    import shutil
+
+    folder = tmp_path / FIXTURE.name
+    shutil.copytree(FIXTURE, folder)
+    odo = folder / "Robot2_Odometry.dat"
+    rows = [ln for ln in odo.read_text().splitlines() if ln[0] != "#"]
+    odo.write_text(odo.read_text() + rows[100] + "\n")  # a repeat, and out of order
+    args = ["mrclam", str(folder), "-f", "ekf", "--duration", "30", "--no-plots"]
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert "data rows: 1 dropped (duplicate 1), 1 out of order" in res.stdout
+    info = json.loads((tmp_path / "a" / "summary.json").read_text())["info"]
+    assert info["rows_skipped_by_file"] == {
+        "Robot2_Odometry.dat": {"duplicate": 1, "out_of_order": 1}
+    }
+    res = runner.invoke(app, [*args, "--strict", "--out", str(tmp_path / "b")])
+    line = _one_error_line(res, "Robot2_Odometry.dat:")
+    assert "--strict" in line and not (tmp_path / "b").exists()

@@ -94,6 +94,8 @@ _FLOAT_BOUNDS = {
     "gt_max_gap": 1e3,
     "link_fraction": 1.0,
 }
+#: Longest ``duration`` (s): the MRCLAM datasets last 15 to 45 minutes.
+MAX_DURATION = 1e6
 #: Longest replay in steps (the same bound as a scenario's ``run.steps``).
 MAX_REPLAY_STEPS = 10_000_000
 
@@ -205,8 +207,8 @@ class MRCLAMConfig:
             raise ConfigError(f"range_std_rel must be >= 0, got {self.range_std_rel}")
         if self.dt > 1.0:
             raise ConfigError(f"dt must be at most 1 s, got {self.dt}")
-        if self.duration is not None and not (np.isfinite(self.duration) and self.duration > 0):
-            raise ConfigError(f"duration must be a positive number of seconds, got {self.duration}")
+        if self.duration is not None:
+            check_finite("duration", self.duration, 0.0, MAX_DURATION, lo_open=True, unit=" s")
         for name in ("odometry_density", "init_std", "attack_bias"):
             v = getattr(self, name)
             if len(v) != 2 or not all(np.isfinite(a) and a >= 0 for a in v):
