@@ -5,6 +5,7 @@ Re-runs the classes of the issue-14 audit and counts what must be zero:
 * ``traceback``: an exception other than a clean exit (exit codes other than 0/2, or a
   traceback in the output);
 * ``multi_line``: a refusal (exit 2) whose error is not exactly one ``error:`` line;
+* ``hang``: a case still running after ``CASE_LIMIT`` seconds (stopped);
 * ``absurd_accepted``: a non-finite or absurd number (inf, nan, +-1e300) that ran (exit 0);
 * ``silent_drop``: MRCLAM data rows neither loaded nor counted as dropped;
 * ``lost_result``: a command that printed its results and then failed, or an ``--out``
@@ -52,6 +53,16 @@ FLOAT_FIELDS = {
     "run": ["seed", "steps", "trials"],
 }
 RESULT_MARKERS = ("MSLE mean", "RMSE m", "comm rate")
+#: A case that runs longer than this (s) counts as a hang (and is stopped).
+CASE_LIMIT = 60
+
+
+class CaseTimeout(BaseException):
+    """Raised by SIGALRM inside a case that ran past CASE_LIMIT."""
+
+
+def _alarm(signum, frame):
+    raise CaseTimeout()
 
 
 def toml_text(sections: dict) -> str:
@@ -95,10 +106,21 @@ class Audit:
 
     def invoke(self, klass: str, case: str, args: list[str], absurd: bool = False):
         self.cases[klass] += 1
-        res = self.runner.invoke(self.app, args)
+        previous = signal.signal(signal.SIGALRM, _alarm)
+        signal.alarm(CASE_LIMIT)
+        try:
+            res = self.runner.invoke(self.app, args)
+        except CaseTimeout:
+            self.note("hang", f"{klass}: {case} (stopped after {CASE_LIMIT} s)")
+            return None
+        finally:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, previous)
         out, err = res.stdout, res.stderr
         crashed = res.exception is not None and not isinstance(res.exception, SystemExit)
-        if crashed or res.exit_code not in (0, 2) or "Traceback" in out + err:
+        if isinstance(res.exception, CaseTimeout):
+            self.note("hang", f"{klass}: {case} (stopped after {CASE_LIMIT} s)")
+        elif crashed or res.exit_code not in (0, 2) or "Traceback" in out + err:
             self.note("traceback", f"{klass}: {case} (exit {res.exit_code}, {res.exception!r})")
         elif res.exit_code == 2:
             errors = [ln for ln in err.splitlines() if ln.startswith("error: ")]
@@ -159,6 +181,8 @@ class Audit:
             res = self.invoke(
                 "scenario", case, ["run", str(p), "--out", str(d / "out"), "--no-plots"]
             )
+            if res is None:
+                continue
             if res.exit_code == 0 and not (d / "out" / "summary.json").exists():
                 self.note("lost_result", f"scenario: {case}: exit 0 without summary.json")
             if res.exit_code == 0 and "name" in case:
@@ -370,7 +394,7 @@ class Audit:
             if duration:
                 args += ["--duration", duration]
             res = self.invoke("mrclam", case, args)
-            if res.exit_code == 0:
+            if res is not None and res.exit_code == 0:
                 self.check_rows(case, folder, d / "out" / "summary.json", duration)
 
     def check_rows(self, case: str, folder: Path, summary_path: Path, duration) -> None:
@@ -477,8 +501,8 @@ def main() -> None:
         audit.kills(opts.kills)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    kinds = ["traceback", "multi_line", "absurd_accepted", "silent_drop", "lost_result",
-             "orphan", "leftover"]  # fmt: skip
+    kinds = ["traceback", "multi_line", "hang", "absurd_accepted", "silent_drop",
+             "lost_result", "orphan", "leftover"]  # fmt: skip
     report = {
         "cases": dict(audit.cases),
         "total_cases": sum(audit.cases.values()),

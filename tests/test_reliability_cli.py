@@ -237,7 +237,16 @@ def test_leftovers_of_a_live_process_are_left_alone(tmp_path):
     busy = tmp_path / f".out.tmp-{os.getpid()}-zz"
     busy.mkdir()
     assert output.recover_leftovers(tmp_path / "out", log=lambda line: None) == []
-    assert busy.exists()
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        theirs = tmp_path / f".out.tmp-{other.pid}-zz"
+        theirs.mkdir()
+        lines = output.recover_leftovers(tmp_path / "out", log=lambda line: None)
+        assert lines == [f"{theirs.name} belongs to running process {other.pid}; left alone"]
+    finally:
+        other.kill()
+        other.wait(timeout=30)
+    assert busy.exists() and theirs.exists()
 
 
 @pytest.mark.parametrize("atomic", [True, False])

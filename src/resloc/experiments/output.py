@@ -201,7 +201,7 @@ def recover_leftovers(out: Path, log=None) -> list[str]:
     For each hidden sibling ``.NAME.tmp-PID-*`` or ``.NAME.old-PID`` whose process ``PID``
     is no longer running: an ``.old`` directory is renamed back to ``out`` when ``out`` is
     missing (the kill fell between the two renames of a replacement), every other leftover
-    is removed. Leftovers of running processes are left alone.
+    is removed. Leftovers of running processes are left alone (and named).
 
     Parameters
     ----------
@@ -224,11 +224,16 @@ def recover_leftovers(out: Path, log=None) -> list[str]:
         entries = list(parent.iterdir())
     except OSError:
         return []
+    actions = []
     for p in entries:
         m = _LEFTOVER_RE.match(p.name)
-        if m and m["name"] == out.name and not _pid_alive(int(m["pid"])):
-            found.append((0 if m["kind"] == "old" else 1, p, m["kind"], int(m["pid"])))
-    actions = []
+        if not m or m["name"] != out.name:
+            continue
+        pid = int(m["pid"])
+        if not _pid_alive(pid):
+            found.append((0 if m["kind"] == "old" else 1, p, m["kind"], pid))
+        elif pid != os.getpid():
+            actions.append(f"{p.name} belongs to running process {pid}; left alone")
     for _, p, kind, pid in sorted(found):
         if kind == "old" and not out.exists():
             p.rename(out)
