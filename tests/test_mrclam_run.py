@@ -240,6 +240,7 @@ def test_save_writes_summary_csv_and_plots(with_landmarks, tmp_path: Path):
         "timeseries.csv",
         "trajectories.png",
         "errors.png",
+        "recording.npz",
     }
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary["overall"]) == {DEAD_RECKONING, *FILTERS}
@@ -268,7 +269,12 @@ def test_cli_writes_outputs(tmp_path: Path):
     )
     assert res.exit_code == 0, res.output
     assert "CKF" in res.stdout and "DR" in res.stdout
-    assert {p.name for p in out.iterdir()} == {"summary.json", "per_robot.csv", "timeseries.csv"}
+    assert {p.name for p in out.iterdir()} == {
+        "summary.json",
+        "per_robot.csv",
+        "timeseries.csv",
+        "recording.npz",
+    }
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["overall"]) == {"dr", "ckf"}
     assert summary["info"]["replayed_s"] == pytest.approx(30.0)

@@ -11,6 +11,7 @@ import typer
 
 from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
+from resloc.cli.export import export_option
 from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
@@ -152,9 +153,16 @@ def noise_command(path: Path, duration: float | None, strict: bool = False) -> d
 
 
 def mrclam_command(
-    path: Path, out: Path | None, overwrite: bool, plots: bool, progress: bool, **kw
+    path: Path,
+    out: Path | None,
+    overwrite: bool,
+    plots: bool,
+    progress: bool,
+    export: str | None = None,
+    **kw,
 ):
     """Validate, replay, print, save. ``kw`` are :class:`MRCLAMConfig` fields."""
+    from resloc.cli.export import write_exports
     from resloc.experiments.mrclam import run_mrclam, save_mrclam
     from resloc.experiments.output import (
         atomic_output_dir,
@@ -184,6 +192,7 @@ def mrclam_command(
     print_mrclam_summary(result)
     with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_mrclam(result, tmp, plots=plots)
+    write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (summary.json, per_robot.csv, timeseries.csv, plots)")
     return result
 
@@ -254,6 +263,7 @@ def register(app: typer.Typer) -> None:
             "--estimate-noise",
             help="Only print the sensor noise measured against ground truth, then exit.",
         ),
+        export: str | None = export_option(),
     ) -> None:
         """Cooperative localization on a real MRCLAM dataset, scored against ground truth."""
         if estimate_noise:
@@ -266,6 +276,7 @@ def register(app: typer.Typer) -> None:
             overwrite,
             plots,
             progress and sys.stderr.isatty(),
+            export,
             filters=filters,
             dt=dt,
             duration=duration,

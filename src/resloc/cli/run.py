@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 
 from resloc.cli.common import handle_errors, step_progress
+from resloc.cli.export import export_option
 from resloc.validation import INT64_MAX
 
 __all__ = ["print_summary", "register", "run_command"]
@@ -91,8 +92,10 @@ def run_command(
     overwrite: bool,
     plots: bool,
     progress: bool,
+    export: str | None = None,
 ):
     """Load (or embed) the scenario, run it, print the table, write the outputs."""
+    from resloc.cli.export import write_exports
     from resloc.experiments.config import default_scenario, load_scenario
     from resloc.experiments.output import (
         atomic_output_dir,
@@ -129,6 +132,7 @@ def run_command(
     print_summary(result)
     with atomic_output_dir(out, overwrite, inputs) as tmp:
         save_run(result, tmp, plots=plots)
+    write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (scenario.toml, summary.json, timeseries.csv, plots)")
     return result
 
@@ -158,9 +162,12 @@ def register(app: typer.Typer) -> None:
         progress: bool = typer.Option(
             True, "--progress/--no-progress", help="Show a progress bar on stderr."
         ),
+        export: str | None = export_option(),
     ) -> None:
         """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
-        run_command(scenario, filter, seed, out, overwrite, plots, progress and sys.stderr.isatty())
+        run_command(
+            scenario, filter, seed, out, overwrite, plots, progress and sys.stderr.isatty(), export
+        )
 
     scenario_app = typer.Typer(help="Scenario files.", no_args_is_help=True)
 

@@ -669,6 +669,8 @@ class MRCLAMEstimate:
     per_robot : dict of str to ndarray, each shape (N,)
     overall : dict of str to float
     wall_time : float
+    cov : ndarray of float32, shape (K + 1, N, 3, 3), optional
+        Covariances at the step times (for exports).
     """
 
     name: str
@@ -681,6 +683,7 @@ class MRCLAMEstimate:
     per_robot: dict[str, np.ndarray] = field(default_factory=dict)
     overall: dict[str, float] = field(default_factory=dict)
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
 
 
 @dataclass
@@ -701,6 +704,10 @@ class MRCLAMResult:
     zones : dict of str to list of Zone
     estimators : dict of str to MRCLAMEstimate
     wall_time : float
+    measurements : dict of str to ndarray, each shape (M,)
+        The replayed measurements (for exports): ``step``, observer ``i``, target ``j``
+        (robot index, or ``N + landmark index``), ``attacked``; the estimators' ``links``
+        give each one's outcome, row for row.
     """
 
     config: MRCLAMConfig
@@ -713,6 +720,7 @@ class MRCLAMResult:
     zones: dict[str, list[Zone]]
     estimators: dict[str, MRCLAMEstimate]
     wall_time: float = 0.0
+    measurements: dict[str, np.ndarray] = field(default_factory=dict)
 
     def summary(self) -> dict[str, dict[str, float]]:
         """``{estimator: overall stats}``."""
@@ -922,7 +930,17 @@ def _score(
         "wall_time_s": wall,
     }
     return MRCLAMEstimate(
-        name, track, pos_err, heading_err, nees_v, msle_v, links, per_robot, overall, wall
+        name,
+        track,
+        pos_err,
+        heading_err,
+        nees_v,
+        msle_v,
+        links,
+        per_robot,
+        overall,
+        wall,
+        cov.astype(np.float32),
     )
 
 
@@ -1010,14 +1028,11 @@ def run_mrclam(
         zones,
         estimators,
         time.perf_counter() - t_start,
+        {"step": rp.step, "i": rp.obs, "j": rp.target, "attacked": rp.attacked},
     )
 
 
 # ---------------------------------------------------------------------------- saving
-ROBOT_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
-ESTIMATOR_COLORS = {"ckf": "tab:blue", "ukf": "tab:orange", "ekf": "tab:green", "dr": "tab:gray"}
-
-
 def save_mrclam(
     result: MRCLAMResult, out: str | Path, plots: bool = True, sample_period: float = 0.2
 ) -> list[Path]:
@@ -1026,7 +1041,8 @@ def save_mrclam(
     Files: ``summary.json`` (configuration, data description, overall and per-robot
     statistics), ``per_robot.csv`` (one row per estimator and robot, plus ``all``),
     ``timeseries.csv`` (per ``sample_period``: time, robot, true and estimated poses and
-    errors) and, with matplotlib, ``trajectories.png`` and ``errors.png``.
+    errors), ``recording.npz`` (every step, for ``resloc export``) and, with matplotlib,
+    ``trajectories.png`` and ``errors.png``.
 
     Returns
     -------
@@ -1083,8 +1099,12 @@ def save_mrclam(
                     row += [f"{e.pos_err[k, r]:.4f}", f"{e.nees[k, r]:.4g}"]
                 w.writerow(row)
     written.append(p)
+    from resloc.experiments.recording import RECORDING_FILE, recording_from_mrclam
+
+    written.append(recording_from_mrclam(result).save(out / RECORDING_FILE))
     if plots:  # a figure that cannot be drawn is skipped with a warning, the data stay
         from resloc.experiments.output import draw_plots
+        from resloc.experiments.plots import plot_mrclam_errors, plot_mrclam_trajectories
 
         figures = ((plot_mrclam_trajectories, "trajectories"), (plot_mrclam_errors, "errors"))
         for draw, name in figures:
@@ -1098,101 +1118,3 @@ def _fmt_overall(v) -> str:
     if v is None:
         return ""
     return f"{v:.6g}"
-
-
-def _pyplot():
-    from resloc.experiments.plots import pyplot
-
-    return pyplot()
-
-
-def plot_mrclam_trajectories(result: MRCLAMResult, path: Path) -> Path:
-    """True (solid) and estimated (dashed) paths, one panel per estimator, with landmarks
-    and danger zones."""
-    plt = _pyplot()
-    names = list(result.estimators)
-    cols = min(len(names), 4)
-    rows = int(np.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.0 * cols, 6.2 * rows + 0.6), squeeze=False)
-    stride = max(round(0.1 / result.config.dt), 1)
-    truth = result.truth[::stride]
-    valid = result.valid[::stride]
-    # Every panel shows the arena (true paths and landmarks, 0.5 m margin); estimates that
-    # drift outside it (dead reckoning) are clipped by the axes.
-    seen = np.vstack([truth[..., :2][valid], result.landmark_xy])
-    lo, hi = seen.min(axis=0) - 0.5, seen.max(axis=0) + 0.5
-    for ax, name in zip(axes.ravel(), names, strict=False):
-        for zone_kind, color in (("sdz", "red"), ("cdz", "blue")):
-            for z in result.zones.get(zone_kind, []):
-                ax.add_patch(plt.Circle(z.center, z.radius, color=color, alpha=0.15))
-                ax.add_patch(plt.Circle(z.center, z.radius, color=color, fill=False, lw=0.8))
-        ax.plot(*result.landmark_xy.T, "k^", ms=5, label="landmarks")
-        est = result.estimators[name].track[::stride]
-        for r, subject in enumerate(result.robots):
-            c = ROBOT_COLORS[r % len(ROBOT_COLORS)]
-            t = np.where(valid[:, r, None], truth[:, r, :2], np.nan)
-            ax.plot(t[:, 0], t[:, 1], "-", color=c, lw=1.0, alpha=0.6, label=f"robot {subject}")
-            ax.plot(est[:, r, 0], est[:, r, 1], "--", color=c, lw=0.8)
-        rmse = result.estimators[name].overall["position_rmse"]
-        label = "dead reckoning" if name == DEAD_RECKONING else name.upper()
-        ax.set_title(f"{label}: RMSE {rmse:.3f} m", fontsize=10)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.grid(alpha=0.3)
-    for ax in axes.ravel()[len(names) :]:
-        ax.axis("off")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
-    fig.suptitle(
-        f"{result.info['dataset']}: {result.info['replayed_s']:.0f} s, truth solid, "
-        "estimate dashed",
-        fontsize=11,
-    )
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_mrclam_errors(result: MRCLAMResult, path: Path) -> Path:
-    """Position error (RMS over robots) and heading error over time per estimator, and the
-    position error of every robot for the first filter."""
-    plt = _pyplot()
-    stride = max(round(0.1 / result.config.dt), 1)
-    t = result.time[::stride]
-    fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
-    with _quiet_nan_warnings():
-        for name, est in result.estimators.items():
-            c = ESTIMATOR_COLORS.get(name)
-            label = "dead reckoning" if name == DEAD_RECKONING else name.upper()
-            pe = np.sqrt(np.nanmean(est.pos_err[::stride] ** 2, axis=1))
-            he = np.degrees(np.sqrt(np.nanmean(est.heading_err[::stride] ** 2, axis=1)))
-            axes[0].plot(t, pe, color=c, lw=0.9, label=label)
-            axes[1].plot(t, he, color=c, lw=0.9, label=label)
-    first = next((n for n in result.estimators if n != DEAD_RECKONING), DEAD_RECKONING)
-    est = result.estimators[first]
-    for r, subject in enumerate(result.robots):
-        axes[2].plot(
-            t,
-            est.pos_err[::stride, r],
-            color=ROBOT_COLORS[r % len(ROBOT_COLORS)],
-            lw=0.8,
-            label=f"robot {subject}",
-        )
-    axes[0].set_ylabel("position error, RMS\nover robots (m)")
-    axes[1].set_ylabel("heading error, RMS\nover robots (deg)")
-    axes[2].set_ylabel(f"{first.upper()} position\nerror (m)")
-    axes[2].set_xlabel("time (s)")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="upper left")
-    axes[0].set_yscale("log")
-    axes[0].set_ylim(bottom=1e-3)
-    axes[0].set_title(f"{result.info['dataset']}: errors against ground truth")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

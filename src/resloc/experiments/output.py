@@ -366,7 +366,8 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
 
     Files: ``scenario.toml`` (resolved, re-runnable), ``summary.json``, ``timeseries.csv``
     (per step and estimator: means over trials), ``transmissions_<filter>.csv`` (robot x
-    step raster of trial 0), ``trajectories.csv`` (trial 0, truth and estimates) and, with
+    step raster of trial 0), ``trajectories.csv`` (trial 0, truth and estimates),
+    ``recording.npz`` (trial 0 step by step, for ``resloc export``) and, with
     matplotlib, ``trajectories.png``, ``msle.png`` and ``transmissions.png`` (a figure that
     cannot be drawn is skipped with a warning).
 
@@ -442,6 +443,9 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
                     x, y, th = arr[k, r]
                     w.writerow([k, r, src, f"{x:.5f}", f"{y:.5f}", f"{th:.5f}"])
     written.append(p)
+    from resloc.experiments.recording import RECORDING_FILE, recording_from_run
+
+    written.append(recording_from_run(result).save(out / RECORDING_FILE))
     if plots:
         from resloc.experiments import plots as plotting
 

@@ -1,5 +1,6 @@
-"""Reports: a small document model rendered to Markdown and to self-contained HTML, and the
-figures of the reproduction report (every curve a mean over seeds with its 95% band).
+"""Reports: a small document model rendered to Markdown and to self-contained HTML. The
+figures of the reproduction report (every curve a mean over seeds with its 95% band) live
+in :mod:`resloc.experiments.plots` and are re-exported here for the report builders.
 
 The HTML embeds every figure as a base64 PNG, so ``report.html`` can be mailed or archived
 on its own; ``report.md`` links the same PNG files under ``figures/``.
@@ -9,17 +10,21 @@ from __future__ import annotations
 
 import base64
 import html
-import math
 import re
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from resloc.experiments.stats import Estimate, mean_ci_series
+from resloc.experiments.plots.bands import (
+    Curve,
+    band_figure,
+    errorbar_figure,
+    raster_figure,
+    xy_errorbar_figure,
+)
+from resloc.experiments.plots.core import COLORS
 
 __all__ = [
+    "COLORS",
     "METRIC_LABELS",
     "Code",
     "Curve",
@@ -45,8 +50,6 @@ METRIC_LABELS = {
     "nees_mean": "NEES, time average",
     "comm_rate": "average communication rate",
 }
-COLORS = {"ckf": "tab:blue", "ukf": "tab:orange", "ekf": "tab:green", "dr": "tab:gray"}
-_DPI = 100
 
 
 # --------------------------------------------------------------------------- document model
@@ -217,199 +220,3 @@ def write_report(report: Report, out: Path, stem: str = "report") -> tuple[Path,
     page = out / f"{stem}.html"
     page.write_text(render_html(report), encoding="utf-8")
     return md, page
-
-
-# --------------------------------------------------------------------------- figures
-@dataclass
-class Curve:
-    """A per-seed time series to draw as mean and 95% band.
-
-    Attributes
-    ----------
-    label : str
-    time : ndarray, shape (steps,)
-    samples : ndarray, shape (steps, T)
-        One column per seed (``nan`` rows are skipped).
-    color, style : str, optional
-    """
-
-    label: str
-    time: np.ndarray
-    samples: np.ndarray
-    color: str | None = None
-    style: str = "-"
-
-
-def _pyplot():
-    from resloc.experiments.plots import pyplot
-
-    return pyplot()
-
-
-def _positive_floor(values: np.ndarray) -> float:
-    pos = values[np.isfinite(values) & (values > 0)]
-    return float(pos.min()) * 0.5 if pos.size else 1e-12
-
-
-def band_figure(
-    path: Path,
-    curves: Sequence[Curve],
-    title: str,
-    ylabel: str = "MSLE (m$^2$)",
-    logy: bool = True,
-) -> Path:
-    """Mean over seeds (line) and its 95% Student-t band (shaded) for each curve.
-
-    On a log axis the lower edge of a band is clipped at half the smallest positive mean.
-    """
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for k, c in enumerate(curves):
-        ok = np.isfinite(c.samples).any(axis=1)
-        mean, half = mean_ci_series(c.samples[ok])
-        t = np.asarray(c.time)[ok]
-        color = c.color or f"C{k}"
-        ax.plot(t, mean, c.style, color=color, label=c.label, lw=1.3)
-        if np.isfinite(half).any():
-            lo, hi = mean - half, mean + half
-            if logy:
-                lo = np.maximum(lo, _positive_floor(mean))
-            ax.fill_between(t, lo, hi, color=color, alpha=0.2, lw=0)
-    if logy:
-        ax.set_yscale("log")
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel(ylabel)
-    return _finish(plt, fig, ax, title, path)
-
-
-def _yerr(est: Sequence[Estimate], logy: bool) -> tuple[np.ndarray, np.ndarray]:
-    mean = np.array([e.mean for e in est], float)
-    half = np.array([e.half if math.isfinite(e.half) else 0.0 for e in est], float)
-    lower = np.minimum(half, mean * 0.999) if logy else half
-    return mean, np.vstack([lower, half])
-
-
-def errorbar_figure(
-    path: Path,
-    x: Sequence,
-    series: dict[str, Sequence[Estimate]],
-    xlabel: str,
-    ylabel: str,
-    title: str,
-    logy: bool = False,
-    hline: tuple[float, str] | None = None,
-) -> Path:
-    """Mean and 95% CI bars of each series against ``x`` (numbers, or categories)."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    numeric = all(isinstance(v, int | float) and not isinstance(v, bool) for v in x)
-    xs = np.asarray(x, float) if numeric else np.arange(len(x), dtype=float)
-    n = max(1, len(series))
-    span = (xs.max() - xs.min()) if xs.size > 1 else 1.0
-    for k, (label, est) in enumerate(series.items()):
-        mean, err = _yerr(est, logy)
-        shift = (k - (n - 1) / 2) * span * 0.008
-        ax.errorbar(
-            xs + shift,
-            mean,
-            yerr=err,
-            marker="o",
-            ms=4,
-            capsize=3,
-            lw=1.2,
-            color=COLORS.get(label, f"C{k}"),
-            label=label.upper() if label in COLORS else label,
-        )
-    if hline is not None:
-        ax.axhline(hline[0], color="k", ls=":", lw=1, label=hline[1])
-    if not numeric:
-        ax.set_xticks(xs, [str(v) for v in x])
-    if logy:
-        ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    return _finish(plt, fig, ax, title, path)
-
-
-def xy_errorbar_figure(
-    path: Path,
-    x: Sequence[Estimate],
-    y: Sequence[Estimate],
-    labels: Sequence[str],
-    xlabel: str,
-    ylabel: str,
-    title: str,
-    logy: bool = False,
-) -> Path:
-    """Points with 95% CI bars on both axes, each annotated (e.g. MSLE against the measured
-    communication rate, one point per trigger setting)."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    xm, xerr = _yerr(x, False)
-    ym, yerr = _yerr(y, logy)
-    order = np.argsort(xm)
-    ax.plot(xm[order], ym[order], "-", color="tab:blue", lw=0.8, alpha=0.6)
-    ax.errorbar(xm, ym, xerr=xerr, yerr=yerr, fmt="o", ms=4, capsize=3, color="tab:blue")
-    for xi, yi, text in zip(xm, ym, labels, strict=True):
-        ax.annotate(text, (xi, yi), textcoords="offset points", xytext=(4, 6), fontsize=8)
-    if logy:
-        ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
-    return Path(path)
-
-
-def raster_figure(path: Path, raster: np.ndarray, time: np.ndarray, title: str) -> Path:
-    """Transmission instances of one seed: robot x time, colour = links on which the robot
-    transmitted, averaged over short time bins (about 200 bins over the run).
-
-    Parameters
-    ----------
-    raster : ndarray, shape (steps, N)
-        Transmissions attempted by each robot at each step.
-    time : ndarray, shape (steps,)
-    """
-    plt = _pyplot()
-    raster = np.asarray(raster, float)
-    steps, n = raster.shape
-    width = max(1, steps // 200)
-    nb = steps // width
-    binned = raster[: nb * width].reshape(nb, width, n).mean(axis=1)
-    t = np.asarray(time, float)
-    t0 = t[0] - (t[1] - t[0] if t.size > 1 else 0.0)
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    im = ax.imshow(
-        binned.T,
-        aspect="auto",
-        origin="lower",
-        interpolation="nearest",
-        cmap="Blues",
-        extent=(t0, t[nb * width - 1], 0.5, n + 0.5),
-        vmin=0.0,
-    )
-    cb = fig.colorbar(im, ax=ax, pad=0.01)
-    cb.set_label("links transmitted / step", fontsize=8)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("robot")
-    ax.yaxis.get_major_locator().set_params(integer=True)
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
-    return Path(path)
-
-
-def _finish(plt, fig, ax, title: str, path) -> Path:
-    """Title, grid, legend, save and close a report figure."""
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
-    return Path(path)

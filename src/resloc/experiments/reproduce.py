@@ -1160,7 +1160,7 @@ def build_report(rep: Reproduction, claims: list[Claim], out: Path):
         letter = "efgh"[k] if k < 4 else str(k)
         paper = PAPER_RATES.get(round(float(v), 3), float("nan"))
         title = f"Fig. 5{letter}: radius {v:g}\n(average communication rate = {cr.format('.3f')})"
-        p = rp.raster_figure(figs / f"fig5{letter}.png", e.raster, run.time, title)
+        p = rp.raster_figure(figs / f"fig5{letter}.png", e.raster, run.time, title, e.links)
         doc.add(
             rp.Image(
                 p,

@@ -25,6 +25,7 @@ from resloc.cl.tracking import JointCovariance
 from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.linalg import symmetrize
 from resloc.models.motion import process_noise
@@ -51,6 +52,8 @@ BYTES_PER_ROBOT_STEP = 1_000
 #: Bytes per sensing link in one step: the link batch and update temporaries, the k-d tree
 #: pairs and the sparse factorisation behind lambda2 of large components.
 BYTES_PER_LINK = 2_500
+#: Bytes of Python objects (small arrays, tuples, floats) kept per step and estimator.
+STEP_OBJECTS = 600
 #: Safety factor and fixed overhead (numpy temporaries, per-step Python lists) on top.
 RUN_MARGIN = 1.2
 RUN_OVERHEAD = 64e6
@@ -96,11 +99,17 @@ class EstimatorResult:
         Estimated poses of trial 0.
     wall_time : float
         Seconds spent in this estimator's predict/correct.
+    cov : ndarray of float32, shape (steps + 1, N, 3, 3), optional
+        Covariances of trial 0 (as reported: with gauge fusion ``D_i + J_i G J_i^T``).
+    links : LinkLog, optional
+        Every sensed link of trial 0 over the run, each shape (M,): ``step`` (1-based),
+        ``i``, ``j``, ``attacked`` (shared by the estimators) and this estimator's
+        ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports and figures).
     diverged : dict or None
         If the estimator diverged: ``step`` (1-based), ``time_s``, ``trial``, ``robot`` and
-        ``reason`` (see :func:`divergence`). Its series and track are ``nan`` from that
-        step on and its summary's error statistics are ``nan``: an average over the steps
-        before the failure would look like a result.
+        ``reason`` (see :func:`divergence`). Its series, track and covariances are ``nan``
+        from that step on (its link outcomes all false) and its summary's error statistics
+        are ``nan``: an average over the steps before the failure would look like a result.
     """
 
     name: str
@@ -109,6 +118,8 @@ class EstimatorResult:
     raster: np.ndarray
     track: np.ndarray
     wall_time: float = 0.0
+    cov: np.ndarray | None = None
+    links: LinkLog | None = None
     diverged: dict | None = None
 
     def summary(self) -> dict[str, float]:
@@ -201,6 +212,9 @@ class _Track:
         self.raster = np.zeros((steps, N), dtype=np.int8)
         self.track = np.zeros((steps + 1, N, 3))
         self.track[0] = x0[:N]
+        self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
+        self.cov[0] = P0[:N]
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
         self.wall = 0.0
         self.diverged: dict | None = None
         self.out = None
@@ -210,30 +224,35 @@ class _Track:
         """Mark the estimator diverged at step index ``k`` (0-based) and blank its future."""
         self.diverged = divergence(k, dt, N, P, reason)
         self.track[k + 1 :] = np.nan
+        self.cov[k + 1 :] = np.nan
         for arr in self.series.values():
             arr[k:] = np.nan
 
 
 def expected_links(scenario: Scenario) -> float:
-    """Sensing links per step (all trials): each robot sees the lattice neighbours inside
-    the sensing radius, ``pi R^2 / spacing^2``, at most the rest of its team."""
+    """Sensing links per step and trial: each robot sees the lattice neighbours inside the
+    sensing radius, ``pi R^2 / spacing^2``, at most the rest of its team."""
     team, radius = scenario.world.team, scenario.world.sensing.radius
-    per_robot = min(team.robots - 1, math.pi * radius**2 / team.spacing**2 + 4)
-    return scenario.run.trials * team.robots * per_robot
+    return team.robots * min(team.robots - 1, math.pi * radius**2 / team.spacing**2 + 4)
 
 
 def run_bytes(scenario: Scenario) -> float:
-    """Estimated peak memory (bytes) of :func:`run_scenario`: per estimator the batched
-    state and the links in flight, plus the recorded series ``(steps, T)`` and the trial-0
-    tracks ``(steps + 1, N, 3)`` (calibrated against measured peaks in
-    ``docs/reliability.md``)."""
+    """Estimated peak memory (bytes) of :func:`run_scenario`: the links and state of one
+    estimator's step, and what every estimator keeps: its state, the series ``(steps, T)``,
+    the trial-0 track, covariances ``(steps + 1, N, 3, 3)`` (float32) and link outcomes
+    (calibrated against measured peaks in ``docs/reliability.md``)."""
     run, n = scenario.run, scenario.world.team.robots
     estimators = len(run.filters) + (1 if run.dead_reckoning else 0)
     robots = run.trials * n
-    step = BYTES_PER_ROBOT_STEP * robots + BYTES_PER_LINK * expected_links(scenario)
-    records = 8.0 * (run.steps + 1) * (len(SERIES) * run.trials + 3 * n) + run.steps * n
+    links = expected_links(scenario)
+    step = BYTES_PER_ROBOT_STEP * robots + BYTES_PER_LINK * links * run.trials
+    records = (run.steps + 1) * (8.0 * len(SERIES) * run.trials + (24 + 36) * n) + run.steps * (
+        n + links
+    )
     kept = estimators * (BYTES_PER_ROBOT_KEPT * robots + records)
-    return RUN_MARGIN * (step + kept + 8.0 * (run.steps + 1) * 3 * n) + RUN_OVERHEAD
+    # Truth, trial-0 link columns, and the per-step Python objects (small arrays, lists).
+    shared = (run.steps + 1) * (24.0 * n + 13.0 * links + STEP_OBJECTS * (1 + estimators))
+    return RUN_MARGIN * (step + kept + shared) + RUN_OVERHEAD
 
 
 def check_run_size(scenario: Scenario) -> None:
@@ -329,30 +348,29 @@ def run_scenario(
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
+    trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
         truth[k + 1] = ws.pose[:N]
+        own = ws.i < N
+        trial0_links.append(
+            (
+                np.full(int(own.sum()), k + 1, np.int32),
+                ws.i[own].astype(np.int32),
+                ws.j[own].astype(np.int32),
+                ws.attacked[own],
+            )
+        )
         team_i = team[ws.i]
         candidates = np.bincount(team_i, minlength=T)
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
         for tr in tracks:
-            if tr.diverged is not None:
-                continue
-            t0 = time.perf_counter()
-            tr.pending_P = None
-            try:
-                _step_estimator(tr, ws, params, hooks, world, scenario, lambda2, dt)
-            except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
-                # One filter's failure must not cost the others' results: stop this one.
-                last = tr.pending_P if tr.pending_P is not None else tr.P
-                tr.stop(k, dt, N, last, str(exc))
-                continue
-            finally:
-                tr.wall += time.perf_counter() - t0
-            if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
-                tr.stop(k, dt, N, tr.P, "the estimate became NaN or infinite")
+            if tr.diverged is None:
+                _isolated_step(tr, k, ws, params, hooks, world, scenario, lambda2, dt, N)
+            if tr.diverged is not None:  # stopped: no link outcomes from here on
+                tr.link_flags.append(np.zeros(int(own.sum()), np.uint8))
                 continue
             _record(tr, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
@@ -362,10 +380,20 @@ def run_scenario(
             _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
+    shared = link_columns(trial0_links)
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
+        log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.diverged
+            tr.name,
+            tr.series,
+            tr.totals,
+            tr.raster,
+            tr.track,
+            tr.wall,
+            tr.cov,
+            log,
+            tr.diverged,
         )
     return RunResult(
         scenario,
@@ -375,6 +403,24 @@ def run_scenario(
         time.perf_counter() - t_start,
         {"robots": N, "trials": T, **hooks.meta()},
     )
+
+
+def _isolated_step(tr: _Track, k: int, ws, params, hooks, world, scenario, lambda2, dt, N) -> None:
+    """:func:`_step_estimator`, timed; a numerical failure or a non-finite estimate stops
+    this estimator (``tr.diverged``) instead of the run: the others' results must not be
+    lost to one filter's divergence."""
+    t0 = time.perf_counter()
+    tr.pending_P = None
+    try:
+        _step_estimator(tr, ws, params, hooks, world, scenario, lambda2, dt)
+    except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        last = tr.pending_P if tr.pending_P is not None else tr.P
+        tr.stop(k, dt, N, last, str(exc))
+        return
+    finally:
+        tr.wall += time.perf_counter() - t0
+    if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
+        tr.stop(k, dt, N, tr.P, "the estimate became NaN or infinite")
 
 
 def _step_estimator(
@@ -593,13 +639,16 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["repairs"][0] += out.repairs
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
+        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
+        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
     tr.track[k + 1] = tr.x[:N]
+    P = tr.P
+    if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
+        P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+    tr.cov[k + 1] = P[:N]
     if record:
         pos_t = ws.pose[:, :2].reshape(T, N, 2)
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        P = tr.P
-        if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-            P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
         s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)

@@ -689,6 +689,7 @@ def save_sweep(result: SweepResult, out: Path, plots: bool = True) -> list[Path]
                         run.time,
                         f"{first.upper()} transmissions, {label} = {_fmt_value(v)}\n"
                         f"(average communication rate = {_rate_text(cr)})",
+                        e.links,
                     )
                 )
     return written
