@@ -120,6 +120,8 @@ class Audit:
             signal.signal(signal.SIGALRM, previous)
         out, err = res.stdout, res.stderr
         crashed = res.exception is not None and not isinstance(res.exception, SystemExit)
+        if res.exit_code != 0 and any(m in out for m in RESULT_MARKERS):
+            self.note("lost_result", f"{klass}: {case}: failed after printing its results")
         if isinstance(res.exception, CaseTimeout):
             self.note("hang", f"{klass}: {case} (stopped after {CASE_LIMIT} s)")
         elif crashed or res.exit_code not in (0, 2) or "Traceback" in out + err:
@@ -133,8 +135,6 @@ class Audit:
             ]
             if len(errors) != 1 or others:
                 self.note("multi_line", f"{klass}: {case}: {err.strip()[:200]!r}")
-            if any(m in out for m in RESULT_MARKERS):
-                self.note("lost_result", f"{klass}: {case}: failed after printing results")
         elif absurd:
             self.note("absurd_accepted", f"{klass}: {case}")
         return res
