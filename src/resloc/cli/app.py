@@ -52,6 +52,12 @@ def _register_all() -> None:
     from resloc.cli import export as _export
 
     _export.register(app)
+    from resloc.cli import swarm as _swarm  # imports zenoh only when the command runs
+
+    _swarm.register(app)
+    from resloc.cli import robot as _robot
+
+    _robot.register(app)
 
 
 _register_all()

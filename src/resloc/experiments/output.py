@@ -68,8 +68,8 @@ class Terminated(BaseException):
 @contextlib.contextmanager
 def signals_as_exceptions() -> Iterator[None]:
     """Within the block, SIGTERM/SIGHUP raise :class:`Terminated` (SIGINT already raises
-    ``KeyboardInterrupt``), so ``finally`` blocks remove temporaries. Outside the main
-    thread this does nothing."""
+    ``KeyboardInterrupt``), so ``finally`` blocks remove temporaries. Signals that already
+    have a handler keep it; outside the main thread this does nothing."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
@@ -79,7 +79,9 @@ def signals_as_exceptions() -> Iterator[None]:
     def handler(signum, frame):
         raise Terminated(signum)
 
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGHUP)}
+    # A handler someone else installed (a runtime process stopping gracefully) is respected.
+    free = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) == signal.SIG_DFL]
+    previous = {s: signal.signal(s, handler) for s in free}
     try:
         yield
     finally:
@@ -395,7 +397,9 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
             "wall_time_s": result.wall_time,
             "estimators": result.summary(),
             "diverged": {
-                name: est.diverged for name, est in result.estimators.items() if est.diverged
+                name: est.diverged
+                for name, est in result.estimators.items()
+                if getattr(est, "diverged", None)
             },
         },
     )

@@ -1,0 +1,185 @@
+"""MRCLAM over the wire: the recorded dataset replaces the simulated world.
+
+The world process loads the dataset and cuts it into steps with the code of ``resloc mrclam``
+(:func:`~resloc.datasets.mrclam.load_mrclam`, :func:`~resloc.experiments.mrclam.prepare_replay`)
+and publishes each step's odometry and robot-to-robot range/bearing sightings to the robot
+processes; the recorder scores the robots' reported estimates against the motion-capture
+ground truth with the same scoring and writer (``_score``, ``save_mrclam``). Landmark sightings
+are not replayed: they are absolute fixes, not robot-to-robot links (``resloc mrclam
+--no-landmarks`` is the in-process equivalent).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+
+from resloc.runtime.options import SwarmOptions
+from resloc.runtime.team import TeamSetup
+from resloc.world.world import WorldStep
+
+__all__ = ["ReplaySource", "load_replay", "replay_link_params", "replay_steps", "score_replay"]
+
+
+@functools.lru_cache(maxsize=2)
+def _load(path: str, duration: float | None, config) -> object:
+    from resloc.datasets.mrclam import load_mrclam
+    from resloc.experiments.mrclam import prepare_replay
+
+    return prepare_replay(load_mrclam(path, duration=duration), config)
+
+
+def load_replay(path: str | Path, team: TeamSetup):
+    """The :class:`~resloc.experiments.mrclam.Replay` of ``path`` under the team's config."""
+    cfg = team.mrclam
+    return _load(str(path), cfg.duration, cfg)
+
+
+def replay_steps(options: SwarmOptions, team: TeamSetup) -> int:
+    """Number of steps of the replay (the supervisor shows progress against it)."""
+    return load_replay(options.replay, team).steps
+
+
+def replay_link_params(team: TeamSetup, z: np.ndarray) -> list[tuple[np.ndarray, object]]:
+    """Rows of ``z: (E, 2)`` grouped by range-noise level with each level's parameters,
+    as ``resloc mrclam`` fuses them (the range noise grows with the range)."""
+    from resloc.experiments.mrclam import _level_params, range_noise_level
+
+    level = range_noise_level(z[:, 0], team.mrclam)
+    cache: dict = {}
+    return [
+        (np.flatnonzero(level == lv), _level_params(cache, team.params, lv, team.mrclam))
+        for lv in np.unique(level)
+    ]
+
+
+class ReplaySource:
+    """Steps of a recorded dataset as :class:`WorldStep` (robot-to-robot sightings only)."""
+
+    def __init__(self, path: Path, team: TeamSetup) -> None:
+        self.rp = load_replay(path, team)
+        self.cfg = team.mrclam
+        self.n = self.rp.dataset.n_robots
+        self.steps = self.rp.steps
+        self.seed = self.cfg.seed
+        self.dt = self.cfg.dt
+        self.k = 0
+
+    def initial_estimates(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ground truth at t = 0 with ``init_std`` (as ``resloc mrclam``)."""
+        p_std, h_std = self.cfg.init_std
+        var = np.maximum([p_std**2, p_std**2, h_std**2], 1e-10)
+        return self.rp.x0.copy(), np.broadcast_to(np.diag(var), (self.n, 3, 3)).copy()
+
+    def initial_pose(self) -> np.ndarray:
+        return self.rp.truth[0].copy()
+
+    def true_pose(self, b: int) -> np.ndarray:
+        return self.rp.truth[self.k, b].copy()
+
+    def step(self) -> WorldStep:
+        rp = self.rp
+        self.k += 1
+        k = self.k
+        rows = np.arange(rp.bounds[k], rp.bounds[k + 1])
+        rows = rows[rp.is_robot[rows]]
+        return WorldStep(
+            k,
+            rp.truth[k].copy(),
+            rp.u[k - 1].copy(),
+            rp.obs[rows],
+            rp.target[rows],
+            rp.z[rows],
+            rp.attacked[rows],
+            rp.channel_ok[rows],
+            rp.risk_s[k],
+            rp.risk_c[k],
+            np.full(self.n, float(self.n)),  # as resloc mrclam: the team is connected
+        )
+
+
+def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wall: float):
+    """The :class:`~resloc.experiments.mrclam.MRCLAMResult` of the robots' reports.
+
+    Parameters
+    ----------
+    X, P : ndarray, shapes (K + 1, N, 3), (K + 1, N, 3, 3)
+        Reported estimates and covariances per step (carried forward where missing).
+    reports : dict
+        ``reports[k][robot]``: the REPORT bodies.
+    steps : int
+        Steps completed (the result covers steps ``0 .. steps``).
+    """
+    import dataclasses
+
+    from resloc.experiments.mrclam import MRCLAMResult, _score
+    from resloc.runtime.messages import (
+        FLAG_DELIVERED,
+        FLAG_DETECTED,
+        FLAG_FUSED,
+        FLAG_TRIGGERED,
+    )
+
+    rp = load_replay(path, team)
+    K = steps
+    cut = rp.bounds[K + 1]
+    rp = dataclasses.replace(
+        rp,
+        time=rp.time[: K + 1],
+        u=rp.u[:K],
+        truth=rp.truth[: K + 1],
+        valid=rp.valid[: K + 1],
+        **{
+            f: getattr(rp, f)[:cut]
+            for f in ("step", "obs", "target", "is_robot", "z", "z_clean", "attacked", "channel_ok")
+        },
+    )
+    M = len(rp.step)
+    links = {
+        "norm": np.full(M, np.nan),
+        "detected": np.zeros(M, bool),
+        "triggered": np.zeros(M, bool),
+        "delivered": np.zeros(M, bool),
+        "fused": np.zeros(M, bool),
+    }
+    for k in range(1, K + 1):
+        rows = np.arange(rp.bounds[k], min(rp.bounds[k + 1], M))
+        rows = rows[rp.is_robot[rows]]
+        for r, rep in reports.get(k, {}).items():
+            mine = rows[rp.obs[rows] == r]
+            if len(mine) != len(rep["flags"]):
+                continue
+            f = rep["flags"]
+            links["norm"][mine] = rep["norm"]
+            links["detected"][mine] = (f & FLAG_DETECTED) > 0
+            links["triggered"][mine] = (f & FLAG_TRIGGERED) > 0
+            links["delivered"][mine] = (f & FLAG_DELIVERED) > 0
+            links["fused"][mine] = (f & FLAG_FUSED) > 0
+    name = team.filter_name
+    est = _score(name, rp, X, P, links, wall)
+    data = rp.dataset
+    info = {
+        "dataset": data.name,
+        "path": str(data.path),
+        "replayed_s": float(rp.time[-1]),
+        "steps": K,
+        "robots": data.robot_subjects.tolist(),
+        "landmarks": len(data.landmark_subjects),
+        "measurements_replayed": {"robot": int(rp.is_robot.sum()), "landmark": 0},
+        "runtime": "resloc swarm --replay (robot processes over Zenoh)",
+    }
+    zones = {"sdz": list(rp.sdz.zones), "cdz": list(rp.cdz.zones)}
+    return MRCLAMResult(
+        team.mrclam,
+        info,
+        rp.time,
+        rp.truth,
+        rp.valid,
+        data.robot_subjects,
+        data.landmark_xy.copy(),
+        zones,
+        {name: est},
+        wall,
+    )

@@ -1,0 +1,424 @@
+"""Robot processes: one :class:`~resloc.cl.node.RobotNode` per robot, fed over the wire.
+
+A robot process hosts one robot (``resloc robot --id I``, as on a robot's own computer) or K
+of them (``resloc swarm --robots-per-process K``); each robot is an independent
+:class:`RobotAgent` with its own node, its own verifier for robot-to-robot frames and its own
+counters. A step of robot i:
+
+1. ``SENSORS(k)``: ``node.predict(u, dt)``; publish its predicted estimate (``ESTIMATE``).
+2. Neighbours' estimates arrive (through the radio). ``node.correct`` on the sensed links
+   whose neighbour estimate arrived: the detector, the event trigger and the fusion are the
+   node's (the library's). A link whose estimate was lost (jammed, out of range) cannot be
+   evaluated and is counted as ``unheard``.
+3. Gauge fusion: publish the acknowledgements ``node.gauge_acks()`` (one ACK frame to all the
+   robots it fused), close the step with the acknowledgements received
+   (``node.gauge_close``), then ``gauge_rounds`` consensus exchanges
+   (``node.gauge_message`` / ``node.gauge_mix``) with the communication neighbours.
+4. Publish ``REPORT(k)``: corrected estimate, reported covariance, per-link decisions,
+   counters.
+
+Lockstep: each phase waits for the radio's delivery of the phase. Realtime: each phase waits
+at most its window (a fraction of dt) and goes on with what arrived; an estimate from an
+earlier step is used while at most ``max_age_steps`` old, dropped (and counted) beyond.
+A lost acknowledgement: the step closes without it, so the gauge covariance misses that
+neighbour's share of the leak (``docs/runtime.md``); the estimates never depend on it.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+
+import numpy as np
+
+from resloc.cl.node import RobotNode
+from resloc.runtime.messages import (
+    FLAG_DELIVERED,
+    FLAG_DETECTED,
+    FLAG_FUSED,
+    FLAG_HEARD,
+    FLAG_TRIGGERED,
+    Kind,
+    Message,
+    Verifier,
+)
+from resloc.runtime.options import Mode, SwarmOptions
+from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
+from resloc.runtime.radio import NEIGHBOURS_PHASE
+from resloc.runtime.team import TeamSetup, team_setup
+from resloc.runtime.transport import Bus
+
+__all__ = ["RobotAgent", "run_robots"]
+
+
+class RobotAgent:
+    """One robot's side of the protocol around its :class:`RobotNode`."""
+
+    def __init__(self, rid: int, team: TeamSetup, options: SwarmOptions, bus: Bus, key: bytes):
+        self.id = rid
+        self.team = team
+        self.options = options
+        self.bus = bus
+        self.realtime = options.mode is Mode.REALTIME
+        self.filt = team.make_filter()
+        self.node: RobotNode | None = None
+        self.inner = Verifier(key, options.max_age_s)  # robot-to-robot frames, own replay state
+        self.counts: collections.Counter = collections.Counter()
+        self.step = 0
+        self.phase: tuple[Kind, int] | None = None  # what this robot waits for
+        self.deadline = 0.0
+        self.sensors: dict | None = None
+        self.tables: dict[int, list[int]] = {}  # communication neighbours per step
+        # per neighbour, its recent estimates by step (a lagging robot must not see a
+        # neighbour's newer estimate replace the one of the step it is closing)
+        self.estimates: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+        self.acks: dict[int, np.ndarray] = {}
+        self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
+        self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
+        self.cpu0 = 0.0
+
+    # ------------------------------------------------------------------ start
+    def on_start(self, msg: Message) -> None:
+        b = msg.body
+        team = self.team
+        self.node = RobotNode(
+            self.id,
+            self.filt,
+            team.params,
+            b["x"],
+            b["P"],
+            n_ids=team.robots,
+            team_size=team.robots if team.gauge else None,
+        )
+        self.phase = None
+        self.estimates.clear()
+        self.realtime = bool(b["rt"])  # the run's mode, whatever this process was told
+        self.warm_up()
+        self.cpu0 = time.process_time()  # CPU of the run itself, not of the start-up
+        if b["rejoin"]:
+            self.counts["rejoined"] += 1
+        self.step = msg.step
+        self.bus.send(
+            self.bus.key("control", "world"),
+            Kind.CONTROL,
+            msg.step,
+            {"cmd": "ready", "arg": "", "n": self.id},
+            sender=self.id,
+        )
+
+    @property
+    def neighbours(self) -> list[int]:
+        """This step's communication neighbours (the radio's neighbour table)."""
+        return self.tables.get(self.step, [])
+
+    def warm_up(self) -> None:
+        """Load the compiled kernels and declare the publishers before the first step (the
+        first correction in a fresh process takes ~0.1-0.5 s: in realtime, several steps)."""
+        team = self.team
+        scratch = RobotNode(
+            self.id,
+            self.filt,
+            team.params,
+            np.zeros(3),
+            np.eye(3) * 0.01,
+            n_ids=team.robots,
+            team_size=team.robots if team.gauge else None,
+        )
+        scratch.predict(np.array([0.1, 0.0]), team.dt)
+        other = (self.id + 1) % team.robots
+        scratch.correct(
+            np.array([other]),
+            np.array([[1.0, 0.0]]),
+            np.array([[1.0, 0.0, 0.0]]),
+            np.eye(3)[None] * 0.01,
+            np.ones(1, dtype=bool),
+            0.0,
+            0.0,
+            1.0,
+        )
+        for key in (self.bus.key("radio", "in"), self.bus.key("report", self.id)):
+            self.bus.declare(key)
+
+    # ------------------------------------------------------------------ phases
+    def on_sensors(self, msg: Message) -> None:
+        if self.node is None:
+            return
+        if self.phase is not None:  # realtime: a new step before this one finished
+            self.counts["overrun"] += 1
+            self.finish_step()
+        b = msg.body
+        self.step = msg.step
+        self.sensors = b
+        self.acks.clear()
+        self.consensus.clear()
+        self.node.predict(b["u"], self.team.dt)
+        x, P = self.node.estimate
+        self.send(Kind.ESTIMATE, {"x": x, "P": P})
+        self.wait(Kind.ESTIMATE, 0)
+
+    def wait(self, kind: Kind, rnd: int) -> None:
+        self.phase = (kind, rnd)
+        if self.realtime:
+            windows = self.options.windows
+            frac = (
+                windows[0]
+                if kind is Kind.ESTIMATE
+                else windows[1]
+                if kind is Kind.ACK
+                else (windows[2])
+            )
+            self.deadline = time.monotonic() + frac * self.team.dt
+
+    def send(self, kind: Kind, body: dict) -> None:
+        self.bus.send(self.bus.key("radio", "in"), kind, self.step, body, sender=self.id)
+
+    def on_delivery(self, msg: Message) -> None:
+        """Frames the radio delivered to this robot (each verified here, as received)."""
+        body = msg.body
+        if body["phase"] in (NEIGHBOURS_PHASE, int(Kind.ESTIMATE)):  # the neighbour table
+            self.tables[msg.step] = [int(v) for v in body["nb"]]
+            for old in [k for k in self.tables if k < msg.step - 2]:
+                del self.tables[old]
+        for frame in body["msgs"]:
+            inner = self.inner.open(frame, self.bus.key("radio", "in"))
+            if inner is None or inner.sender >= self.team.robots or inner.sender == self.id:
+                self.counts["rejected_inner"] += 1
+                continue
+            self.take(inner)
+        if not self.realtime and self.phase == (body["phase"], body["round"]):
+            if msg.step == self.step:
+                self.advance()
+        elif self.realtime and self.phase is not None and self.complete():
+            self.advance()
+
+    def take(self, m: Message) -> None:
+        if m.kind is Kind.ESTIMATE:
+            hist = self.estimates.setdefault(m.sender, {})
+            hist[m.step] = (m.body["x"], m.body["P"])
+            keep = m.step - self.options.max_age_steps - 2
+            for old in [k for k in hist if k < keep]:
+                del hist[old]
+        elif m.kind is Kind.ACK:
+            if (
+                m.step != self.step
+                or self.phase is None
+                or self.phase[0]
+                not in (
+                    Kind.ESTIMATE,
+                    Kind.ACK,
+                )
+            ):
+                self.counts["acks_late"] += 1  # the step closed without it
+                return
+            mine = m.body["to"] == self.id
+            if mine.any():
+                self.acks[m.sender] = m.body["ack"][mine].sum(axis=0)
+        elif m.kind is Kind.CONSENSUS:
+            rnd = int(m.body["round"])
+            if (
+                m.step != self.step
+                or self.phase is None
+                or (self.phase[0] is Kind.CONSENSUS and rnd < self.phase[1])
+            ):
+                self.counts["consensus_late"] += 1
+                return
+            self.consensus.setdefault(rnd, {})[m.sender] = (m.body["m"], int(m.body["deg"]))
+
+    def complete(self) -> bool:
+        """Realtime: everything this phase can expect has arrived (go on before the window
+        closes)."""
+        kind, _ = self.phase
+        if kind is Kind.ESTIMATE:
+            need = {int(j) for j in self.sensors["j"]}
+            return all(self.step in self.estimates.get(j, {}) for j in need)
+        if kind is Kind.CONSENSUS:
+            return set(self.neighbours) <= set(self.consensus.get(self.phase[1], {}))
+        return False  # acknowledgements: their number is unknown to the receiver
+
+    def tick(self, now: float) -> None:
+        if self.realtime and self.phase is not None and now >= self.deadline:
+            self.advance()
+
+    def advance(self) -> None:
+        kind, rnd = self.phase
+        if kind is Kind.ESTIMATE:
+            self.correct()
+            if not self.team.gauge:
+                self.phase = None
+                self.finish_step()
+                return
+            to, ack = (
+                zip(*self.node.gauge_acks(), strict=True)
+                if self.node.gauge_acks()
+                else (
+                    (),
+                    (),
+                )
+            )
+            self.send(
+                Kind.ACK,
+                {
+                    "to": np.asarray(to, dtype=np.int64),
+                    "ack": np.asarray(ack, dtype=float).reshape(-1, 3, 3),
+                },
+            )
+            self.wait(Kind.ACK, 0)
+        elif kind is Kind.ACK:
+            self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
+            self.counts["acks_received"] += len(self.acks)
+            self.start_round(0)
+        elif kind is Kind.CONSENSUS:
+            mine = self.consensus.pop(rnd, {})
+            got = [s for s in sorted(mine) if s in self.neighbours]
+            self.node.gauge_mix([mine[s][0] for s in got], [mine[s][1] for s in got])
+            self.counts["consensus_missing"] += len(set(self.neighbours) - set(got))
+            if rnd + 1 < self.team.gauge_rounds:
+                self.start_round(rnd + 1)
+            else:
+                self.phase = None
+                self.finish_step()
+
+    def start_round(self, rnd: int) -> None:
+        self.wait(Kind.CONSENSUS, rnd)
+        self.send(
+            Kind.CONSENSUS,
+            {"round": rnd, "m": self.node.gauge_message(), "deg": len(self.neighbours)},
+        )
+
+    def correct(self) -> None:
+        s = self.sensors
+        j = s["j"].astype(np.int64)
+        heard = np.zeros(len(j), dtype=bool)
+        # Lockstep uses this step's estimates only (as the simulator); realtime also late ones.
+        max_age = self.options.max_age_steps if self.realtime else 0
+        x_nb = np.zeros((len(j), 3))
+        P_nb = np.zeros((len(j), 3, 3))
+        for e, nb in enumerate(j):
+            steps = [k for k in self.estimates.get(int(nb), {}) if k <= self.step]
+            if not steps:
+                continue
+            newest = max(steps)
+            age = self.step - newest
+            if age > max_age:
+                if self.realtime:
+                    self.counts["estimates_stale_dropped"] += 1
+                continue
+            if age > 0:
+                self.counts["estimates_late_used"] += 1
+            heard[e] = True
+            x_nb[e], P_nb[e] = self.estimates[int(nb)][newest]
+        self.counts["unheard"] += int((~heard).sum())
+        flags = np.where(heard, FLAG_HEARD, 0).astype(np.uint8)
+        norm = np.full(len(j), np.nan)
+        repairs = 0
+        for rows, params in self.team.link_params(s["z"]):
+            h = rows[heard[rows]]
+            if not len(h):
+                continue
+            self.node.params = params
+            out = self.node.correct(
+                j[h],
+                s["z"][h],
+                x_nb[h],
+                P_nb[h],
+                np.ones(len(h), dtype=bool),
+                s["rs"],
+                s["rc"],
+                s["l2"],
+            )
+            for bit, arr in (
+                (FLAG_DETECTED, out.detected),
+                (FLAG_TRIGGERED, out.triggered),
+                (FLAG_DELIVERED, out.delivered),
+                (FLAG_FUSED, out.fused),
+            ):
+                flags[h] |= np.where(arr, bit, 0).astype(np.uint8)
+            norm[h] = out.norm
+            repairs += int(out.repairs)
+        self.node.params = self.team.params
+        self.outcome = (j, flags, norm, repairs)
+
+    def finish_step(self) -> None:
+        """Report the step (realtime overrun: first close what is still open)."""
+        if self.phase is not None:
+            kind, _ = self.phase
+            if kind is Kind.ESTIMATE:
+                self.correct()
+            elif kind is Kind.ACK:
+                self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
+            self.phase = None
+        j, flags, norm, repairs = self.outcome
+        self.bus.send(
+            self.bus.key("report", self.id),
+            Kind.REPORT,
+            self.step,
+            {
+                "robot": self.id,
+                "x": self.node.x[0],
+                "P": self.node.covariance,
+                "j": j,
+                "flags": flags,
+                "norm": norm,
+                "rep": repairs,
+                "cnt": dict(self.counts)
+                | {f"inner_{k}": v for k, v in self.inner.counts().items()}
+                | {"cpu_ms_process": int(1000 * (time.process_time() - self.cpu0))},
+            },
+            sender=self.id,
+        )
+
+
+def run_robots(options: SwarmOptions, ids: list[int]) -> int:
+    """Run robots ``ids`` in this process until the world ends the run."""
+    from resloc.errors import ConfigError
+    from resloc.runtime.messages import load_or_create_key
+
+    team = team_setup(options)
+    bad = [i for i in ids if not 0 <= i < team.robots]
+    if bad:
+        raise ConfigError(f"--id {bad[0]}: the team has robots 0..{team.robots - 1}")
+    key = load_or_create_key(options.key_file)
+    bus = connect_bus(options, ids[0])
+    try:
+        agents = {i: RobotAgent(i, team, options, bus, key) for i in ids}
+        for i in ids:
+            for leaf in ("start", "sensors", "inbox"):
+                bus.subscribe(bus.key("robot", i, leaf))
+        bus.subscribe(bus.key("control", "end"))
+        bus.watch_liveliness(bus.key("alive", "world"))
+        for i in ids:
+            bus.declare_alive(bus.key("alive", "robot", i))
+        world_seen = False
+        while True:
+            deadline = min(
+                (a.deadline for a in agents.values() if a.phase and a.realtime), default=None
+            )
+            wait = 0.5 if deadline is None else max(0.0, deadline - time.monotonic())
+            item = bus.get(wait)
+            now = time.monotonic()
+            if item is not None:
+                tag, key_expr, payload = item
+                if tag == "alive":
+                    if payload:
+                        world_seen = True
+                    elif world_seen:
+                        print(f"robot {ids}: world process lost; stopping", flush=True)
+                        return EXIT_LOST
+                else:
+                    msg = bus.open(item)
+                    if msg is not None:
+                        if msg.kind is Kind.CONTROL and msg.body["cmd"] == "end":
+                            return EXIT_OK
+                        parts = key_expr.split("/")
+                        agent = agents.get(int(parts[-2])) if parts[-2].isdigit() else None
+                        if agent is not None:
+                            if msg.kind is Kind.START:
+                                agent.on_start(msg)
+                            elif msg.kind is Kind.SENSORS:
+                                agent.on_sensors(msg)
+                            elif msg.kind is Kind.DELIVERY:
+                                agent.on_delivery(msg)
+            for a in agents.values():
+                a.tick(now)
+    finally:
+        bus.close()

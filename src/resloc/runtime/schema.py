@@ -1,0 +1,237 @@
+"""The bodies of the wire format: each message kind's fields, their types and shapes.
+
+``FIELDS[kind]`` is the schema of one kind (version 1, ``docs/runtime.md``); arrays travel as
+raw little-endian bytes whose dtype and shape the schema fixes, so a decoder never trusts a
+shape from the wire. :func:`decode_body` validates everything and raises
+:class:`MalformedBodyError` naming the field.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+__all__ = [
+    "FIELDS",
+    "FLAG_DELIVERED",
+    "FLAG_DETECTED",
+    "FLAG_FUSED",
+    "FLAG_HEARD",
+    "FLAG_TRIGGERED",
+    "ROBOT_TO_ROBOT",
+    "Kind",
+    "MalformedBodyError",
+    "decode_body",
+    "encode_body",
+]
+
+
+class Kind(enum.IntEnum):
+    """Message kinds. Robot-to-robot kinds (through the radio): ESTIMATE, ACK, CONSENSUS."""
+
+    SENSORS = 1  # world -> robot: odometry and range/bearing measurements of one step
+    CHANNEL = 2  # world -> radio: this step's links and their channel outcomes
+    TRUTH = 3  # world -> recorder: true poses and which measurements were attacked
+    START = 4  # world -> robot: initial (or re-join) estimate
+    ESTIMATE = 5  # robot -> radio -> robots: predicted estimate (x, P)
+    ACK = 6  # robot -> radio -> robots: gauge acknowledgements L_i B_ij
+    CONSENSUS = 7  # robot -> radio -> robots: one gauge consensus exchange
+    DELIVERY = 8  # radio -> robot: robot-to-robot messages delivered to it
+    REPORT = 9  # robot -> world, recorder: corrected estimate and link decisions
+    STATS = 10  # radio -> recorder: messages and bytes on the wire this step
+    CONTROL = 11  # anyone -> anyone: ready / join / end / stop / progress / written
+
+
+#: Kinds a robot sends to robots (what the radio model applies to).
+ROBOT_TO_ROBOT = (Kind.ESTIMATE, Kind.ACK, Kind.CONSENSUS)
+
+
+# ---------------------------------------------------------------- schema of the bodies
+@dataclass(frozen=True)
+class Array:
+    """An array field: dtype and shape (``-1`` for the one variable leading dimension)."""
+
+    dtype: str
+    shape: tuple[int, ...]
+
+
+INT, FLOAT, BOOL, STR, BLOBS, COUNTS = "int", "float", "bool", "str", "blobs", "counts"
+
+F8, I8, U1 = "<f8", "<i8", "|u1"
+
+#: Fields of every kind's body. Arrays sharing a variable dimension must agree (``_ROWS``).
+FIELDS: dict[Kind, dict[str, Any]] = {
+    Kind.SENSORS: {
+        "u": Array(F8, (2,)),
+        "l2": FLOAT,
+        "rs": FLOAT,
+        "rc": FLOAT,
+        "j": Array(I8, (-1,)),
+        "z": Array(F8, (-1, 2)),
+    },
+    Kind.CHANNEL: {
+        "i": Array(I8, (-1,)),
+        "j": Array(I8, (-1,)),
+        "ok": Array(U1, (-1,)),
+        "fed": Array(I8, (-1,)),
+    },
+    Kind.TRUTH: {
+        "pose": Array(F8, (-1, 3)),
+        "i": Array(I8, (-1,)),
+        "j": Array(I8, (-1,)),
+        "att": Array(U1, (-1,)),
+        "fed": Array(I8, (-1,)),
+    },
+    Kind.START: {
+        "robot": INT,
+        "x": Array(F8, (3,)),
+        "P": Array(F8, (3, 3)),
+        "rejoin": BOOL,
+        "rt": BOOL,
+    },
+    Kind.ESTIMATE: {"x": Array(F8, (3,)), "P": Array(F8, (3, 3))},
+    Kind.ACK: {"to": Array(I8, (-1,)), "ack": Array(F8, (-1, 3, 3))},
+    Kind.CONSENSUS: {"round": INT, "m": Array(F8, (2, 3, 3)), "deg": INT},
+    Kind.DELIVERY: {
+        "to": INT,
+        "phase": INT,
+        "round": INT,
+        "nb": Array(I8, (-1,)),
+        "msgs": BLOBS,
+    },
+    Kind.REPORT: {
+        "robot": INT,
+        "x": Array(F8, (3,)),
+        "P": Array(F8, (3, 3)),
+        "j": Array(I8, (-1,)),
+        "flags": Array(U1, (-1,)),
+        "norm": Array(F8, (-1,)),
+        "rep": INT,
+        "cnt": COUNTS,
+    },
+    Kind.STATS: {
+        "robot": Array(I8, (-1,)),
+        "kind": Array(I8, (-1,)),
+        "msgs": Array(I8, (-1,)),
+        "bytes": Array(I8, (-1,)),
+        "copies": Array(I8, (-1,)),
+        "jammed": Array(I8, (-1,)),
+        "cnt": COUNTS,
+    },
+    Kind.CONTROL: {"cmd": STR, "arg": STR, "n": INT},
+}
+
+#: Groups of fields whose leading dimension must be equal.
+_ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
+    Kind.SENSORS: (("j", "z"),),
+    Kind.CHANNEL: (("i", "j", "ok"),),
+    Kind.TRUTH: (("i", "j", "att"),),
+    Kind.ACK: (("to", "ack"),),
+    Kind.REPORT: (("j", "flags", "norm"),),
+    Kind.STATS: (("robot", "kind", "msgs", "bytes", "copies", "jammed"),),
+}
+
+#: Bits of ``REPORT.flags`` (one byte per link).
+FLAG_DETECTED, FLAG_TRIGGERED, FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD = 1, 2, 4, 8, 16
+
+_NON_FINITE_OK = {(Kind.REPORT, "norm")}  # a discarded link's threshold norm may be nan
+
+
+class MalformedBodyError(ValueError):
+    """The body does not match its kind's schema (message names the field)."""
+
+
+def _encode_field(spec: Any, value: Any) -> Any:
+    if isinstance(spec, Array):
+        a = np.ascontiguousarray(np.asarray(value).astype(spec.dtype, copy=False))
+        return a.tobytes()
+    if spec == INT:
+        return int(value)
+    if spec == FLOAT:
+        return float(value)
+    if spec == BOOL:
+        return bool(value)
+    if spec == STR:
+        return str(value)
+    if spec == BLOBS:
+        return [bytes(b) for b in value]
+    if spec == COUNTS:
+        return {str(k): int(v) for k, v in value.items()}
+    raise TypeError(spec)
+
+
+def _decode_field(kind: Kind, name: str, spec: Any, value: Any) -> Any:
+    if isinstance(spec, Array):
+        if not isinstance(value, bytes):
+            raise MalformedBodyError(f"{name}: not bytes")
+        item = np.dtype(spec.dtype).itemsize
+        fixed = math.prod(d for d in spec.shape if d != -1)
+        if len(value) % (item * fixed):
+            raise MalformedBodyError(f"{name}: {len(value)} bytes is not a whole number of rows")
+        a = np.frombuffer(value, dtype=spec.dtype)
+        shape = tuple(len(a) // fixed if d == -1 else d for d in spec.shape)
+        if math.prod(shape) != len(a):
+            raise MalformedBodyError(f"{name}: {len(a)} values do not fit shape {spec.shape}")
+        a = a.reshape(shape).astype(spec.dtype[1:], copy=True)
+        if a.dtype.kind == "f" and (kind, name) not in _NON_FINITE_OK and not np.isfinite(a).all():
+            raise MalformedBodyError(f"{name}: non-finite value")
+        return a
+    if spec == INT:
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise MalformedBodyError(f"{name}: not an integer")
+        return value
+    if spec == FLOAT:
+        if not isinstance(value, float | int) or isinstance(value, bool):
+            raise MalformedBodyError(f"{name}: not a number")
+        if not math.isfinite(value):
+            raise MalformedBodyError(f"{name}: non-finite value")
+        return float(value)
+    if spec == BOOL:
+        if not isinstance(value, bool):
+            raise MalformedBodyError(f"{name}: not a boolean")
+        return value
+    if spec == STR:
+        if not isinstance(value, str) or len(value) > 4096:
+            raise MalformedBodyError(f"{name}: not a string")
+        return value
+    if spec == BLOBS:
+        if not isinstance(value, list) or not all(isinstance(b, bytes) for b in value):
+            raise MalformedBodyError(f"{name}: not a list of byte strings")
+        return value
+    if spec == COUNTS:
+        if not isinstance(value, dict) or not all(
+            isinstance(k, str) and isinstance(v, int) and not isinstance(v, bool)
+            for k, v in value.items()
+        ):
+            raise MalformedBodyError(f"{name}: not a map of counts")
+        return value
+    raise TypeError(spec)
+
+
+def encode_body(kind: Kind, body: dict) -> bytes:
+    """The msgpack bytes of ``body`` (every field of ``FIELDS[kind]``, nothing else)."""
+    spec = FIELDS[kind]
+    if set(body) != set(spec):
+        raise ValueError(f"{kind.name}: fields {sorted(body)} != schema {sorted(spec)}")
+    return msgpack.packb({k: _encode_field(spec[k], body[k]) for k in spec}, use_bin_type=True)
+
+
+def decode_body(kind: Kind, raw: bytes) -> dict:
+    """Decode and validate a body; raises :class:`MalformedBodyError`."""
+    try:
+        data = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=1 << 24)
+    except Exception as exc:  # msgpack raises many types on garbage
+        raise MalformedBodyError(f"undecodable body ({exc.__class__.__name__})") from None
+    spec = FIELDS[kind]
+    if not isinstance(data, dict) or set(data) != set(spec):
+        raise MalformedBodyError("fields do not match the schema")
+    body = {k: _decode_field(kind, k, spec[k], data[k]) for k in spec}
+    for group in _ROWS.get(kind, ()):
+        if len({len(body[k]) for k in group}) != 1:
+            raise MalformedBodyError(f"{'/'.join(group)}: lengths differ")
+    return body

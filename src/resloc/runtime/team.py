@@ -1,0 +1,140 @@
+"""What the whole team agrees on before a run: size, step, filter and estimator parameters.
+
+Every process (world, radio, robots, recorder) builds the same :class:`TeamSetup` from the
+same files (:func:`team_setup`): the scenario of ``resloc run`` or an MRCLAM replay's
+configuration. Nothing here runs a filter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.params import CLParams
+from resloc.errors import ConfigError
+from resloc.experiments.config import RiskSource, Scenario, load_scenario
+from resloc.filters.base import FilterKind, GaussianFilter, make_filter
+from resloc.runtime.options import SwarmOptions
+from resloc.world.attacks import AttackKind
+
+__all__ = ["TeamSetup", "check_supported", "team_setup"]
+
+#: Estimator options a robot process runs (RobotNode's fusion methods).
+NODE_FUSIONS = (FusionMethod.NAIVE, FusionMethod.GAUGE, FusionMethod.CI)
+
+
+@dataclass
+class TeamSetup:
+    """The team-wide constants of a run.
+
+    Attributes
+    ----------
+    robots : int
+    dt : float
+    steps : int
+    params : CLParams
+    filter_name : str
+    gauge_rounds : int
+        Consensus exchanges per step with gauge fusion (0 otherwise).
+    scenario : Scenario or None
+        The simulated world's scenario (None for a replay).
+    mrclam : MRCLAMConfig or None
+    """
+
+    robots: int
+    dt: float
+    steps: int
+    params: CLParams
+    filter_name: str
+    gauge_rounds: int
+    scenario: Scenario | None = None
+    mrclam: object | None = None
+
+    def link_params(self, z: np.ndarray) -> list[tuple[np.ndarray, CLParams]]:
+        """This step's links ``z: (E, 2)`` grouped by the parameters they are fused with
+        (one group; a replay groups them by range-noise level, as ``resloc mrclam``)."""
+        if self.mrclam is not None:
+            from resloc.runtime.replay import replay_link_params
+
+            return replay_link_params(self, z)
+        return [(np.arange(len(z)), self.params)]
+
+    def make_filter(self) -> GaussianFilter:
+        if self.scenario is None:
+            return make_filter(FilterKind(self.filter_name))
+        e = self.scenario.estimator
+        return make_filter(FilterKind(self.filter_name), e.ukf_alpha, e.ukf_beta, e.ukf_kappa)
+
+    @property
+    def gauge(self) -> bool:
+        return self.params.fusion is FusionMethod.GAUGE
+
+
+def check_supported(scenario: Scenario) -> None:
+    """Refuse scenario options the runtime does not run, naming the field (ConfigError)."""
+    if scenario.run.trials != 1:
+        raise ConfigError(
+            f"run.trials: {scenario.run.trials}; a swarm is one team, set run.trials = 1"
+        )
+    if scenario.estimator.fusion not in NODE_FUSIONS:
+        raise ConfigError(
+            f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
+            "processes; use naive, gauge or ci"
+        )
+    if scenario.trigger.lambda2 == "distributed":
+        raise ConfigError(
+            "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"
+        )
+    if scenario.trigger.risk_source is not RiskSource.TRUE:
+        raise ConfigError("trigger.risk_source: the runtime supports 'true' only")
+    if scenario.world.attack.kind is AttackKind.STEALTHY:
+        raise ConfigError(
+            "attack.kind: 'stealthy' needs the victim's filter inside the world; "
+            "use random, fixed, gaussian or replay"
+        )
+
+
+def team_setup(options: SwarmOptions) -> TeamSetup:
+    """The team's constants from the run's files (scenario or MRCLAM replay)."""
+    if options.replay:
+        from resloc.experiments.mrclam import MRCLAMConfig
+
+        cfg = MRCLAMConfig(
+            filters=(options.filter,),
+            dt=options.replay_dt,
+            duration=options.replay_seconds or None,
+            landmarks=False,
+        )
+        robots, steps = options.robots, options.replay_steps
+        if not robots:  # the supervisor: read the dataset once and tell the others
+            from resloc.runtime.replay import load_replay
+
+            rp = load_replay(
+                options.replay, TeamSetup(0, cfg.dt, 0, cfg.cl_params(), "", 0, None, cfg)
+            )
+            robots, steps = rp.dataset.n_robots, rp.steps
+        return TeamSetup(
+            robots=robots,
+            dt=cfg.dt,
+            steps=steps,
+            params=cfg.cl_params(),
+            filter_name=options.filter,
+            gauge_rounds=0,
+            mrclam=cfg,
+        )
+    scenario = load_scenario(Path(options.scenario))
+    check_supported(scenario)
+    params = scenario.cl_params()
+    gauge = params.fusion is FusionMethod.GAUGE
+    return TeamSetup(
+        robots=scenario.world.team.robots,
+        dt=scenario.world.motion.dt,
+        steps=scenario.run.steps,
+        params=params,
+        filter_name=options.filter,
+        gauge_rounds=scenario.estimator.gauge_rounds if gauge else 0,
+        scenario=scenario,
+    )
