@@ -324,3 +324,33 @@ def test_mrclam_reports_dropped_and_reordered_rows_and_strict_refuses(tmp_path):
     res = runner.invoke(app, [*args, "--strict", "--out", str(tmp_path / "b")])
     line = _one_error_line(res, "Robot2_Odometry.dat:")
     assert "--strict" in line and not (tmp_path / "b").exists()
+
+
+def test_a_signal_during_a_finalizer_is_raised_after_it_not_lost(monkeypatch):
+    from resloc.signals import raising_handler
+
+    class StopError(Exception):
+        pass
+
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    previous = signal.signal(signal.SIGUSR1, raising_handler(lambda signum: StopError()))
+    finished = []
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGUSR1)
+            total = 0
+            for k in range(10_000):  # bytecodes during which the signal is pending
+                total += k
+            finished.append(total)
+
+    try:
+        with pytest.raises(StopError):
+            obj = Finalized()
+            del obj
+            for _ in range(1000):
+                time.sleep(0.001)
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert finished == [sum(range(10_000))] and unraisable == []

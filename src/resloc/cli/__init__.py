@@ -11,6 +11,22 @@ def _one_line_interrupt(exc_type, exc, tb):
     sys.__excepthook__(exc_type, exc, tb)
 
 
+def _install() -> None:
+    import signal
+    import threading
+
+    from resloc.signals import raising_handler
+
+    sys.excepthook = _one_line_interrupt
+    # Ctrl-C raises KeyboardInterrupt as usual, but never inside a finalizer (where Python
+    # would print a traceback and drop it).
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    ):
+        signal.signal(signal.SIGINT, raising_handler(lambda signum: KeyboardInterrupt()))
+
+
 # Installed as soon as the command line is imported; typer installs its own hook when the
 # app runs, and the commands map KeyboardInterrupt themselves (exit 130).
-sys.excepthook = _one_line_interrupt
+_install()

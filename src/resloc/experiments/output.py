@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from resloc.errors import ConfigError
+from resloc.signals import raising_handler
 
 __all__ = [
     "Terminated",
@@ -76,12 +77,14 @@ def signals_as_exceptions() -> Iterator[None]:
         yield
         return
 
-    def handler(signum, frame):
-        raise Terminated(signum)
-
+    terminate = raising_handler(Terminated)
+    interrupt = raising_handler(lambda signum: KeyboardInterrupt())
     # A handler someone else installed (a runtime process stopping gracefully) is respected.
-    free = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) == signal.SIG_DFL]
-    previous = {s: signal.signal(s, handler) for s in free}
+    wanted = {signal.SIGTERM: terminate, signal.SIGHUP: terminate, signal.SIGINT: interrupt}
+    defaults = {signal.SIGTERM: signal.SIG_DFL, signal.SIGHUP: signal.SIG_DFL}
+    defaults[signal.SIGINT] = signal.default_int_handler
+    free = [s for s in wanted if signal.getsignal(s) in (defaults[s], wanted[s])]
+    previous = {s: signal.signal(s, wanted[s]) for s in free}
     try:
         yield
     finally:
