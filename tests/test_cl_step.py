@@ -483,3 +483,9 @@ def test_per_robot_array_parameters() -> None:
         np.testing.assert_array_equal(out.detected[rows], o1.detected[rows])
         np.testing.assert_array_equal(out.triggered[rows], o1.triggered[rows])
         np.testing.assert_allclose(out.threshold[rows], o1.threshold[rows], rtol=1e-14)
+
+
+def test_clparams_has_no_unused_catch_all_field() -> None:
+    """Every CLParams field is an option the step reads; a free-form dict is not."""
+    with pytest.raises(TypeError):
+        CLParams(extra={"rho": 0.1})

@@ -1,5 +1,6 @@
 """Scenario schema: validation errors name the field; TOML round-trips."""
 
+import enum
 import tomllib
 from pathlib import Path
 
@@ -55,6 +56,7 @@ def test_dump_load_roundtrip(tmp_path):
         ({"motion": {"waypoints": [[0, 0]]}}, "motion.waypoints"),
         ({"attack": {"bias": [0.1, -0.2]}}, "attack.bias[1]: -0.2 is below the minimum"),
         ({"trigger": {"lambda2": "local"}}, "trigger.lambda2: 'local' is not one of"),
+        ({"estimator": {"gauge_sums": "sum"}}, "estimator.gauge_sums: 'sum' is not one of exact"),
         ({"run": {"steps": 0}}, "run.steps: 0 is below the minimum 1"),
     ],
 )
@@ -84,3 +86,15 @@ def test_replace_validates():
 @pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.toml")), ids=lambda p: p.name)
 def test_examples_are_valid(path):
     load_scenario(path)
+
+
+@pytest.mark.parametrize(
+    ("section", "key", "value"),
+    [("trigger", "lambda2", "distributed"), ("estimator", "gauge_sums", "consensus")],
+)
+def test_string_choices_are_enums(section, key, value):
+    default = getattr(getattr(default_scenario(), section), key)
+    assert isinstance(default, enum.StrEnum)
+    changed = default_scenario().replace(**{f"{section}.{key}": value})
+    chosen = getattr(getattr(changed, section), key)
+    assert isinstance(chosen, enum.StrEnum) and chosen == value

@@ -3,7 +3,8 @@ path, backend selection and fallbacks, and the scalable ``lambda2``."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+import enum
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from resloc.cl import (
     kernels,
     predict,
 )
+from resloc.cl.backend import kernel_refusal
 from resloc.cl.graph import DENSE_MAX, Lambda2Memo, algebraic_connectivity, component_lambda2
 from resloc.cl.graph import laplacian as graph_laplacian
 from resloc.errors import ConfigError, NumericalError
@@ -39,7 +41,7 @@ FILTERS = {
     "ekf": make_filter("ekf"),
     "ckf-arith": SigmaPointFilter(FilterKind.CKF, cubature_rule(3), cubature_rule(6), False),
 }
-FIELDS = ("norm", "threshold", "detected", "triggered", "delivered", "fused", "repairs")
+FIELDS = ("norm", "threshold", "detected", "triggered", "delivered", "fused", "repaired", "repairs")
 
 
 def random_batch(seed: int, B: int = 40, outliers: float = 0.1, fail: float = 0.2):
@@ -73,15 +75,22 @@ def random_batch(seed: int, B: int = 40, outliers: float = 0.1, fail: float = 0.
 
 
 def run_both(filt, x, P, links, params, memories=(None, None)):
+    """The correction by the compiled kernel and by the numpy reference; asserts which path
+    computed each."""
     out = {}
     for backend, memory in zip(("numba", "numpy"), memories, strict=True):
         with kernels.use_backend(backend):
             out[backend] = correct(filt, x, P, links, params, memory)
+    assert out["numba"][2].compiled, "the compiled kernel did not run"
+    assert not out["numpy"][2].compiled
     return out["numba"], out["numpy"]
 
 
 def assert_equivalent(fast, ref, tol: float = 1e-9) -> None:
+    """The compiled kernel's correction ``fast`` equals the reference path's ``ref``; asserts
+    that each came from its path."""
     (xf, Pf, of), (xr, Pr, orf) = fast, ref
+    assert of.compiled and not orf.compiled, "compared the wrong paths"
     d = xf - xr
     d[:, 2] = wrap_angle(d[:, 2])
     assert np.abs(d).max() <= tol
@@ -251,26 +260,40 @@ def test_uncovered_options_fall_back_to_the_reference() -> None:
             links.lambda2,
         )  # fmt: skip
         assert kernels.fast_correct(FILTERS["ckf"], x, P, dup, base) is None
-        # Options or link fields added later run the reference unless at their defaults.
-        more = MoreParams(range_std=0.02, bearing_std=0.03, rho=1.0, alpha=0.05)
-        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, more) is not None
-        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, replace(more, novelty=1)) is None
-        hooked = HookedBatch(**{f.name: getattr(links, f.name) for f in fields(LinkBatch)})
-        assert kernels.fast_correct(FILTERS["ckf"], x, P, hooked, base) is not None
-        hooked.hook = print
-        assert kernels.fast_correct(FILTERS["ckf"], x, P, hooked, base) is None
     with kernels.use_backend("numpy"):
         assert kernels.fast_correct(FILTERS["ckf"], x, P, links, base) is None
 
 
-@dataclass(frozen=True)
-class MoreParams(CLParams):
-    novelty: float = 0.0
+def _other_values(value):
+    """Non-default values of a CLParams field, whatever its type (also for fields added later)."""
+    if isinstance(value, enum.Enum):
+        return [v for v in type(value) if v is not value]
+    if isinstance(value, bool):
+        return [not value]
+    if value is None:
+        return [10.0]
+    if isinstance(value, tuple):
+        return [tuple(1.5 * v + 0.01 for v in value)]
+    return [1.5 * value + 0.05]
 
 
-@dataclass
-class HookedBatch(LinkBatch):
-    hook: object = None
+@needs_numba
+@pytest.mark.parametrize("name", [f.name for f in fields(CLParams)])
+def test_kernel_coverage_is_honest_for_every_option(name: str) -> None:
+    """Every CLParams option, set away from its default: either the kernel refuses it (and
+    says why), or the kernel runs and equals the reference. A field the kernel ignored would
+    fail here."""
+    x, P, links = random_batch(5)
+    base = PARAM_CASES["paper"]
+    for value in _other_values(getattr(base, name)):
+        params = replace(base, **{name: value})
+        with kernels.use_backend("numba"):
+            refusal = kernel_refusal(FILTERS["ckf"], params, links)
+            if refusal is not None:
+                assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params) is None
+                continue
+        memories = (LinkMemory(40), LinkMemory(40))
+        assert_equivalent(*run_both(FILTERS["ckf"], x, P, links, params, memories))
 
 
 def test_backend_switch_validates_and_restores() -> None:

@@ -21,7 +21,8 @@ from typer.testing import CliRunner
 from resloc.cli.app import app
 from resloc.datasets.mrclam import load_mrclam
 from resloc.errors import ConfigError, DataError
-from resloc.experiments.config import _SECTIONS, _toml_value, parse_scenario
+from resloc.experiments.config import _SECTIONS, parse_scenario
+from resloc.experiments.config import toml_value as _toml_value
 from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam
 from resloc.experiments.runner import run_scenario
 from resloc.world.spec import ZoneSpec

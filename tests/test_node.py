@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 from resloc.cl import LinkBatch, LinkMemory, ThresholdInnovation, correct, kernels, predict
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.node import RobotNode
+from resloc.errors import ConfigError
 from resloc.experiments.config import default_scenario
 from resloc.filters.base import make_filter
 from resloc.world.world import World
@@ -65,8 +68,11 @@ def run_batched(filt, params, world, x0, P0, steps):
 
 
 def correct_nodes(nodes, ws):
-    """Every node corrects from its own links and its neighbours' predicted estimates."""
+    """Every node corrects from its own links and its neighbours' predicted estimates (and
+    their independent parts, with split covariance intersection)."""
     sent = [node.estimate for node in nodes]
+    independent = [node.independent for node in nodes]
+    factorized = nodes[0].params.fusion is FusionMethod.FACTORIZED
     outs = []
     for b, node in enumerate(nodes):
         rows = np.flatnonzero(ws.i == b)
@@ -81,6 +87,10 @@ def correct_nodes(nodes, ws):
                 ws.risk_s[b],
                 ws.risk_c[b],
                 ws.lambda2[b],
+                P_nb_ind=None
+                if independent[0] is None
+                else np.array([independent[j] for j in nb]).reshape(-1, 3, 3),
+                factor_nb=np.array([nodes[j].factor_for(b) for j in nb]) if factorized else None,
             )
         )
     return outs
@@ -101,8 +111,9 @@ def run_nodes(filt, params, world, x0, P0, steps):
     return history
 
 
-def assert_same(batched, by_robot, ws_list) -> int:
-    """Compare step by step; returns the number of fused links (to check coverage)."""
+def assert_same(batched, by_robot, ws_list, compiled: bool) -> int:
+    """Compare step by step; returns the number of fused links (to check coverage).
+    ``compiled``: which path must have computed every non-empty correction."""
     fused = 0
     for k, ((xb, Pb, ob), (xn, Pn, outs), ws) in enumerate(
         zip(batched, by_robot, ws_list, strict=True)
@@ -117,6 +128,7 @@ def assert_same(batched, by_robot, ws_list) -> int:
                 np.testing.assert_array_equal(getattr(out, name), getattr(ob, name)[rows])
             np.testing.assert_allclose(out.norm, ob.norm[rows], rtol=0, atol=TOL)
         assert sum(o.repairs for o in outs) == ob.repairs
+        assert all(o.compiled is compiled for o in (ob, *outs) if len(o.norm)), k
         fused += int(ob.fused.sum())
     return fused
 
@@ -132,7 +144,7 @@ def test_robot_nodes_reproduce_the_batched_engine(kind: str, backend: str) -> No
     with kernels.use_backend(backend):
         batched = run_batched(filt, params, world, x0, P0, ws_list)
         by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
-    fused = assert_same(batched, by_robot, ws_list)
+    fused = assert_same(batched, by_robot, ws_list, compiled=backend == "numba")
     # The scenario exercises every branch: attacks detected, triggers, channel failures.
     outs = [h[2] for h in batched]
     assert sum(int(o.detected.sum()) for o in outs) > 0
@@ -157,7 +169,7 @@ def test_robot_nodes_with_last_sent_threshold_and_nis_norm(backend: str) -> None
     with kernels.use_backend(backend):
         batched = run_batched(filt, params, world, x0, P0, ws_list)
         by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
-    assert assert_same(batched, by_robot, ws_list) > 0
+    assert assert_same(batched, by_robot, ws_list, compiled=backend == "numba") > 0
 
 
 def test_node_sorts_its_links_and_returns_outcomes_in_given_order() -> None:
@@ -251,3 +263,125 @@ def test_robot_nodes_run_gauge_fusion_with_acks_and_consensus() -> None:
         assert np.abs(xb - xn).max() <= TOL, k
         assert np.abs(Pb - Pn).max() <= TOL, k
     assert sum(len(node.gauge_acks()) for node in nodes) > 0
+
+
+def test_robot_nodes_run_split_ci_with_delivery_acknowledgements() -> None:
+    """Split CI robot by robot: transmissions carry the independent parts, and a robot whose
+    estimate was fused learns it from an acknowledgement; equal to the batched engine."""
+    scenario = hot_scenario(12).replace(**{"estimator.fusion": "split_ci"})
+    params = scenario.cl_params()
+    world, x0, P0, ws_list = simulate(scenario, trials=1, seed=6)
+    filt = make_filter("ukf")
+    fusion = fusion_strategy("split_ci")
+    x, P = x0.copy(), P0.copy()
+    memory = LinkMemory(world.B)
+    fusion.init(memory, x0, P0, world.n)
+    nodes = [RobotNode(b, filt, params, x0[b], P0[b], n_ids=world.B) for b in range(world.B)]
+    acks = 0
+    for k, ws in enumerate(ws_list):
+        xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+        Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+        links = LinkBatch(
+            ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
+            ws.lambda2, **fusion.link_fields(memory, ws.j),
+        )  # fmt: skip
+        x, P, _ = correct(filt, xp, Pp, links, params, memory)
+        for node, u in zip(nodes, ws.u_meas, strict=True):
+            node.predict(u, world.dt)
+        correct_nodes(nodes, ws)
+        received = np.zeros(len(nodes), dtype=int)
+        for node in nodes:
+            for j in node.delivery_acks():
+                received[j] += 1
+        for node, n in zip(nodes, received, strict=True):
+            node.delivery_close(int(n))
+        acks += int(received.sum())
+        assert np.abs(x - np.concatenate([n.x for n in nodes])).max() <= TOL, k
+        assert np.abs(P - np.concatenate([n.P for n in nodes])).max() <= TOL, k
+        assert np.abs(memory.independent - np.stack([n.independent for n in nodes])).max() <= TOL
+    assert acks > 0
+
+
+def test_robot_nodes_run_factorized_fusion_with_pair_exchanges() -> None:
+    """Luft et al.'s factors robot by robot: transmissions carry the factor kept for the
+    receiver, and every pair that fused exchanges one message at the end of the step; the
+    estimates, covariances and every robot's factors equal the batched bookkeeping."""
+    scenario = hot_scenario(12).replace(**{"estimator.fusion": "factorized"})
+    params = scenario.cl_params()
+    world, x0, P0, ws_list = simulate(scenario, trials=1, seed=7)
+    filt = make_filter("ckf")
+    fusion = fusion_strategy("factorized")
+    x, P = x0.copy(), P0.copy()
+    memory = LinkMemory(world.B)
+    fusion.init(memory, x0, P0, world.n)
+    nodes = [
+        RobotNode(b, filt, params, x0[b], P0[b], n_ids=world.B, team_size=world.n)
+        for b in range(world.B)
+    ]
+    exchanged = 0
+    for k, ws in enumerate(ws_list):
+        xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+        Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+        links = LinkBatch(
+            ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
+        )
+        x, P, _ = correct(filt, xp, Pp, links, params, memory)
+        for node, u in zip(nodes, ws.u_meas, strict=True):
+            node.predict(u, world.dt)
+        correct_nodes(nodes, ws)
+        partners = [set(node.delivery_acks()) for node in nodes]
+        for node in nodes:
+            for j in node.delivery_acks():
+                partners[j].add(node.robot_id)
+        inbox = [{p: nodes[p].factor_message(b) for p in partners[b]} for b in range(len(nodes))]
+        for node, messages in zip(nodes, inbox, strict=True):
+            node.factor_close(messages)
+        exchanged += sum(len(p) for p in partners)
+        assert np.abs(x - np.concatenate([n.x for n in nodes])).max() <= TOL, k
+        assert np.abs(P - np.concatenate([n.P for n in nodes])).max() <= TOL, k
+        factors = np.concatenate([n.memory.joint.sig for n in nodes])
+        assert np.abs(memory.joint.sig - factors).max() <= TOL, k
+    assert exchanged > 0
+
+
+def test_robot_nodes_run_ci_fusion_like_the_batched_engine() -> None:
+    scenario = hot_scenario(12).replace(**{"estimator.fusion": "ci"})
+    params = scenario.cl_params()
+    world, x0, P0, ws_list = simulate(scenario, trials=1, seed=4)
+    filt = make_filter("ckf")
+    batched = run_batched(filt, params, world, x0, P0, ws_list)
+    by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
+    assert assert_same(batched, by_robot, ws_list, compiled=False) > 0
+
+
+@pytest.mark.parametrize("method", list(FusionMethod))
+def test_robot_node_runs_every_decentralizable_method_and_says_why_not(method) -> None:
+    """The node's verdict is the strategy's: it runs a method or refuses it with the
+    strategy's reason, one line."""
+    params = replace(default_scenario().cl_params(), fusion=method)
+    refusal = fusion_strategy(method).node_refusal
+    make = lambda: RobotNode(0, make_filter("ekf"), params, np.zeros(3), np.eye(3), team_size=3)  # noqa: E731
+    if refusal is None:
+        node = make()
+        node.predict(np.array([0.1, 0.0]), 0.1)
+        assert node.covariance.shape == (3, 3)
+        return
+    with pytest.raises(ConfigError) as info:
+        make()
+    assert refusal in str(info.value) and method.value in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_every_method_but_the_centralized_tracked_runs_in_a_node() -> None:
+    refused = {m for m in FusionMethod if fusion_strategy(m).node_refusal is not None}
+    assert refused == {FusionMethod.TRACKED}
+
+
+def test_split_ci_node_without_transmitted_independent_parts_says_what_is_missing() -> None:
+    params = replace(default_scenario().cl_params(), fusion="split_ci", trigger=False)
+    node = RobotNode(0, make_filter("ekf"), params, np.zeros(3), 0.01 * np.eye(3))
+    assert node.independent.shape == (3, 3)
+    with pytest.raises(ValueError, match="P_nb_ind"):
+        node.correct(
+            [1], [[1.0, 0.0]], [[1.0, 0.0, 0.0]], [0.01 * np.eye(3)], [True], 0.0, 0.0, 1.0
+        )

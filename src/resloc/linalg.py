@@ -10,7 +10,13 @@ import numpy as np
 
 from resloc.errors import NumericalError
 
-__all__ = ["cholesky_jitter", "is_positive_definite", "solve_spd", "symmetrize"]
+__all__ = [
+    "cholesky_jitter",
+    "forward_substitution",
+    "is_positive_definite",
+    "solve_spd",
+    "symmetrize",
+]
 
 #: Relative jitter levels tried in order by :func:`cholesky_jitter` (times mean diagonal).
 JITTER_LEVELS = (0.0, 1e-12, 1e-10, 1e-8, 1e-6)
@@ -111,12 +117,13 @@ def solve_spd(S: np.ndarray, B: np.ndarray) -> np.ndarray:
     ndarray, shape (E, m, k)
     """
     L = cholesky_jitter(S)
-    Y = _forward(L, B)
+    Y = forward_substitution(L, B)
     return _backward(np.swapaxes(L, -1, -2), Y)
 
 
-def _forward(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Batched forward substitution (small m: explicit loops over m, vectorized over E)."""
+def forward_substitution(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Solve ``L X = B`` for lower-triangular ``L: (E, m, m)``, ``B: (E, m, k)`` (small m:
+    explicit loops over m, vectorized over E)."""
     m = L.shape[-1]
     Y = np.empty_like(B, dtype=float)
     for r in range(m):

@@ -82,14 +82,21 @@ class FactorizedCovariance:
         Number of robots in the batch, ``T * N``.
     robots : int
         Team size N.
+    local : bool
+        One robot's process (:class:`~resloc.cl.node.RobotNode`, batch size 1): the factors
+        its neighbours keep for it arrive with their transmissions (:meth:`receive`), and the
+        end-of-step pair exchange runs by messages (:meth:`pair_message`,
+        :meth:`close_pairs`) instead of :meth:`finish`.
     """
 
-    def __init__(self, batch: int, robots: int) -> None:
+    def __init__(self, batch: int, robots: int, local: bool = False) -> None:
         self.N = int(robots)
-        if batch % self.N:
+        self.local = bool(local)
+        if batch % self.N and not self.local:
             raise ValueError(f"batch of {batch} robots is not a multiple of the team size {self.N}")
         self.B = int(batch)
         self.sig = np.zeros((self.B, self.N, 3, 3))
+        self.received: dict[int, np.ndarray] = {}
         self._start_step(np.zeros((self.B, 3, 3)))
 
     def _start_step(self, P_pred: np.ndarray) -> None:
@@ -133,7 +140,48 @@ class FactorizedCovariance:
 
     def cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """``cov(e_i now, e_j predicted) = sigma_ij sigma_ji,pred^T``, shape (E, 3, 3)."""
-        return self.sig[i, self._local(j)] @ np.swapaxes(self.sig_pred[j, self._local(i)], -1, -2)
+        if self.local:  # j's factor for this robot came with j's transmission
+            missing = [int(b) for b in j if int(b) not in self.received]
+            if missing:
+                raise ValueError(
+                    f"factorized fusion needs the factors neighbours {missing} keep for this "
+                    "robot (RobotNode.correct's factor_nb: their factor_for(this robot))"
+                )
+            theirs = np.stack([self.received[int(b)] for b in j]).reshape(-1, 3, 3)
+        else:
+            theirs = self.sig_pred[j, self._local(i)]
+        return self.sig[i, self._local(j)] @ np.swapaxes(theirs, -1, -2)
+
+    def receive(self, j: np.ndarray, factors: np.ndarray) -> None:
+        """``local``: the factors ``sigma_ji,pred`` that neighbours ``j: (E,)`` keep for this
+        robot, as their transmissions carry them, ``factors: (E, 3, 3)``."""
+        self.received = {int(b): f for b, f in zip(j, np.asarray(factors, float), strict=True)}
+
+    def factor_for(self, j: int) -> np.ndarray:
+        """``local``: what this robot's transmission to neighbour ``j`` carries besides its
+        estimate: the factor it keeps for j, ``sigma_ij,pred``, shape (3, 3)."""
+        return self.sig_pred[0, int(j) % self.N].copy()
+
+    def pair_message(self, partner: int) -> np.ndarray:
+        """``local``: what this robot sends to a partner of the step's pair exchange (a robot
+        that fused its estimate or whose estimate it fused): ``[A, B_partner, P_pred,
+        sigma_partner,pred]``, shape (4, 3, 3)."""
+        lp = int(partner) % self.N
+        return np.stack([self.A[0], self.Bm[0, lp], self.P_pred[0], self.sig_pred[0, lp]])
+
+    def close_pairs(self, robot_id: int, messages: dict[int, np.ndarray]) -> None:
+        """``local``: end of the step with the partners' :meth:`pair_message` (``{partner
+        id: message}``): the lower id of each pair keeps the pair's cross-covariance as its
+        factor, the higher id the identity (as :meth:`finish` does for a batch)."""
+        me = int(robot_id)
+        for partner, msg in messages.items():
+            lp = int(partner) % self.N
+            if me > int(partner):
+                self.sig[0, lp] = np.eye(3)
+                continue
+            A_c, B_ca, P_c, sp_ca = np.asarray(msg, float).reshape(4, 3, 3)
+            own = (self.A[0], self.Bm[0, lp], self.P_pred[0], self.sig_pred[0, lp])
+            self.sig[0, lp] = _pair_cross(*own, A_c, B_ca, P_c, sp_ca)
 
     def moments(self, filt, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
         """Moments of ``z_ij`` under ``[[P_i, C_ij], [C_ij^T, P_j]]``, ``C_ij`` from factors.
@@ -195,23 +243,27 @@ class FactorizedCovariance:
             ``P`` unchanged.
         """
         b, lj = np.nonzero(self.fused)
-        if b.size:
+        if b.size and not self.local:
             team0 = b - self._local(b)
             a_ = np.minimum(b, team0 + lj)
             c_ = np.maximum(b, team0 + lj)
             pairs = np.unique(np.stack([a_, c_], axis=1), axis=0)
             a, c = pairs[:, 0], pairs[:, 1]
             la, lc = self._local(a), self._local(c)
-            T = lambda M: np.swapaxes(M, -1, -2)  # noqa: E731
-            P_ac = self.sig_pred[a, lc] @ T(self.sig_pred[c, la])
-            A_a, A_c = self.A[a], self.A[c]
-            B_ac, B_ca = self.Bm[a, lc], self.Bm[c, la]
-            C = (
-                A_a @ self.P_pred[a] @ T(B_ca)
-                + A_a @ P_ac @ T(A_c)
-                + B_ac @ T(P_ac) @ T(B_ca)
-                + B_ac @ self.P_pred[c] @ T(A_c)
-            )
-            self.sig[a, lc] = C
+            self.sig[a, lc] = _pair_cross(
+                self.A[a], self.Bm[a, lc], self.P_pred[a], self.sig_pred[a, lc],
+                self.A[c], self.Bm[c, la], self.P_pred[c], self.sig_pred[c, la],
+            )  # fmt: skip
             self.sig[c, la] = np.eye(3)
         return P
+
+
+def _pair_cross(A_a, B_ac, P_a, sig_ac, A_c, B_ca, P_c, sig_ca) -> np.ndarray:
+    """The new cross-covariance of a pair ``(a, c)`` that fused in either direction,
+    ``[A_a, B_ac] [[P_a, P_ac], [P_ca, P_c]]_pred [B_ca, A_c]^T`` with
+    ``P_ac = sigma_ac,pred sigma_ca,pred^T`` (shapes (..., 3, 3))."""
+    T = lambda M: np.swapaxes(M, -1, -2)  # noqa: E731
+    P_ac = sig_ac @ T(sig_ca)
+    return (
+        A_a @ P_a @ T(B_ca) + A_a @ P_ac @ T(A_c) + B_ac @ T(P_ac) @ T(B_ca) + B_ac @ P_c @ T(A_c)
+    )

@@ -40,7 +40,7 @@ import numpy as np
 from resloc.angles import wrap_angle
 from resloc.filters.base import Moments
 from resloc.filters.update import kalman_gain
-from resloc.linalg import cholesky_jitter, solve_spd, symmetrize
+from resloc.linalg import cholesky_jitter, forward_substitution, solve_spd, symmetrize
 from resloc.models.measurement import range_bearing_jacobians
 from resloc.models.motion import process_noise, unicycle_state_jacobian
 
@@ -50,7 +50,6 @@ __all__ = [
     "FusionMethod",
     "ci_weights",
     "clip_independent",
-    "fuse_links",
     "fused_update",
     "propagate_independent",
 ]
@@ -64,6 +63,8 @@ class FusionMethod(enum.StrEnum):
     ``tracked``: the cross-covariances are tracked (:mod:`resloc.cl.tracking`).
     ``factorized``: tracked by factors each robot keeps (:mod:`resloc.cl.factorized`).
     ``gauge``: the team's common rigid-body error modelled (:mod:`resloc.cl.gauge`).
+
+    Each method's behaviour is its strategy (:mod:`resloc.cl.fusion_methods`).
     """
 
     NAIVE = "naive"
@@ -72,16 +73,6 @@ class FusionMethod(enum.StrEnum):
     TRACKED = "tracked"
     FACTORIZED = "factorized"
     GAUGE = "gauge"
-
-    @property
-    def tracks_cross(self) -> bool:
-        """Whether the method keeps cross-covariances (``memory.joint``)."""
-        return self in (FusionMethod.TRACKED, FusionMethod.FACTORIZED)
-
-    @property
-    def bookkeeping(self) -> bool:
-        """Whether every update is recorded in ``memory.joint`` (tracked, factorized, gauge)."""
-        return self.tracks_cross or self is FusionMethod.GAUGE
 
 
 class CICriterion(enum.StrEnum):
@@ -245,7 +236,7 @@ def clip_independent(P: np.ndarray, P_ind: np.ndarray) -> np.ndarray:
     """
     L = cholesky_jitter(P)
     eye = np.broadcast_to(np.eye(3), P.shape)
-    Linv = _solve_lower(L, eye)
+    Linv = forward_substitution(L, eye)
     M = symmetrize(Linv @ P_ind @ np.swapaxes(Linv, -1, -2))
     lam = np.linalg.eigvalsh(M)
     top = lam[:, -1]
@@ -256,18 +247,6 @@ def clip_independent(P: np.ndarray, P_ind: np.ndarray) -> np.ndarray:
         w, V = np.linalg.eigh(symmetrize(out[neg]))
         out[neg] = np.einsum("bij,bj,bkj->bik", V, np.maximum(w, 0.0), V)
     return symmetrize(out)
-
-
-def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Forward substitution ``L X = B`` for lower-triangular ``L: (E, n, n)``, ``B: (E, n, k)``."""
-    n = L.shape[-1]
-    X = np.empty_like(B, dtype=float)
-    for r in range(n):
-        acc = B[:, r, :].astype(float, copy=True)
-        for c in range(r):
-            acc -= L[:, r, c, None] * X[:, c, :]
-        X[:, r, :] = acc / L[:, r, r, None]
-    return X
 
 
 def fused_update(
@@ -397,62 +376,3 @@ def propagate_independent(
     F = unicycle_state_jacobian(x, u, dt)
     Q = process_noise(x, dt, np.asarray(odometry_std), np.asarray(floor_std))
     return symmetrize(F @ P_ind @ np.swapaxes(F, -1, -2) + Q)
-
-
-def fuse_links(
-    x_i: np.ndarray,
-    P_i: np.ndarray,
-    observer: np.ndarray,
-    x_j: np.ndarray,
-    P_j: np.ndarray,
-    Pj_ind: np.ndarray | None,
-    nu: np.ndarray,
-    m: Moments,
-    R: np.ndarray,
-    method: FusionMethod,
-    criterion: CICriterion,
-    memory,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The CL step's update for one round of links with a consistent fusion method.
-
-    Wraps :func:`fused_update`; with ``split_ci`` it reads robot i's independent part from
-    ``memory.independent[observer]`` and writes the posterior one back.
-
-    Parameters
-    ----------
-    x_i, P_i : ndarray, shapes (E, 3), (E, 3, 3)
-        Current estimates of the observers (distinct robots).
-    observer : ndarray of int, shape (E,)
-        Their indices into ``memory.independent``.
-    x_j, P_j : ndarray, shapes (E, 3), (E, 3, 3)
-        The transmitted estimates.
-    Pj_ind : ndarray, shape (E, 3, 3) or None
-        The transmitted independent parts (``split_ci``).
-    nu : ndarray, shape (E, 2)
-        Innovations of the naive moments.
-    m : Moments
-        The filter's naive moments of the same rows.
-    R : ndarray, shape (2, 2)
-    method : FusionMethod
-    criterion : CICriterion
-    memory : LinkMemory or None
-        Needed by ``split_ci`` (``memory.independent`` initialized).
-
-    Returns
-    -------
-    x, P : ndarray, shapes (E, 3), (E, 3, 3)
-    """
-    Pi_ind = None
-    if method is FusionMethod.SPLIT_CI:
-        if memory is None or memory.independent is None or Pj_ind is None:
-            raise ValueError(
-                "split_ci needs memory.independent (initialize it with the initial "
-                "covariances) and LinkBatch.P_nb_ind (the transmitted independent parts)"
-            )
-        Pi_ind = memory.independent[observer]
-    x_new, P_new, P_ind_new, _ = fused_update(
-        x_i, P_i, x_j, P_j, nu, m, R, method, criterion, Pi_ind, Pj_ind
-    )
-    if P_ind_new is not None:
-        memory.independent[observer] = P_ind_new
-    return x_new, P_new

@@ -48,6 +48,8 @@ never depend on ``G``.
 
 from __future__ import annotations
 
+import enum
+
 import numpy as np
 
 from resloc.cl.connectivity import MetropolisMixer, metropolis_mix_one
@@ -55,7 +57,15 @@ from resloc.cl.tracking import update_map
 from resloc.filters.base import Moments
 from resloc.linalg import solve_spd, symmetrize
 
-__all__ = ["GaugeCovariance", "gauge_jacobian"]
+__all__ = ["GaugeCovariance", "GaugeSums", "gauge_jacobian"]
+
+
+class GaugeSums(enum.StrEnum):
+    """How gauge fusion's team sums are formed: ``exact`` (what an average consensus
+    converges to) or ``consensus`` (each robot's own, by neighbour exchanges)."""
+
+    EXACT = "exact"
+    CONSENSUS = "consensus"
 
 
 def gauge_jacobian(x: np.ndarray) -> np.ndarray:

@@ -2,12 +2,41 @@
 
 from __future__ import annotations
 
+import enum
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import eigsh
 
-__all__ = ["DENSE_MAX", "Lambda2Memo", "algebraic_connectivity", "component_lambda2", "laplacian"]
+__all__ = [
+    "DENSE_MAX",
+    "Lambda2Memo",
+    "Lambda2Source",
+    "algebraic_connectivity",
+    "component_lambda2",
+    "laplacian",
+]
+
+
+class Lambda2Source(enum.StrEnum):
+    """Which ``lambda2`` a robot's trigger divides by (eq. 11).
+
+    ``component``: of the robot's connected component of the communication graph.
+    ``global``: of the whole graph (0 while it is disconnected).
+    ``distributed``: the robot's own estimate (:mod:`resloc.cl.connectivity`).
+    """
+
+    COMPONENT = "component"
+    GLOBAL = "global"
+    DISTRIBUTED = "distributed"
+
+    @property
+    def graph_mode(self) -> str:
+        """The ``mode`` of :func:`component_lambda2` giving the true value (a distributed
+        estimate is scored against its component's)."""
+        return "global" if self is Lambda2Source.GLOBAL else "component"
+
 
 #: Graphs (or components) of at most this many nodes use the dense symmetric eigensolver;
 #: larger ones a sparse shift-invert Lanczos solver (``O(n^1.5)`` for planar-like graphs

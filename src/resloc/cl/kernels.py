@@ -1,67 +1,74 @@
-"""Compiled fast path of the CL correction (:func:`resloc.cl.step.correct`).
+"""Compiled twin of the CL correction (:func:`resloc.cl.step.correct`).
 
-One call processes every link of a :class:`~resloc.cl.step.LinkBatch` (all robots of all
-trials) in one compiled loop: for each link, in row order (robot ``i``'s links in ascending
-``j``), the joint sigma-point moments (CKF/UKF, 12/13 points over ``[x_i; x_j]``) or the
-linearized moments (EKF), the innovation (eq. 9), the detector and trigger norms, the attack
-detector, the adaptive threshold (eq. 11), the event condition (eq. 10), the channel (eq. 8),
-the Kalman gain by a 2 x 2 Cholesky solve, the Schur (CKF/UKF) or Joseph (EKF) covariance
-update, the symmetrization, the positive-definiteness check and, where it fails, the
-eigenvalue repair. Robots are independent within a step (a link reads only robot ``i``'s
-running estimate and ``j``'s transmitted estimate), so the row-order loop gives exactly the
-rounds of the reference path.
+One call processes every link of a :class:`~resloc.cl.links.LinkBatch` (all robots of all
+trials) in one compiled loop over the links in row order (robot ``i``'s links in ascending
+``j``). Robots are independent within a step (a link reads only robot ``i``'s running
+estimate and ``j``'s transmitted estimate), so the row-order loop gives exactly the rounds of
+the reference path. Each piece of a link's work is a named function beside the numpy
+function it twins (``docs/algorithm.md`` maps every equation to both):
 
-The kernels need `numba <https://numba.pydata.org>`_ (the optional extra ``fast``). Without
-it, or for options the kernel does not cover, :func:`~resloc.cl.step.correct` runs its
-numpy reference path; both agree to round-off (tested to 1e-9).
+============================  ======================  =============================================
+kernel function               paper                   numpy twin
+============================  ======================  =============================================
+``_correct_links`` (block)    eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
+:func:`_linearized_moments`   eq. (3), linearized     ``ExtendedFilter.relative_moments``
+:func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
+:func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
+:func:`_decide_link`          Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
+``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
+:func:`_schur_update`         Algorithm 1             :func:`resloc.filters.update.kalman_update`
+``_correct_links`` (block)    Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
+============================  ======================  =============================================
 
-Covered: ``update_mode = sequential``, ``neighbour_estimate = current``, every detector and
-trigger norm, ``threshold_innovation`` ``current`` and ``last_sent``, scalar or per-robot
-gains, the exact :class:`~resloc.filters.SigmaPointFilter` (any rule on 6-D points,
-circular or arithmetic means) and :class:`~resloc.filters.ExtendedFilter` types.
-Not covered (reference path): ``summed`` updates, ``cached`` neighbour estimates, duplicated
-``(i, j)`` rows, any other filter class, and any :class:`~resloc.cl.params.CLParams` or
-:class:`~resloc.cl.step.LinkBatch` field added later unless it holds its default value.
-
-The backend is chosen by :func:`set_backend` / :func:`use_backend`, or by the environment
-variable ``RESLOC_BACKEND`` (``auto``, ``numba`` or ``numpy``) read at import.
+What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
+strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
+:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`, :class:`KernelOutputs`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import os
 import weakref
-from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from resloc.cl.backend import (  # backend choice re-exported for callers of this module
+    HAVE_NUMBA,
+    FilterKernelSpec,
+    backend,
+    filter_kernel_spec,
+    kernel_refusal,
+    set_backend,
+    use_backend,
+)
 from resloc.cl.detector import InnovationNorm
-from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
-from resloc.errors import ConfigError
-from resloc.filters.ekf import ExtendedFilter
-from resloc.filters.sigma_points import SigmaPointFilter
+from resloc.cl.links import LinkBatch, LinkOutcome
+from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
 from resloc.models.measurement import MIN_RANGE
 
-try:  # numba is optional: `pip install resloc[fast]`
+if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
 
-    HAVE_NUMBA = True
     _jit = numba.njit(cache=True, nogil=True)
-except ImportError:  # pragma: no cover - exercised only where numba is absent
-    HAVE_NUMBA = False
+    # The per-link pieces are inlined into the loop: a call that passes arrays (the named
+    # structures hold ~20) costs a reference-count update per array, per link.
+    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+else:  # pragma: no cover - exercised only where numba is absent
 
     def _jit(func):
         return func
 
+    _jit_inline = _jit
+
 
 __all__ = [
     "HAVE_NUMBA",
-    "FastCorrection",
+    "KernelLinks",
+    "KernelOptions",
+    "KernelOutputs",
+    "KernelRobots",
     "backend",
     "fast_correct",
     "set_backend",
@@ -69,11 +76,8 @@ __all__ = [
     "warm_up",
 ]
 
-_BACKENDS = ("auto", "numba", "numpy")
-_backend = "auto"
-
-#: Norm codes shared with the kernel.
-_NORM_CODE = {InnovationNorm.EUCLIDEAN: 0, InnovationNorm.SCALED: 1, InnovationNorm.NIS: 2}
+#: Innovation-norm codes shared with the kernel.
+NORM_CODE = {InnovationNorm.EUCLIDEAN: 0, InnovationNorm.SCALED: 1, InnovationNorm.NIS: 2}
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 #: Kernel status codes.
@@ -81,207 +85,95 @@ OK = 0
 NOT_PD = 1  # a Cholesky factorization failed even with the largest jitter, or NaN/inf
 
 
-def set_backend(name: str) -> None:
-    """Choose the CL correction backend.
+class KernelLinks(NamedTuple):
+    """Per-link inputs, each with leading axis E (rows sorted by observer)."""
 
-    Parameters
-    ----------
-    name : {"auto", "numba", "numpy"}
-        ``auto``: the compiled kernels when numba is importable, else numpy.
-        ``numba``: the kernels (error if numba is missing). ``numpy``: always the reference.
-    """
-    global _backend
-    if name not in _BACKENDS:
-        raise ConfigError(f"backend must be one of {list(_BACKENDS)}, got {name!r}")
-    if name == "numba" and not HAVE_NUMBA:
-        raise ConfigError("backend 'numba' needs numba: pip install 'resloc[fast]'")
-    _backend = name
+    i: np.ndarray  # (E,) int64 observers
+    z: np.ndarray  # (E, 2) measured range, bearing
+    x_nb: np.ndarray  # (E, 3) transmitted estimates
+    P_nb: np.ndarray  # (E, 3, 3)
+    channel_ok: np.ndarray  # (E,) bool
+    last_norm: np.ndarray  # (E,) last delivered norm (``last_sent``), else (0,)
 
 
-def backend() -> str:
-    """The backend in effect: ``numba`` or ``numpy``."""
-    return "numba" if _backend != "numpy" and HAVE_NUMBA else "numpy"
+class KernelRobots(NamedTuple):
+    """Per-robot inputs ``(B,)``; the gains are ``(1,)`` (scalar) or ``(B,)``."""
+
+    risk_s: np.ndarray
+    risk_c: np.ndarray
+    lambda2: np.ndarray
+    rho: np.ndarray
+    alpha: np.ndarray
+    gamma: np.ndarray
+    zeta_s: np.ndarray
+    zeta_c: np.ndarray
 
 
-@contextmanager
-def use_backend(name: str) -> Iterator[None]:
-    """Context manager: run the enclosed code with backend ``name``, then restore."""
-    previous = _backend
-    set_backend(name)
-    try:
-        yield
-    finally:
-        set_backend(previous)
+class KernelOptions(NamedTuple):
+    """The step's scalar options and constants."""
+
+    R: np.ndarray  # (2, 2)
+    noise_std: np.ndarray  # (2,)
+    detector: bool
+    trigger: bool
+    detector_norm: int  # NORM_CODE
+    trigger_norm: int
+    risk_factor_floor: float
+    last_sent: bool
+    jitter: np.ndarray  # escalating Cholesky jitter levels
 
 
-_env = os.environ.get("RESLOC_BACKEND", "auto").strip().lower() or "auto"
-if _env in _BACKENDS and not (_env == "numba" and not HAVE_NUMBA):
-    _backend = _env
+class KernelOutputs(NamedTuple):
+    """Per-link decisions, written by the kernel."""
+
+    norm: np.ndarray  # (E,)
+    threshold: np.ndarray  # (E,)
+    flags: np.ndarray  # (5, E) bool: detected, triggered, delivered, fused, repaired
 
 
-@dataclass
-class FastCorrection:
-    """Result of :func:`fast_correct`: corrected estimates and per-link decisions.
-
-    Shapes: ``x (B, 3)``, ``P (B, 3, 3)``; every other array ``(E,)``.
-    """
-
-    x: np.ndarray
-    P: np.ndarray
-    norm: np.ndarray
-    threshold: np.ndarray
-    detected: np.ndarray
-    triggered: np.ndarray
-    delivered: np.ndarray
-    fused: np.ndarray
-    repairs: int
+def _per_robot(v) -> np.ndarray:
+    """A scalar or per-robot gain as a contiguous float array of shape (1,) or (B,)."""
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
 
 
-_filter_specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+def _contiguous(a, dtype=float) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=dtype)
 
 
-def _filter_spec(filt) -> tuple | None:
-    """:func:`_build_filter_spec`, cached per filter object (filters are immutable)."""
-    try:
-        return _filter_specs[filt]
-    except KeyError:
-        spec = _build_filter_spec(filt)
-        _filter_specs[filt] = spec
-        return spec
-    except TypeError:  # not hashable or not weakly referenceable
-        return _build_filter_spec(filt)
+_last_prepared: tuple = (None, None)
 
 
-def _build_filter_spec(filt) -> tuple | None:
-    """``(mode, nz_idx, nz_val, nz_cnt, Wm, Wc, circular)`` for a filter the kernel
-    reproduces, else None. The 6-D unit points are passed by their non-zero entries
-    (ascending column), which gives the same sums as the dense product."""
-    if type(filt) is ExtendedFilter:
-        w = np.zeros(1)
-        return 1, np.zeros((1, 6), np.int64), np.zeros((1, 6)), np.zeros(1, np.int64), w, w, True
-    if type(filt) is SigmaPointFilter and filt.rule6.unit.shape[1] == 6:
-        r = filt.rule6
-        unit = np.asarray(r.unit, dtype=float)
-        m = unit.shape[0]
-        nz_idx = np.zeros((m, 6), np.int64)
-        nz_val = np.zeros((m, 6))
-        nz_cnt = np.zeros(m, np.int64)
-        for k in range(m):
-            cols = np.flatnonzero(unit[k])
-            nz_cnt[k] = len(cols)
-            nz_idx[k, : len(cols)] = cols
-            nz_val[k, : len(cols)] = unit[k, cols]
-        return (
-            0,
-            nz_idx,
-            nz_val,
-            nz_cnt,
-            np.ascontiguousarray(r.Wm, dtype=float),
-            np.ascontiguousarray(r.Wc, dtype=float),
-            bool(filt.circular),
-        )
-    return None
-
-
-#: CLParams fields the kernel implements. Any other field must hold its default value for
-#: the fast path to run (options added later fall back to the reference path by default).
-_COVERED = frozenset(
-    {
-        "range_std",
-        "bearing_std",
-        "odometry_std",
-        "process_floor_std",
-        "detector",
-        "rho",
-        "detector_norm",
-        "trigger",
-        "alpha",
-        "gamma",
-        "zeta_s",
-        "zeta_c",
-        "trigger_norm",
-        "risk_factor_floor",
-        "threshold_innovation",
-        "update_mode",
-        "neighbour_estimate",
-        "update_without_transmission",  # only acts with cached estimates (not covered)
-        "extra",
-    }
-)
-
-
-#: LinkBatch fields the kernel reads; any other field (a hook added later) must hold its
-#: default value for the fast path to run.
-_LINK_FIELDS = frozenset(
-    {"i", "j", "z", "x_nb", "P_nb", "channel_ok", "risk_s", "risk_c", "lambda2"}
-)
-
-
-def _only_covered_options(obj, covered: frozenset = _COVERED) -> bool:
-    """True if every dataclass field of ``obj`` outside ``covered`` holds its default."""
-    for f in dataclasses.fields(obj):
-        if f.name in covered:
-            continue
-        if f.default is not dataclasses.MISSING:
-            default = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            default = f.default_factory()
-        else:
-            return False
-        value = getattr(obj, f.name)
-        if value is default:
-            continue
-        try:
-            same = np.shape(value) == np.shape(default) and bool(np.all(value == default))
-        except (TypeError, ValueError):
-            same = False
-        if not same:
-            return False
-    return True
-
-
-_params_cache: tuple = (None, None)
-
-
-def _prepare_params(params: CLParams) -> tuple | None:
-    """The kernel's parameter arguments, or None if the options are not covered. Cached for
-    the last ``params`` object (a frozen dataclass)."""
-    global _params_cache
-    ref, prepared = _params_cache
+def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
+    """The gains ``(rho, alpha, gamma, zeta_s, zeta_c)`` and the options of ``params`` as
+    the kernel takes them, kept for the last ``params`` object (frozen)."""
+    global _last_prepared
+    ref, prepared = _last_prepared
     if ref is not None and ref() is params:
         return prepared
-    prepared = None
-    if (
-        _only_covered_options(params)
-        and params.update_mode is UpdateMode.SEQUENTIAL
-        and params.neighbour_estimate is NeighbourEstimate.CURRENT
-    ):
-        prepared = (
-            _per_robot(params.rho),
-            _per_robot(params.alpha),
-            _per_robot(params.gamma),
-            _per_robot(params.zeta_s),
-            _per_robot(params.zeta_c),
-            np.ascontiguousarray(params.R, dtype=float),
-            np.ascontiguousarray(params.noise_std, dtype=float),
-            bool(params.detector),
-            bool(params.trigger),
-            _NORM_CODE[params.detector_norm],
-            _NORM_CODE[params.trigger_norm],
-            float(params.risk_factor_floor),
-        )
+    gains = params.rho, params.alpha, params.gamma, params.zeta_s, params.zeta_c
+    options = KernelOptions(
+        _contiguous(params.R),
+        _contiguous(params.noise_std),
+        bool(params.detector),
+        bool(params.trigger),
+        NORM_CODE[params.detector_norm],
+        NORM_CODE[params.trigger_norm],
+        float(params.risk_factor_floor),
+        params.threshold_innovation is ThresholdInnovation.LAST_SENT,
+        _JITTER,
+    )
+    prepared = (tuple(_per_robot(g) for g in gains), options)
     try:
-        _params_cache = (weakref.ref(params), prepared)
+        _last_prepared = (weakref.ref(params), prepared)
     except TypeError:  # not weakly referenceable: no cache
-        _params_cache = (None, None)
+        _last_prepared = (None, None)
     return prepared
 
 
-def _shapes_ok(x, P, links, li, prepared) -> bool:
+def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
     """Every index the kernel will use is in range (the compiled loop does not check)."""
+    li = np.asarray(links.i)
     E = len(li)
-    if E == 0:
-        return False
     B = int(li.max()) + 1
     if li.min() < 0 or np.shape(x)[0] < B or np.shape(P)[0] < B:
         return False
@@ -296,91 +188,66 @@ def _shapes_ok(x, P, links, li, prepared) -> bool:
     )
     if any(np.shape(a) != shape for a, shape in per_link):
         return False
-    if any(np.ndim(a) != 1 or len(a) < B for a in (links.risk_s, links.risk_c, links.lambda2)):
+    if any(a.ndim != 1 or len(a) < B for a in robots[:3]):
         return False
-    return all(a.shape[0] == 1 or a.shape[0] >= B for a in prepared[:5])
+    return all(a.shape[0] == 1 or a.shape[0] >= B for a in robots[3:])
 
 
-def _per_robot(v) -> np.ndarray:
-    """A scalar or per-robot gain as a contiguous float array of shape (1,) or (B,)."""
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
-def fast_correct(filt, x, P, links, params: CLParams, memory=None) -> FastCorrection | None:
+def fast_correct(
+    filt, x, P, links: LinkBatch, params: CLParams, memory=None
+) -> tuple[np.ndarray, np.ndarray, LinkOutcome] | None:
     """The whole correction of :func:`~resloc.cl.step.correct` in one compiled call.
 
-    Returns ``None`` when the kernel does not cover the filter or the options, when the
-    backend is ``numpy``, or when a covariance is not positive definite (the caller then
-    runs the reference path, which raises the library's :class:`NumericalError`). Nothing
-    is modified in that case. Otherwise ``memory`` (needed only for ``last_sent``) is
-    updated with the delivered links, as the reference does.
+    Returns ``None`` when :func:`~resloc.cl.backend.kernel_refusal` gives a reason, when the
+    input is inconsistent (the reference path then raises the explanatory error) or when a
+    covariance is not positive definite (the reference path raises the library's
+    :class:`NumericalError`). Nothing is modified in that case. Otherwise ``memory`` (read
+    only with ``last_sent``) is updated with the delivered links, as the reference does.
 
-    Shapes as in :func:`~resloc.cl.step.correct`.
+    Shapes as in :func:`~resloc.cl.step.correct`; the outcome has ``compiled = True``.
     """
-    if backend() != "numba":
-        return None
-    prepared = _prepare_params(params)
-    spec = _filter_spec(filt)
-    if prepared is None or spec is None:
-        return None
-    if dataclasses.is_dataclass(links) and not _only_covered_options(links, _LINK_FIELDS):
+    if kernel_refusal(filt, params, links, memory) is not None:
         return None
     last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
     if last_sent and memory is None:
         return None  # the reference path raises the explanatory error
-    li = np.ascontiguousarray(links.i, dtype=np.int64)
+    li = _contiguous(links.i, np.int64)
     lj = np.asarray(links.j, dtype=np.int64)
     E = len(li)
-    if not _shapes_ok(x, P, links, li, prepared):
-        return None  # the reference path raises on inconsistent input (no bounds checks here)
+    gains, options = _prepared(params)
+    robots = KernelRobots(
+        _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
+    )
+    if E == 0 or not _shapes_ok(x, P, links, robots):
+        return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
     last = np.zeros(E if last_sent else 0)
     if last_sent and len(memory):
         known, pos = memory.lookup(li, lj)
         last = np.where(known, memory.last_norm[pos], 0.0)
-    mode, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = spec
+    kernel_links = KernelLinks(
+        li,
+        _contiguous(links.z),
+        _contiguous(links.x_nb),
+        _contiguous(links.P_nb),
+        _contiguous(links.channel_ok, np.bool_),
+        last,
+    )
+    out = KernelOutputs(np.empty(E), np.empty(E), np.zeros((5, E), dtype=np.bool_))
     x_out = np.array(x, dtype=float, order="C", copy=True)
     P_out = np.array(P, dtype=float, order="C", copy=True)
-    norm = np.empty(E)
-    threshold = np.empty(E)
-    flags = np.zeros((4, E), dtype=np.bool_)  # detected, triggered, delivered, fused
-    status, repairs = _correct_links(
-        x_out,
-        P_out,
-        li,
-        np.ascontiguousarray(links.z, dtype=float),
-        np.ascontiguousarray(links.x_nb, dtype=float),
-        np.ascontiguousarray(links.P_nb, dtype=float),
-        np.ascontiguousarray(links.channel_ok, dtype=np.bool_),
-        np.ascontiguousarray(links.risk_s, dtype=float),
-        np.ascontiguousarray(links.risk_c, dtype=float),
-        np.ascontiguousarray(links.lambda2, dtype=float),
-        *prepared[:7],
-        nz_idx,
-        nz_val,
-        nz_cnt,
-        Wm,
-        Wc,
-        mode,
-        circular,
-        *prepared[7:],
-        last_sent,
-        last,
-        _JITTER,
-        norm,
-        threshold,
-        flags,
-    )
-    if status != OK:
+    spec: FilterKernelSpec = filter_kernel_spec(filt)
+    if _correct_links(x_out, P_out, kernel_links, robots, spec, options, out) != OK:
         return None
-    detected, triggered, delivered, fused = flags
+    detected, triggered, delivered, fused, repaired = out.flags
     if last_sent and delivered.any():
         d = np.flatnonzero(delivered)
-        memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], norm[d])
-    return FastCorrection(
-        x_out, P_out, norm, threshold, detected, triggered, delivered, fused, int(repairs)
+        memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
+    outcome = LinkOutcome(
+        out.norm, out.threshold, detected, triggered, delivered, fused, repaired, compiled=True
     )
+    return x_out, P_out, outcome
 
 
 def warm_up() -> bool:
@@ -391,11 +258,10 @@ def warm_up() -> bool:
     bool
         Whether the compiled kernels are in use.
     """
-    if backend() != "numba":
-        return False
-    from resloc.cl.step import LinkBatch
     from resloc.filters.base import make_filter
 
+    if backend() != "numba":
+        return False
     x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
     P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
     links = LinkBatch(
@@ -417,7 +283,8 @@ _MIN_R2 = MIN_RANGE**2
 
 @_jit
 def _wrap(a):
-    """``np.mod(a + pi, 2 pi) - pi`` (numpy's floored modulo, bit for bit)."""
+    """``np.mod(a + pi, 2 pi) - pi`` (numpy's floored modulo, bit for bit).
+    Twin: :func:`resloc.angles.wrap_angle`."""
     t = a + _PI
     if 0.0 <= t < _TWO_PI:
         return t - _PI  # fmod(t, 2 pi) == t exactly here: the common case, no division
@@ -484,7 +351,7 @@ def _chol2(s00, s10, s11, jitter):
 
 @_jit
 def _solve2(l00, l10, l11, b0, b1):
-    """Solve ``L L^T x = b`` (the order of :func:`resloc.linalg.solve_spd`)."""
+    """Solve ``L L^T x = b`` (the order of :func:`resloc.linalg.solve_spd`, its twin)."""
     y0 = b0 / l00
     y1 = (b1 - l10 * y0) / l11
     x1 = y1 / l11
@@ -492,8 +359,10 @@ def _solve2(l00, l10, l11, b0, b1):
     return x0, x1
 
 
-@_jit
-def _norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
+@_jit_inline
+def _innovation_norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
+    """Size of the innovation ``Lambda_ij`` of eq. (9) in the norm ``kind`` (a
+    :data:`NORM_CODE`). Twin: :func:`resloc.cl.detector.innovation_norm`."""
     if kind == 0:
         return math.hypot(nu0, nu1)
     if kind == 1:
@@ -541,19 +410,127 @@ def _repair3(P):
             P[r, c] = 0.5 * (A[r, c] + A[c, r])
 
 
-@_jit
-def _correct_links(
-    x, P, li, z, x_nb, P_nb, channel_ok, risk_s, risk_c, lambda2,
-    rho, alpha, gamma, zeta_s, zeta_c, R, noise_std, nz_idx, nz_val, nz_cnt, Wm, Wc,
-    mode, circular, detector, trigger, det_norm, trig_norm, risk_floor,
-    last_sent, last, jitter, out_norm, out_threshold, flags,
-):  # fmt: skip
-    """Every link of one step in row order; updates ``x, P`` in place.
+@_jit_inline
+def _sandwich(H, P, T):
+    """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
+    2 x 3 scratch)."""
+    for a in range(2):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += H[a, c] * P[c, b]
+            T[a, b] = s
+    q00 = 0.0
+    q01 = 0.0
+    q10 = 0.0
+    q11 = 0.0
+    for c in range(3):
+        q00 += T[0, c] * H[0, c]
+        q01 += T[0, c] * H[1, c]
+        q10 += T[1, c] * H[0, c]
+        q11 += T[1, c] * H[1, c]
+    return q00, q01, q10, q11
 
-    Returns ``(status, repairs)``; on a non-OK status the outputs are partial and must be
+
+@_jit_inline
+def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
+    """First-order moments of eq. (3) with the range/bearing Jacobians at the means; fills
+    ``work.Pxz`` and ``work.Hi``.
+
+    Twin: :meth:`resloc.filters.ekf.ExtendedFilter.relative_moments`.
+    Returns ``(zh0, zh1, S00, S01, S11, re00, re01, re11)`` with ``R_eff = H_j P_j H_j^T + R``
+    (``T3``: scratch).
+    """
+    dx = xj0 - xi0
+    dy = xj1 - xi1
+    q = dx * dx + dy * dy
+    if q < _MIN_R2:
+        q = _MIN_R2
+    r = math.sqrt(q)
+    Hj[0, 0] = dx / r
+    Hj[0, 1] = dy / r
+    Hj[0, 2] = 0.0
+    Hj[1, 0] = -dy / q
+    Hj[1, 1] = dx / q
+    Hj[1, 2] = 0.0
+    for a in range(2):
+        for b in range(3):
+            Hi[a, b] = -Hj[a, b]
+    Hi[1, 2] = -1.0
+    zh0 = math.hypot(dx, dy)
+    zh1 = _wrap(math.atan2(dy, dx) - xi2)
+    # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
+    rj00, rj01, rj10, rj11 = _sandwich(Hj, Pj, T3)
+    rj00 += R[0, 0]
+    rj01 += R[0, 1]
+    rj10 += R[1, 0]
+    rj11 += R[1, 1]
+    si00, si01, si10, si11 = _sandwich(Hi, Pi, T3)
+    S00 = si00 + rj00
+    S01 = 0.5 * ((si01 + rj01) + (si10 + rj10))
+    S11 = si11 + rj11
+    for a in range(3):
+        for b in range(2):
+            s = 0.0
+            for c in range(3):
+                s += Pi[a, c] * Hi[b, c]
+            Pxz[a, b] = s
+    return zh0, zh1, S00, S01, S11, rj00, 0.5 * (rj01 + rj10), rj11
+
+
+@_jit_inline
+def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c, floor):
+    """Adaptive threshold ``delta_ij`` of eq. (11) of one link (the observer's gains, risks
+    and ``lambda2``; ``size``: the innovation size in the threshold).
+    Twin: :func:`resloc.cl.trigger.event_threshold`."""
+    risk = 1.0 - zeta_s * risk_s - zeta_c * risk_c
+    if risk < floor:
+        risk = floor
+    scale = alpha / lambda2 if lambda2 > 0.0 else math.inf
+    delta = scale * (1.0 + gamma * size) * risk
+    if math.isnan(delta):
+        delta = math.inf
+    return delta
+
+
+@_jit_inline
+def _decide_link(n_det, detector, rho, n_trig, delta, trigger, channel_ok):
+    """Detector (Algorithm 1: discard when the norm exceeds ``rho``), event condition
+    (eq. 10) and channel (eq. 8) of one link: ``(detected, triggered, delivered)``.
+    Twin: ``resloc.cl.step._decide`` (the gate stage of :mod:`resloc.cl.detection`)."""
+    detected = detector and n_det > rho
+    fire = (n_trig > delta) if trigger else True
+    triggered = (not detected) and fire
+    return detected, triggered, triggered and channel_ok
+
+
+@_jit_inline
+def _schur_update(Pi, K, S00, S01, S11, Pn):
+    """``P - K S K^T`` into ``Pn`` (sigma-point filters).
+    Twin: :func:`resloc.filters.update.kalman_update`."""
+    for a in range(3):
+        t0 = K[a, 0] * S00 + K[a, 1] * S01
+        t1 = K[a, 0] * S01 + K[a, 1] * S11
+        for b in range(3):
+            Pn[a, b] = Pi[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
+
+
+@_jit
+def _correct_links(x, P, links, robots, filt, options, out):
+    """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
+
+    The structures are unpacked once, here: a field read inside the loop would cost a
+    reference-count update per field and link. For the same reason the pieces that would
+    take many arrays (the sigma-point moments, the gain, the Joseph update) are blocks of
+    this loop, each citing its twin; measured, as functions they cost 15-20% of the
+    correction. Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
-    E = li.shape[0]
+    li, z, x_nb, P_nb, channel_ok, last_norm = links
+    risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
+    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
+    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent, jitter = options
+    out_norm, out_threshold, flags = out
     m = Wm.shape[0]
     Li = np.zeros((3, 3))
     Lj = np.zeros((3, 3))
@@ -567,11 +544,9 @@ def _correct_links(
     Pn = np.zeros((3, 3))
     T3 = np.zeros((3, 3))
     A3 = np.zeros((3, 3))
-    repairs = 0
     std0 = noise_std[0]
     std1 = noise_std[1]
-    same_norm = det_norm == trig_norm
-    for e in range(E):
+    for e in range(li.shape[0]):
         i = li[e]
         Pi = P[i]
         Pj = P_nb[e]
@@ -583,10 +558,15 @@ def _correct_links(
         re00 = 0.0
         re01 = 0.0
         re11 = 0.0
-        if mode == 0:
-            # ---- joint sigma points over [x_i; x_j], P = blockdiag(P_i, P_j)
+        if linearized:
+            zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
+                xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz
+            )
+        else:
+            # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
+            # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
             if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
-                return NOT_PD, repairs
+                return NOT_PD
             for k in range(m):
                 for a in range(6):
                     off[k, a] = 0.0
@@ -666,99 +646,29 @@ def _correct_links(
             S00 = s00 + R[0, 0]
             S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
             S11 = s11 + R[1, 1]
-        else:
-            # ---- EKF: first-order moments of eq. (3)
-            dx = xj0 - xi0
-            dy = xj1 - xi1
-            q = dx * dx + dy * dy
-            if q < _MIN_R2:
-                q = _MIN_R2
-            r = math.sqrt(q)
-            Hj[0, 0] = dx / r
-            Hj[0, 1] = dy / r
-            Hj[0, 2] = 0.0
-            Hj[1, 0] = -dy / q
-            Hj[1, 1] = dx / q
-            Hj[1, 2] = 0.0
-            for a in range(2):
-                for b in range(3):
-                    Hi[a, b] = -Hj[a, b]
-            Hi[1, 2] = -1.0
-            zh0 = math.hypot(dx, dy)
-            zh1 = _wrap(math.atan2(dy, dx) - xi2)
-            # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
-            for a in range(2):
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += Hj[a, c] * Pj[c, b]
-                    T3[a, b] = s
-            rj00 = 0.0
-            rj01 = 0.0
-            rj10 = 0.0
-            rj11 = 0.0
-            for c in range(3):
-                rj00 += T3[0, c] * Hj[0, c]
-                rj01 += T3[0, c] * Hj[1, c]
-                rj10 += T3[1, c] * Hj[0, c]
-                rj11 += T3[1, c] * Hj[1, c]
-            rj00 += R[0, 0]
-            rj01 += R[0, 1]
-            rj10 += R[1, 0]
-            rj11 += R[1, 1]
-            for a in range(2):
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += Hi[a, c] * Pi[c, b]
-                    T3[a, b] = s
-            si00 = 0.0
-            si01 = 0.0
-            si10 = 0.0
-            si11 = 0.0
-            for c in range(3):
-                si00 += T3[0, c] * Hi[0, c]
-                si01 += T3[0, c] * Hi[1, c]
-                si10 += T3[1, c] * Hi[0, c]
-                si11 += T3[1, c] * Hi[1, c]
-            S00 = si00 + rj00
-            S01 = 0.5 * ((si01 + rj01) + (si10 + rj10))
-            S11 = si11 + rj11
-            re00 = rj00
-            re01 = 0.5 * (rj01 + rj10)
-            re11 = rj11
-            for a in range(3):
-                for b in range(2):
-                    s = 0.0
-                    for c in range(3):
-                        s += Pi[a, c] * Hi[b, c]
-                    Pxz[a, b] = s
-        # ---- innovation (eq. 9), norms, detector, threshold (eq. 11), trigger (eq. 10)
+        # innovation, eq. (9)
         nu0 = z[e, 0] - zh0
         nu1 = _wrap(z[e, 1] - zh1)
         l00, l10, l11 = _chol2(S00, S01, S11, jitter)
         if l00 == 0.0:
-            return NOT_PD, repairs
-        n_trig = _norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
-        n_det = n_trig if same_norm else _norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
-        rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
-        detected = detector and n_det > rho_i
-        size = last[e] if last_sent else n_trig
+            return NOT_PD
+        n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
+        if det_norm == trig_norm:
+            n_det = n_trig
+        else:
+            n_det = _innovation_norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
         a_i = alpha[i] if alpha.shape[0] > 1 else alpha[0]
         g_i = gamma[i] if gamma.shape[0] > 1 else gamma[0]
         zs_i = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
         zc_i = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
-        risk = 1.0 - zs_i * risk_s[i] - zc_i * risk_c[i]
-        if risk < risk_floor:
-            risk = risk_floor
-        l2 = lambda2[i]
-        scale = a_i / l2 if l2 > 0.0 else math.inf
-        delta = scale * (1.0 + g_i * size) * risk
-        if math.isnan(delta):
-            delta = math.inf
-        fire = (n_trig > delta) if trigger else True
-        triggered = (not detected) and fire
-        delivered = triggered and channel_ok[e]
+        rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
+        delta = _event_threshold(
+            a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
+            zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
+        )  # fmt: skip
+        detected, triggered, delivered = _decide_link(
+            n_det, detector, rho_i, n_trig, delta, trigger, channel_ok[e]
+        )
         out_norm[e] = n_trig
         out_threshold[e] = math.nan if detected else delta
         flags[0, e] = detected
@@ -767,7 +677,7 @@ def _correct_links(
         flags[3, e] = delivered
         if not delivered:
             continue
-        # ---- Kalman update of x_i: K = Pxz S^-1 by the Cholesky solve
+        # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
         for a in range(3):
             k0, k1 = _solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
             K[a, 0] = k0
@@ -775,15 +685,8 @@ def _correct_links(
         x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
         x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
         x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-        if mode == 0:
-            # P - K S K^T (Schur complement)
-            for a in range(3):
-                t0 = K[a, 0] * S00 + K[a, 1] * S01
-                t1 = K[a, 0] * S01 + K[a, 1] * S11
-                for b in range(3):
-                    Pn[a, b] = Pi[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
-        else:
-            # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T
+        if linearized:
+            # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
             for a in range(3):
                 for b in range(3):
                     A3[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
@@ -801,13 +704,15 @@ def _correct_links(
                     for c in range(3):
                         s += T3[a, c] * A3[b, c]
                     Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+        else:
+            _schur_update(Pi, K, S00, S01, S11, Pn)
         for a in range(3):
             for b in range(3):
                 T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
         if not _is_pd3(T3):
             _repair3(T3)
-            repairs += 1
+            flags[4, e] = True
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
-    return OK, repairs
+    return OK

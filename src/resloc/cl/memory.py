@@ -22,7 +22,8 @@ class LinkMemory:
     ``(n_nodes, 3, 3)`` of split covariance intersection (None until a caller initializes it,
     e.g. with the initial covariances); ``joint``, the bookkeeping of ``tracked``,
     ``factorized`` or ``gauge`` fusion (:mod:`resloc.cl.tracking`, :mod:`resloc.cl.factorized`,
-    :mod:`resloc.cl.gauge`), None until initialized.
+    :mod:`resloc.cl.gauge`), None until initialized; ``local``, True in one robot's process
+    (:class:`~resloc.cl.node.RobotNode`), where end-of-step exchanges arrive as messages.
 
     Parameters
     ----------
@@ -40,6 +41,8 @@ class LinkMemory:
         self.mean_cusum = LinkStatistic(self.n_nodes, width=4)
         self.independent: np.ndarray | None = None
         self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
+        # One robot's process: end-of-step exchanges arrive as messages, not from the batch.
+        self.local = False
 
     def __len__(self) -> int:
         return len(self.keys)

@@ -13,13 +13,15 @@ import dataclasses
 
 import numpy as np
 
-from resloc.cl.fusion import FusionMethod
+from resloc.cl.factorized import FactorizedCovariance
+from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
-from resloc.cl.step import LinkBatch, LinkOutcome, correct, predict
+from resloc.cl.step import correct, predict
+from resloc.errors import ConfigError
 from resloc.filters.base import GaussianFilter
-from resloc.models.motion import process_noise
 
 __all__ = ["RobotNode"]
 
@@ -46,6 +48,12 @@ class RobotNode:
         Needed with ``params.fusion = "gauge"``: the team size N (the gauge covariance is
         ``N`` times a consensus average; :mod:`resloc.cl.gauge`).
 
+    Raises
+    ------
+    ConfigError
+        When the fusion method does not run in one robot's process (the reason is the
+        strategy's :attr:`~resloc.cl.fusion_methods.FusionStrategy.node_refusal`).
+
     Attributes
     ----------
     x : ndarray, shape (1, 3)
@@ -57,6 +65,19 @@ class RobotNode:
     :meth:`correct`: the acknowledgements (:meth:`gauge_acks` to send, :meth:`gauge_close`
     with those received) and consensus rounds (:meth:`gauge_message`, :meth:`gauge_mix`);
     :attr:`covariance` is then the consistent covariance ``P + J G J^T``.
+
+    Split covariance intersection (``params.fusion = "split_ci"``): a transmission also
+    carries :attr:`independent` (given to the receiver's :meth:`correct` as ``P_nb_ind``),
+    and after :meth:`correct` each neighbour in :meth:`delivery_acks` is told that its
+    estimate was fused (:meth:`delivery_close` with the number of such acknowledgements).
+
+    Factorized cross-covariances (``params.fusion = "factorized"``, needs ``team_size``;
+    teammate ids modulo the team size index the factors): a transmission to neighbour i
+    also carries :meth:`factor_for` ``(i)`` (given to i's :meth:`correct` as ``factor_nb``);
+    after :meth:`correct`, the partners of the step are the robots in
+    :meth:`delivery_acks` and those whose acknowledgement said they fused this robot's
+    estimate; each sends this robot its :meth:`factor_message` for it, and
+    :meth:`factor_close` ends the step with them.
     """
 
     def __init__(
@@ -72,18 +93,17 @@ class RobotNode:
         self.robot_id = int(robot_id)
         self.filt = filt
         self.params = params
+        self.fusion: FusionStrategy = fusion_strategy(params.fusion)
+        if self.fusion.node_refusal is not None:
+            raise ConfigError(
+                f"fusion {params.fusion.value!r} does not run in a robot process: "
+                f"{self.fusion.node_refusal}"
+            )
         self.x = np.asarray(x0, dtype=float).reshape(1, 3).copy()
         self.P = np.asarray(P0, dtype=float).reshape(1, 3, 3).copy()
         self.memory = LinkMemory(n_ids)
-        if params.fusion is FusionMethod.GAUGE:
-            if team_size is None:
-                raise ValueError("fusion 'gauge' needs team_size (the team's number of robots)")
-            self.memory.joint = GaugeCovariance(self.x, self.P, int(team_size), local=True)
-        elif params.fusion not in (FusionMethod.NAIVE, FusionMethod.CI):
-            raise ValueError(
-                f"fusion {params.fusion.value!r} is not available in a robot process "
-                "(RobotNode runs naive, gauge and ci fusion)"
-            )
+        self.fusion.init(self.memory, self.x, self.P, team_size, local=True)
+        self._delivered_from = np.empty(0, dtype=np.int64)
 
     @property
     def gauge(self) -> GaugeCovariance | None:
@@ -94,8 +114,7 @@ class RobotNode:
     def covariance(self) -> np.ndarray:
         """This robot's consistent covariance, shape (3, 3): ``P`` (naive fusion's) plus the
         team's gauge part with gauge fusion."""
-        g = self.gauge
-        return (self.P if g is None else g.reported(self.x, self.P))[0].copy()
+        return self.fusion.reported(self.memory, self.x, self.P)[0].copy()
 
     def gauge_acks(self) -> list[tuple[int, np.ndarray]]:
         """After :meth:`correct`: ``(j, ack)`` for each neighbour j whose estimate this robot
@@ -121,6 +140,44 @@ class RobotNode:
         )
 
     @property
+    def independent(self) -> np.ndarray | None:
+        """The independent part of ``P``, shape (3, 3), with ``split_ci`` fusion (what a
+        transmission carries besides :attr:`estimate`), else None."""
+        ind = self.memory.independent
+        return None if ind is None else ind[0].copy()
+
+    def delivery_acks(self) -> list[int]:
+        """After :meth:`correct` with ``split_ci``: the neighbours whose estimates this robot
+        fused; tell each (its :meth:`delivery_close`)."""
+        return [int(j) for j in self._delivered_from]
+
+    def factor_for(self, j: int) -> np.ndarray:
+        """With ``factorized`` fusion: the factor this robot keeps for neighbour ``j``, shape
+        (3, 3), which its transmission to j carries."""
+        return self._factors().factor_for(j)
+
+    def factor_message(self, partner: int) -> np.ndarray:
+        """With ``factorized`` fusion, after :meth:`correct`: this robot's message to a partner
+        of the step, shape (4, 3, 3)."""
+        return self._factors().pair_message(partner)
+
+    def factor_close(self, messages: dict[int, np.ndarray]) -> None:
+        """With ``factorized`` fusion: end of the step with ``{partner id: its
+        factor_message(this robot)}`` from every partner."""
+        self._factors().close_pairs(self.robot_id, messages)
+
+    def _factors(self) -> FactorizedCovariance:
+        if not isinstance(self.memory.joint, FactorizedCovariance):
+            raise ConfigError(f"fusion {self.params.fusion.value!r} keeps no factors")
+        return self.memory.joint
+
+    def delivery_close(self, received: int) -> None:
+        """With ``split_ci``: ``received`` neighbours fused this robot's estimate this step,
+        so its independent part is now held by them too and becomes dependent."""
+        if received and self.memory.independent is not None:
+            self.memory.independent[:] = 0.0
+
+    @property
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """``(x, P)`` of shapes (3,), (3, 3): what a transmission of this robot carries."""
         return self.x[0].copy(), self.P[0].copy()
@@ -130,12 +187,7 @@ class RobotNode:
         u = np.asarray(u, dtype=float).reshape(1, 2)
         x_before = self.x
         self.x, self.P = predict(self.filt, self.x, self.P, u, dt, self.params)
-        if self.gauge is not None:
-            p = self.params
-            Q = process_noise(
-                x_before, dt, np.asarray(p.odometry_std), np.asarray(p.process_floor_std)
-            )
-            self.P = self.gauge.predict(x_before, u, dt, Q, self.P)
+        self.P = self.fusion.predict(self.memory, x_before, u, dt, self.params, self.P)
 
     def correct(
         self,
@@ -147,6 +199,8 @@ class RobotNode:
         risk_s: float,
         risk_c: float,
         lambda2: float,
+        P_nb_ind: np.ndarray | None = None,
+        factor_nb: np.ndarray | None = None,
     ) -> LinkOutcome:
         """Correction from this step's relative measurements of neighbours ``j``.
 
@@ -168,6 +222,12 @@ class RobotNode:
             ``Ds(i)``, ``Dc(i)`` of this robot.
         lambda2 : float
             Algebraic connectivity this robot sees.
+        P_nb_ind : ndarray, shape (E, 3, 3), optional
+            The neighbours' transmitted independent parts (``split_ci``: their
+            :attr:`independent`).
+        factor_nb : ndarray, shape (E, 3, 3), optional
+            The factors the neighbours keep for this robot (``factorized``: their
+            :meth:`factor_for` ``(robot_id)``).
 
         Returns
         -------
@@ -175,6 +235,8 @@ class RobotNode:
             Per-link decisions, in the order of ``j``.
         """
         j = np.asarray(j, dtype=np.int64).reshape(-1)
+        if factor_nb is not None:
+            self._factors().receive(j, np.asarray(factor_nb, dtype=float).reshape(-1, 3, 3))
         order = np.argsort(j, kind="stable")
         links = LinkBatch(
             i=np.zeros(len(j), dtype=np.int64),
@@ -186,8 +248,12 @@ class RobotNode:
             risk_s=np.array([risk_s], dtype=float),
             risk_c=np.array([risk_c], dtype=float),
             lambda2=np.array([lambda2], dtype=float),
+            P_nb_ind=None
+            if P_nb_ind is None
+            else np.asarray(P_nb_ind, dtype=float).reshape(-1, 3, 3)[order],
         )
         self.x, self.P, out = correct(self.filt, self.x, self.P, links, self.params, self.memory)
+        self._delivered_from = links.j[out.delivered]
         if np.array_equal(order, np.arange(len(j))):
             return out
         back = np.empty_like(order)

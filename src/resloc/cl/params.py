@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -11,7 +11,13 @@ from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.errors import ConfigError
 
-__all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode"]
+__all__ = ["CLParams", "NeighbourEstimate", "ThresholdInnovation", "UpdateMode", "at_robots"]
+
+
+def at_robots(value: float | np.ndarray, idx: np.ndarray) -> float | np.ndarray:
+    """A scalar parameter as is, or a per-robot parameter ``(B,)`` gathered at ``idx: (E,)``."""
+    a = np.asarray(value, dtype=float)
+    return a if a.ndim == 0 else a[idx]
 
 
 class UpdateMode(enum.StrEnum):
@@ -132,7 +138,6 @@ class CLParams:
     mean_cusum: bool = False
     mean_cusum_k: float | np.ndarray = 0.5
     mean_cusum_h: float | np.ndarray = 8.0
-    extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

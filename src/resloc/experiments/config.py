@@ -23,9 +23,13 @@ from typing import Any
 from resloc.cl.cusum import chi2_gate
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.gauge import GaugeSums
+from resloc.cl.graph import Lambda2Source
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
+from resloc.schema import spec_field as _f
 from resloc.validation import INT64_MAX, check_one_line_name
 from resloc.world.control import LeaderPath
 from resloc.world.spec import (
@@ -37,7 +41,6 @@ from resloc.world.spec import (
     TeamSpec,
     WorldSpec,
     ZoneSpec,
-    _f,
 )
 
 __all__ = [
@@ -53,6 +56,7 @@ __all__ = [
     "load_scenario",
     "parse_scenario",
     "scenario_to_dict",
+    "toml_value",
 ]
 
 
@@ -105,8 +109,8 @@ class EstimatorSpec:
         "(docs/beyond.md)",
     )
     ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
-    gauge_sums: str = _f(
-        "exact",
+    gauge_sums: GaugeSums = _f(
+        GaugeSums.EXACT,
         "gauge fusion's team sums: exact, or each robot's own by neighbour consensus",
     )
     gauge_rounds: int = _f(
@@ -149,8 +153,8 @@ class TriggerSpec:
     zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
     zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
-    lambda2: str = _f(
-        "component",
+    lambda2: Lambda2Source = _f(
+        Lambda2Source.COMPONENT,
         "lambda2 of the robot's component, of the global graph, or each robot's distributed "
         "estimate",
     )
@@ -378,10 +382,6 @@ def _parse(data: dict) -> Scenario:
             f"team.robots: {team.robots} robots cannot localize cooperatively; use >= 2"
         )
     trig: TriggerSpec = parts["trigger"]
-    if trig.lambda2 not in ("component", "global", "distributed"):
-        raise ConfigError(
-            f"trigger.lambda2: {trig.lambda2!r} is not one of component, global, distributed"
-        )
     det: DetectorSpec = parts["detector"]
     if det.false_alarm > 0.0 and det.norm is not InnovationNorm.NIS:
         raise ConfigError(
@@ -389,25 +389,9 @@ def _parse(data: dict) -> Scenario:
             f'set detector.norm = "nis" (now {det.norm.value!r}) or false_alarm = 0'
         )
     est: EstimatorSpec = parts["estimator"]
-    if est.gauge_sums not in ("exact", "consensus"):
-        raise ConfigError(
-            f"estimator.gauge_sums: {est.gauge_sums!r} is not one of exact, consensus"
-        )
-    if est.fusion is not FusionMethod.NAIVE and est.update_mode is not UpdateMode.SEQUENTIAL:
-        raise ConfigError(
-            f'estimator.fusion: {est.fusion.value!r} needs update_mode = "sequential" '
-            f"(now {est.update_mode.value!r})"
-        )
-    if est.fusion is not FusionMethod.NAIVE and est.update_without_transmission:
-        raise ConfigError(
-            f"estimator.fusion: {est.fusion.value!r} fuses transmitted estimates only; "
-            "set estimator.update_without_transmission = false"
-        )
-    if est.fusion.bookkeeping and est.neighbour_estimate is not NeighbourEstimate.CURRENT:
-        raise ConfigError(
-            f'estimator.fusion: {est.fusion.value!r} needs neighbour_estimate = "current" '
-            f"(now {est.neighbour_estimate.value!r})"
-        )
+    problem = fusion_strategy(est.fusion).problem(est)
+    if problem is not None:
+        raise ConfigError(f"estimator.fusion: {est.fusion.value!r} {problem}")
     att: AttackSpec = parts["attack"]
     if not any(abs(v) > 0.0 for v in att.stealth_direction):
         raise ConfigError(
@@ -508,7 +492,7 @@ def scenario_to_dict(s: Scenario) -> dict:
     return out
 
 
-def _toml_value(v: Any) -> str:
+def toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -521,7 +505,7 @@ def _toml_value(v: Any) -> str:
         # JSON's string escapes (\n, \t, \", \\, \uXXXX) are TOML's basic-string escapes.
         return json.dumps(v, ensure_ascii=False)
     if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")  # pragma: no cover
 
 
@@ -529,7 +513,7 @@ def _toml_table(header: str, values: dict, cls: type) -> list[str]:
     docs = {f.name: f.metadata.get("doc", "") for f in fields(cls)}
     lines = [header]
     for key, val in values.items():
-        text = f"{key} = {_toml_value(val)}"
+        text = f"{key} = {toml_value(val)}"
         doc = docs.get(key, "")
         lines.append(f"{text:<40} # {doc}" if doc else text)
     return lines

@@ -8,6 +8,8 @@ from resloc.angles import wrap_angle
 from resloc.linalg import solve_spd
 
 __all__ = [
+    "confusion_counts",
+    "detector_rates",
     "detector_scores",
     "msle",
     "nees",
@@ -80,6 +82,51 @@ def rate(numerator: float, denominator: float) -> float:
     return float(numerator) / float(denominator) if denominator else float("nan")
 
 
+def confusion_counts(
+    detected: np.ndarray,
+    attacked: np.ndarray,
+    group: np.ndarray | None = None,
+    groups: int = 1,
+) -> dict[str, np.ndarray]:
+    """The detector's confusion counts, per group (e.g. per trial).
+
+    Parameters
+    ----------
+    detected : ndarray of bool, shape (E,)
+        The detector discarded the measurement.
+    attacked : ndarray of bool, shape (E,)
+        The simulator falsified the measurement (ground truth).
+    group : ndarray of int, shape (E,), optional
+        Group of every measurement in ``[0, groups)`` (None: one group).
+    groups : int
+
+    Returns
+    -------
+    dict of str to ndarray of int64, each shape (groups,)
+        ``tp, fp, fn, tn``.
+    """
+    detected = np.asarray(detected, bool)
+    attacked = np.asarray(attacked, bool)
+    group = np.zeros(len(detected), np.int64) if group is None else np.asarray(group)
+    cells = {
+        "tp": detected & attacked,
+        "fp": detected & ~attacked,
+        "fn": ~detected & attacked,
+        "tn": ~detected & ~attacked,
+    }
+    return {k: np.bincount(group[m], minlength=groups).astype(np.int64) for k, m in cells.items()}
+
+
+def detector_rates(tp: float, fp: float, fn: float, tn: float) -> dict[str, float]:
+    """``precision``, ``recall`` (true-positive rate) and ``false_alarm_rate`` from counts
+    (``nan`` where undefined)."""
+    return {
+        "precision": rate(tp, tp + fp),
+        "recall": rate(tp, tp + fn),
+        "false_alarm_rate": rate(fp, fp + tn),
+    }
+
+
 def detector_scores(detected: np.ndarray, attacked: np.ndarray) -> dict[str, float]:
     """Detector precision, recall and false-alarm rate from per-measurement flags.
 
@@ -96,18 +143,5 @@ def detector_scores(detected: np.ndarray, attacked: np.ndarray) -> dict[str, flo
         ``tp, fp, fn, tn`` counts and ``precision``, ``recall`` (true-positive rate),
         ``false_alarm_rate`` (``nan`` where undefined).
     """
-    detected = np.asarray(detected, bool)
-    attacked = np.asarray(attacked, bool)
-    tp = int(np.count_nonzero(detected & attacked))
-    fp = int(np.count_nonzero(detected & ~attacked))
-    fn = int(np.count_nonzero(~detected & attacked))
-    tn = int(np.count_nonzero(~detected & ~attacked))
-    return {
-        "tp": tp,
-        "fp": fp,
-        "fn": fn,
-        "tn": tn,
-        "precision": rate(tp, tp + fp),
-        "recall": rate(tp, tp + fn),
-        "false_alarm_rate": rate(fp, fp + tn),
-    }
+    counts = {k: int(v[0]) for k, v in confusion_counts(detected, attacked).items()}
+    return {**counts, **detector_rates(**counts)}

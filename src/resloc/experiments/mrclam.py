@@ -47,6 +47,7 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.datasets.mrclam import MRCLAMDataset, load_mrclam
 from resloc.errors import ConfigError
 from resloc.experiments.metrics import detector_scores, msle, nees, rate
+from resloc.experiments.runner import DEAD_RECKONING
 from resloc.filters.base import FilterKind, make_filter
 from resloc.models.measurement import range_bearing
 from resloc.validation import check_finite, check_memory, check_seed
@@ -73,9 +74,6 @@ __all__ = [
     "run_mrclam",
     "save_mrclam",
 ]
-
-#: Name of the odometry-only baseline.
-DEAD_RECKONING = "dr"
 
 
 #: Smallest replay step (s): the odometry runs at ~67 Hz and the ground truth at 100 Hz, so a
@@ -791,10 +789,10 @@ def _run_estimator(
                     tgt = rp.target[sub]
                     if landmark:
                         x_nb, P_nb = lm_x[tgt - N], lm_P[tgt - N]
-                        prm = _level_params(cache_lm, params_lm, level_k, config)
+                        prm = level_params(cache_lm, params_lm, level_k, config)
                     else:
                         x_nb, P_nb = x[tgt], P[tgt]
-                        prm = _level_params(cache, params, level_k, config)
+                        prm = level_params(cache, params, level_k, config)
                     batch = LinkBatch(
                         rp.obs[sub],
                         tgt,
@@ -845,7 +843,7 @@ def range_noise_level(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
     )
 
 
-def _level_params(
+def level_params(
     cache: dict[int, CLParams], base: CLParams, level: int, config: MRCLAMConfig
 ) -> CLParams:
     """``base`` with ``range_std`` set to noise level ``level`` (memoized)."""
@@ -856,7 +854,7 @@ def _level_params(
     return prm
 
 
-def _score(
+def score_estimate(
     name: str,
     rp: Replay,
     track: np.ndarray,
@@ -987,7 +985,7 @@ def run_mrclam(
     for name in (DEAD_RECKONING, *config.filters):
         cb = None if progress is None else (lambda k, n, _name=name: progress(_name, k, n))
         track, cov, links, wall = _run_estimator(name, rp, config, cb)
-        estimators[name] = _score(name, rp, track, cov, links, wall)
+        estimators[name] = score_estimate(name, rp, track, cov, links, wall)
     info = {
         "dataset": data.name,
         "path": str(data.path),

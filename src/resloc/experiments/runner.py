@@ -15,20 +15,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
-from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.fusion import FusionMethod, propagate_independent
-from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.gauge import GaugeSums
+from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
-from resloc.cl.tracking import JointCovariance
 from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
-from resloc.experiments.metrics import msle, nees, position_rmse, rate
+from resloc.experiments.metrics import (
+    confusion_counts,
+    detector_rates,
+    msle,
+    nees,
+    position_rmse,
+    rate,
+)
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.linalg import symmetrize
-from resloc.models.motion import process_noise
 from resloc.validation import check_memory
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attacks import AttackKind
@@ -160,15 +165,10 @@ class EstimatorResult:
             "wall_time_s": self.wall_time,
             "steps": steps,
         }
-        det = {
-            "tp": int(t["tp"].sum()),
-            "fp": int(t["fp"].sum()),
-            "fn": int(t["fn"].sum()),
-            "tn": int(t["tn"].sum()),
-        }
-        out["detector_precision"] = rate(det["tp"], det["tp"] + det["fp"])
-        out["detector_recall"] = rate(det["tp"], det["tp"] + det["fn"])
-        out["detector_false_alarm"] = rate(det["fp"], det["fp"] + det["tn"])
+        scores = detector_rates(*(int(t[k].sum()) for k in ("tp", "fp", "fn", "tn")))
+        out["detector_precision"] = scores["precision"]
+        out["detector_recall"] = scores["recall"]
+        out["detector_false_alarm"] = scores["false_alarm_rate"]
         return out
 
     def per_trial(self, metric: str) -> np.ndarray:
@@ -198,7 +198,7 @@ class RunResult:
         return {name: est.summary() for name, est in self.estimators.items()}
 
 
-class _Track:
+class EstimatorTrack:
     """Mutable state of one estimator during a run."""
 
     def __init__(self, name: str, filt: GaussianFilter, x0, P0, steps: int, T: int, N: int):
@@ -273,6 +273,7 @@ def run_scenario(
     progress: Callable[[int, int], None] | None = None,
     metric_stride: int = 1,
     params: CLParams | None = None,
+    first_trial: int = 0,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -290,6 +291,10 @@ def run_scenario(
     params : CLParams, optional
         Estimator parameters to use instead of ``scenario.cl_params()`` (e.g. per-robot
         detector thresholds ``(T * N,)`` to sweep a threshold over the trials of one run).
+    first_trial : int
+        Simulate trials ``first_trial .. first_trial + run.trials - 1`` of the seed (trial
+        ``t`` is identical whichever trials are batched with it), so the seeds of one
+        scenario can be split across tasks and re-run alone.
 
     Returns
     -------
@@ -305,22 +310,23 @@ def run_scenario(
         scenario = scenario.replace(**changes)
     check_run_size(scenario)
     run = scenario.run
-    distributed = scenario.trigger.lambda2 == "distributed"
+    distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
     world = World(
         scenario.world,
         run.trials,
         run.seed,
-        "component" if distributed else scenario.trigger.lambda2,
+        scenario.trigger.lambda2.graph_mode,
+        first_trial=first_trial,
     )
     params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
-    hooks = _Hooks(scenario, params, world, distributed)
+    hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
     tracks = [
-        _Track(
+        EstimatorTrack(
             name,
             make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa),
             x0,
@@ -331,20 +337,13 @@ def run_scenario(
         )
         for name in run.filters
     ]
-    split = params.fusion is FusionMethod.SPLIT_CI
+    fusion = fusion_strategy(params.fusion)
+    rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
     for tr in tracks:
-        if split:  # initial errors are independent across robots
-            tr.memory.independent = P0.copy()
-        if params.fusion is FusionMethod.TRACKED:
-            tr.memory.joint = JointCovariance(P0, N)
-        elif params.fusion is FusionMethod.FACTORIZED:
-            tr.memory.joint = FactorizedCovariance(len(P0), N)
-        elif params.fusion is FusionMethod.GAUGE:
-            rounds = est.gauge_rounds if est.gauge_sums == "consensus" else None
-            tr.memory.joint = GaugeCovariance(x0, P0, N, rounds)
+        fusion.init(tr.memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
-        dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+        dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
@@ -366,18 +365,20 @@ def run_scenario(
         attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
+        comm_edges = hooks.comm_edges(ws)
+        step_inputs = _StepInputs(params, fusion, hooks, world, scenario, lambda2, comm_edges, dt)
         for tr in tracks:
             if tr.diverged is None:
-                _isolated_step(tr, k, ws, params, hooks, world, scenario, lambda2, dt, N)
+                _isolated_step(tr, k, ws, step_inputs, N)
             if tr.diverged is not None:  # stopped: no link outcomes from here on
                 tr.link_flags.append(np.zeros(int(own.sum()), np.uint8))
                 continue
-            _record(tr, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
+            record_step(tr, fusion, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
             dr.wall += time.perf_counter() - t0
-            _record(dr, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+            record_step(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
     shared = link_columns(trial0_links)
@@ -405,56 +406,47 @@ def run_scenario(
     )
 
 
-def _isolated_step(tr: _Track, k: int, ws, params, hooks, world, scenario, lambda2, dt, N) -> None:
+@dataclass
+class _StepInputs:
+    """What every estimator's step shares within one world step."""
+
+    params: CLParams
+    fusion: object
+    hooks: _Hooks
+    world: World
+    scenario: Scenario
+    lambda2: np.ndarray
+    comm_edges: tuple[np.ndarray, np.ndarray]
+    dt: float
+
+
+def _isolated_step(tr: EstimatorTrack, k: int, ws, inputs: _StepInputs, N: int) -> None:
     """:func:`_step_estimator`, timed; a numerical failure or a non-finite estimate stops
     this estimator (``tr.diverged``) instead of the run: the others' results must not be
     lost to one filter's divergence."""
     t0 = time.perf_counter()
     tr.pending_P = None
     try:
-        _step_estimator(tr, ws, params, hooks, world, scenario, lambda2, dt)
+        _step_estimator(tr, ws, inputs)
     except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
         last = tr.pending_P if tr.pending_P is not None else tr.P
-        tr.stop(k, dt, N, last, str(exc))
+        tr.stop(k, inputs.dt, N, last, str(exc))
         return
     finally:
         tr.wall += time.perf_counter() - t0
     if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
-        tr.stop(k, dt, N, tr.P, "the estimate became NaN or infinite")
+        tr.stop(k, inputs.dt, N, tr.P, "the estimate became NaN or infinite")
 
 
-def _step_estimator(
-    tr: _Track, ws, params: CLParams, hooks: _Hooks, world: World, scenario: Scenario, lambda2, dt
-) -> None:
-    """One step (predict, links, correct) of one estimator; sets ``tr.x``, ``tr.P``,
-    ``tr.out`` (and ``tr.pending_P``, the predicted covariance, for divergence reports)."""
-    if params.fusion is FusionMethod.SPLIT_CI:
-        tr.memory.independent = propagate_independent(
-            tr.x,
-            tr.memory.independent,
-            ws.u_meas,
-            dt,
-            np.asarray(params.odometry_std),
-            np.asarray(params.process_floor_std),
-        )
+def _step_estimator(tr: EstimatorTrack, ws, inputs: _StepInputs) -> None:
+    """One step (predict, links, correct, exchange) of one estimator; sets ``tr.x``,
+    ``tr.P``, ``tr.out`` (and ``tr.pending_P``, the predicted covariance, for divergence
+    reports)."""
+    params, fusion, world, dt = inputs.params, inputs.fusion, inputs.world, inputs.dt
     xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
     tr.pending_P = Pp
-    if (
-        params.fusion.bookkeeping
-    ):  # cross-covariances / gauge (tracked: the joint is the authority on P)
-        Pp = tr.memory.joint.predict(
-            tr.x,
-            ws.u_meas,
-            dt,
-            process_noise(
-                tr.x,
-                dt,
-                np.asarray(params.odometry_std),
-                np.asarray(params.process_floor_std),
-            ),
-            Pp,
-        )
-    if scenario.trigger.risk_source is RiskSource.ESTIMATED:
+    Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
+    if inputs.scenario.trigger.risk_source is RiskSource.ESTIMATED:
         risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
         risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
     else:
@@ -468,12 +460,12 @@ def _step_estimator(
         ws.channel_ok,
         risk_s,
         risk_c,
-        lambda2,
-        **hooks.link_extras(ws, tr.memory),
+        inputs.lambda2,
+        **fusion.link_fields(tr.memory, ws.j),
+        **inputs.hooks.link_extras(ws),
     )
     tr.x, tr.P, tr.out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-    if params.fusion is FusionMethod.GAUGE:  # gauge sums by consensus (if chosen)
-        tr.memory.joint.exchange(*hooks.comm_edges(ws))
+    fusion.exchange(tr.memory, *inputs.comm_edges)
 
 
 def divergence(k: int, dt: float, N: int, P: np.ndarray, reason: str) -> dict:
@@ -515,18 +507,23 @@ class _Hooks:
       :class:`~resloc.cl.connectivity.DistributedLambda2` run on the communication graph
       (the world's true component value is kept to measure the error);
     * ``attack.kind = "stealthy"``: a ``LinkBatch.tamper`` per estimator that injects the
-      largest bias that estimator's detector accepts, on the links the world marked attacked;
-    * ``estimator.fusion = "split_ci"``: the transmitted independent parts ``P_nb_ind``.
+      largest bias that estimator's detector accepts, on the links the world marked attacked.
 
     The cl layer never imports the world: it only calls the hooks it is given.
     """
 
-    def __init__(self, scenario: Scenario, params: CLParams, world: World, distributed: bool):
+    def __init__(
+        self,
+        scenario: Scenario,
+        params: CLParams,
+        world: World,
+        distributed: bool,
+        first_trial: int = 0,
+    ):
         self.params = params
         self.world = world
         self.attack = scenario.world.attack
         self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
-        self.split = params.fusion is FusionMethod.SPLIT_CI
         self.comm_radius = scenario.world.sensing.comm_radius
         self.dl2: DistributedLambda2 | None = None
         self.l2_true: list[float] = []
@@ -537,7 +534,7 @@ class _Hooks:
             y0 = np.concatenate(
                 [
                     np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
-                    for t in range(world.trials)
+                    for t in range(first_trial, first_trial + world.trials)
                 ]
             )
             self.dl2 = DistributedLambda2(
@@ -566,11 +563,9 @@ class _Hooks:
         self.l2_abs_rel.append(float(rel.mean()) if ok.any() else float("nan"))
         return est
 
-    def link_extras(self, ws, memory: LinkMemory) -> dict:
+    def link_extras(self, ws) -> dict:
         """Optional ``LinkBatch`` fields for this step and estimator."""
         extra: dict = {}
-        if self.split:
-            extra["P_nb_ind"] = memory.independent[ws.j]
         if self.stealthy:
             p, a = self.params, self.attack
             extra["tamper"] = stealthy_tamper(
@@ -608,7 +603,7 @@ class _Hooks:
         }
 
 
-def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
     s["candidates"][k] = candidates
@@ -631,20 +626,15 @@ def _record(tr, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> Non
         tot["detected"] += count(out.detected)
         tot["fused"] += count(out.fused)
         tot["attacked_fused"] += count(out.fused & att)
-        # Per-trial confusion counts.
-        tot["tp"] += count(out.detected & att)
-        tot["fp"] += count(out.detected & ~att)
-        tot["fn"] += count(~out.detected & att)
-        tot["tn"] += count(~out.detected & ~att)
-        tot["repairs"][0] += out.repairs
+        for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
+            tot[key] += per_trial
+        tot["repairs"] += count(out.repaired)
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
         flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
         tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
     tr.track[k + 1] = tr.x[:N]
-    P = tr.P
-    if tr.memory is not None and hasattr(tr.memory.joint, "reported"):
-        P = tr.memory.joint.reported(tr.x, P)  # gauge fusion: D_i + J_i G J_i^T
+    P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]
     if record:
         pos_t = ws.pose[:, :2].reshape(T, N, 2)

@@ -35,6 +35,7 @@ from resloc.runtime.messages import (
     FLAG_DELIVERED,
     FLAG_DETECTED,
     FLAG_FUSED,
+    FLAG_REPAIRED,
     FLAG_TRIGGERED,
     RECORDER,
     Kind,
@@ -147,13 +148,18 @@ class Recording:
     def run_result(self, X: np.ndarray, P: np.ndarray):
         """The :class:`~resloc.experiments.runner.RunResult` of the steps so far, its
         metrics computed by the runner's own per-step bookkeeping."""
-        from resloc.experiments.runner import EstimatorResult, RunResult, _record, _Track
+        from resloc.experiments.runner import (
+            EstimatorResult,
+            EstimatorTrack,
+            RunResult,
+            record_step,
+        )
 
         K, N, name = self.steps_done, self.n, self.team.filter_name
         scenario = self.team.scenario.replace(
             **{"run.steps": max(K, 1), "run.filters": [name], "run.dead_reckoning": False}
         )
-        tr = _Track(name, None, self.x0, self.P0, K, 1, N)
+        tr = EstimatorTrack(name, None, self.x0, self.P0, K, 1, N)
         for k in range(1, K + 1):
             t = self.truth[k]
             i, j = t["i"], t["j"]
@@ -161,9 +167,7 @@ class Recording:
             flags = np.zeros(E, dtype=np.uint8)
             norm = np.full(E, np.nan)
             row = {(int(a), int(c)): e for e, (a, c) in enumerate(zip(i, j, strict=True))}
-            repairs = 0
             for r, rep in self.reports.get(k, {}).items():
-                repairs += rep["rep"]
                 for c, f, nv in zip(rep["j"], rep["flags"], rep["norm"], strict=True):
                     e = row.get((int(r), int(c)))
                     if e is not None:
@@ -175,12 +179,14 @@ class Recording:
                 (flags & FLAG_TRIGGERED) > 0,
                 (flags & FLAG_DELIVERED) > 0,
                 (flags & FLAG_FUSED) > 0,
-                repairs,
+                (flags & FLAG_REPAIRED) > 0,
             )
             tr.x, tr.P = X[k], P[k]
             ws = SimpleNamespace(pose=t["pose"], i=i, j=j, attacked=t["att"].astype(bool))
             attacked = np.array([ws.attacked.sum()])
-            _record(tr, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True)
+            record_step(
+                tr, None, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True
+            )
         est = EstimatorResult(name, tr.series, tr.totals, tr.raster, tr.track)
         return RunResult(
             scenario,

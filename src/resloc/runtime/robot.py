@@ -37,6 +37,7 @@ from resloc.runtime.messages import (
     FLAG_DETECTED,
     FLAG_FUSED,
     FLAG_HEARD,
+    FLAG_REPAIRED,
     FLAG_TRIGGERED,
     Kind,
     Message,
@@ -331,6 +332,7 @@ class RobotAgent:
                 (FLAG_TRIGGERED, out.triggered),
                 (FLAG_DELIVERED, out.delivered),
                 (FLAG_FUSED, out.fused),
+                (FLAG_REPAIRED, out.repaired),
             ):
                 flags[h] |= np.where(arr, bit, 0).astype(np.uint8)
             norm[h] = out.norm

@@ -22,6 +22,7 @@ __all__ = [
     "FLAG_DETECTED",
     "FLAG_FUSED",
     "FLAG_HEARD",
+    "FLAG_REPAIRED",
     "FLAG_TRIGGERED",
     "ROBOT_TO_ROBOT",
     "Kind",
@@ -138,6 +139,8 @@ _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
 
 #: Bits of ``REPORT.flags`` (one byte per link).
 FLAG_DETECTED, FLAG_TRIGGERED, FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD = 1, 2, 4, 8, 16
+#: The observer's covariance was projected back to positive definite after this link.
+FLAG_REPAIRED = 32
 
 _NON_FINITE_OK = {(Kind.REPORT, "norm")}  # a discarded link's threshold norm may be nan
 

@@ -13,6 +13,7 @@ import enum
 import math
 from dataclasses import dataclass, field
 
+from resloc.schema import spec_field as _f
 from resloc.world.adversary import StealthKnowledge
 from resloc.world.attacks import AttackKind, LinkScope
 from resloc.world.zones import RiskProfile
@@ -38,15 +39,6 @@ LENGTH_MAX = 100.0
 ARENA_MAX = 1e4
 #: Largest speed (m/s, rad/s) or speed noise.
 SPEED_MAX = 100.0
-
-
-def _f(default, doc: str, **bounds):
-    """A dataclass field with a default, a doc string and validation bounds."""
-    if isinstance(default, list | dict):
-        return field(
-            default_factory=lambda: type(default)(default), metadata={"doc": doc, **bounds}
-        )
-    return field(default=default, metadata={"doc": doc, **bounds})
 
 
 class FormationFrame(enum.StrEnum):

@@ -1,0 +1,221 @@
+"""Which path runs the CL correction: the numpy reference or its compiled twin.
+
+:func:`resloc.cl.step.correct` is the executable specification. Its compiled twin
+(:mod:`resloc.cl.kernels`, needs `numba <https://numba.pydata.org>`_, the optional extra
+``fast``) runs a correction when the backend allows it and :func:`kernel_refusal` finds
+nothing it does not implement. Coverage is read from the strategies, not listed here: a
+fusion method's :attr:`~resloc.cl.fusion_methods.FusionStrategy.compiled`, every active
+detector stage's :attr:`~resloc.cl.detection.DetectorStage.compiled`, the filter's compiled
+description (:func:`filter_kernel_spec`), and :data:`COMPILED_CHOICES` for the two choices
+that are not strategies.
+
+The backend is chosen by :func:`set_backend` / :func:`use_backend`, or by the environment
+variable ``RESLOC_BACKEND`` (``auto``, ``numba`` or ``numpy``) read at import.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import weakref
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl.detection import active_stages
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.links import LinkBatch
+from resloc.cl.params import CLParams, NeighbourEstimate, UpdateMode
+from resloc.errors import ConfigError
+from resloc.filters.ekf import ExtendedFilter
+from resloc.filters.sigma_points import SigmaPointFilter
+
+#: Whether numba (the optional extra ``fast``) is installed.
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+__all__ = [
+    "COMPILED_CHOICES",
+    "HAVE_NUMBA",
+    "FilterKernelSpec",
+    "backend",
+    "filter_kernel_spec",
+    "kernel_refusal",
+    "set_backend",
+    "use_backend",
+]
+
+_BACKENDS = ("auto", "numba", "numpy")
+_backend = "auto"
+
+#: The compiled twin implements these values of the choices that are not strategies.
+COMPILED_CHOICES = {
+    "update_mode": frozenset({UpdateMode.SEQUENTIAL}),
+    "neighbour_estimate": frozenset({NeighbourEstimate.CURRENT}),
+}
+
+
+def set_backend(name: str) -> None:
+    """Choose the CL correction backend.
+
+    Parameters
+    ----------
+    name : {"auto", "numba", "numpy"}
+        ``auto``: the compiled kernels when numba is importable, else numpy.
+        ``numba``: the kernels (error if numba is missing). ``numpy``: always the reference.
+    """
+    global _backend
+    if name not in _BACKENDS:
+        raise ConfigError(f"backend must be one of {list(_BACKENDS)}, got {name!r}")
+    if name == "numba" and not HAVE_NUMBA:
+        raise ConfigError("backend 'numba' needs numba: pip install 'resloc[fast]'")
+    _backend = name
+
+
+def backend() -> str:
+    """The backend in effect: ``numba`` or ``numpy``."""
+    return "numba" if _backend != "numpy" and HAVE_NUMBA else "numpy"
+
+
+@contextmanager
+def use_backend(name: str) -> Iterator[None]:
+    """Context manager: run the enclosed code with backend ``name``, then restore."""
+    previous = _backend
+    set_backend(name)
+    try:
+        yield
+    finally:
+        set_backend(previous)
+
+
+_env = os.environ.get("RESLOC_BACKEND", "auto").strip().lower() or "auto"
+if _env in _BACKENDS and not (_env == "numba" and not HAVE_NUMBA):
+    _backend = _env
+
+
+class FilterKernelSpec(NamedTuple):
+    """A filter as the kernel sees it.
+
+    Attributes
+    ----------
+    linearized : bool
+        EKF moments (True) or sigma points (False).
+    nz_idx : ndarray of int, shape (m, 6)
+        Column of each non-zero entry of the 6-D unit points (ascending).
+    nz_val : ndarray, shape (m, 6)
+        Those entries (the sums equal the dense product's).
+    nz_cnt : ndarray of int, shape (m,)
+        Non-zero entries per point.
+    Wm, Wc : ndarray, shape (m,)
+        Mean and covariance weights.
+    circular : bool
+        Circular mean of the bearings.
+    """
+
+    linearized: bool
+    nz_idx: np.ndarray
+    nz_val: np.ndarray
+    nz_cnt: np.ndarray
+    Wm: np.ndarray
+    Wc: np.ndarray
+    circular: bool
+
+
+_filter_specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def filter_kernel_spec(filt) -> FilterKernelSpec | None:
+    """The kernel's description of ``filt``, or None when the kernel does not reproduce it
+    (cached per filter object: filters are immutable)."""
+    try:
+        return _filter_specs[filt]
+    except KeyError:
+        spec = _build_filter_spec(filt)
+        _filter_specs[filt] = spec
+        return spec
+    except TypeError:  # not hashable or not weakly referenceable
+        return _build_filter_spec(filt)
+
+
+def _build_filter_spec(filt) -> FilterKernelSpec | None:
+    if type(filt) is ExtendedFilter:
+        w = np.zeros(1)
+        return FilterKernelSpec(
+            True, np.zeros((1, 6), np.int64), np.zeros((1, 6)), np.zeros(1, np.int64), w, w, True
+        )
+    if type(filt) is not SigmaPointFilter or filt.rule6.unit.shape[1] != 6:
+        return None
+    unit = np.asarray(filt.rule6.unit, dtype=float)
+    m = unit.shape[0]
+    nz_idx = np.zeros((m, 6), np.int64)
+    nz_val = np.zeros((m, 6))
+    nz_cnt = np.zeros(m, np.int64)
+    for k in range(m):
+        cols = np.flatnonzero(unit[k])
+        nz_cnt[k] = len(cols)
+        nz_idx[k, : len(cols)] = cols
+        nz_val[k, : len(cols)] = unit[k, cols]
+    return FilterKernelSpec(
+        False,
+        nz_idx,
+        nz_val,
+        nz_cnt,
+        np.ascontiguousarray(filt.rule6.Wm, dtype=float),
+        np.ascontiguousarray(filt.rule6.Wc, dtype=float),
+        bool(filt.circular),
+    )
+
+
+def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str | None:
+    """Why the compiled kernel does not run this correction; None when it does.
+
+    Parameters
+    ----------
+    filt : GaussianFilter
+    params : CLParams
+    links : LinkBatch
+    memory : LinkMemory, optional
+
+    Returns
+    -------
+    str or None
+    """
+    if backend() != "numba":
+        return "the backend is numpy"
+    if filter_kernel_spec(filt) is None:
+        return f"the filter {type(filt).__name__} has no compiled twin"
+    refusal = _params_refusal(params)
+    if refusal is not None:
+        return refusal
+    if links.tamper is not None:
+        return "an adversary's tamper hook runs in Python"
+    if links.P_nb_ind is not None:
+        return "transmitted independent parts belong to split covariance intersection"
+    return None
+
+
+_last_params: tuple = (None, None)
+
+
+def _params_refusal(params: CLParams) -> str | None:
+    """The options' part of :func:`kernel_refusal`, kept for the last ``params`` object (a
+    frozen dataclass: a run passes the same one every step)."""
+    global _last_params
+    ref, refusal = _last_params
+    if ref is not None and ref() is params:
+        return refusal
+    refusal = None
+    if not fusion_strategy(params.fusion).compiled:
+        refusal = f"fusion {params.fusion.value!r} has no compiled twin"
+    for stage in active_stages(params):
+        if refusal is None and not stage.compiled:
+            refusal = f"the detector stage {stage.name!r} has no compiled twin"
+    for name, values in COMPILED_CHOICES.items():
+        if refusal is None and getattr(params, name) not in values:
+            refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"
+    try:
+        _last_params = (weakref.ref(params), refusal)
+    except TypeError:  # not weakly referenceable: no cache
+        _last_params = (None, None)
+    return refusal

@@ -1,0 +1,164 @@
+"""The attack detector's stages as strategies: one declared protocol, one registry.
+
+A link's measurement is discarded when any active stage flags it (Algorithm 1, "Attack
+Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
+
+``gate``
+    ``||Lambda_ij|| > rho`` with the detector norm: the paper's raw norm (``euclidean``),
+    the noise-scaled one, or the NIS gate (``nis``, :func:`~resloc.cl.cusum.chi2_gate`).
+``cusum``
+    While the per-link CUSUM of the NIS alarms, measurements whose NIS exceeds ``cusum_k``.
+``mean_cusum``
+    While a signed CUSUM of the whitened innovation alarms, measurements beyond
+    ``mean_cusum_k`` (only measurements the gate passed update it).
+
+The CL step runs :func:`detect`; the compiled kernel's coverage is read from
+:attr:`DetectorStage.compiled`. Adding a stage is one class and one line in
+:data:`DETECTOR_STAGES`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import numpy as np
+
+from resloc.cl.cusum import link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.detector import InnovationNorm, attack_detected
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams, at_robots
+
+__all__ = ["DETECTOR_STAGES", "DetectorStage", "Evidence", "active_stages", "detect"]
+
+
+@dataclass
+class Evidence:
+    """What the stages judge a round of links by.
+
+    Attributes
+    ----------
+    nu : ndarray, shape (E, 2)
+        Innovations ``Lambda_ij`` (eq. 9).
+    S : ndarray, shape (E, 2, 2)
+        Their covariances ``P^zz``.
+    norm : ndarray, shape (E,)
+        The detector norm of ``nu``.
+    i, j : ndarray of int, shape (E,)
+        Observers (batch indices) and neighbours (ids).
+    gated : ndarray of bool, shape (E,)
+        What the gate discarded (all False until it ran or when it is off).
+    """
+
+    nu: np.ndarray
+    S: np.ndarray
+    norm: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    gated: np.ndarray
+
+
+class DetectorStage(Protocol):
+    """One test of the attack detector.
+
+    Attributes
+    ----------
+    name : str
+    compiled : bool
+        The compiled CL kernel (:mod:`resloc.cl.kernels`) implements the stage.
+    """
+
+    name: str
+    compiled: bool
+
+    def active(self, params: CLParams) -> bool:
+        """Whether ``params`` switch the stage on."""
+
+    def discard(
+        self, evidence: Evidence, params: CLParams, memory: LinkMemory | None
+    ) -> np.ndarray:
+        """Measurements to discard, shape (E,); updates the stage's state in ``memory``."""
+
+
+def _memory(memory: LinkMemory | None, what: str) -> LinkMemory:
+    if memory is None:
+        raise ValueError(f"detector {what} needs a LinkMemory")
+    return memory
+
+
+class NormGate:
+    """``||Lambda_ij|| > rho`` with the detector norm (raw, scaled or NIS)."""
+
+    name: ClassVar[str] = "gate"
+    compiled: ClassVar[bool] = True
+
+    def active(self, params: CLParams) -> bool:
+        return bool(params.detector)
+
+    def discard(self, evidence, params, memory) -> np.ndarray:
+        evidence.gated = attack_detected(evidence.norm, at_robots(params.rho, evidence.i))
+        return evidence.gated
+
+
+class NISCusum:
+    """Per-link CUSUM of the NIS (:func:`~resloc.cl.cusum.link_cusum`)."""
+
+    name: ClassVar[str] = "cusum"
+    compiled: ClassVar[bool] = False
+
+    def active(self, params: CLParams) -> bool:
+        return bool(params.cusum)
+
+    def discard(self, evidence, params, memory) -> np.ndarray:
+        memory = _memory(memory, "CUSUM (params.cusum)")
+        ev = evidence
+        if params.detector_norm is InnovationNorm.NIS:
+            stat = ev.norm * ev.norm
+        else:
+            stat = nis(ev.nu, ev.S)
+        k = at_robots(params.cusum_k, ev.i)
+        h = at_robots(params.cusum_h, ev.i)
+        alarm = link_cusum(memory.cusum, ev.i, ev.j, stat, k, h, params.cusum_cap)
+        # While a link's CUSUM alarms, its gate tightens to the CUSUM reference: measurements
+        # whose own NIS is above k are discarded, honest-looking ones still pass.
+        return alarm & (stat > k)
+
+
+class MeanShiftCusum:
+    """Signed CUSUMs of the whitened innovation (:func:`~resloc.cl.cusum.link_mean_cusum`)."""
+
+    name: ClassVar[str] = "mean_cusum"
+    compiled: ClassVar[bool] = False
+
+    def active(self, params: CLParams) -> bool:
+        return bool(params.mean_cusum)
+
+    def discard(self, evidence, params, memory) -> np.ndarray:
+        memory = _memory(memory, "mean CUSUM (params.mean_cusum)")
+        ev = evidence
+        return link_mean_cusum(
+            memory.mean_cusum,
+            ev.i,
+            ev.j,
+            whiten(ev.nu, ev.S),
+            at_robots(params.mean_cusum_k, ev.i),
+            at_robots(params.mean_cusum_h, ev.i),
+            ~ev.gated,
+        )
+
+
+#: The stages, in the order they run (the gate first: the others read its verdict).
+DETECTOR_STAGES: tuple[DetectorStage, ...] = (NormGate(), NISCusum(), MeanShiftCusum())
+
+
+def active_stages(params: CLParams) -> tuple[DetectorStage, ...]:
+    """The stages ``params`` switch on."""
+    return tuple(s for s in DETECTOR_STAGES if s.active(params))
+
+
+def detect(evidence: Evidence, params: CLParams, memory: LinkMemory | None) -> np.ndarray:
+    """Run every active stage; returns the discarded measurements, shape (E,)."""
+    detected = np.zeros(len(evidence.nu), dtype=bool)
+    for stage in active_stages(params):
+        detected = detected | stage.discard(evidence, params, memory)
+    return detected

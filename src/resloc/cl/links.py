@@ -1,0 +1,102 @@
+"""What one CL step is given and what it decides, one row per directed link ``(i, j)``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["LinkBatch", "LinkOutcome"]
+
+
+@dataclass
+class LinkBatch:
+    """The relative measurements of one step, one row per directed link ``(i, j)``.
+
+    Rows must be sorted by ``i`` (then by ``j``: the sequential update order).
+
+    Attributes
+    ----------
+    i : ndarray of int, shape (E,)
+        Observer, as an index into the batch ``[0, B)``.
+    j : ndarray of int, shape (E,)
+        Observed robot's id (used only as a key of the per-link memory).
+    z : ndarray, shape (E, 2)
+        Measured ``[range, bearing]`` (possibly falsified).
+    x_nb : ndarray, shape (E, 3)
+        Neighbour j's current predicted estimate: what a transmission would carry.
+    P_nb : ndarray, shape (E, 3, 3)
+    channel_ok : ndarray of bool, shape (E,)
+        Whether a transmission on this link would get through (False in a jammed CDZ).
+    risk_s, risk_c : ndarray, shape (B,)
+        ``Ds(i)``, ``Dc(i)`` for every robot of the batch.
+    lambda2 : ndarray, shape (B,)
+        Algebraic connectivity seen by every robot of the batch.
+    tamper : callable ``(rows, z_hat, S) -> z``, optional
+        Issue 6: an adversary that sees robot i's predicted measurement ``(len(rows), 2)``
+        and innovation covariance ``(len(rows), 2, 2)`` of ``rows`` and returns the
+        measurements i receives there (the stealthy attacker of
+        :mod:`resloc.world.adversary`, supplied by the simulator). None: ``z`` as is.
+    P_nb_ind : ndarray, shape (E, 3, 3), optional
+        Independent part of ``P_nb`` (split covariance intersection, transmitted with it).
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    z: np.ndarray
+    x_nb: np.ndarray
+    P_nb: np.ndarray
+    channel_ok: np.ndarray
+    risk_s: np.ndarray
+    risk_c: np.ndarray
+    lambda2: np.ndarray
+    tamper: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
+    P_nb_ind: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.i)
+
+
+@dataclass
+class LinkOutcome:
+    """What happened on every link of a :class:`LinkBatch`.
+
+    Attributes
+    ----------
+    norm : ndarray, shape (E,)
+        Trigger-norm of the innovation ``||Lambda_ij||`` (eq. 9).
+    threshold : ndarray, shape (E,)
+        ``delta_ij`` of eq. (11) (``nan`` where the detector discarded the link first).
+    detected : ndarray of bool, shape (E,)
+        Discarded by the attack detector.
+    triggered : ndarray of bool, shape (E,)
+        A transmission was attempted (eq. 10).
+    delivered : ndarray of bool, shape (E,)
+        The transmission got through (``sigma_ij = 1``).
+    fused : ndarray of bool, shape (E,)
+        ``z_ij`` was used in a Kalman update.
+    repaired : ndarray of bool, shape (E,)
+        The observer's covariance had to be projected back to positive definite after this
+        link's update (``summed`` updates: on the robot's first fused link).
+    compiled : bool
+        The compiled kernel computed the outcome (else the numpy reference path).
+    """
+
+    norm: np.ndarray
+    threshold: np.ndarray
+    detected: np.ndarray
+    triggered: np.ndarray
+    delivered: np.ndarray
+    fused: np.ndarray
+    repaired: np.ndarray
+    compiled: bool = False
+
+    @property
+    def repairs(self) -> int:
+        """Covariances that had to be projected back to positive definite."""
+        return int(np.count_nonzero(self.repaired))
+
+    @classmethod
+    def empty(cls, E: int) -> LinkOutcome:
+        return cls(np.full(E, np.nan), np.full(E, np.nan), *np.zeros((5, E), dtype=bool))
