@@ -38,7 +38,7 @@ def sweep_command(
     spec = load_sweep(path)
     if out is None:
         out = Path("runs") / f"sweep-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
     spec.with_run(seeds, steps).scenarios()  # every point valid before any work
     if plots:
         from resloc.experiments.plots import pyplot
@@ -50,7 +50,7 @@ def sweep_command(
     ) as study:
         result = run_sweep(spec, seeds=seeds, steps=steps, study=study)
     print_sweep(result)
-    with atomic_output_dir(out, overwrite) as tmp:
+    with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_sweep(result, tmp, plots=plots)
     print(f"results written to {out}/ (sweep.toml, summary.json, cells.csv, sweep.csv, plots)")
     if result.failures:
