@@ -118,7 +118,9 @@ def _decide(
         if r.size:
             P_i = P_i.copy()
             P_i[r] = P_i[r] * evidence.inflation[r, None, None]
-            fresh = fusion.moments(filt, memory, x_i[r], P_i[r], x_ref[r], P_ref[r], ii[r], jj[r], R)
+            fresh = fusion.moments(
+                filt, memory, x_i[r], P_i[r], x_ref[r], P_ref[r], ii[r], jj[r], R
+            )
             m = _with_rows(m, r, fresh)
             nu[r] = innovation(z_rows[r], fresh.z_hat)
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
@@ -268,9 +270,7 @@ def correct(
     for r in range(len(bounds) - 1):
         rows = order[bounds[r] : bounds[r + 1]]
         ii = links.i[rows]  # distinct within a round
-        fuse, m, nu, P_used = _decide(
-            filt, fusion, x[ii], P[ii], rows, links, params, memory, out
-        )
+        fuse, m, nu, P_used = _decide(filt, fusion, x[ii], P[ii], rows, links, params, memory, out)
         if not fuse.any():
             continue
         f = np.flatnonzero(fuse)
