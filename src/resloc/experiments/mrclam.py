@@ -69,8 +69,8 @@ __all__ = [
     "default_rho",
     "default_zones",
     "estimate_noise",
-    "noise_from_fit",
     "ground_truth_at",
+    "noise_from_fit",
     "prepare_replay",
     "range_noise_std",
     "run_mrclam",
@@ -176,7 +176,9 @@ class MRCLAMConfig:
         if isinstance(self.recovery_after, bool) or not (
             isinstance(self.recovery_after, int) and self.recovery_after >= 1
         ):
-            raise ConfigError(f"recovery_after must be an integer >= 1, got {self.recovery_after!r}")
+            raise ConfigError(
+                f"recovery_after must be an integer >= 1, got {self.recovery_after!r}"
+            )
         for name in self.filters:
             if name not in {k.value for k in FilterKind}:
                 raise ConfigError(f"filters: unknown filter {name!r}; use ckf, ukf or ekf")
