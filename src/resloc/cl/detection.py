@@ -63,6 +63,8 @@ class Evidence:
     inflation : ndarray, shape (E,), optional
         Set by a stage that re-admits measurements: the factor (>= 1) on the observer's
         covariance the update of each row uses (the CL step recomputes its moments).
+    P_obs : ndarray, shape (E, 3, 3), optional
+        The observers' covariances (the recovery bounds its inflation by their growth).
     """
 
     nu: np.ndarray
@@ -73,6 +75,7 @@ class Evidence:
     gated: np.ndarray
     detected: np.ndarray | None = None
     inflation: np.ndarray | None = None
+    P_obs: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):

@@ -13,10 +13,12 @@ measurement resets it to 0). Once ``n_i >= R`` (``recovery_after``) the robot is
 recovery and a discarded measurement is re-admitted when its NIS, with the innovation
 covariance inflated by
 
-``f(n) = min(2^((n - R) / R), f_max)``
+``f = min(2^((n - R) / R), G_i, f_max)``
 
-(doubling every ``R`` further rejections, capped at ``recovery_inflation_cap``), passes the
-chi-square gate ``NIS / f(n) <= g`` (``g = recovery_gate``, in NIS units), and the update
+(doubling every ``R`` further rejections, capped at ``recovery_inflation_cap``, and at the
+robot's own covariance growth ``G_i = tr P_i,pos / tr P_i,pos(last acceptance)``, the factor
+by which its position covariance grew since a measurement last passed the ordinary tests),
+passes the chi-square gate ``NIS / f <= g`` (``g = recovery_gate``, in NIS units), and the update
 then uses the robot's covariance inflated by ``f(n)`` (a re-admitted measurement fused with
 the overconfident covariance would barely move the estimate, and the next one would be
 rejected again). The inflation stands for the model error the filter does not know about;
@@ -26,10 +28,14 @@ Bound (what an attacker gains from the recovery). To put robot i into recovery t
 attacker must have every measurement of robot i discarded ``R`` times in a row: a single
 honest measurement that passes resets the count, so an attacker controlling only some of a
 robot's links never triggers it. Once in recovery, a measurement is re-admitted only with
-``NIS <= f_max g``: an innovation of at most ``sqrt(f_max g)`` innovation standard
-deviations, after at least ``R (1 + log2(b^2 / g))`` consecutive rejections for a lie of
-``b`` standard deviations (never when ``b^2 > f_max g``). While re-admissions go on the
-count is frozen (the robot stays at that inflation); it restarts at 0 only when a
+``NIS <= g min(G_i, f_max)``: an innovation of at most ``sqrt(g min(G_i, f_max))``
+innovation standard deviations, where ``G_i`` is the growth of the robot's own position
+covariance since its last ordinary acceptance. The attacker cannot speed that growth up: it
+is the filter's dead-reckoning growth over the time the attacker kept every measurement of
+the robot rejected (a lie of ``b`` standard deviations needs ``G_i >= b^2 / g`` and at
+least ``R (1 + log2(b^2 / g))`` consecutive rejections; never when ``b^2 > f_max g``). A
+robot that truly lost its sightings for a long time has a large ``G_i``, so it recovers.
+While re-admissions go on the count is frozen (the robot stays at that inflation); it restarts at 0 only when a
 measurement passes the ordinary tests. A persistent lie of ``b`` sigmas therefore displaces
 the robot by at most that lie (the estimate moves to agree with it, after which it passes
 the ordinary gate), and each further ``b`` sigmas of displacement costs the attacker another
@@ -139,14 +145,26 @@ class RejectionRecovery:
             raise ValueError("detector recovery (params.recovery) needs a LinkMemory")
         ev = evidence
         runs = _runs(memory)
+        spread = memory.stage_statistic("recovery_spread")
         detected = ev.detected.copy()
-        # Rows are in observer order; a robot's earlier rows of this call count too.
         start = runs.get(ev.i, ev.i)
         f = recovery_inflation(
             start,
             at_robots(params.recovery_after, ev.i),
             at_robots(params.recovery_inflation_cap, ev.i),
         )
+        # The robot's position covariance now and at its last ordinary acceptance (0: none
+        # yet, then only the cap bounds the inflation).
+        trace = np.trace(ev.P_obs[:, :2, :2], axis1=1, axis2=2) if ev.P_obs is not None else None
+        if trace is not None:
+            before = spread.get(ev.i, ev.i)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                growth = np.where(before > 0.0, trace / before, np.inf)
+            f = np.minimum(f, np.maximum(growth, 1.0))
+            passed = ~detected
+            if passed.any():
+                robots, first = np.unique(ev.i[passed], return_index=True)
+                spread.set(robots, robots, trace[passed][first])
         candidates = detected & np.isfinite(f)
         readmitted = np.zeros(len(detected), bool)
         if candidates.any():

@@ -107,7 +107,7 @@ def _decide(
         n_det = n_trig
     else:
         n_det = innovation_norm(nu, m.S, params.detector_norm, params.noise_std)
-    evidence = Evidence(nu, m.S, n_det, ii, jj, np.zeros(len(rows), bool))
+    evidence = Evidence(nu, m.S, n_det, ii, jj, np.zeros(len(rows), bool), P_obs=P_i)
     detected = detect(evidence, params, memory)
     accepted = ~detected
     if evidence.inflation is not None:
