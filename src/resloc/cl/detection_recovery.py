@@ -35,8 +35,8 @@ is the filter's dead-reckoning growth over the time the attacker kept every meas
 the robot rejected (a lie of ``b`` standard deviations needs ``G_i >= b^2 / g`` and at
 least ``R (1 + log2(b^2 / g))`` consecutive rejections; never when ``b^2 > f_max g``). A
 robot that truly lost its sightings for a long time has a large ``G_i``, so it recovers.
-While re-admissions go on the count is frozen (the robot stays at that inflation); it restarts at 0 only when a
-measurement passes the ordinary tests. A persistent lie of ``b`` sigmas therefore displaces
+While re-admissions go on the count is frozen (the robot stays at that inflation); it
+restarts at 0 only when a measurement passes the ordinary tests. A persistent lie of ``b`` sigmas therefore displaces
 the robot by at most that lie (the estimate moves to agree with it, after which it passes
 the ordinary gate), and each further ``b`` sigmas of displacement costs the attacker another
 run of ``R (1 + log2(b^2 / g))`` measurements all of which it must control. Against an
