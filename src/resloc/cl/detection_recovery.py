@@ -24,19 +24,19 @@ the overconfident covariance would barely move the estimate, and the next one wo
 rejected again). The inflation stands for the model error the filter does not know about;
 it grows only while *nothing* gets through.
 
-Bound (what an attacker gains from the recovery). To put robot i into recovery the
-attacker must have every measurement of robot i discarded ``R`` times in a row: a single
-honest measurement that passes resets the count, so an attacker controlling only some of a
-robot's links never triggers it. Once in recovery, a measurement is re-admitted only with
-``NIS <= g min(G_i, f_max)``: an innovation of at most ``sqrt(g min(G_i, f_max))``
-innovation standard deviations, where ``G_i`` is the growth of the robot's own position
-covariance since its last ordinary acceptance. The attacker cannot speed that growth up: it
-is the filter's dead-reckoning growth over the time the attacker kept every measurement of
-the robot rejected (a lie of ``b`` standard deviations needs ``G_i >= b^2 / g`` and at
-least ``R (1 + log2(b^2 / g))`` consecutive rejections; never when ``b^2 > f_max g``). A
-robot that truly lost its sightings for a long time has a large ``G_i``, so it recovers.
-While re-admissions go on the count is frozen (the robot stays at that inflation); it
-restarts at 0 only when a measurement passes the ordinary tests. A persistent lie of ``b`` sigmas therefore displaces
+Bound (what an attacker gains from the recovery). To put robot i into recovery the attacker
+must have every measurement of robot i discarded ``R`` times in a row: a single honest
+measurement that passes resets the count, so an attacker controlling only some of a robot's
+links never triggers it. Once in recovery, a measurement is re-admitted only with ``NIS <= g
+min(G_i, f_max)``: an innovation of at most ``sqrt(g min(G_i, f_max))`` innovation standard
+deviations, where ``G_i`` is the growth of the robot's own position covariance since its
+last ordinary acceptance. The attacker cannot speed that growth up: it is the filter's dead-
+reckoning growth over the time the attacker kept every measurement of the robot rejected (a
+lie of ``b`` standard deviations needs ``G_i >= b^2 / g`` and at least ``R (1 + log2(b^2 /
+g))`` consecutive rejections; never when ``b^2 > f_max g``). A robot that truly lost its
+sightings for a long time has a large ``G_i``, so it recovers. While re-admissions go on the
+count is frozen (the robot stays at that inflation); it restarts at 0 only when a
+measurement passes the ordinary tests. A persistent lie of ``b`` sigmas therefore displaces
 the robot by at most that lie (the estimate moves to agree with it, after which it passes
 the ordinary gate), and each further ``b`` sigmas of displacement costs the attacker another
 run of ``R (1 + log2(b^2 / g))`` measurements all of which it must control. Against an
