@@ -19,6 +19,8 @@ CONDITIONS = {
     "random": {},
     "fixed_full": {"attack.kind": "fixed", "attack.links": "full"},
     "stealthy": {"attack.kind": "stealthy"},
+    # Knows only the per-measurement gate (not the sequence tests): it does not hold back.
+    "stealthy_gate": {"attack.kind": "stealthy", "attack.stealth_knowledge": "gate"},
     "replay": {"attack.kind": "replay"},
 }
 
@@ -26,7 +28,8 @@ CONDITIONS = {
 def main() -> None:
     out = sys.argv[1]
     trials = int(sys.argv[2]) if len(sys.argv) > 2 else 4
-    names = sys.argv[3:] or ["none", *DEFENCES]
+    names = [a for a in sys.argv[3:] if "=" not in a] or ["none", *DEFENCES]
+    only = [a.split("=", 1)[1] for a in sys.argv[3:] if a.startswith("conditions=")]
     base = default_scenario().replace(
         **{"run.filters": ["ekf"], "run.dead_reckoning": False, "run.trials": trials}
     )
@@ -34,6 +37,8 @@ def main() -> None:
         for name in names:
             overrides = {"detector.enabled": False} if name == "none" else dict(DEFENCES[name])
             conditions = {"clean": CONDITIONS["clean"]} if name == "none" else CONDITIONS
+            if only:
+                conditions = {k: v for k, v in conditions.items() if k in only[0].split(",")}
             for cond, attack in conditions.items():
                 t0 = time.time()
                 res = run_scenario(base.replace(**overrides, **attack), seed=0)
