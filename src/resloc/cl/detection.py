@@ -11,6 +11,13 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
 ``mean_cusum``
     While a signed CUSUM of the whitened innovation alarms, measurements beyond
     ``mean_cusum_k`` (only measurements the gate passed update it).
+``robot_cusum``
+    While the CUSUM of the NIS over *all* of a robot's links alarms, its measurements whose
+    NIS exceeds ``robot_cusum_k`` (:mod:`resloc.cl.detection_robot`).
+``recovery``
+    Runs last and overrides the others: re-admits the measurements of a robot locked out by
+    ``recovery_after`` consecutive rejections that pass an inflated NIS gate
+    (:mod:`resloc.cl.detection_recovery`, which states the bound an attacker faces).
 
 The CL step runs :func:`detect`; the compiled kernel's coverage is read from
 :attr:`DetectorStage.compiled`. Adding a stage is one class and one line in
@@ -25,6 +32,8 @@ from typing import ClassVar, Protocol
 import numpy as np
 
 from resloc.cl.cusum import link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.detection_recovery import RejectionRecovery
+from resloc.cl.detection_robot import RobotCusum
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
@@ -48,6 +57,14 @@ class Evidence:
         Observers (batch indices) and neighbours (ids).
     gated : ndarray of bool, shape (E,)
         What the gate discarded (all False until it ran or when it is off).
+    detected : ndarray of bool, shape (E,), optional
+        The verdict of the stages run so far (set by :func:`detect` before an overriding
+        stage runs).
+    inflation : ndarray, shape (E,), optional
+        Set by a stage that re-admits measurements: the factor (>= 1) on the observer's
+        covariance the update of each row uses (the CL step recomputes its moments).
+    P_obs : ndarray, shape (E, 3, 3), optional
+        The observers' covariances (the recovery bounds its inflation by their growth).
     """
 
     nu: np.ndarray
@@ -56,6 +73,9 @@ class Evidence:
     i: np.ndarray
     j: np.ndarray
     gated: np.ndarray
+    detected: np.ndarray | None = None
+    inflation: np.ndarray | None = None
+    P_obs: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -66,10 +86,14 @@ class DetectorStage(Protocol):
     name : str
     compiled : bool
         The compiled CL kernel (:mod:`resloc.cl.kernels`) implements the stage.
+    overrides : bool
+        The stage returns the final verdict from ``evidence.detected`` (the verdict so far)
+        instead of adding discards to it.
     """
 
     name: str
     compiled: bool
+    overrides: bool
 
     def active(self, params: CLParams) -> bool:
         """Whether ``params`` switch the stage on."""
@@ -91,6 +115,7 @@ class NormGate:
 
     name: ClassVar[str] = "gate"
     compiled: ClassVar[bool] = True
+    overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
         return bool(params.detector)
@@ -105,6 +130,7 @@ class NISCusum:
 
     name: ClassVar[str] = "cusum"
     compiled: ClassVar[bool] = False
+    overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
         return bool(params.cusum)
@@ -129,6 +155,7 @@ class MeanShiftCusum:
 
     name: ClassVar[str] = "mean_cusum"
     compiled: ClassVar[bool] = False
+    overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
         return bool(params.mean_cusum)
@@ -147,8 +174,15 @@ class MeanShiftCusum:
         )
 
 
-#: The stages, in the order they run (the gate first: the others read its verdict).
-DETECTOR_STAGES: tuple[DetectorStage, ...] = (NormGate(), NISCusum(), MeanShiftCusum())
+#: The stages, in the order they run (the gate first: the others read its verdict; the
+#: recovery last: it overrides every verdict).
+DETECTOR_STAGES: tuple[DetectorStage, ...] = (
+    NormGate(),
+    NISCusum(),
+    MeanShiftCusum(),
+    RobotCusum(),
+    RejectionRecovery(),
+)
 
 
 def active_stages(params: CLParams) -> tuple[DetectorStage, ...]:
@@ -160,5 +194,9 @@ def detect(evidence: Evidence, params: CLParams, memory: LinkMemory | None) -> n
     """Run every active stage; returns the discarded measurements, shape (E,)."""
     detected = np.zeros(len(evidence.nu), dtype=bool)
     for stage in active_stages(params):
-        detected = detected | stage.discard(evidence, params, memory)
+        if stage.overrides:
+            evidence.detected = detected
+            detected = stage.discard(evidence, params, memory)
+        else:
+            detected = detected | stage.discard(evidence, params, memory)
     return detected

@@ -43,6 +43,14 @@ class LinkMemory:
         self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
         # One robot's process: end-of-step exchanges arrive as messages, not from the batch.
         self.local = False
+        self._stage_statistics: dict[str, LinkStatistic] = {}
+
+    def stage_statistic(self, name: str, width: int | None = None) -> LinkStatistic:
+        """The per-link statistic a detector stage keeps under ``name`` (created empty on
+        first use; a per-robot statistic is keyed ``(i, i)``)."""
+        if name not in self._stage_statistics:
+            self._stage_statistics[name] = LinkStatistic(self.n_nodes, width=width)
+        return self._stage_statistics[name]
 
     def __len__(self) -> int:
         return len(self.keys)

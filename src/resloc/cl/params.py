@@ -109,6 +109,22 @@ class CLParams:
         LinkMemory). Off in the paper.
     mean_cusum_k, mean_cusum_h : float or ndarray (B,)
         Its reference and alarm threshold, in innovation standard deviations.
+    robot_cusum : bool
+        Also run a CUSUM of the NIS over all of a robot's links and discard, while it alarms,
+        the robot's measurements whose NIS exceeds ``robot_cusum_k``
+        (:mod:`resloc.cl.detection_robot`; needs a LinkMemory).
+    robot_cusum_k, robot_cusum_h : float or ndarray (B,)
+        Its reference and alarm threshold, in NIS units.
+    recovery : bool
+        Re-admit the measurements of a robot after ``recovery_after`` consecutive rejections
+        when they pass an inflated NIS gate (:mod:`resloc.cl.detection_recovery`; needs a
+        LinkMemory): the detector can then never lock a robot out.
+    recovery_after : float or ndarray (B,)
+        ``R``: consecutive discarded measurements of one robot before recovery.
+    recovery_gate : float or ndarray (B,)
+        Chi-square gate on the inflated NIS (default: false-alarm probability 1e-3).
+    recovery_inflation_cap : float or ndarray (B,)
+        Largest inflation ``f_max`` of the innovation covariance.
     """
 
     range_std: float = 0.005
@@ -138,6 +154,13 @@ class CLParams:
     mean_cusum: bool = False
     mean_cusum_k: float | np.ndarray = 0.5
     mean_cusum_h: float | np.ndarray = 8.0
+    robot_cusum: bool = False
+    robot_cusum_k: float | np.ndarray = 3.0
+    robot_cusum_h: float | np.ndarray = 30.0
+    recovery: bool = False
+    recovery_after: float | np.ndarray = 10.0
+    recovery_gate: float | np.ndarray = 13.815510557964274
+    recovery_inflation_cap: float | np.ndarray = 100.0
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -81,8 +81,9 @@ def _decide(
 ) -> tuple[np.ndarray, Moments, np.ndarray]:
     """Detector, trigger and channel for ``rows`` of ``links`` given robot estimates ``x_i``.
 
-    Returns the rows to fuse, the moments to fuse them with (same order as ``rows``) and
-    the innovations. Writes the per-link decisions into ``out``.
+    Returns the rows to fuse, the moments to fuse them with (same order as ``rows``), the
+    innovations and the observers' covariances to update (``P_i``, inflated where a
+    detector stage re-admitted a measurement). Writes the per-link decisions into ``out``.
     """
     ii, jj = links.i[rows], links.j[rows]
     R = params.R
@@ -106,9 +107,22 @@ def _decide(
         n_det = n_trig
     else:
         n_det = innovation_norm(nu, m.S, params.detector_norm, params.noise_std)
-    evidence = Evidence(nu, m.S, n_det, ii, jj, np.zeros(len(rows), bool))
+    evidence = Evidence(nu, m.S, n_det, ii, jj, np.zeros(len(rows), bool), P_obs=P_i)
     detected = detect(evidence, params, memory)
     accepted = ~detected
+    if evidence.inflation is not None:
+        # A stage re-admitted these rows with the robot's covariance inflated (recovery
+        # after a lock-out): the update uses the inflated covariance, so it can move the
+        # estimate as far as the measurement says.
+        r = np.flatnonzero(accepted & (evidence.inflation > 1.0))
+        if r.size:
+            P_i = P_i.copy()
+            P_i[r] = P_i[r] * evidence.inflation[r, None, None]
+            fresh = fusion.moments(
+                filt, memory, x_i[r], P_i[r], x_ref[r], P_ref[r], ii[r], jj[r], R
+            )
+            m = _with_rows(m, r, fresh)
+            nu[r] = innovation(z_rows[r], fresh.z_hat)
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
         size = np.where(known, memory.last_norm[pos] if len(memory) else 0.0, 0.0)
     else:
@@ -153,18 +167,24 @@ def _decide(
         fresh = fusion.moments(
             filt, memory, x_i[sub], P_i[sub], links.x_nb[rs], links.P_nb[rs], ii[sub], jj[sub], R
         )
-        m = Moments(
-            m.z_hat.copy(),
-            m.S.copy(),
-            m.Pxz.copy(),
-            None if m.H_i is None else m.H_i.copy(),
-            None if m.R_eff is None else m.R_eff.copy(),
-        )
-        m.z_hat[sub], m.S[sub], m.Pxz[sub] = fresh.z_hat, fresh.S, fresh.Pxz
-        if m.H_i is not None:
-            m.H_i[sub], m.R_eff[sub] = fresh.H_i, fresh.R_eff
+        m = _with_rows(m, sub, fresh)
         nu[sub] = innovation(z_rows[sub], fresh.z_hat)
-    return fuse, m, nu
+    return fuse, m, nu, P_i
+
+
+def _with_rows(m: Moments, rows: np.ndarray, fresh: Moments) -> Moments:
+    """A copy of ``m`` with ``rows`` replaced by ``fresh`` (same order)."""
+    m = Moments(
+        m.z_hat.copy(),
+        m.S.copy(),
+        m.Pxz.copy(),
+        None if m.H_i is None else m.H_i.copy(),
+        None if m.R_eff is None else m.R_eff.copy(),
+    )
+    m.z_hat[rows], m.S[rows], m.Pxz[rows] = fresh.z_hat, fresh.S, fresh.Pxz
+    if m.H_i is not None:
+        m.H_i[rows], m.R_eff[rows] = fresh.H_i, fresh.R_eff
+    return m
 
 
 def _ensure_pd(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -226,12 +246,12 @@ def correct(
     if params.update_mode is UpdateMode.SUMMED:
         rows = np.arange(E)
         xi, Pi = x[links.i], P[links.i]
-        fuse, m, nu = _decide(filt, fusion, xi, Pi, rows, links, params, memory, out)
+        fuse, m, nu, P_used = _decide(filt, fusion, xi, Pi, rows, links, params, memory, out)
         f = np.flatnonzero(fuse)
         if f.size:
             ii = links.i[f]
             Pi = P[ii]
-            x_upd, P_upd = kalman_update(x[ii], Pi, nu[f], _take(m, f))
+            x_upd, P_upd = kalman_update(x[ii], P_used[f], nu[f], _take(m, f))
             np.add.at(x, ii, x_upd - x[ii])
             np.add.at(P, ii, P_upd - Pi)
             x[:, 2] = wrap_angle(x[:, 2])
@@ -250,7 +270,7 @@ def correct(
     for r in range(len(bounds) - 1):
         rows = order[bounds[r] : bounds[r + 1]]
         ii = links.i[rows]  # distinct within a round
-        fuse, m, nu = _decide(filt, fusion, x[ii], P[ii], rows, links, params, memory, out)
+        fuse, m, nu, P_used = _decide(filt, fusion, x[ii], P[ii], rows, links, params, memory, out)
         if not fuse.any():
             continue
         f = np.flatnonzero(fuse)
@@ -258,7 +278,7 @@ def correct(
         x_new, P_new = fusion.update(
             memory,
             x[obs],
-            P[obs],
+            P_used[f],
             obs,
             links.j[rf],
             links.x_nb[rf],

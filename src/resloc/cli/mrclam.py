@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import enum
 import sys
@@ -17,6 +18,14 @@ from resloc.validation import INT64_MAX
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
 
 
+class NoiseChoice(enum.StrEnum):
+    """Where the replay's noise model comes from: the built-in defaults (fitted on Dataset 6)
+    or a fit of this dataset's sensors against its ground truth (``--estimate-noise``)."""
+
+    DEFAULT = "default"
+    AUTO = "auto"
+
+
 class FilterChoice(enum.StrEnum):
     """Filter selection on the command line."""
 
@@ -28,6 +37,12 @@ class FilterChoice(enum.StrEnum):
 
 def _fmt(v, spec: str = ".4g") -> str:
     return "-" if v is None or v != v else format(v, spec)
+
+
+def _fmt_value(v) -> str:
+    if isinstance(v, tuple | list):
+        return "(" + ", ".join(_fmt(a) for a in v) + ")"
+    return _fmt(v)
 
 
 def print_mrclam_summary(result, console=None) -> None:
@@ -159,22 +174,41 @@ def mrclam_command(
     plots: bool,
     progress: bool,
     export: str | None = None,
+    noise: NoiseChoice = NoiseChoice.DEFAULT,
+    paper_detector: bool = False,
     **kw,
 ):
-    """Validate, replay, print, save. ``kw`` are :class:`MRCLAMConfig` fields."""
+    """Validate, replay, print, save. ``kw`` are :class:`MRCLAMConfig` fields; a field given
+    as None takes its default (or, for the noise fields with ``noise = auto``, the fit)."""
     from resloc.cli.export import write_exports
-    from resloc.experiments.mrclam import run_mrclam, save_mrclam
+    from resloc.datasets.mrclam import load_mrclam
+    from resloc.experiments.mrclam import estimate_noise, noise_from_fit, run_mrclam, save_mrclam
     from resloc.experiments.output import (
         atomic_output_dir,
         check_output_dir,
         signals_as_exceptions,
     )
 
-    config = make_config(**kw)
+    kw = {k: v for k, v in kw.items() if v is not None}
+    config = make_config(**kw)  # every flag validated before any work
     if out is None:
         stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
         out = Path("runs") / f"mrclam-{Path(path).name}-{stamp}"
     check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
+    data = path
+    if NoiseChoice(noise) is NoiseChoice.AUTO:
+        data = load_mrclam(path, duration=config.duration, strict=config.strict)
+        fitted = noise_from_fit(estimate_noise(data))
+        for name, value in fitted.items():
+            kw.setdefault(name, value)  # an explicit option wins over the fit
+        used = {k: kw[k] for k in fitted}
+        print(
+            "noise fitted against ground truth: "
+            + ", ".join(f"{k} {_fmt_value(v)}" for k, v in used.items())
+        )
+        config = make_config(**kw)
+    if paper_detector:  # an explicit --rho still wins
+        config = dataclasses.replace(config.paper_detector(), rho=kw.get("rho", 1.0))
     if plots:
         from resloc.experiments.plots import pyplot
 
@@ -188,7 +222,7 @@ def mrclam_command(
                 tasks[name] = bar.add_task(label, total=n)
             bar.update(tasks[name], completed=k)
 
-        result = run_mrclam(path, config, progress=report)
+        result = run_mrclam(data, config, progress=report)
     print_mrclam_summary(result)
     with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_mrclam(result, tmp, plots=plots)
@@ -234,19 +268,47 @@ def register(app: typer.Typer) -> None:
             help="Fail on any data row that is out of order, repeated, conflicting or "
             "unusable (default: count and report them).",
         ),
-        rho: float = typer.Option(1.0, "--rho", help="Attack-detector threshold."),
+        rho: float | None = typer.Option(
+            None,
+            "--rho",
+            help="Attack-detector threshold [default: the chi-square gate at false-alarm "
+            "probability 1e-3 with the nis norm, 1.0 with a raw norm].",
+        ),
         detector_norm: InnovationNorm = typer.Option(
-            InnovationNorm.EUCLIDEAN, "--detector-norm", help="Norm the detector thresholds."
+            InnovationNorm.NIS, "--detector-norm", help="Norm the detector thresholds."
         ),
         detector: bool = typer.Option(True, "--detector/--no-detector", help="Attack detector."),
+        recovery: bool = typer.Option(
+            True,
+            "--recovery/--no-recovery",
+            help="Re-admit a robot's sightings after a run of rejections (no lock-out).",
+        ),
+        recovery_after: int = typer.Option(
+            10, "--recovery-after", min=1, help="Consecutive rejections before recovery."
+        ),
+        paper_detector: bool = typer.Option(
+            False,
+            "--paper-detector",
+            help="The paper's detector: raw euclidean norm, rho 1.0, no recovery.",
+        ),
         trigger: bool = typer.Option(
             True, "--trigger/--no-trigger", help="Event trigger (off: transmit every link)."
         ),
-        range_std: float = typer.Option(0.03, "--range-std", help="Range noise floor (m)."),
-        range_std_rel: float = typer.Option(
-            0.07, "--range-std-rel", help="Range noise per metre of range."
+        noise: NoiseChoice = typer.Option(
+            NoiseChoice.DEFAULT,
+            "--noise",
+            help="Noise model: default (fitted on Dataset 6) or auto (fitted on this dataset "
+            "against its ground truth, as --estimate-noise prints; explicit noise options win).",
         ),
-        bearing_std: float = typer.Option(0.015, "--bearing-std", help="Bearing noise (rad)."),
+        range_std: float | None = typer.Option(
+            None, "--range-std", help="Range noise floor (m) [default: 0.03]."
+        ),
+        range_std_rel: float | None = typer.Option(
+            None, "--range-std-rel", help="Range noise per metre of range [default: 0.07]."
+        ),
+        bearing_std: float | None = typer.Option(
+            None, "--bearing-std", help="Bearing noise (rad) [default: 0.015]."
+        ),
         attack_bias: tuple[float, float] = typer.Option(
             (0.4, 0.8), "--attack-bias", help="Injection bound: RANGE (m) BEARING (rad)."
         ),
@@ -277,6 +339,8 @@ def register(app: typer.Typer) -> None:
             plots,
             progress and sys.stderr.isatty(),
             export,
+            noise=noise,
+            paper_detector=paper_detector,
             filters=filters,
             dt=dt,
             duration=duration,
@@ -288,6 +352,8 @@ def register(app: typer.Typer) -> None:
             rho=rho,
             detector_norm=detector_norm,
             detector=detector,
+            recovery=recovery,
+            recovery_after=recovery_after,
             trigger=trigger,
             range_std=range_std,
             range_std_rel=range_std_rel,

@@ -141,6 +141,23 @@ class DetectorSpec:
         0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0, max=1e6
     )
     mean_cusum_h: float = _f(8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0, max=1e6)
+    robot_cusum: bool = _f(
+        False, "also discard while the CUSUM of the NIS over all of a robot's links alarms"
+    )
+    robot_cusum_k: float = _f(3.0, "per-robot CUSUM reference in NIS units", gt=0.0, max=1e6)
+    robot_cusum_h: float = _f(30.0, "per-robot CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
+    recovery: bool = _f(
+        False, "re-admit a robot's measurements after recovery_after consecutive rejections"
+    )
+    recovery_after: int = _f(
+        10, "consecutive rejections of one robot before recovery", min=1, max=1_000_000
+    )
+    recovery_false_alarm: float = _f(
+        1e-3, "recovery: chi-square gate on the inflated NIS at this probability", gt=0.0, max=0.5
+    )
+    recovery_inflation_cap: float = _f(
+        100.0, "recovery: largest inflation of the innovation covariance", min=1.0, max=1e12
+    )
 
 
 @dataclass(frozen=True)
@@ -210,6 +227,13 @@ class Scenario:
             mean_cusum=d.mean_cusum,
             mean_cusum_k=d.mean_cusum_k,
             mean_cusum_h=d.mean_cusum_h,
+            robot_cusum=d.robot_cusum,
+            robot_cusum_k=d.robot_cusum_k,
+            robot_cusum_h=d.robot_cusum_h,
+            recovery=d.recovery,
+            recovery_after=float(d.recovery_after),
+            recovery_gate=chi2_gate(d.recovery_false_alarm),
+            recovery_inflation_cap=d.recovery_inflation_cap,
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from resloc.angles import wrap_angle
+from resloc.cl.cusum import chi2_gate
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
@@ -66,9 +67,11 @@ __all__ = [
     "MRCLAMEstimate",
     "MRCLAMResult",
     "Replay",
+    "default_rho",
     "default_zones",
     "estimate_noise",
     "ground_truth_at",
+    "noise_from_fit",
     "prepare_replay",
     "range_noise_std",
     "run_mrclam",
@@ -130,9 +133,19 @@ class MRCLAMConfig:
         Initial position (m) and heading (rad) standard deviations around the first
         ground-truth sample.
     detector : bool
-    rho : float
-        Detection threshold, in the units of ``detector_norm``.
+    rho : float or None
+        Detection threshold, in the units of ``detector_norm``. None: the norm's default,
+        ``sqrt(chi2.ppf(1 - 1e-3, 2))`` for ``nis`` (a chi-square gate at false-alarm
+        probability 1e-3), 1.0 for the raw norms (the threshold tuned on Dataset 6).
     detector_norm : InnovationNorm
+        Default ``nis``: the NIS gate scales with the robot's own covariance, so it was not
+        tuned to one dataset (the paper's raw ``euclidean`` norm is ``paper_detector()``).
+    recovery : bool
+        Detector recovery after rejection runs (:mod:`resloc.cl.detection_recovery`): a
+        robot whose measurements are all rejected ``recovery_after`` times in a row has them
+        re-admitted through an inflated NIS gate. On by default: a robot is never locked out.
+    recovery_after : int
+        Consecutive rejected measurements of one robot before recovery.
     trigger : bool
     alpha, gamma, zeta_s, zeta_c : float
         Event-threshold constants of eq. (11).
@@ -162,8 +175,10 @@ class MRCLAMConfig:
     odometry_density: tuple[float, float] = (0.015, 0.04)
     init_std: tuple[float, float] = (0.02, 0.02)
     detector: bool = True
-    rho: float = 1.0
-    detector_norm: InnovationNorm = InnovationNorm.EUCLIDEAN
+    rho: float | None = None
+    detector_norm: InnovationNorm = InnovationNorm.NIS
+    recovery: bool = True
+    recovery_after: int = 10
     trigger: bool = True
     alpha: float = 0.3
     gamma: float = 0.5
@@ -177,6 +192,20 @@ class MRCLAMConfig:
     strict: bool = False
 
     def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "detector_norm", InnovationNorm(self.detector_norm))
+        except ValueError:
+            raise ConfigError(
+                f"detector_norm must be one of euclidean, scaled, nis, got {self.detector_norm!r}"
+            ) from None
+        if self.rho is None:
+            object.__setattr__(self, "rho", default_rho(self.detector_norm))
+        if isinstance(self.recovery_after, bool) or not (
+            isinstance(self.recovery_after, int) and self.recovery_after >= 1
+        ):
+            raise ConfigError(
+                f"recovery_after must be an integer >= 1, got {self.recovery_after!r}"
+            )
         for name in self.filters:
             if name not in {k.value for k in FilterKind}:
                 raise ConfigError(f"filters: unknown filter {name!r}; use ckf, ukf or ekf")
@@ -233,12 +262,21 @@ class MRCLAMConfig:
             detector=self.detector,
             rho=self.rho,
             detector_norm=self.detector_norm,
+            recovery=self.detector and self.recovery,
+            recovery_after=float(self.recovery_after),
             trigger=self.trigger,
             alpha=self.alpha,
             gamma=self.gamma,
             zeta_s=self.zeta_s,
             zeta_c=self.zeta_c,
             trigger_norm=InnovationNorm.EUCLIDEAN,
+        )
+
+    def paper_detector(self) -> MRCLAMConfig:
+        """This configuration with the paper's detector: the raw-norm gate ``||Lambda|| >
+        rho`` at ``rho = 1`` (tuned on Dataset 6), no recovery."""
+        return dataclasses.replace(
+            self, detector_norm=InnovationNorm.EUCLIDEAN, rho=1.0, recovery=False
         )
 
     def to_dict(self) -> dict:
@@ -248,6 +286,17 @@ class MRCLAMConfig:
             v = getattr(self, f.name)
             out[f.name] = list(v) if isinstance(v, tuple) else v
         return out
+
+
+#: False-alarm probability of the default NIS gate of a replay.
+DEFAULT_FALSE_ALARM = 1e-3
+
+
+def default_rho(norm: InnovationNorm) -> float:
+    """The default detection threshold of a replay for detector norm ``norm``."""
+    if InnovationNorm(norm) is InnovationNorm.NIS:
+        return math.sqrt(chi2_gate(DEFAULT_FALSE_ALARM))
+    return 1.0
 
 
 # ---------------------------------------------------------------------------- ground truth
@@ -640,6 +689,45 @@ def estimate_noise(
         "omega_density_robust": _robust_std(e[:, 1]) / root,
     }
     return out
+
+
+#: Robust stds of the sightings are multiplied by this for the filter's ``R``: the errors
+#: are heavy-tailed and correlated in time (``docs/mrclam.md``, "Sensor noise"); on Dataset
+#: 6 it turns the fitted 0.042 / 0.0083 rad into the defaults 0.07 / 0.015 rad.
+NOISE_TAIL_FACTOR = 1.8
+
+
+def noise_from_fit(fit: dict[str, dict[str, float]]) -> dict[str, object]:
+    """The :class:`MRCLAMConfig` noise fields from an :func:`estimate_noise` fit.
+
+    Range noise per metre and bearing noise: the larger of the robot and landmark sightings'
+    robust stds times :data:`NOISE_TAIL_FACTOR`; the range floor ``range_std`` stays at its
+    default (the per-metre term dominates beyond 0.5 m); odometry densities: the plain
+    (tail-including) stds of the 1 s windows.
+
+    Raises
+    ------
+    ConfigError
+        When the data give no ground-truth-matched sightings or odometry windows.
+    """
+    sight = [fit[k] for k in ("robot", "landmark") if fit[k]["n"] > 0]
+    odo = fit["odometry"]
+    if not sight or odo["n"] < 2:
+        raise ConfigError(
+            "noise: cannot fit the sensor noise (no sightings or odometry windows with ground "
+            "truth); use --noise default"
+        )
+    rel = max(s["range_std_rel_robust"] for s in sight)
+    bearing = max(s["bearing_std_robust"] for s in sight)
+    values = {
+        "range_std_rel": NOISE_TAIL_FACTOR * rel,
+        "bearing_std": NOISE_TAIL_FACTOR * bearing,
+        "odometry_density": (odo["v_density"], odo["omega_density"]),
+    }
+    flat = [values["range_std_rel"], values["bearing_std"], *values["odometry_density"]]
+    if not all(np.isfinite(v) and v > 0 for v in flat):
+        raise ConfigError(f"noise: the fit gave unusable values {values}; use --noise default")
+    return values
 
 
 # ---------------------------------------------------------------------------- results

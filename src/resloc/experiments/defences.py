@@ -1,0 +1,62 @@
+"""The defences, declared once: name -> dotted scenario overrides.
+
+Each defence is a detector configuration of the scenario (``[detector]`` keys, see
+:mod:`resloc.cl.detection` for the stages). The adversary suite (``resloc attack``) and the
+evaluation in ``docs/beyond.md`` ("Defences") read this mapping; adding a defence is one
+entry here. The overrides apply on top of any scenario with
+``Scenario.replace(**DEFENCES[name])``.
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+from typing import Any
+
+from resloc.errors import ConfigError
+
+__all__ = ["DEFENCES", "defence_overrides"]
+
+_NIS = {"detector.enabled": True, "detector.norm": "nis", "detector.false_alarm": 1e-3}
+_LINK_CUSUMS = {"detector.cusum": True, "detector.mean_cusum": True}
+
+#: Defence name -> dotted scenario overrides (read-only).
+DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
+    {
+        name: MappingProxyType(overrides)
+        for name, overrides in {
+            # The paper's detector: raw ||Lambda|| > rho (the scenario's rho).
+            "paper": {"detector.enabled": True, "detector.norm": "euclidean"},
+            # Chi-square gate on the NIS (false-alarm probability 1e-3 per measurement).
+            "nis": dict(_NIS),
+            # NIS gate + recovery after rejection runs (never locks a robot out).
+            "nis_recovery": {**_NIS, "detector.recovery": True},
+            # NIS gate + per-link sequence tests (CUSUM of the NIS, signed CUSUMs).
+            "nis_link_cusums": {**_NIS, **_LINK_CUSUMS},
+            # + the per-robot CUSUM of the NIS over all of a robot's links.
+            "nis_link_robot_cusums": {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True},
+            # Everything: gate, per-link and per-robot sequence tests, recovery.
+            "full": {
+                **_NIS,
+                **_LINK_CUSUMS,
+                "detector.robot_cusum": True,
+                "detector.recovery": True,
+            },
+        }.items()
+    }
+)
+
+
+def defence_overrides(name: str) -> dict[str, Any]:
+    """The overrides of defence ``name`` (a copy).
+
+    Raises
+    ------
+    ConfigError
+        Unknown name (one line listing the known ones).
+    """
+    try:
+        return dict(DEFENCES[name])
+    except KeyError:
+        raise ConfigError(
+            f"defence {name!r} is unknown; known defences: {', '.join(DEFENCES)}"
+        ) from None
