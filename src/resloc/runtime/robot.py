@@ -45,6 +45,7 @@ from resloc.runtime.messages import (
 )
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
+from resloc.runtime.pull import PullOutcome, pull_correction
 from resloc.runtime.radio import NEIGHBOURS_PHASE
 from resloc.runtime.team import TeamSetup, team_setup
 from resloc.runtime.transport import Bus
@@ -77,6 +78,15 @@ class RobotAgent:
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
         self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
         self.cpu0 = 0.0
+        # Pulled estimates (neighbour_estimate = "cached"): this robot's predicted estimate
+        # per recent step (what it replies with), requests it cannot answer yet, and its own
+        # correction's request rounds.
+        self.snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.deferred: list[Message] = []
+        self.pulling = None
+        self.pull_round = -1
+        self.asked: list[int] = []
+        self.replies: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     # ------------------------------------------------------------------ start
     def on_start(self, msg: Message) -> None:
@@ -154,15 +164,113 @@ class RobotAgent:
         self.consensus.clear()
         self.node.predict(b["u"], self.team.dt)
         x, P = self.node.estimate
+        if self.team.pull:
+            self.start_pull(x, P)
+            return
         self.send(Kind.ESTIMATE, {"x": x, "P": P})
         self.wait(Kind.ESTIMATE, 0)
+
+    # ------------------------------------------------------------------ pulled estimates
+    def start_pull(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Cached neighbour estimates: remember the predicted estimate (the reply to any
+        request of this step), answer the requests that waited for it, start the pulled
+        correction (:func:`~resloc.runtime.pull.pull_correction`)."""
+        self.snapshots[self.step] = (x, P)
+        for old in [k for k in self.snapshots if k < self.step - self.options.max_age_steps]:
+            del self.snapshots[old]
+        waiting, self.deferred = self.deferred, []
+        self.answer(waiting)
+        s = self.sensors
+        self.pulling = pull_correction(
+            self.node,
+            s["j"].astype(np.int64),
+            s["z"],
+            (s["rs"], s["rc"], s["l2"]),
+            self.team.link_params(s["z"]),
+        )
+        self.pull_round = -1
+        self.pull_next(None)
+
+    def pull_next(self, replies: dict | None) -> None:
+        """Feed a round's replies to the correction; send its next requests, or close."""
+        try:
+            ask = next(self.pulling) if replies is None else self.pulling.send(replies)
+        except StopIteration as stop:
+            self.pulling = None
+            self.pull_close(stop.value)
+            return
+        self.pull_round += 1
+        self.asked, self.replies = ask, {}
+        self.counts["requests_sent"] += len(ask)
+        self.send(Kind.REQUEST, {"round": self.pull_round, "to": np.asarray(ask, np.int64)})
+        self.wait(Kind.REPLY, self.pull_round)
+
+    def pull_abandon(self) -> None:
+        """Realtime overrun: close the correction without the replies still awaited."""
+        while self.pulling is not None:
+            try:
+                self.pulling.send({})
+            except StopIteration as stop:
+                self.pulling = None
+                self.pull_close(stop.value, report=False)
+
+    def pull_close(self, result: PullOutcome, report: bool = True) -> None:
+        j = self.sensors["j"].astype(np.int64)
+        flags = np.zeros(len(j), dtype=np.uint8)
+        norm = np.full(len(j), np.nan)
+        repairs = 0
+        for rows, out in result.outcomes:
+            flags[rows] |= FLAG_HEARD
+            for bit, arr in (
+                (FLAG_DETECTED, out.detected),
+                (FLAG_TRIGGERED, out.triggered),
+                (FLAG_DELIVERED, out.delivered),
+                (FLAG_FUSED, out.fused),
+                (FLAG_REPAIRED, out.repaired),
+            ):
+                flags[rows] |= np.where(arr, bit, 0).astype(np.uint8)
+            norm[rows] = out.norm
+            repairs += int(out.repairs)
+        lost = int((result.requested & ~result.answered).sum())
+        self.counts["requests_unanswered" if self.realtime else "unheard"] += lost
+        self.counts["pull_rounds"] += result.rounds
+        # a reply for a link never heard from before, which the detector then discarded
+        self.counts["replies_unused"] += int(
+            (result.answered & (flags & FLAG_DELIVERED == 0)).sum()
+        )
+        self.outcome = (j, flags, norm, repairs)
+        if not self.realtime:  # lockstep: tell the radio this robot asks for nothing more
+            self.send(Kind.REQUEST, {"round": self.pull_round + 1, "to": np.zeros(0, np.int64)})
+        if report:
+            self.phase = None
+            self.finish_step()
+
+    def answer(self, requests: list[Message]) -> None:
+        """Reply to requests with this robot's predicted estimate of their step: one REPLY
+        per (step, round) to all its requesters; a request for a step this robot has not
+        reached yet waits for it; one for a step it no longer keeps is dropped."""
+        groups: dict[tuple[int, int], list[int]] = collections.defaultdict(list)
+        for m in requests:
+            if m.step in self.snapshots:
+                groups[(m.step, int(m.body["round"]))].append(m.sender)
+            elif m.step > self.step:
+                self.deferred.append(m)
+            else:
+                self.counts["requests_too_old"] += 1
+        for (k, rnd), who in sorted(groups.items()):
+            x, P = self.snapshots[k]
+            body = {"round": rnd, "to": np.asarray(sorted(set(who)), np.int64), "x": x, "P": P}
+            self.bus.send(self.bus.key("radio", "in"), Kind.REPLY, k, body, sender=self.id)
+            self.counts["replies_sent"] += 1
 
     def wait(self, kind: Kind, rnd: int) -> None:
         self.phase = (kind, rnd)
         if self.realtime:
             windows = self.options.windows
             frac = (
-                windows[0]
+                self.options.reply_window
+                if kind is Kind.REPLY
+                else windows[0]
                 if kind is Kind.ESTIMATE
                 else windows[1]
                 if kind is Kind.ACK
@@ -180,12 +288,19 @@ class RobotAgent:
             self.tables[msg.step] = [int(v) for v in body["nb"]]
             for old in [k for k in self.tables if k < msg.step - 2]:
                 del self.tables[old]
+        requests = []
         for frame in body["msgs"]:
             inner = self.inner.open(frame, self.bus.key("radio", "in"))
             if inner is None or inner.sender >= self.team.robots or inner.sender == self.id:
                 self.counts["rejected_inner"] += 1
                 continue
+            if inner.kind is Kind.REQUEST:
+                if self.id in inner.body["to"] and self.node is not None:
+                    requests.append(inner)
+                continue
             self.take(inner)
+        if requests:
+            self.answer(requests)
         if not self.realtime and self.phase == (body["phase"], body["round"]):
             if msg.step == self.step:
                 self.advance()
@@ -193,7 +308,18 @@ class RobotAgent:
             self.advance()
 
     def take(self, m: Message) -> None:
-        if m.kind is Kind.ESTIMATE:
+        if m.kind is Kind.REPLY:
+            if self.id not in m.body["to"]:
+                return
+            if (
+                self.phase != (Kind.REPLY, int(m.body["round"]))
+                or m.step != self.step
+                or m.sender not in self.asked
+            ):
+                self.counts["replies_late"] += 1  # the round closed without it
+                return
+            self.replies[m.sender] = (m.body["x"], m.body["P"])
+        elif m.kind is Kind.ESTIMATE:
             hist = self.estimates.setdefault(m.sender, {})
             hist[m.step] = (m.body["x"], m.body["P"])
             keep = m.step - self.options.max_age_steps - 2
@@ -229,6 +355,8 @@ class RobotAgent:
         """Realtime: everything this phase can expect has arrived (go on before the window
         closes)."""
         kind, _ = self.phase
+        if kind is Kind.REPLY:
+            return set(self.asked) <= set(self.replies)
         if kind is Kind.ESTIMATE:
             need = {int(j) for j in self.sensors["j"]}
             return all(self.step in self.estimates.get(j, {}) for j in need)
@@ -242,7 +370,10 @@ class RobotAgent:
 
     def advance(self) -> None:
         kind, rnd = self.phase
-        if kind is Kind.ESTIMATE:
+        if kind is Kind.REPLY:
+            self.phase = None
+            self.pull_next(self.replies)
+        elif kind is Kind.ESTIMATE:
             self.correct()
             if not self.team.gauge:
                 self.phase = None
@@ -342,6 +473,8 @@ class RobotAgent:
 
     def finish_step(self) -> None:
         """Report the step (realtime overrun: first close what is still open)."""
+        if self.pulling is not None:
+            self.pull_abandon()
         if self.phase is not None:
             kind, _ = self.phase
             if kind is Kind.ESTIMATE:

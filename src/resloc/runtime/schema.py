@@ -33,7 +33,8 @@ __all__ = [
 
 
 class Kind(enum.IntEnum):
-    """Message kinds. Robot-to-robot kinds (through the radio): ESTIMATE, ACK, CONSENSUS."""
+    """Message kinds. Robot-to-robot kinds (through the radio): ESTIMATE, ACK, CONSENSUS,
+    REQUEST, REPLY."""
 
     SENSORS = 1  # world -> robot: odometry and range/bearing measurements of one step
     CHANNEL = 2  # world -> radio: this step's links and their channel outcomes
@@ -46,10 +47,12 @@ class Kind(enum.IntEnum):
     REPORT = 9  # robot -> world, recorder: corrected estimate and link decisions
     STATS = 10  # radio -> recorder: messages and bytes on the wire this step
     CONTROL = 11  # anyone -> anyone: ready / join / end / stop / progress / written
+    REQUEST = 12  # robot -> radio -> robots: "send me your estimate" (cached: pull protocol)
+    REPLY = 13  # robot -> radio -> requesters: predicted estimate (x, P), on request
 
 
 #: Kinds a robot sends to robots (what the radio model applies to).
-ROBOT_TO_ROBOT = (Kind.ESTIMATE, Kind.ACK, Kind.CONSENSUS)
+ROBOT_TO_ROBOT = (Kind.ESTIMATE, Kind.ACK, Kind.CONSENSUS, Kind.REQUEST, Kind.REPLY)
 
 
 # ---------------------------------------------------------------- schema of the bodies
@@ -125,6 +128,13 @@ FIELDS: dict[Kind, dict[str, Any]] = {
         "cnt": COUNTS,
     },
     Kind.CONTROL: {"cmd": STR, "arg": STR, "n": INT},
+    Kind.REQUEST: {"round": INT, "to": Array(I8, (-1,))},
+    Kind.REPLY: {
+        "round": INT,
+        "to": Array(I8, (-1,)),
+        "x": Array(F8, (3,)),
+        "P": Array(F8, (3, 3)),
+    },
 }
 
 #: Groups of fields whose leading dimension must be equal.

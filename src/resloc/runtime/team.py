@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from resloc.cl.fusion import FusionMethod
-from resloc.cl.params import CLParams
+from resloc.cl.params import CLParams, NeighbourEstimate
 from resloc.errors import ConfigError
 from resloc.experiments.config import RiskSource, Scenario, load_scenario
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
@@ -71,6 +71,12 @@ class TeamSetup:
     @property
     def gauge(self) -> bool:
         return self.params.fusion is FusionMethod.GAUGE
+
+    @property
+    def pull(self) -> bool:
+        """Estimates are pulled on trigger (``neighbour_estimate = "cached"``), not broadcast
+        every step (``"current"``: the trigger needs j's current estimate)."""
+        return self.params.neighbour_estimate is NeighbourEstimate.CACHED
 
 
 def check_supported(scenario: Scenario) -> None:

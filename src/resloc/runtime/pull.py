@@ -1,0 +1,174 @@
+"""The pull protocol of ``estimator.neighbour_estimate = "cached"``: estimates only on trigger.
+
+With cached neighbour estimates, robot i decides the detector and the event trigger of link
+``(i, j)`` on the last estimate of j it actually received (before the first one, the link
+counts as triggered). It needs j's *current* estimate only when the trigger fires, so it asks
+for it: a small REQUEST on the link, and j answers with a REPLY carrying its predicted
+estimate of the step. Nothing else crosses the wire for the link.
+
+:func:`pull_correction` is robot i's correction as a generator over request rounds. It runs
+the node's own ``correct`` (the library's detector, trigger and fusion; nothing here is an
+equation) on one link at a time in ascending ``j`` (the sequential update: a link's decision
+depends on the fusions before it), or on all links at once with ``update_mode = "summed"``
+(every decision on the predicted estimate). Per group of links:
+
+1. the links without a cached estimate are requested in the first round (their detector
+   needs j's estimate; the simulator counts them as triggered);
+2. the others are decided locally: a speculative ``correct`` with the cached estimates and
+   ``channel_ok = False``. Untriggered links keep that result (with
+   ``update_without_transmission`` it fused the cache: no message). If a link triggered, the
+   node is rolled back to before the group and its neighbour is requested;
+3. ``yield`` the ids to request; receive ``{j: (x, P)}`` of the replies that arrived;
+4. ``correct`` the group with the replies (``channel_ok = True``) and, for links whose reply
+   did not arrive, the cached estimate with ``channel_ok = False`` (triggered, not
+   delivered: the simulator's jammed transmission); a link never heard from is skipped.
+
+The generator returns a :class:`PullOutcome`. A run of it equals the simulator's cached
+correction when a reply arrives iff the simulator's ``channel_ok`` of the link (the radio's
+rule; tested to 1e-9).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from resloc.cl.links import LinkOutcome
+from resloc.cl.node import RobotNode
+from resloc.cl.params import CLParams, UpdateMode
+
+__all__ = ["PullOutcome", "pull_correction"]
+
+#: ``{neighbour id: (x (3,), P (3, 3))}`` of the replies that arrived in a round.
+Replies = dict[int, tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class PullOutcome:
+    """Per-link results of one robot's pulled correction, in the order of its links.
+
+    Attributes
+    ----------
+    outcomes : list of (rows, LinkOutcome)
+        Each ``correct`` that counts, with the link rows it ran on.
+    requested : ndarray of bool, shape (E,)
+        Links whose neighbour was asked for its estimate.
+    answered : ndarray of bool, shape (E,)
+    rounds : int
+        Request rounds this robot needed.
+    """
+
+    outcomes: list = field(default_factory=list)
+    requested: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    answered: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    rounds: int = 0
+
+
+def _checkpoint(node: RobotNode) -> tuple:
+    return node.x.copy(), node.P.copy(), copy.deepcopy(node.memory)
+
+
+def _rollback(node: RobotNode, saved: tuple) -> None:
+    node.x, node.P, node.memory = saved
+
+
+def pull_correction(
+    node: RobotNode,
+    j: np.ndarray,
+    z: np.ndarray,
+    risks: tuple[float, float, float],
+    groups: list[tuple[np.ndarray, CLParams]],
+) -> Generator[list[int], Replies, PullOutcome]:
+    """Robot ``node``'s correction with pulled estimates, one request round per ``yield``.
+
+    Parameters
+    ----------
+    node : RobotNode
+        Predicted; its ``memory`` holds the cached estimates (``neighbour_estimate =
+        "cached"``).
+    j : ndarray of int, shape (E,)
+        This step's observed neighbours.
+    z : ndarray, shape (E, 2)
+    risks : (risk_s, risk_c, lambda2)
+    groups : list of (rows, CLParams)
+        The links grouped by the parameters they are fused with (``TeamSetup.link_params``).
+
+    Yields
+    ------
+    list of int
+        Neighbour ids to request this round (non-empty).
+
+    Receives
+    --------
+    Replies
+        The replies that arrived (a lost or late one is simply absent).
+    """
+    j = np.asarray(j, dtype=np.int64).reshape(-1)
+    E = len(j)
+    result = PullOutcome(requested=np.zeros(E, bool), answered=np.zeros(E, bool))
+    replies: Replies = {}
+    asked: set[int] = set()
+    zeros = np.zeros(E, dtype=np.int64)
+    known, _ = node.memory.lookup(zeros, j)
+    # Links never heard from: their detector needs j's estimate, so ask at once.
+    first = sorted({int(v) for v in j[~known]})
+    base = node.params
+    for rows, params in groups:
+        rows = rows[np.argsort(j[rows], kind="stable")]
+        summed = params.update_mode is UpdateMode.SUMMED
+        for g in [rows] if summed else [rows[k : k + 1] for k in range(len(rows))]:
+            node.params = params
+            run: Callable = _corrector(node, j, z, risks)
+            have, pos = node.memory.lookup(zeros[g], j[g])
+            need = {int(v) for v in j[g][~have]}
+            local = g[have]
+            if len(local):
+                saved = _checkpoint(node)
+                out = run(local, node.memory.x[pos[have]], node.memory.P[pos[have]], False)
+                if out.triggered.any():
+                    need |= {int(v) for v in j[local[out.triggered]]}
+                    _rollback(node, saved)
+                elif not need:
+                    result.outcomes.append((local, out))
+                    continue
+                else:
+                    _rollback(node, saved)
+            new = sorted((need | set(first)) - asked)
+            first = []
+            if new:
+                asked |= set(new)
+                result.requested[np.isin(j, new)] = True
+                result.rounds += 1
+                got = yield new
+                replies.update({int(k): v for k, v in (got or {}).items() if int(k) in asked})
+            got_reply = np.array([int(v) in replies for v in j[g]], dtype=bool)
+            result.answered[g[got_reply]] = True
+            keep = have | got_reply  # a link never heard from cannot be evaluated
+            if not keep.any():
+                continue
+            gk = g[keep]
+            x_nb = np.zeros((len(gk), 3))
+            P_nb = np.zeros((len(gk), 3, 3))
+            ok = got_reply[keep]
+            hk, pk = node.memory.lookup(zeros[gk], j[gk])
+            for e, nb in enumerate(j[gk]):
+                if ok[e]:
+                    x_nb[e], P_nb[e] = replies[int(nb)]
+                elif hk[e]:
+                    x_nb[e], P_nb[e] = node.memory.x[pk[e]], node.memory.P[pk[e]]
+            result.outcomes.append((gk, run(gk, x_nb, P_nb, ok)))
+    node.params = base
+    return result
+
+
+def _corrector(node: RobotNode, j: np.ndarray, z: np.ndarray, risks: tuple) -> Callable:
+    risk_s, risk_c, lambda2 = risks
+
+    def run(rows: np.ndarray, x_nb: np.ndarray, P_nb: np.ndarray, ok) -> LinkOutcome:
+        channel = np.broadcast_to(np.asarray(ok, dtype=bool), (len(rows),)).copy()
+        return node.correct(j[rows], z[rows], x_nb, P_nb, channel, risk_s, risk_c, lambda2)
+
+    return run
