@@ -5,14 +5,21 @@ Zenoh sessions on 127.0.0.1, stopped by pid by the supervisor."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from resloc.experiments.config import default_scenario, dump_scenario
 from resloc.experiments.runner import run_scenario
+from resloc.runtime.messages import FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD, FLAG_TRIGGERED, Kind
+from resloc.runtime.options import Mode, SwarmOptions
+from resloc.runtime.robot import RobotAgent
 from resloc.runtime.swarm import run_swarm
+from resloc.runtime.team import team_setup
 from resloc.runtime.transport import free_endpoint
+from test_runtime_robot import KEY, RecordingBus, msg, sensors
 from test_runtime_swarm import TOL, hot_scenario, load_outputs, swarm_options
 
 STEPS = 30
@@ -30,6 +37,7 @@ def cached_scenario(filt: str, **changes):
         ("ckf", 1, {}),
         ("ukf", 5, {"estimator.update_without_transmission": True}),
         ("ekf", 2, {"estimator.fusion": "ci"}),
+        ("ckf", 5, {"estimator.update_mode": "summed"}),
     ],
 )
 def test_lockstep_pull_equals_the_simulator(tmp_path, filt, per_process, changes) -> None:
@@ -67,3 +75,96 @@ def test_lockstep_pull_equals_the_simulator(tmp_path, filt, per_process, changes
     )
     assert mine["transmissions"] <= theirs["transmissions"]
     assert all(code == 0 for code in result.exit_codes.values()), result.exit_codes
+
+
+# ---------------------------------------------------------------- one robot, no network
+def pulling_agent(tmp_path, mode: Mode, trigger: bool = True) -> RobotAgent:
+    sc = default_scenario().replace(
+        **{
+            "team.robots": 4,
+            "estimator.neighbour_estimate": "cached",
+            "trigger.enabled": trigger,
+        }
+    )
+    path = tmp_path / "sc.toml"
+    path.write_text(dump_scenario(sc))
+    opts = SwarmOptions(scenario=str(path), filter="ekf", mode=mode)
+    agent = RobotAgent(0, team_setup(opts), opts, RecordingBus(), KEY)
+    start = {"robot": 0, "x": np.zeros(3), "P": np.eye(3) * 0.01, "rejoin": False}
+    agent.on_start(msg(Kind.START, 0, start | {"rt": mode is Mode.REALTIME}))
+    return agent
+
+
+def reply(sender: int, step: int, rnd: int, to: list[int], x0: float | None = None):
+    x = np.array([1.0 * sender if x0 is None else x0, 0.5, 0.0])
+    body = {"round": rnd, "to": np.asarray(to, np.int64), "x": x, "P": np.eye(3) * 0.01}
+    return msg(Kind.REPLY, step, body, sender=sender)
+
+
+def sent(agent: RobotAgent, kind: Kind) -> list:
+    return [s for s in agent.bus.sent if s[1] is kind]
+
+
+def test_realtime_unanswered_request_is_counted_and_its_link_skipped(tmp_path) -> None:
+    """A request unanswered within ``reply_window * dt`` is counted and its link skipped;
+    a reply arriving after the round closed is counted and never reaches the filter."""
+    agent = pulling_agent(tmp_path, Mode.REALTIME)
+    agent.on_sensors(sensors(1, [1, 2]))
+    (req,) = sent(agent, Kind.REQUEST)
+    np.testing.assert_array_equal(req[3]["to"], [1, 2])  # never heard from: asked at once
+    assert agent.phase == (Kind.REPLY, 0)
+    expected = agent.deadline - agent.options.reply_window * agent.team.dt
+    assert abs(expected - time.monotonic()) < 1.0
+    agent.take(reply(1, 1, 0, [0]))
+    agent.tick(agent.deadline + 1e-3)  # robot 2 never answers
+    report = sent(agent, Kind.REPORT)[-1][3]
+    flags = report["flags"]
+    assert flags[0] & FLAG_HEARD and flags[0] & FLAG_DELIVERED and flags[0] & FLAG_FUSED
+    assert flags[1] == 0  # skipped: nothing to evaluate it with
+    assert report["cnt"]["requests_unanswered"] == 1
+    x = agent.node.x.copy()
+    agent.take(reply(2, 1, 0, [0], x0=50.0))  # too late
+    assert agent.counts["replies_late"] == 1
+    np.testing.assert_array_equal(agent.node.x, x)
+
+
+def test_realtime_triggered_cached_link_without_reply_is_triggered_not_delivered(
+    tmp_path,
+) -> None:
+    agent = pulling_agent(tmp_path, Mode.REALTIME, trigger=False)  # every link fires
+    agent.on_sensors(sensors(1, [1]))
+    agent.take(reply(1, 1, 0, [0]))
+    assert agent.phase is None or agent.phase == (Kind.REPLY, 0)
+    if agent.phase is not None:
+        agent.tick(agent.deadline + 1e-3)
+    assert sent(agent, Kind.REPORT)[-1][3]["flags"][0] & FLAG_DELIVERED
+    agent.on_sensors(sensors(2, [1]))  # cached now: decided locally, then requested
+    (_, req) = sent(agent, Kind.REQUEST)
+    np.testing.assert_array_equal(req[3]["to"], [1])
+    predicted = agent.node.x.copy()
+    agent.tick(agent.deadline + 1e-3)
+    report = sent(agent, Kind.REPORT)[-1][3]
+    assert report["flags"][0] == FLAG_HEARD | FLAG_TRIGGERED  # attempted, lost, not fused
+    assert report["cnt"]["requests_unanswered"] == 1
+    np.testing.assert_array_equal(agent.node.x, predicted)  # rolled back, nothing fused
+
+
+def test_requests_are_answered_with_the_predicted_estimate_of_their_step(tmp_path) -> None:
+    agent = pulling_agent(tmp_path, Mode.REALTIME)
+    agent.on_sensors(sensors(3, []))  # no links: nothing to request, reports at once
+    assert not sent(agent, Kind.REQUEST) and sent(agent, Kind.REPORT)
+    x3, P3 = agent.node.x[0].copy(), agent.node.P[0].copy()
+    request = {"round": 0, "to": np.array([0], np.int64)}
+    agent.answer([msg(Kind.REQUEST, 3, request, sender=2), msg(Kind.REQUEST, 3, request, 1)])
+    agent.answer([msg(Kind.REQUEST, 4, request, sender=1)])  # a step ahead: waits
+    (r3,) = sent(agent, Kind.REPLY)
+    assert r3[2] == 3
+    np.testing.assert_array_equal(r3[3]["to"], [1, 2])  # one frame for both requesters
+    np.testing.assert_array_equal(r3[3]["x"], x3)
+    np.testing.assert_array_equal(r3[3]["P"], P3)
+    agent.on_sensors(sensors(4, []))
+    r4 = sent(agent, Kind.REPLY)[-1]
+    assert r4[2] == 4 and list(r4[3]["to"]) == [1]
+    np.testing.assert_array_equal(r4[3]["x"], agent.snapshots[4][0])
+    agent.answer([msg(Kind.REQUEST, 0, request, sender=1)])  # no longer kept
+    assert agent.counts["requests_too_old"] == 1
