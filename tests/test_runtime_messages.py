@@ -138,7 +138,7 @@ def test_schema_violations_are_malformed_even_when_signed() -> None:
     ver = Verifier(KEY)
 
     def signed(kind: int, fields: dict, seq: int) -> bytes:
-        head = m.HEADER.pack(b"RL", 1, kind, 2, 0, 1, seq, time.time(), 1)
+        head = m.HEADER.pack(b"RL", m.SCHEMA_VERSION, kind, 2, 0, 1, seq, time.time(), 1)
         payload = head + msgpack.packb(fields, use_bin_type=True)
         return payload + m._tag(KEY, CH, payload)
 

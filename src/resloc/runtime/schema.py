@@ -1,6 +1,6 @@
 """The bodies of the wire format: each message kind's fields, their types and shapes.
 
-``FIELDS[kind]`` is the schema of one kind (version 1, ``docs/runtime.md``); arrays travel as
+``FIELDS[kind]`` is the schema of one kind (version 2, ``docs/runtime.md``); arrays travel as
 raw little-endian bytes whose dtype and shape the schema fixes, so a decoder never trusts a
 shape from the wire. :func:`decode_body` validates everything and raises
 :class:`MalformedBodyError` naming the field.
