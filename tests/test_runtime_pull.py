@@ -168,3 +168,33 @@ def test_requests_are_answered_with_the_predicted_estimate_of_their_step(tmp_pat
     np.testing.assert_array_equal(r4[3]["x"], agent.snapshots[4][0])
     agent.answer([msg(Kind.REQUEST, 0, request, sender=1)])  # no longer kept
     assert agent.counts["requests_too_old"] == 1
+
+
+@pytest.mark.parametrize("mode", [Mode.LOCKSTEP, Mode.REALTIME])
+def test_one_request_round_per_triggered_link_in_lockstep_one_per_step_in_realtime(
+    tmp_path, mode
+) -> None:
+    """Lockstep is the simulator's sequential correction: a link's trigger is decided after
+    the fusions before it, so each triggered link costs a round trip. Realtime asks once per
+    step, deciding every link on the predicted estimate."""
+    agent = pulling_agent(tmp_path, mode, trigger=False)  # every accepted link fires
+    agent.on_sensors(sensors(1, [1, 2]))
+    agent.take(reply(1, 1, 0, [0]))
+    agent.take(reply(2, 1, 0, [0]))
+    if agent.phase is not None:
+        agent.advance()
+    assert sent(agent, Kind.REPORT)[-1][3]["flags"][1] & FLAG_DELIVERED
+    before = len(sent(agent, Kind.REQUEST))
+    agent.on_sensors(sensors(2, [1, 2]))  # both cached now
+    asked = [list(r[3]["to"]) for r in sent(agent, Kind.REQUEST)[before:]]
+    assert asked == ([[1]] if mode is Mode.LOCKSTEP else [[1, 2]])
+    agent.take(reply(1, 2, 0, [0]))
+    agent.take(reply(2, 2, 0, [0]))  # lockstep: not asked yet in round 0, so not taken
+    agent.advance()
+    if mode is Mode.LOCKSTEP:
+        assert list(sent(agent, Kind.REQUEST)[-1][3]["to"]) == [2]  # round 1
+        agent.take(reply(2, 2, 1, [0]))
+        agent.advance()
+        assert list(sent(agent, Kind.REQUEST)[-1][3]["to"]) == []  # done: the barrier
+    flags = sent(agent, Kind.REPORT)[-1][3]["flags"]
+    assert all(f & FLAG_DELIVERED and f & FLAG_FUSED for f in flags)

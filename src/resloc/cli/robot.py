@@ -21,7 +21,7 @@ def robot_command(
     max_age_steps: int,
     run_id: str,
     connect_timeout: float = 10.0,
-    reply_window: float = 0.25,
+    reply_window: float = 0.4,
 ) -> int:
     """Run robot ``robot_id`` until the run ends; returns the exit code."""
     from resloc.cli.swarm import key_file_path, require_zenoh
@@ -77,7 +77,7 @@ def register(app: typer.Typer) -> None:
         jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
         max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
         reply_window: float = typer.Option(
-            0.25, "--reply-window", min=0.01, max=1.0, help="As the run's (fraction of dt)."
+            0.4, "--reply-window", min=0.01, max=1.0, help="As the run's (fraction of dt)."
         ),
         run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
         connect_timeout: float = typer.Option(

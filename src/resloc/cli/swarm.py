@@ -151,7 +151,7 @@ def swarm_command(
     plots: bool,
     progress: bool,
     external: str = "",
-    reply_window: float = 0.25,
+    reply_window: float = 0.4,
 ):
     """Parse, run :func:`~resloc.runtime.swarm.run_swarm`, print, map errors."""
     require_zenoh()
@@ -283,7 +283,7 @@ def register(app: typer.Typer) -> None:
             help="Realtime: drop neighbour estimates older than this many steps.",
         ),
         reply_window: float = typer.Option(
-            0.25,
+            0.4,
             "--reply-window",
             min=0.01,
             max=1.0,

@@ -84,7 +84,7 @@ class SwarmOptions:
     max_age_steps: int = 3
     max_age_s: float = 10.0
     windows: tuple = (0.4, 0.15, 0.1)
-    reply_window: float = 0.25
+    reply_window: float = 0.4
     barrier_timeout_s: float = 30.0
     startup_timeout_s: float = 120.0
     connect_timeout_s: float = 10.0

@@ -59,12 +59,15 @@ class PullOutcome:
     answered : ndarray of bool, shape (E,)
     rounds : int
         Request rounds this robot needed.
+    not_asked : int
+        Links that fired after the single realtime round (``single_round``).
     """
 
     outcomes: list = field(default_factory=list)
     requested: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     answered: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     rounds: int = 0
+    not_asked: int = 0
 
 
 def _checkpoint(node: RobotNode) -> tuple:
@@ -81,6 +84,7 @@ def pull_correction(
     z: np.ndarray,
     risks: tuple[float, float, float],
     groups: list[tuple[np.ndarray, CLParams]],
+    single_round: bool = False,
 ) -> Generator[list[int], Replies, PullOutcome]:
     """Robot ``node``'s correction with pulled estimates, one request round per ``yield``.
 
@@ -95,6 +99,12 @@ def pull_correction(
     risks : (risk_s, risk_c, lambda2)
     groups : list of (rows, CLParams)
         The links grouped by the parameters they are fused with (``TeamSetup.link_params``).
+    single_round : bool
+        Realtime: one request round per step. The links to request are decided up front on
+        the predicted estimate (the never-heard ones and those whose trigger fires before any
+        fusion); a link that fires only after earlier fusions is not requested
+        (``not_asked``: triggered, not delivered), a requested one that no longer fires
+        leaves its reply unused. Sequential round trips would not fit in a step.
 
     Yields
     ------
@@ -116,6 +126,17 @@ def pull_correction(
     # Links never heard from: their detector needs j's estimate, so ask at once.
     first = sorted({int(v) for v in j[~known]})
     base = node.params
+    if single_round and known.any():
+        saved = _checkpoint(node)
+        for rows, params in groups:
+            rows = rows[known[rows]]
+            if len(rows):
+                node.params = params
+                _, pos = node.memory.lookup(zeros[rows], j[rows])
+                run = _corrector(node, j, z, risks)
+                out = run(rows, node.memory.x[pos], node.memory.P[pos], False)
+                first = sorted(set(first) | {int(v) for v in j[rows[out.triggered]]})
+        _rollback(node, saved)
     for rows, params in groups:
         rows = rows[np.argsort(j[rows], kind="stable")]
         summed = params.update_mode is UpdateMode.SUMMED
@@ -138,7 +159,10 @@ def pull_correction(
                     _rollback(node, saved)
             new = sorted((need | set(first)) - asked)
             first = []
-            if new:
+            if new and single_round and result.rounds:
+                asked |= set(new)  # fired after the step's one round: not asked
+                result.not_asked += len(new)
+            elif new:
                 asked |= set(new)
                 result.requested[np.isin(j, new)] = True
                 result.rounds += 1

@@ -87,6 +87,7 @@ class RobotAgent:
         self.pull_round = -1
         self.asked: list[int] = []
         self.replies: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.unsent = 0  # requests an overrun never sent
 
     # ------------------------------------------------------------------ start
     def on_start(self, msg: Message) -> None:
@@ -187,6 +188,7 @@ class RobotAgent:
             s["z"],
             (s["rs"], s["rc"], s["l2"]),
             self.team.link_params(s["z"]),
+            single_round=self.realtime,
         )
         self.pull_round = -1
         self.pull_next(None)
@@ -209,7 +211,7 @@ class RobotAgent:
         """Realtime overrun: close the correction without the replies still awaited."""
         while self.pulling is not None:
             try:
-                self.pulling.send({})
+                self.unsent += len(self.pulling.send({}))
             except StopIteration as stop:
                 self.pulling = None
                 self.pull_close(stop.value, report=False)
@@ -231,8 +233,11 @@ class RobotAgent:
                 flags[rows] |= np.where(arr, bit, 0).astype(np.uint8)
             norm[rows] = out.norm
             repairs += int(out.repairs)
-        lost = int((result.requested & ~result.answered).sum())
+        lost = int((result.requested & ~result.answered).sum()) - self.unsent
         self.counts["requests_unanswered" if self.realtime else "unheard"] += lost
+        self.counts["links_fired_after_the_round"] += result.not_asked
+        self.counts["links_skipped_overrun"] += self.unsent
+        self.unsent = 0
         self.counts["pull_rounds"] += result.rounds
         # a reply for a link never heard from before, which the detector then discarded
         self.counts["replies_unused"] += int(
