@@ -198,3 +198,25 @@ def test_one_request_round_per_triggered_link_in_lockstep_one_per_step_in_realti
         assert list(sent(agent, Kind.REQUEST)[-1][3]["to"]) == []  # done: the barrier
     flags = sent(agent, Kind.REPORT)[-1][3]["flags"]
     assert all(f & FLAG_DELIVERED and f & FLAG_FUSED for f in flags)
+
+
+def test_a_late_reply_from_a_never_heard_neighbour_is_cached_never_fused(tmp_path) -> None:
+    """The late reply is the last estimate of j that i received: the next step decides that
+    link locally instead of asking again; the closed step is not changed by it."""
+    agent = pulling_agent(tmp_path, Mode.REALTIME)
+    agent.on_sensors(sensors(1, [1]))
+    agent.tick(agent.deadline + 1e-3)  # unanswered
+    x = agent.node.x.copy()
+    agent.take(reply(1, 1, 0, [0]))
+    np.testing.assert_array_equal(agent.node.x, x)
+    assert agent.counts["replies_late"] == 1 and agent.counts["late_replies_cached"] == 1
+    agent.take(reply(1, 1, 0, [0], x0=50.0))  # a known link's cache is never replaced
+    assert agent.counts["late_replies_cached"] == 1
+    np.testing.assert_array_equal(agent.node.memory.x[0], [1.0, 0.5, 0.0])
+    before = len(sent(agent, Kind.REQUEST))
+    agent.on_sensors(sensors(2, [1]))
+    flags = sent(agent, Kind.REPORT)[-1][3]["flags"]
+    if len(sent(agent, Kind.REQUEST)) == before:  # decided locally: did not fire
+        assert flags[0] == FLAG_HEARD
+    else:  # fired on the cached estimate: asked as a triggered link
+        assert list(sent(agent, Kind.REQUEST)[-1][3]["to"]) == [1]

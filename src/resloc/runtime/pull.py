@@ -137,6 +137,8 @@ def pull_correction(
                 out = run(rows, node.memory.x[pos], node.memory.P[pos], False)
                 first = sorted(set(first) | {int(v) for v in j[rows[out.triggered]]})
         _rollback(node, saved)
+    if single_round:
+        return (yield from _one_round(node, j, z, risks, groups, first, result))
     for rows, params in groups:
         rows = rows[np.argsort(j[rows], kind="stable")]
         summed = params.update_mode is UpdateMode.SUMMED
@@ -159,10 +161,7 @@ def pull_correction(
                     _rollback(node, saved)
             new = sorted((need | set(first)) - asked)
             first = []
-            if new and single_round and result.rounds:
-                asked |= set(new)  # fired after the step's one round: not asked
-                result.not_asked += len(new)
-            elif new:
+            if new:
                 asked |= set(new)
                 result.requested[np.isin(j, new)] = True
                 result.rounds += 1
@@ -171,19 +170,60 @@ def pull_correction(
             got_reply = np.array([int(v) in replies for v in j[g]], dtype=bool)
             result.answered[g[got_reply]] = True
             keep = have | got_reply  # a link never heard from cannot be evaluated
-            if not keep.any():
-                continue
-            gk = g[keep]
-            x_nb = np.zeros((len(gk), 3))
-            P_nb = np.zeros((len(gk), 3, 3))
-            ok = got_reply[keep]
-            hk, pk = node.memory.lookup(zeros[gk], j[gk])
-            for e, nb in enumerate(j[gk]):
-                if ok[e]:
-                    x_nb[e], P_nb[e] = replies[int(nb)]
-                elif hk[e]:
-                    x_nb[e], P_nb[e] = node.memory.x[pk[e]], node.memory.P[pk[e]]
-            result.outcomes.append((gk, run(gk, x_nb, P_nb, ok)))
+            if keep.any():
+                gk = g[keep]
+                x_nb, P_nb = _neighbour_estimates(node, j[gk], replies)
+                result.outcomes.append((gk, run(gk, x_nb, P_nb, got_reply[keep])))
+    node.params = base
+    return result
+
+
+def _neighbour_estimates(node: RobotNode, j: np.ndarray, replies: Replies):
+    """``x_nb: (E, 3)``, ``P_nb: (E, 3, 3)`` for links to ``j``: the reply where one
+    arrived, else the cached estimate (what ``correct`` decides on; not fused)."""
+    x_nb = np.zeros((len(j), 3))
+    P_nb = np.zeros((len(j), 3, 3))
+    have, pos = node.memory.lookup(np.zeros(len(j), np.int64), j)
+    for e, nb in enumerate(j):
+        if int(nb) in replies:
+            x_nb[e], P_nb[e] = replies[int(nb)]
+        elif have[e]:
+            x_nb[e], P_nb[e] = node.memory.x[pos[e]], node.memory.P[pos[e]]
+    return x_nb, P_nb
+
+
+def _one_round(
+    node: RobotNode,
+    j: np.ndarray,
+    z: np.ndarray,
+    risks: tuple,
+    groups: list,
+    first: list[int],
+    result: PullOutcome,
+) -> Generator[list[int], Replies, PullOutcome]:
+    """Realtime: ask ``first`` once, then one ``correct`` per parameter group with what
+    arrived (links decided in sequence on the cache; a reply is fused where it fired)."""
+    replies: Replies = {}
+    if first:
+        result.requested[np.isin(j, first)] = True
+        result.rounds = 1
+        got = yield first
+        replies = {int(k): v for k, v in (got or {}).items() if int(k) in first}
+    zeros = np.zeros(len(j), dtype=np.int64)
+    base = node.params
+    for rows, params in groups:
+        rows = rows[np.argsort(j[rows], kind="stable")]
+        node.params = params
+        got_reply = np.array([int(v) in replies for v in j[rows]], dtype=bool)
+        result.answered[rows[got_reply]] = True
+        have, _ = node.memory.lookup(zeros[rows], j[rows])
+        keep = have | got_reply  # a link never heard from cannot be evaluated
+        if keep.any():
+            gk = rows[keep]
+            x_nb, P_nb = _neighbour_estimates(node, j[gk], replies)
+            out = _corrector(node, j, z, risks)(gk, x_nb, P_nb, got_reply[keep])
+            result.outcomes.append((gk, out))
+            result.not_asked += int((out.triggered & ~np.isin(j[gk], first)).sum())
     node.params = base
     return result
 

@@ -250,6 +250,21 @@ class RobotAgent:
             self.phase = None
             self.finish_step()
 
+    def cache_late_reply(self, m: Message) -> None:
+        """A late reply from a neighbour never heard from becomes its cached estimate (the
+        last estimate of j that i received), so the next steps decide that link locally
+        instead of asking again every step; it is never fused, and a known link's newer
+        cache is never replaced by it."""
+        if self.node is None or not self.team.pull or m.step > self.step:
+            return
+        if m.step < self.step - self.options.max_age_steps:
+            return
+        zero, j = np.zeros(1, np.int64), np.array([m.sender], np.int64)
+        known, _ = self.node.memory.lookup(zero, j)
+        if not known[0]:
+            self.node.memory.store(zero, j, m.body["x"][None], m.body["P"][None], np.zeros(1))
+            self.counts["late_replies_cached"] += 1
+
     def answer(self, requests: list[Message]) -> None:
         """Reply to requests with this robot's predicted estimate of their step: one REPLY
         per (step, round) to all its requesters; a request for a step this robot has not
@@ -299,6 +314,11 @@ class RobotAgent:
             if inner is None or inner.sender >= self.team.robots or inner.sender == self.id:
                 self.counts["rejected_inner"] += 1
                 continue
+            # how long robot-to-robot frames take to arrive (sender's clock to this one's)
+            self.counts[f"age_ms_sum_{inner.kind.name.lower()}"] += int(
+                1000 * (time.time() - inner.timestamp)
+            )
+            self.counts[f"age_n_{inner.kind.name.lower()}"] += 1
             if inner.kind is Kind.REQUEST:
                 if self.id in inner.body["to"] and self.node is not None:
                     requests.append(inner)
@@ -321,7 +341,8 @@ class RobotAgent:
                 or m.step != self.step
                 or m.sender not in self.asked
             ):
-                self.counts["replies_late"] += 1  # the round closed without it
+                self.counts["replies_late"] += 1  # the round closed without it: not fused
+                self.cache_late_reply(m)
                 return
             self.replies[m.sender] = (m.body["x"], m.body["P"])
         elif m.kind is Kind.ESTIMATE:
