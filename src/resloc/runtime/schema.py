@@ -29,6 +29,7 @@ __all__ = [
     "MalformedBodyError",
     "decode_body",
     "encode_body",
+    "link_flags",
 ]
 
 
@@ -151,6 +152,22 @@ _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
 FLAG_DETECTED, FLAG_TRIGGERED, FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD = 1, 2, 4, 8, 16
 #: The observer's covariance was projected back to positive definite after this link.
 FLAG_REPAIRED = 32
+
+
+def link_flags(outcome) -> np.ndarray:
+    """``REPORT.flags`` bits of a :class:`~resloc.cl.links.LinkOutcome`, shape (E,) uint8
+    (without ``FLAG_HEARD``, which the robot sets for every link it evaluated)."""
+    flags = np.zeros(len(outcome.detected), dtype=np.uint8)
+    for bit, arr in (
+        (FLAG_DETECTED, outcome.detected),
+        (FLAG_TRIGGERED, outcome.triggered),
+        (FLAG_DELIVERED, outcome.delivered),
+        (FLAG_FUSED, outcome.fused),
+        (FLAG_REPAIRED, outcome.repaired),
+    ):
+        flags |= np.where(arr, bit, 0).astype(np.uint8)
+    return flags
+
 
 _NON_FINITE_OK = {(Kind.REPORT, "norm")}  # a discarded link's threshold norm may be nan
 
