@@ -220,3 +220,15 @@ def test_a_late_reply_from_a_never_heard_neighbour_is_cached_never_fused(tmp_pat
         assert flags[0] == FLAG_HEARD
     else:  # fired on the cached estimate: asked as a triggered link
         assert list(sent(agent, Kind.REQUEST)[-1][3]["to"]) == [1]
+
+
+def test_realtime_overrun_closes_the_pulled_step_without_its_replies(tmp_path) -> None:
+    agent = pulling_agent(tmp_path, Mode.REALTIME)
+    agent.on_sensors(sensors(1, [1, 2]))
+    agent.on_sensors(sensors(2, [1, 2]))  # step 1 still waiting for its replies
+    reports = sent(agent, Kind.REPORT)
+    assert [r[2] for r in reports] == [1]
+    assert reports[0][3]["cnt"]["overrun"] == 1
+    assert reports[0][3]["cnt"]["requests_unanswered"] == 2
+    assert list(reports[0][3]["flags"]) == [0, 0]
+    assert agent.phase == (Kind.REPLY, 0) and sent(agent, Kind.REQUEST)[-1][2] == 2
