@@ -8,6 +8,12 @@ import numpy as np
 import pytest
 
 
+@pytest.fixture(autouse=True)
+def _private_result_store(tmp_path_factory, monkeypatch):
+    """Studies run by tests keep their cells in a temporary store, never in ./runs/.store."""
+    monkeypatch.setenv("RESLOC_STORE", str(tmp_path_factory.mktemp("store")))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     """A fresh seeded generator per test (tests never touch the global ``np.random``)."""

@@ -75,7 +75,7 @@ def test_ground_truth_interpolation_wraps_heading_and_flags_gaps():
 
 
 def test_config_is_validated():
-    with pytest.raises(ConfigError, match="dt must be a positive number"):
+    with pytest.raises(ConfigError, match=r"dt: 0\.0 is out of range"):
         MRCLAMConfig(dt=0.0)
     with pytest.raises(ConfigError, match="unknown filter 'pf'"):
         MRCLAMConfig(filters=("pf",))
@@ -294,7 +294,7 @@ def test_cli_zones_and_plots(tmp_path: Path):
     ("args", "message"),
     [
         (["/definitely/not/here"], "no such dataset folder"),
-        ([str(FIXTURE), "--dt", "0"], "dt must be a positive number"),
+        ([str(FIXTURE), "--dt", "0"], "--dt: 0.0 is out of range; use >= 0.001 s"),
         ([str(FIXTURE), "--sdz", "1", "1", "1"], "also pass --zones"),
     ],
 )

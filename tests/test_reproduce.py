@@ -19,13 +19,26 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "paper"
 
 def test_experiments_cover_the_paper():
     exps = {e.key: e for e in experiments()}
-    assert list(exps) == ["fig4a", "fig4b", "fig4c", "fig5a", "fig5b", "fig5c", "fig5d"]
+    assert list(exps) == [
+        "fig4a",
+        "fig4b",
+        "fig4c",
+        "fig5a",
+        "fig5a_zeta0",
+        "fig5b",
+        "fig5c",
+        "fig5d",
+    ]
     assert not exps["fig4a"].base().world.sdz and not exps["fig4a"].base().world.cdz
     b = exps["fig4b"].base().world.attack
     assert b.links.value == "partial" and b.link_fraction == 0.5
     assert exps["fig4c"].base().world.attack.links.value == "full"
     assert exps["fig5a"].values == (0.2, 0.3, 0.4, 0.5)
     assert exps["fig5a"].parameter == "zones.radius"
+    # The ablation: the same radii with the adaptive risk term of eq. (11) off.
+    ablation = exps["fig5a_zeta0"]
+    assert ablation.values == exps["fig5a"].values and ablation.parameter == "zones.radius"
+    assert ablation.base().trigger.zeta_s == 0.0 and ablation.base().trigger.zeta_c == 0.0
     assert exps["fig5b"].parameter == "detector.rho"
     assert exps["fig5c"].parameter == "trigger.alpha"
     n = exps["fig5d"].values

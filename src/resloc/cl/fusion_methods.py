@@ -51,11 +51,16 @@ class FusionStrategy(Protocol):
     node_refusal : str or None
         None when a :class:`~resloc.cl.node.RobotNode` (one robot's process) runs the
         method; otherwise why it does not.
+    node_exchanges : tuple of str
+        The messages a robot node exchanges after its correction besides estimates
+        (``"acks"`` and ``"consensus"`` for gauge fusion, ``"delivery_acks"`` for split CI,
+        ``"factors"`` for factorized fusion): what a transport must carry for the method.
     """
 
     method: ClassVar[FusionMethod]
     compiled: ClassVar[bool] = False
     node_refusal: ClassVar[str | None] = None
+    node_exchanges: ClassVar[tuple[str, ...]] = ()
 
     def problem(self, options: Any) -> str | None:
         """Why the method cannot run with ``options`` (anything with ``update_mode``,
@@ -181,6 +186,7 @@ class SplitCIFusion(_TransmittedOnly):
     ``memory.independent`` and in every transmission (``LinkBatch.P_nb_ind``)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.SPLIT_CI
+    node_exchanges: ClassVar[tuple[str, ...]] = ("delivery_acks",)
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         memory.independent = np.array(P0, dtype=float)  # initial errors are independent
@@ -283,6 +289,7 @@ class FactorizedFusion(TrackedFusion):
 
     method: ClassVar[FusionMethod] = FusionMethod.FACTORIZED
     node_refusal: ClassVar[str | None] = None
+    node_exchanges: ClassVar[tuple[str, ...]] = ("factors",)
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         team = _team_size(self.method, team_size)
@@ -294,6 +301,7 @@ class GaugeFusion(_Bookkept):
     (:mod:`resloc.cl.gauge`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.GAUGE
+    node_exchanges: ClassVar[tuple[str, ...]] = ("acks", "consensus")
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         memory.joint = GaugeCovariance(

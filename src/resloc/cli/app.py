@@ -5,9 +5,11 @@ from __future__ import annotations
 import typer
 
 from resloc import __version__
+from resloc.cli.common import OneLineErrors
 
 app = typer.Typer(
     name="resloc",
+    cls=OneLineErrors,
     help="Resilient distributed multi-robot cooperative localization (CKF / UKF / EKF).",
     no_args_is_help=True,
     add_completion=False,

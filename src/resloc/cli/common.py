@@ -8,32 +8,105 @@ from collections.abc import Callable
 from typing import Any
 
 import typer
+from typer import Abort
+from typer.core import TyperGroup
+
+try:  # typer >= 0.25 bundles its own click
+    from typer._click.exceptions import ClickException, NoArgsIsHelpError
+except ImportError:  # pragma: no cover - older typer on the click package
+    from click.exceptions import ClickException, NoArgsIsHelpError
 
 from resloc.errors import ResLocError
 
-__all__ = ["EXIT_BAD_INPUT", "fail", "handle_errors", "step_progress"]
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "EXIT_INTERRUPTED",
+    "OneLineErrors",
+    "fail",
+    "handle_errors",
+    "one_line",
+    "step_progress",
+]
 
 #: Exit code for bad input (config, data file, argument).
 EXIT_BAD_INPUT = 2
+#: Exit codes after SIGINT / SIGTERM / SIGHUP (128 + the signal number, the shell's rule).
+EXIT_INTERRUPTED = {"SIGINT": 130, "SIGTERM": 143, "SIGHUP": 129}
+
+
+def one_line(text: str, limit: int = 400) -> str:
+    """Collapse a message to one line (newlines become ``; ``), at most ``limit`` chars."""
+    parts = [p.strip().rstrip(".") for p in str(text).splitlines() if p.strip()]
+    line = "; ".join(parts)
+    return line if len(line) <= limit else line[: limit - 3] + "..."
 
 
 def fail(message: str) -> typer.Exit:
     """Print ``error: message`` (one line) to stderr and return the exit to raise."""
-    print(f"error: {message}", file=sys.stderr)
+    print(f"error: {one_line(message)}", file=sys.stderr)
     return typer.Exit(EXIT_BAD_INPUT)
 
 
 def handle_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Decorator for commands: a :class:`ResLocError` becomes one line on stderr, exit 2."""
+    """Decorator for commands: a :class:`ResLocError` becomes one line on stderr, exit 2;
+    SIGINT (and SIGTERM/SIGHUP where the command turned them into
+    :class:`~resloc.experiments.output.Terminated`) one line, exit 128 + signal."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from resloc.experiments.output import Terminated
+
         try:
             return fn(*args, **kwargs)
         except ResLocError as exc:
             raise fail(str(exc)) from None
+        except KeyboardInterrupt:
+            print("error: interrupted (SIGINT); --out left as it was", file=sys.stderr)
+            raise typer.Exit(EXIT_INTERRUPTED["SIGINT"]) from None
+        except Terminated as exc:
+            name = signal_name(exc.signum)
+            print(f"error: stopped by {name}; --out left as it was", file=sys.stderr)
+            raise typer.Exit(EXIT_INTERRUPTED.get(name, 128 + exc.signum)) from None
 
     return wrapper
+
+
+def signal_name(signum: int) -> str:
+    import signal
+
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class OneLineErrors(TyperGroup):
+    """The root command group: framework (click) usage errors print as ONE line,
+    ``error: <command>: <message>; see resloc <command> --help``, exit 2, instead of a
+    multi-line box. ``resloc`` alone still prints the help."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        prog_name = prog_name or "resloc"  # not "-c" or "__main__.py" when run as a module
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except NoArgsIsHelpError as exc:
+            print(exc.ctx.get_help() if exc.ctx else exc.format_message())
+            sys.exit(0)
+        except ClickException as exc:
+            ctx = getattr(exc, "ctx", None)
+            where = ctx.command_path if ctx is not None else "resloc"
+            print(
+                f"error: {where}: {one_line(exc.format_message())}; see {where} --help",
+                file=sys.stderr,
+            )
+            sys.exit(EXIT_BAD_INPUT)
+        except Abort:
+            print("error: interrupted", file=sys.stderr)
+            sys.exit(EXIT_INTERRUPTED["SIGINT"])
+        # typer returns the exit code of typer.Exit in non-standalone mode.
+        sys.exit(rv if isinstance(rv, int) else 0)
 
 
 def step_progress(enabled: bool):

@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 
 from resloc.cli.common import fail, handle_errors
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
 
 __all__ = ["compare_command", "register"]
 
@@ -25,29 +26,29 @@ class CompareFilter(enum.StrEnum):
 def compare_command(
     quick: bool,
     seeds: int | None,
-    jobs: int,
+    jobs: int | None,
     filt: CompareFilter,
     out: Path | None,
     overwrite: bool,
     plots: bool,
     progress: bool,
+    scheduler: str | None = None,
+    store: Path | None = None,
+    fresh: bool = False,
 ):
     """Run the comparison, print the report section, write the outputs."""
-    from resloc.cli.sweep import progress_bar
     from resloc.experiments.compare import run_compare, save_compare
+    from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
 
     if out is None:
         out = Path("runs") / f"compare-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     check_output_dir(out, overwrite)
-    with progress_bar("comparing", progress) as update:
-        result = run_compare(
-            quick=quick,
-            seeds=seeds,
-            jobs=jobs,
-            filt=filt.value,
-            progress=lambda done, total, label: update(done, total),
-        )
+    try:
+        with study_session("comparing", jobs, scheduler, store, fresh, progress) as study:
+            result = run_compare(quick=quick, seeds=seeds, filt=filt.value, study=study)
+    except StudyFailedError as exc:
+        raise write_failures(exc, out, overwrite) from None
     print(result.markdown())
     with atomic_output_dir(out, overwrite) as tmp:
         save_compare(result, tmp, plots=plots)
@@ -65,14 +66,17 @@ def register(app: typer.Typer) -> None:
             False, "--quick", help="Smoke-test size: 2 seeds, 200 steps, fewer methods."
         ),
         seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per cell [default: 10, quick 2]."
+            None, "--seeds", min=1, help="Seeds per cell \\[default: 10, quick 2]."
         ),
-        jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="Worker processes."),
+        jobs: int | None = JOBS,
+        scheduler: str | None = SCHEDULER,
+        store: Path | None = STORE,
+        fresh: bool = FRESH,
         filt: CompareFilter = typer.Option(
             CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
         ),
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/compare-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/compare-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write roc.png."),
@@ -85,5 +89,15 @@ def register(app: typer.Typer) -> None:
         if seeds is not None and seeds < 2:
             raise fail("--seeds: confidence intervals need at least 2 seeds")
         compare_command(
-            quick, seeds, jobs, filt, out, overwrite, plots, progress and sys.stderr.isatty()
+            quick,
+            seeds,
+            jobs,
+            filt,
+            out,
+            overwrite,
+            plots,
+            progress and sys.stderr.isatty(),
+            scheduler,
+            store,
+            fresh,
         )

@@ -12,6 +12,7 @@ import typer
 from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
+from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
 
@@ -66,11 +67,7 @@ def print_mrclam_summary(result, console=None) -> None:
             *(_fmt(v, ".3f") for v in est.per_robot["position_rmse"]),
         )
     console.print(per)
-    skipped = {k: v for k, v in info["rows_skipped"].items() if v}
-    if skipped:
-        console.print(
-            "rows skipped while loading: " + ", ".join(f"{k} {v}" for k, v in skipped.items())
-        )
+    console.print(data_rows_line(info["rows_skipped"]), highlight=False)
     if cfg.zones:
         console.print(
             f"attack layer: {info['attacked']} robot-robot measurements falsified in the SDZ, "
@@ -78,7 +75,51 @@ def print_mrclam_summary(result, console=None) -> None:
         )
 
 
-def noise_command(path: Path, duration: float | None) -> dict:
+def data_rows_line(skipped: dict[str, int]) -> str:
+    """What loading did to the rows, always printed (zeros too): dropped per reason,
+    and reordered."""
+    from resloc.datasets.mrclam import DROP_REASONS
+
+    dropped = {k: skipped.get(k, 0) for k in DROP_REASONS if skipped.get(k, 0)}
+    total = sum(dropped.values())
+    detail = f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""
+    return (
+        f"data rows: {total} dropped{detail}, {skipped.get('out_of_order', 0)} out of order "
+        "(sorted, kept); per file in summary.json (info.rows_skipped_by_file)"
+    )
+
+
+#: Command-line flag of each MRCLAMConfig field (for messages).
+_FLAGS = {
+    "dt": "--dt",
+    "duration": "--duration",
+    "seed": "--seed",
+    "rho": "--rho",
+    "range_std": "--range-std",
+    "range_std_rel": "--range-std-rel",
+    "bearing_std": "--bearing-std",
+    "attack_bias": "--attack-bias",
+    "sdz": "--sdz",
+    "cdz": "--cdz",
+}
+
+
+def make_config(**kw):
+    """:class:`MRCLAMConfig` from command-line values; errors name the flag."""
+    from resloc.errors import ConfigError
+    from resloc.experiments.mrclam import MRCLAMConfig
+
+    try:
+        return MRCLAMConfig(**kw)
+    except ConfigError as exc:
+        text = str(exc)
+        field = text.split(":", 1)[0].split("[", 1)[0].split(" ", 1)[0]
+        if field in _FLAGS:
+            text = _FLAGS[field] + text[len(field) :]
+        raise ConfigError(text) from None
+
+
+def noise_command(path: Path, duration: float | None, strict: bool = False) -> dict:
     """Print the noise of the dataset's sensors against its ground truth."""
     from rich.console import Console
     from rich.table import Table
@@ -86,7 +127,7 @@ def noise_command(path: Path, duration: float | None) -> dict:
     from resloc.datasets.mrclam import load_mrclam
     from resloc.experiments.mrclam import estimate_noise
 
-    data = load_mrclam(path, duration=duration)
+    data = load_mrclam(path, duration=make_config(duration=duration).duration, strict=strict)
     noise = estimate_noise(data)
     table = Table(title=f"{data.name}: sensor noise against ground truth (std: robust / plain)")
     for col in ("sensor", "n", "range (m)", "range / range", "bearing (rad)"):
@@ -122,19 +163,23 @@ def mrclam_command(
 ):
     """Validate, replay, print, save. ``kw`` are :class:`MRCLAMConfig` fields."""
     from resloc.cli.export import write_exports
-    from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam, save_mrclam
-    from resloc.experiments.output import atomic_output_dir, check_output_dir
+    from resloc.experiments.mrclam import run_mrclam, save_mrclam
+    from resloc.experiments.output import (
+        atomic_output_dir,
+        check_output_dir,
+        signals_as_exceptions,
+    )
 
-    config = MRCLAMConfig(**kw)
+    config = make_config(**kw)
     if out is None:
         stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
         out = Path("runs") / f"mrclam-{Path(path).name}-{stamp}"
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
     if plots:
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early if matplotlib is missing
-    with step_progress(progress) as bar:
+    with signals_as_exceptions(), step_progress(progress) as bar:
         tasks: dict[str, int] = {}
 
         def report(name: str, k: int, n: int) -> None:
@@ -145,7 +190,7 @@ def mrclam_command(
 
         result = run_mrclam(path, config, progress=report)
     print_mrclam_summary(result)
-    with atomic_output_dir(out, overwrite) as tmp:
+    with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_mrclam(result, tmp, plots=plots)
     write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (summary.json, per_robot.csv, timeseries.csv, plots)")
@@ -179,8 +224,16 @@ def register(app: typer.Typer) -> None:
         duration: float | None = typer.Option(
             None, "--duration", help="Replay only the first S seconds [default: all]."
         ),
-        dt: float = typer.Option(0.02, "--dt", help="Replay step (s)."),
-        seed: int = typer.Option(0, "--seed", "-s", min=0, help="Seed of attacks and jamming."),
+        dt: float = typer.Option(0.02, "--dt", help="Replay step (s), 0.001 to 1."),
+        seed: int = typer.Option(
+            0, "--seed", "-s", min=0, max=INT64_MAX, help="Seed of attacks and jamming."
+        ),
+        strict: bool = typer.Option(
+            False,
+            "--strict",
+            help="Fail on any data row that is out of order, repeated, conflicting or "
+            "unusable (default: count and report them).",
+        ),
         rho: float = typer.Option(1.0, "--rho", help="Attack-detector threshold."),
         detector_norm: InnovationNorm = typer.Option(
             InnovationNorm.EUCLIDEAN, "--detector-norm", help="Norm the detector thresholds."
@@ -214,7 +267,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Cooperative localization on a real MRCLAM dataset, scored against ground truth."""
         if estimate_noise:
-            noise_command(path, duration)
+            noise_command(path, duration, strict)
             return
         filters = ("ckf", "ukf", "ekf") if filter is FilterChoice.ALL else (filter.value,)
         mrclam_command(
@@ -240,4 +293,5 @@ def register(app: typer.Typer) -> None:
             range_std_rel=range_std_rel,
             bearing_std=bearing_std,
             attack_bias=attack_bias,
+            strict=strict,
         )

@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 
 from resloc.cli.common import handle_errors
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
 
 __all__ = ["register", "reproduce_command"]
 
@@ -22,9 +23,12 @@ def reproduce_command(
     out: Path | None,
     overwrite: bool,
     progress: bool,
+    scheduler: str | None = None,
+    store: Path | None = None,
+    fresh: bool = False,
 ):
     """Run every experiment, write the report, print where it is and the claims table."""
-    from resloc.cli.sweep import default_jobs, progress_bar
+    from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.plots import pyplot
     from resloc.experiments.reproduce import run_reproduction, write_reproduction
@@ -33,9 +37,13 @@ def reproduce_command(
         out = Path("runs") / f"reproduce-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
     check_output_dir(out, overwrite)
     pyplot()  # the report needs matplotlib: fail before the runs if it is missing
-    jobs = jobs or default_jobs()
-    with progress_bar("reproducing the paper's experiments", progress) as update:
-        rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, jobs=jobs, progress=update)
+    try:
+        with study_session(
+            "reproducing the paper's experiments", jobs, scheduler, store, fresh, progress
+        ) as study:
+            rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, study=study)
+    except StudyFailedError as exc:
+        raise write_failures(exc, out, overwrite) from None
     status = contextlib.nullcontext()
     if progress:
         from rich.console import Console
@@ -60,7 +68,12 @@ def print_claims(claims, rep) -> None:
     table.add_column("figure")
     table.add_column("claim")
     table.add_column("verdict")
-    style = {"holds": "green", "does not hold": "red", "inconclusive": "yellow"}
+    style = {
+        "holds": "green",
+        "does not hold": "red",
+        "not reproduced": "magenta",
+        "inconclusive": "yellow",
+    }
     for c in claims:
         v = c.verdict.value
         table.add_row(c.figure, c.short, f"[{style[v]}]{v}[/]")
@@ -74,19 +87,20 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def reproduce(
         seeds: int | None = typer.Option(
-            None, "--seeds", min=2, help="Seeds per experiment [default: 10; 2 with --quick]."
+            None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
         ),
-        jobs: int | None = typer.Option(
-            None, "--jobs", "-j", min=1, help="Worker processes [default: CPUs]."
-        ),
+        jobs: int | None = JOBS,
+        scheduler: str | None = SCHEDULER,
+        store: Path | None = STORE,
+        fresh: bool = FRESH,
         quick: bool = typer.Option(
             False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
         ),
         steps: int | None = typer.Option(
-            None, "--steps", min=1, help="Steps per run [default: the scenario's]."
+            None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
         ),
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/reproduce-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/reproduce-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         progress: bool = typer.Option(
@@ -95,5 +109,14 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Re-run every experiment of the paper over seeds and write report.md/report.html."""
         reproduce_command(
-            seeds, steps, jobs, quick, out, overwrite, progress and sys.stderr.isatty()
+            seeds,
+            steps,
+            jobs,
+            quick,
+            out,
+            overwrite,
+            progress and sys.stderr.isatty(),
+            scheduler,
+            store,
+            fresh,
         )

@@ -11,6 +11,7 @@ import typer
 
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
+from resloc.validation import INT64_MAX
 
 __all__ = ["print_summary", "register", "run_command"]
 
@@ -54,7 +55,9 @@ def print_summary(result, console=None) -> None:
     for name, s in result.summary().items():
         table.add_row(
             name.upper() if name != "dr" else "dead reckoning",
-            _fmt(s["msle_mean"], ".3e"),
+            f"diverged (step {s['diverged_step']})"
+            if s.get("diverged_step")
+            else _fmt(s["msle_mean"], ".3e"),
             _fmt(s["msle_final"], ".3e"),
             _fmt(s["rmse_mean"], ".4f"),
             _fmt(s["nees_mean"], ".3g"),
@@ -64,6 +67,21 @@ def print_summary(result, console=None) -> None:
             _fmt(s["wall_time_s"], ".2f"),
         )
     console.print(table)
+    warn_diverged(result.estimators)
+
+
+def warn_diverged(estimators: dict) -> None:
+    """One warning line per diverged estimator (the run still succeeds: exit code 0)."""
+    from resloc.experiments.output import warn
+
+    for name, est in estimators.items():
+        d = getattr(est, "diverged", None)
+        if d:
+            warn(
+                f"{name.upper()} diverged at step {d['step']} (t = {d['time_s']:.3f} s), "
+                f"robot {d['robot']} of trial {d['trial']}: {d['reason']}; its statistics are "
+                "left blank, the other estimators' results are complete (summary.json: diverged)"
+            )
 
 
 def run_command(
@@ -79,31 +97,40 @@ def run_command(
     """Load (or embed) the scenario, run it, print the table, write the outputs."""
     from resloc.cli.export import write_exports
     from resloc.experiments.config import default_scenario, load_scenario
-    from resloc.experiments.output import atomic_output_dir, check_output_dir, save_run
-    from resloc.experiments.runner import run_scenario
+    from resloc.experiments.output import (
+        atomic_output_dir,
+        check_output_dir,
+        save_run,
+        signals_as_exceptions,
+    )
+    from resloc.experiments.runner import check_run_size, run_scenario
 
     scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
     filters = None if filter_choice is FilterChoice.ALL else [filter_choice.value]
     if filter_choice is FilterChoice.ALL and scenario_path is None:
         filters = ["ckf", "ukf", "ekf"]
+    changes = {}
+    if filters is not None:
+        changes["run.filters"] = filters
+    if seed is not None:
+        changes["run.seed"] = seed
+    if changes:  # validated like the file (--seed must fit TOML's 64-bit integers)
+        scenario = scenario.replace(**changes)
+    inputs = [scenario_path] if scenario_path else []
     if out is None:
         stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
         out = Path("runs") / stamp
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, inputs)  # before any work: a bad --out loses nothing
+    check_run_size(scenario)
     if plots:
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early, before the run, if matplotlib is missing
-    with step_progress(progress) as bar:
+    with signals_as_exceptions(), step_progress(progress) as bar:
         task = bar.add_task("simulating", total=scenario.run.steps)
-        result = run_scenario(
-            scenario,
-            filters=filters,
-            seed=seed,
-            progress=lambda k, n: bar.update(task, completed=k),
-        )
+        result = run_scenario(scenario, progress=lambda k, n: bar.update(task, completed=k))
     print_summary(result)
-    with atomic_output_dir(out, overwrite) as tmp:
+    with atomic_output_dir(out, overwrite, inputs) as tmp:
         save_run(result, tmp, plots=plots)
     write_exports(out, export)  # after the rename: a failed export keeps the run
     print(f"results written to {out}/ (scenario.toml, summary.json, timeseries.csv, plots)")
@@ -124,7 +151,9 @@ def register(app: typer.Typer) -> None:
         filter: FilterChoice = typer.Option(
             FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
         ),
-        seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
+        seed: int | None = typer.Option(
+            None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
+        ),
         out: Path | None = typer.Option(
             None, "--out", "-o", help="Output directory [default: runs/<timestamp>]."
         ),

@@ -1,59 +1,17 @@
-"""``resloc sweep``: one scenario parameter over a list of values, over seeds, in parallel."""
+"""``resloc sweep``: scenario parameters over points (one, grid, zip) x seeds x filters."""
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
-import os
 import sys
-from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import typer
 
 from resloc.cli.common import handle_errors
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 
-__all__ = ["default_jobs", "progress_bar", "register", "sweep_command"]
-
-
-def default_jobs() -> int:
-    """Worker processes by default: the CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
-@contextlib.contextmanager
-def progress_bar(description: str, enabled: bool) -> Iterator[Callable[[float, float], None]]:
-    """A rich progress bar on stderr; yields ``update(done, total)`` (a no-op when off)."""
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        Progress,
-        TaskProgressColumn,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        TaskProgressColumn(),
-        TimeElapsedColumn(),
-        TextColumn("eta"),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        transient=True,
-        disable=not enabled,
-    ) as bar:
-        task = bar.add_task(description, total=1.0)
-
-        def update(done: float, total: float) -> None:
-            bar.update(task, completed=done, total=max(total, 1e-9))
-
-        yield update
+__all__ = ["print_sweep", "register", "sweep_command"]
 
 
 def sweep_command(
@@ -65,26 +23,43 @@ def sweep_command(
     overwrite: bool,
     plots: bool,
     progress: bool,
+    scheduler: str | None = None,
+    store: Path | None = None,
+    fresh: bool = False,
 ):
-    """Load the sweep file, run it, print the table, write the outputs."""
+    """Load the sweep file, run its cells, print the table, write the outputs.
+
+    A failed cell does not stop the sweep: the outputs are written (the failed cells in
+    ``cells.csv`` and ``failures.json``) and the exit code is 1.
+    """
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.sweep import load_sweep, run_sweep, save_sweep
 
     spec = load_sweep(path)
     if out is None:
         out = Path("runs") / f"sweep-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
-    check_output_dir(out, overwrite)
+    check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
+    spec.with_run(seeds, steps).scenarios()  # every point valid before any work
     if plots:
         from resloc.experiments.plots import pyplot
 
         pyplot()
-    jobs = jobs or default_jobs()
-    with progress_bar(f"sweep {spec.parameter} ({len(spec.values)} values)", progress) as upd:
-        result = run_sweep(spec, seeds=seeds, steps=steps, jobs=jobs, progress=upd)
+    points = len(spec.values)
+    with study_session(
+        f"sweep {spec.axis_label} ({points} points)", jobs, scheduler, store, fresh, progress
+    ) as study:
+        result = run_sweep(spec, seeds=seeds, steps=steps, study=study)
     print_sweep(result)
-    with atomic_output_dir(out, overwrite) as tmp:
+    with atomic_output_dir(out, overwrite, [path]) as tmp:
         save_sweep(result, tmp, plots=plots)
-    print(f"results written to {out}/ (sweep.toml, summary.json, sweep.csv, plots)")
+    print(f"results written to {out}/ (sweep.toml, summary.json, cells.csv, sweep.csv, plots)")
+    if result.failures:
+        print(
+            f"error: {len(result.failures)} cell(s) failed; the others are in the results; "
+            f"details (scenario, traceback): {out}/failures.json",
+            file=sys.stderr,
+        )
+        raise typer.Exit(1)
     return result
 
 
@@ -100,12 +75,15 @@ def print_sweep(result) -> None:
         title=f"{spec.name}: {result.seeds} seed(s), {spec.base.run.steps} steps, "
         f"mean ± 95% CI, {result.wall_time:.1f} s"
     )
-    table.add_column(spec.parameter)
+    table.add_column(spec.axis_label)
     for f in result.filters:
         table.add_column(f"{f.upper()} {spec.metric}", justify="right")
         table.add_column(f"{f.upper()} comm rate", justify="right")
     for k, v in enumerate(spec.values):
-        row = [str(v)]
+        row = [spec.label(v)]
+        if result.runs[k] is None:
+            table.add_row(*row, *(["failed"] * (2 * len(result.filters))))
+            continue
         for f in result.filters:
             row.append(mean_ci(result.per_trial(f)[k]).format(".3g"))
             row.append(mean_ci(result.per_trial(f, "comm_rate")[k]).format(".3f"))
@@ -120,17 +98,20 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def sweep(
         path: Path = typer.Argument(
-            ..., help="Sweep file: a scenario file plus [sweep] (parameter, values)."
+            ...,
+            help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
+            "\\[sweep.grid] / \\[sweep.zip]).",
         ),
         seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per value [default: the file's run.trials]."
+            None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
         ),
         steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
-        jobs: int | None = typer.Option(
-            None, "--jobs", "-j", min=1, help="Worker processes [default: CPUs]."
-        ),
+        jobs: int | None = JOBS,
+        scheduler: str | None = SCHEDULER,
+        store: Path | None = STORE,
+        fresh: bool = FRESH,
         out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/sweep-<timestamp>]."
+            None, "--out", "-o", help="Output directory \\[default: runs/sweep-<timestamp>]."
         ),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
@@ -138,7 +119,18 @@ def register(app: typer.Typer) -> None:
             True, "--progress/--no-progress", help="Show a progress bar on stderr."
         ),
     ) -> None:
-        """Run a scenario for each value of one parameter, over seeds, in parallel."""
+        """Run a scenario at every point of a sweep (one parameter, a grid or zipped
+        parameters) x seeds x filters, as cells on a Dask cluster, kept in the result store."""
         sweep_command(
-            path, seeds, steps, jobs, out, overwrite, plots, progress and sys.stderr.isatty()
+            path,
+            seeds,
+            steps,
+            jobs,
+            out,
+            overwrite,
+            plots,
+            progress and sys.stderr.isatty(),
+            scheduler,
+            store,
+            fresh,
         )

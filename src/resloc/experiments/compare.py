@@ -17,7 +17,8 @@ random numbers across methods):
   value, for growing teams.
 
 Every cell is an independent :func:`~resloc.experiments.runner.run_scenario` call, so cells
-run in parallel processes (``jobs``). ``docs/beyond.md`` describes the methods.
+run as cells of the study executor (:mod:`resloc.experiments.executor`: embedded or external
+Dask cluster, result store). ``docs/beyond.md`` describes the methods.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,8 +35,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from resloc.cl.cusum import chi2_gate
-from resloc.experiments.config import Scenario, default_scenario
+from resloc.experiments.config import Scenario, default_scenario, scenario_to_dict
+from resloc.experiments.executor import Study, StudyFailedError, Task
 from resloc.experiments.stats import mean_ci, ratio
+from resloc.experiments.store import cell_key
 
 __all__ = [
     "FUSION_METHODS",
@@ -274,16 +276,13 @@ def _cell_metrics(result, name: str) -> dict[str, Any]:
     }
 
 
-def _run_cell(task: dict) -> dict:
-    """One cell (picklable, runs in a worker process)."""
+def _compute_cell(scenario: Scenario, params, stride: int) -> list[dict]:
+    """One cell (picklable, runs on a worker): the metrics of the scenario's filter."""
     from resloc.experiments.runner import run_scenario
 
-    scenario: Scenario = task["scenario"]
-    params = task.get("params")
-    result = run_scenario(scenario, params=params, metric_stride=task.get("stride", 1))
+    result = run_scenario(scenario, params=params, metric_stride=stride)
     name = scenario.run.filters[0]
-    out = {"task": {k: v for k, v in task.items() if k not in ("scenario", "params")}}
-    out["metrics"] = _cell_metrics(result, name)
+    out: dict[str, Any] = {"metrics": _cell_metrics(result, name)}
     out["robots"] = result.meta["robots"]
     if "lambda2" in result.meta:
         out["lambda2"] = {
@@ -293,7 +292,46 @@ def _run_cell(task: dict) -> dict:
             series = np.asarray(result.meta["lambda2"]["abs_rel_error_series"])
             burn = min(len(series) // 10, 100)
             out["lambda2"]["abs_rel_error_after_warmup"] = float(np.nanmean(series[burn:]))
-    return out
+    return [out]
+
+
+def _cell_task(task: dict) -> Task:
+    """The executor task of one comparison cell; its store key is everything that
+    determines the result (the scenario with its seeds, per-trial parameters, stride)."""
+    scenario: Scenario = task["scenario"]
+    params, stride = task.get("params"), task.get("stride", 1)
+    key = cell_key(
+        "compare", scenario=scenario_to_dict(scenario), params=params, stride=int(stride)
+    )
+    return Task(
+        _compute_cell,
+        (scenario, params, stride),
+        (key,),
+        task["label"],
+        {"scenario": scenario_to_dict(scenario), "label": task["label"]},
+        float(scenario.world.team.robots * scenario.run.trials * scenario.run.steps),
+    )
+
+
+def _describe(task: dict) -> dict:
+    return {k: v for k, v in task.items() if k not in ("scenario", "params")}
+
+
+def _run_cells(tasks: list[dict], study: Study) -> list[dict]:
+    """Every cell: from the study's store, or computed on its backend (in task order)."""
+    work = [_cell_task(t) for t in tasks]
+    found: dict[str, Any] = {}
+    todo = []
+    for w in work:
+        hit, value = study.lookup(w.keys[0])
+        if hit:
+            found[w.keys[0]] = value
+        else:
+            todo.append(w)
+    found.update(study.run(todo, cells=len(work), from_store=len(found)))
+    if study.failures:
+        raise StudyFailedError(study.failures, study.stats)
+    return [{"task": _describe(t), **found[w.keys[0]]} for t, w in zip(tasks, work, strict=True)]
 
 
 def _roc_params(scenario: Scenario, thresholds: np.ndarray, seeds: int):
@@ -365,12 +403,13 @@ def _summarize_cell(out: dict) -> dict:
 def run_compare(
     quick: bool = False,
     seeds: int | None = None,
-    jobs: int = 1,
+    jobs: int | None = 1,
     filt: str = "ckf",
     progress: Callable[[int, int, str], None] | None = None,
     studies: tuple[str, ...] = ("table", "fusion", "roc", "lambda2"),
     steps: int | None = None,
     robots: int | None = None,
+    study: Study | None = None,
 ) -> CompareResult:
     """Run the issue-6 comparison.
 
@@ -381,15 +420,18 @@ def run_compare(
         the paper and the best combination, a reduced ROC and lambda2 study.
     seeds : int, optional
         Seeds (trials) per cell (default 10, quick 2).
-    jobs : int
-        Worker processes.
+    jobs : int, optional
+        Worker processes when no ``study`` is given (``None``: the CPUs).
     filt : {"ckf", "ukf", "ekf"}
     progress : callable(done, total, label), optional
+        Over cells, when no ``study`` is given.
     studies : tuple of str
         Which studies to run.
     steps, robots : int, optional
         Override the steps per run and the team size (tests; the report's targets assume
         the defaults).
+    study : Study, optional
+        Backend (embedded or external Dask cluster), result store and progress.
 
     Returns
     -------
@@ -421,22 +463,12 @@ def run_compare(
     if "lambda2" in studies:
         tasks += _lambda2_tasks(quick, seeds, filt, steps)
 
-    outputs: list[dict] = []
     total = len(tasks)
-    if jobs <= 1:
-        for k, task in enumerate(tasks):
-            outputs.append(_run_cell(task))
-            if progress:
-                progress(k + 1, total, task["label"])
-    else:
-        with ProcessPoolExecutor(max_workers=int(jobs)) as pool:
-            futures = {pool.submit(_run_cell, task): task for task in tasks}
-            for k, fut in enumerate(as_completed(futures)):
-                outputs.append(fut.result())
-                if progress:
-                    progress(k + 1, total, futures[fut]["label"])
-    order = {task["label"]: n for n, task in enumerate(tasks)}
-    outputs.sort(key=lambda o: order[o["task"]["label"]])
+    if study is None:
+        study = Study(
+            jobs=jobs, progress=(lambda d, t: progress(int(d), int(t), "")) if progress else None
+        )
+    outputs = _run_cells(tasks, study)
 
     table = [_table_row(o) for o in outputs if o["task"]["study"] in ("table", "extra")]
     fusion = [_fusion_row(o, seeds) for o in outputs if o["task"]["study"] == "fusion"]
@@ -448,7 +480,8 @@ def run_compare(
         "seeds": seeds,
         "steps": steps,
         "filter": filt,
-        "jobs": int(jobs),
+        "jobs": study.stats.workers,
+        "study": study.stats.to_dict(),
         "robots": robots or default_scenario().world.team.robots,
         "wall_time_s": time.perf_counter() - t0,
         "cells": total,

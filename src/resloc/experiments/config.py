@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import json
 import math
 import tomllib
 import typing
@@ -29,8 +30,18 @@ from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, U
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
 from resloc.schema import spec_field as _f
+from resloc.validation import INT64_MAX, check_one_line_name
 from resloc.world.control import LeaderPath
-from resloc.world.spec import AttackSpec, MotionSpec, SensingSpec, TeamSpec, WorldSpec, ZoneSpec
+from resloc.world.spec import (
+    ARENA_MAX,
+    STD_MIN,
+    AttackSpec,
+    MotionSpec,
+    SensingSpec,
+    TeamSpec,
+    WorldSpec,
+    ZoneSpec,
+)
 
 __all__ = [
     "DetectorSpec",
@@ -61,10 +72,17 @@ class RiskSource(enum.StrEnum):
 class RunSpec:
     """What to run."""
 
-    name: str = _f("arc-turn", "scenario name")
-    seed: int = _f(0, "random seed of the world (truth, noise, attacks, channel)", min=0)
+    name: str = _f("arc-turn", "scenario name (one printable line)")
+    seed: int = _f(
+        0, "random seed of the world (truth, noise, attacks, channel)", min=0, max=INT64_MAX
+    )
     steps: int = _f(1000, "number of time steps", min=1, max=10_000_000)
-    trials: int = _f(1, "Monte Carlo trials simulated together (seeds seed.0 .. seed.T-1)", min=1)
+    trials: int = _f(
+        1,
+        "Monte Carlo trials simulated together (seeds seed.0 .. seed.T-1)",
+        min=1,
+        max=5_000_000,
+    )
     filters: list = _f(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
     dead_reckoning: bool = _f(True, "also run odometry-only dead reckoning as a floor")
 
@@ -80,9 +98,11 @@ class EstimatorSpec:
     update_without_transmission: bool = _f(
         False, "with cached estimates, fuse untriggered measurements with the cache"
     )
-    ukf_alpha: float = _f(0.5, "UKF alpha (scaled sigma points)", gt=0.0)
-    ukf_beta: float = _f(2.0, "UKF beta", min=0.0)
-    ukf_kappa: float = _f(0.0, "UKF kappa")
+    ukf_alpha: float = _f(0.5, "UKF alpha (scaled sigma points)", min=1e-4, max=1.0)
+    ukf_beta: float = _f(2.0, "UKF beta", min=0.0, max=100.0)
+    ukf_kappa: float = _f(
+        0.0, "UKF kappa (n + kappa > 0 with n = 3: kappa > -3)", gt=-3.0, max=100.0
+    )
     fusion: FusionMethod = _f(
         FusionMethod.NAIVE,
         "neighbour fusion: naive (paper), gauge, ci, split_ci, tracked or factorized "
@@ -93,7 +113,9 @@ class EstimatorSpec:
         GaugeSums.EXACT,
         "gauge fusion's team sums: exact, or each robot's own by neighbour consensus",
     )
-    gauge_rounds: int = _f(3, "gauge sums by consensus: neighbour exchanges per step", min=1)
+    gauge_rounds: int = _f(
+        3, "gauge sums by consensus: neighbour exchanges per step", min=1, max=1000
+    )
 
 
 @dataclass(frozen=True)
@@ -101,7 +123,7 @@ class DetectorSpec:
     """Innovation-residual attack detector (Algorithm 1)."""
 
     enabled: bool = _f(True, "discard measurements whose innovation norm exceeds rho")
-    rho: float = _f(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0)
+    rho: float = _f(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0, max=1e6)
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
     false_alarm: float = _f(
         0.0,
@@ -110,13 +132,15 @@ class DetectorSpec:
         max=0.5,
     )
     cusum: bool = _f(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
-    cusum_k: float = _f(3.0, "CUSUM reference (drift) in NIS units", gt=0.0)
-    cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0)
+    cusum_k: float = _f(3.0, "CUSUM reference (drift) in NIS units", gt=0.0, max=1e6)
+    cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
     mean_cusum: bool = _f(
         False, "also discard while a signed CUSUM of the whitened innovation exceeds mean_cusum_h"
     )
-    mean_cusum_k: float = _f(0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0)
-    mean_cusum_h: float = _f(8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0)
+    mean_cusum_k: float = _f(
+        0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0, max=1e6
+    )
+    mean_cusum_h: float = _f(8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0, max=1e6)
 
 
 @dataclass(frozen=True)
@@ -124,10 +148,10 @@ class TriggerSpec:
     """Adaptive event trigger, eq. (11)."""
 
     enabled: bool = _f(True, "event-triggered communication (off: transmit every step)")
-    alpha: float = _f(0.6, "alpha of eq. (11)", min=0.0)
-    gamma: float = _f(0.5, "gamma of eq. (11)", min=0.0)
-    zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)")
-    zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)")
+    alpha: float = _f(0.6, "alpha of eq. (11)", min=0.0, max=1e6)
+    gamma: float = _f(0.5, "gamma of eq. (11)", min=0.0, max=1e6)
+    zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
+    zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
     norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
     lambda2: Lambda2Source = _f(
         Lambda2Source.COMPONENT,
@@ -137,7 +161,9 @@ class TriggerSpec:
     lambda2_rounds: int = _f(
         3, "distributed lambda2: neighbour exchanges per step", min=1, max=1000
     )
-    risk_factor_floor: float = _f(0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)")
+    risk_factor_floor: float = _f(
+        0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)", min=-100.0, max=100.0
+    )
     threshold_innovation: ThresholdInnovation = _f(
         ThresholdInnovation.CURRENT, "innovation inside the threshold: current or last_sent"
     )
@@ -223,14 +249,20 @@ def _type_name(v: Any) -> str:
 
 def _check_number(path: str, value: Any, meta: dict, want: type) -> float | int:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError(f"{path}: expected a {want.__name__}, got {_type_name(value)} {value!r}")
+        what = "an integer" if want is int else "a number"
+        raise ConfigError(f"{path}: expected {what}, got {_type_name(value)} {value!r}")
     if want is int and not isinstance(value, int):
         raise ConfigError(f"{path}: expected an integer, got {value!r}")
     if isinstance(value, float) and math.isnan(value):
         raise ConfigError(f"{path}: NaN is not allowed")
+    if isinstance(value, float) and math.isinf(value):
+        raise ConfigError(f"{path}: {value!r} is not allowed; give a finite number")
+    why = ""
+    if meta.get("min") == STD_MIN:
+        why = f" (a zero noise std makes the covariance singular; {STD_MIN:g} is almost noiseless)"
     if "min" in meta and value < meta["min"]:
         raise ConfigError(
-            f"{path}: {value!r} is below the minimum {meta['min']}; use >= {meta['min']}"
+            f"{path}: {value!r} is below the minimum {meta['min']}; use >= {meta['min']}{why}"
         )
     if "max" in meta and value > meta["max"]:
         raise ConfigError(
@@ -366,6 +398,8 @@ def _parse(data: dict) -> Scenario:
             f"attack.stealth_direction: {att.stealth_direction!r} is zero; give a direction "
             "such as [0.0, 1.0] (bearing)"
         )
+    check_one_line_name("run.name", run.name)
+    _check_waypoints(parts["motion"].waypoints)
     LeaderPath(parts["motion"].waypoints)  # validates the path
     if run.trials * team.robots > 5_000_000:
         raise ConfigError(
@@ -388,6 +422,18 @@ def _parse(data: dict) -> Scenario:
     )
 
 
+def _check_waypoints(waypoints: list) -> None:
+    """Each waypoint is ``"arc"`` or ``[x, y]``: two finite numbers inside the arena."""
+    for k, w in enumerate(waypoints):
+        path = f"motion.waypoints[{k}]"
+        if isinstance(w, str):
+            continue  # "arc" and its placement are checked by LeaderPath
+        if not isinstance(w, list) or len(w) != 2:
+            raise ConfigError(f'{path}: expected [x, y] or "arc", got {w!r}')
+        for c, v in enumerate(w):
+            _check_number(f"{path}[{c}]", v, {"min": -ARENA_MAX, "max": ARENA_MAX}, float)
+
+
 def read_toml(path: str | Path, kind: str = "scenario") -> dict:
     """Read a TOML file, mapping every failure to one :class:`ConfigError` line.
 
@@ -399,7 +445,7 @@ def read_toml(path: str | Path, kind: str = "scenario") -> dict:
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark is not an error
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such {kind} file") from None
     except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
@@ -456,7 +502,8 @@ def toml_value(v: Any) -> str:
             return "inf" if v > 0 else "-inf"
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # JSON's string escapes (\n, \t, \", \\, \uXXXX) are TOML's basic-string escapes.
+        return json.dumps(v, ensure_ascii=False)
     if isinstance(v, list):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")  # pragma: no cover

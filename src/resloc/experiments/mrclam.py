@@ -50,6 +50,7 @@ from resloc.experiments.metrics import detector_scores, msle, nees, rate
 from resloc.experiments.runner import DEAD_RECKONING
 from resloc.filters.base import FilterKind, make_filter
 from resloc.models.measurement import range_bearing
+from resloc.validation import check_finite, check_memory, check_seed
 from resloc.world.attacks import (
     AttackKind,
     LinkScope,
@@ -73,6 +74,28 @@ __all__ = [
     "run_mrclam",
     "save_mrclam",
 ]
+
+
+#: Smallest replay step (s): the odometry runs at ~67 Hz and the ground truth at 100 Hz, so a
+#: step below a millisecond replays no new data, only more memory.
+MIN_DT = 1e-3
+#: Upper bounds of the float options (all >= 0; positivity rules are in ``__post_init__``).
+_FLOAT_BOUNDS = {
+    "range_std": 1e3,
+    "range_std_rel": 1e3,
+    "bearing_std": 2 * math.pi,
+    "rho": 1e6,
+    "alpha": 1e6,
+    "gamma": 1e6,
+    "zeta_s": 1e3,
+    "zeta_c": 1e3,
+    "gt_max_gap": 1e3,
+    "link_fraction": 1.0,
+}
+#: Longest ``duration`` (s): the MRCLAM datasets last 15 to 45 minutes.
+MAX_DURATION = 1e6
+#: Longest replay in steps (the same bound as a scenario's ``run.steps``).
+MAX_REPLAY_STEPS = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -120,6 +143,9 @@ class MRCLAMConfig:
     link_fraction : float
     gt_max_gap : float
         Ground-truth gaps longer than this (s) are not scored.
+    strict : bool
+        Fail on any data row that is reordered, repeated or unusable instead of counting
+        it (:func:`~resloc.datasets.mrclam.load_mrclam`).
     """
 
     filters: tuple[str, ...] = ("ckf", "ukf", "ekf")
@@ -148,11 +174,23 @@ class MRCLAMConfig:
     attack_links: LinkScope = LinkScope.FULL
     link_fraction: float = 0.5
     gt_max_gap: float = 0.25
+    strict: bool = False
 
     def __post_init__(self) -> None:
         for name in self.filters:
             if name not in {k.value for k in FilterKind}:
                 raise ConfigError(f"filters: unknown filter {name!r}; use ckf, ukf or ekf")
+        # Finite, physical ranges first (resloc.validation); the rules below add relations.
+        check_finite("dt", self.dt, MIN_DT, 1.0, unit=" s")
+        check_seed("seed", self.seed)
+        for name, hi in _FLOAT_BOUNDS.items():
+            check_finite(name, getattr(self, name), 0.0, hi)
+        for name in ("odometry_density", "init_std", "attack_bias"):
+            for k, v in enumerate(getattr(self, name)):
+                check_finite(f"{name}[{k}]", v, 0.0, 1e3)
+        for name in ("sdz", "cdz"):
+            for k, v in enumerate(getattr(self, name) or ()):
+                check_finite(f"{name}[{k}]", v, -1e4, 1e4)
         positive = {
             "dt": self.dt,
             "range_std": self.range_std,
@@ -167,8 +205,8 @@ class MRCLAMConfig:
             raise ConfigError(f"range_std_rel must be >= 0, got {self.range_std_rel}")
         if self.dt > 1.0:
             raise ConfigError(f"dt must be at most 1 s, got {self.dt}")
-        if self.duration is not None and not (np.isfinite(self.duration) and self.duration > 0):
-            raise ConfigError(f"duration must be a positive number of seconds, got {self.duration}")
+        if self.duration is not None:
+            check_finite("duration", self.duration, 0.0, MAX_DURATION, lo_open=True, unit=" s")
         for name in ("odometry_density", "init_std", "attack_bias"):
             v = getattr(self, name)
             if len(v) != 2 or not all(np.isfinite(a) and a >= 0 for a in v):
@@ -367,6 +405,27 @@ class Replay:
         return len(self.time) - 1
 
 
+def replay_bytes(steps: int, robots: int, estimators: int) -> float:
+    """Estimated peak memory (bytes) of a replay: per step and robot, the truth, validity,
+    commands and risks (8 floats), each estimator's kept track and errors (6 floats) and
+    the covariances and scoring temporaries of the one being computed (24 floats)."""
+    return 8.0 * (steps + 1) * robots * (8 + 6 * estimators + 24)
+
+
+def check_replay_size(data: MRCLAMDataset, config: MRCLAMConfig, steps: int) -> None:
+    """Refuse (one line) a replay too long or too large for this machine, before allocating.
+
+    The message names the row that sets the data's end: one absurd timestamp is the usual
+    cause of a replay of years.
+    """
+    where = f" (the data end at {data.end_row})" if data.end_row else ""
+    what = f"replay of {steps * config.dt:.6g} s at dt {config.dt} s = {steps} steps{where}"
+    fix = "pass a shorter --duration or a larger --dt, or fix the row named here"
+    if steps > MAX_REPLAY_STEPS:
+        raise ConfigError(f"{what}: more than {MAX_REPLAY_STEPS} steps; {fix}")
+    check_memory(replay_bytes(steps, data.n_robots, 1 + len(config.filters)), what, fix)
+
+
 def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
     """Cut ``data`` into steps, assign measurements, and draw the attacks (seeded).
 
@@ -390,6 +449,7 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
         raise ConfigError(
             f"the replay is shorter than one step: {end:.3f} s of data with dt = {dt} s"
         )
+    check_replay_size(data, config, K)
     times = dt * np.arange(K + 1)
     N = data.n_robots
     u = np.stack([_step_commands(r.odometry, times) for r in data.robots], axis=1)
@@ -729,10 +789,10 @@ def _run_estimator(
                     tgt = rp.target[sub]
                     if landmark:
                         x_nb, P_nb = lm_x[tgt - N], lm_P[tgt - N]
-                        prm = _level_params(cache_lm, params_lm, level_k, config)
+                        prm = level_params(cache_lm, params_lm, level_k, config)
                     else:
                         x_nb, P_nb = x[tgt], P[tgt]
-                        prm = _level_params(cache, params, level_k, config)
+                        prm = level_params(cache, params, level_k, config)
                     batch = LinkBatch(
                         rp.obs[sub],
                         tgt,
@@ -783,7 +843,7 @@ def range_noise_level(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
     )
 
 
-def _level_params(
+def level_params(
     cache: dict[int, CLParams], base: CLParams, level: int, config: MRCLAMConfig
 ) -> CLParams:
     """``base`` with ``range_std`` set to noise level ``level`` (memoized)."""
@@ -794,7 +854,7 @@ def _level_params(
     return prm
 
 
-def _score(
+def score_estimate(
     name: str,
     rp: Replay,
     track: np.ndarray,
@@ -919,13 +979,13 @@ def run_mrclam(
     t_start = time.perf_counter()
     config = config or MRCLAMConfig()
     if not isinstance(data, MRCLAMDataset):
-        data = load_mrclam(data, duration=config.duration)
+        data = load_mrclam(data, duration=config.duration, strict=config.strict)
     rp = prepare_replay(data, config)
     estimators = {}
     for name in (DEAD_RECKONING, *config.filters):
         cb = None if progress is None else (lambda k, n, _name=name: progress(_name, k, n))
         track, cov, links, wall = _run_estimator(name, rp, config, cb)
-        estimators[name] = _score(name, rp, track, cov, links, wall)
+        estimators[name] = score_estimate(name, rp, track, cov, links, wall)
     info = {
         "dataset": data.name,
         "path": str(data.path),
@@ -1040,11 +1100,15 @@ def save_mrclam(
     from resloc.experiments.recording import RECORDING_FILE, recording_from_mrclam
 
     written.append(recording_from_mrclam(result).save(out / RECORDING_FILE))
-    if plots:
+    if plots:  # a figure that cannot be drawn is skipped with a warning, the data stay
+        from resloc.experiments.output import draw_plots
         from resloc.experiments.plots import plot_mrclam_errors, plot_mrclam_trajectories
 
-        written.append(plot_mrclam_trajectories(result, out / "trajectories.png"))
-        written.append(plot_mrclam_errors(result, out / "errors.png"))
+        figures = ((plot_mrclam_trajectories, "trajectories"), (plot_mrclam_errors, "errors"))
+        for draw, name in figures:
+            written += draw_plots(
+                lambda d=draw, n=name: [d(result, out / f"{n}.png")], what=f"{name}.png"
+            )
     return written
 
 

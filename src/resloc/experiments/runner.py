@@ -6,7 +6,9 @@ outcomes (common random numbers), so their differences are the filters' own.
 
 from __future__ import annotations
 
+import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -19,6 +21,7 @@ from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.cl.step import LinkBatch, correct, predict
+from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import (
     confusion_counts,
@@ -30,11 +33,35 @@ from resloc.experiments.metrics import (
 )
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
+from resloc.linalg import symmetrize
+from resloc.validation import check_memory
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
-__all__ = ["DEAD_RECKONING", "EstimatorResult", "RunResult", "run_scenario"]
+__all__ = [
+    "DEAD_RECKONING",
+    "EstimatorResult",
+    "RunResult",
+    "check_run_size",
+    "divergence",
+    "run_bytes",
+    "run_scenario",
+]
+
+#: Bytes per robot kept by each estimator between steps (x, P, link memory).
+BYTES_PER_ROBOT_KEPT = 300
+#: Bytes per robot of the temporaries of one estimator's step (estimators step one after
+#: the other): predicted copies, sigma points, world pose and odometry.
+BYTES_PER_ROBOT_STEP = 1_000
+#: Bytes per sensing link in one step: the link batch and update temporaries, the k-d tree
+#: pairs and the sparse factorisation behind lambda2 of large components.
+BYTES_PER_LINK = 2_500
+#: Bytes of Python objects (small arrays, tuples, floats) kept per step and estimator.
+STEP_OBJECTS = 600
+#: Safety factor and fixed overhead (numpy temporaries, per-step Python lists) on top.
+RUN_MARGIN = 1.2
+RUN_OVERHEAD = 64e6
 
 #: Name of the odometry-only baseline in results.
 DEAD_RECKONING = "dr"
@@ -83,6 +110,11 @@ class EstimatorResult:
         Every sensed link of trial 0 over the run, each shape (M,): ``step`` (1-based),
         ``i``, ``j``, ``attacked`` (shared by the estimators) and this estimator's
         ``detected``, ``triggered``, ``delivered``, ``fused`` (for exports and figures).
+    diverged : dict or None
+        If the estimator diverged: ``step`` (1-based), ``time_s``, ``trial``, ``robot`` and
+        ``reason`` (see :func:`divergence`). Its series, track and covariances are ``nan``
+        from that step on (its link outcomes all false) and its summary's error statistics
+        are ``nan``: an average over the steps before the failure would look like a result.
     """
 
     name: str
@@ -93,9 +125,23 @@ class EstimatorResult:
     wall_time: float = 0.0
     cov: np.ndarray | None = None
     links: LinkLog | None = None
+    diverged: dict | None = None
 
     def summary(self) -> dict[str, float]:
-        """Scalar summary: means over steps and trials, final values, rates, detector scores."""
+        """Scalar summary: means over steps and trials, final values, rates, detector scores
+        (error statistics ``nan`` and ``diverged_step`` set if the estimator diverged)."""
+        with warnings.catch_warnings():  # a diverged estimator has all-NaN final steps
+            warnings.filterwarnings("ignore", "Mean of empty slice", RuntimeWarning)
+            warnings.filterwarnings("ignore", "All-NaN slice", RuntimeWarning)
+            out = self._summary()
+        if self.diverged:
+            for key in ("msle_mean", "msle_final", "rmse_mean", "rmse_final"):
+                out[key] = float("nan")
+            out["nees_mean"] = out["nees_median"] = float("nan")
+            out["diverged_step"] = self.diverged["step"]
+        return out
+
+    def _summary(self) -> dict[str, float]:
         s, t = self.series, self.totals
         steps = s["msle"].shape[0]
         out = {
@@ -152,7 +198,7 @@ class RunResult:
         return {name: est.summary() for name, est in self.estimators.items()}
 
 
-class _Track:
+class EstimatorTrack:
     """Mutable state of one estimator during a run."""
 
     def __init__(self, name: str, filt: GaussianFilter, x0, P0, steps: int, T: int, N: int):
@@ -170,6 +216,54 @@ class _Track:
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
         self.wall = 0.0
+        self.diverged: dict | None = None
+        self.out = None
+        self.pending_P: np.ndarray | None = None
+
+    def stop(self, k: int, dt: float, N: int, P: np.ndarray, reason: str) -> None:
+        """Mark the estimator diverged at step index ``k`` (0-based) and blank its future."""
+        self.diverged = divergence(k, dt, N, P, reason)
+        self.track[k + 1 :] = np.nan
+        self.cov[k + 1 :] = np.nan
+        for arr in self.series.values():
+            arr[k:] = np.nan
+
+
+def expected_links(scenario: Scenario) -> float:
+    """Sensing links per step and trial: each robot sees the lattice neighbours inside the
+    sensing radius, ``pi R^2 / spacing^2``, at most the rest of its team."""
+    team, radius = scenario.world.team, scenario.world.sensing.radius
+    return team.robots * min(team.robots - 1, math.pi * radius**2 / team.spacing**2 + 4)
+
+
+def run_bytes(scenario: Scenario) -> float:
+    """Estimated peak memory (bytes) of :func:`run_scenario`: the links and state of one
+    estimator's step, and what every estimator keeps: its state, the series ``(steps, T)``,
+    the trial-0 track, covariances ``(steps + 1, N, 3, 3)`` (float32) and link outcomes
+    (calibrated against measured peaks in ``docs/reliability.md``)."""
+    run, n = scenario.run, scenario.world.team.robots
+    estimators = len(run.filters) + (1 if run.dead_reckoning else 0)
+    robots = run.trials * n
+    links = expected_links(scenario)
+    step = BYTES_PER_ROBOT_STEP * robots + BYTES_PER_LINK * links * run.trials
+    records = (run.steps + 1) * (8.0 * len(SERIES) * run.trials + (24 + 36) * n) + run.steps * (
+        n + links
+    )
+    kept = estimators * (BYTES_PER_ROBOT_KEPT * robots + records)
+    # Truth, trial-0 link columns, and the per-step Python objects (small arrays, lists).
+    shared = (run.steps + 1) * (24.0 * n + 13.0 * links + STEP_OBJECTS * (1 + estimators))
+    return RUN_MARGIN * (step + kept + shared) + RUN_OVERHEAD
+
+
+def check_run_size(scenario: Scenario) -> None:
+    """Refuse (one line, before allocating) a run that needs more memory than this machine
+    can give it. Raises :class:`~resloc.errors.ConfigError`."""
+    run, team = scenario.run, scenario.world.team
+    check_memory(
+        run_bytes(scenario),
+        f"run.trials x team.robots = {run.trials} x {team.robots} robots over {run.steps} steps",
+        "lower team.robots, run.trials or run.steps (or split the trials over several runs)",
+    )
 
 
 def run_scenario(
@@ -179,6 +273,7 @@ def run_scenario(
     progress: Callable[[int, int], None] | None = None,
     metric_stride: int = 1,
     params: CLParams | None = None,
+    first_trial: int = 0,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -196,6 +291,10 @@ def run_scenario(
     params : CLParams, optional
         Estimator parameters to use instead of ``scenario.cl_params()`` (e.g. per-robot
         detector thresholds ``(T * N,)`` to sweep a threshold over the trials of one run).
+    first_trial : int
+        Simulate trials ``first_trial .. first_trial + run.trials - 1`` of the seed (trial
+        ``t`` is identical whichever trials are batched with it), so the seeds of one
+        scenario can be split across tasks and re-run alone.
 
     Returns
     -------
@@ -209,18 +308,25 @@ def run_scenario(
         if seed is not None:
             changes["run.seed"] = int(seed)
         scenario = scenario.replace(**changes)
+    check_run_size(scenario)
     run = scenario.run
     distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
-    world = World(scenario.world, run.trials, run.seed, scenario.trigger.lambda2.graph_mode)
+    world = World(
+        scenario.world,
+        run.trials,
+        run.seed,
+        scenario.trigger.lambda2.graph_mode,
+        first_trial=first_trial,
+    )
     params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
-    hooks = _Hooks(scenario, params, world, distributed)
+    hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
     tracks = [
-        _Track(
+        EstimatorTrack(
             name,
             make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa),
             x0,
@@ -237,7 +343,7 @@ def run_scenario(
         fusion.init(tr.memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
-        dr = _Track(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+        dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
     truth = np.zeros((steps + 1, N, 3))
     truth[0] = world.pose[:N]
     team = world.team
@@ -260,37 +366,19 @@ def run_scenario(
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
         comm_edges = hooks.comm_edges(ws)
+        step_inputs = _StepInputs(params, fusion, hooks, world, scenario, lambda2, comm_edges, dt)
         for tr in tracks:
-            t0 = time.perf_counter()
-            xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-            Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
-            if scenario.trigger.risk_source is RiskSource.ESTIMATED:
-                risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
-                risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
-            else:
-                risk_s, risk_c = ws.risk_s, ws.risk_c
-            links = LinkBatch(
-                ws.i,
-                ws.j,
-                ws.z,
-                xp[ws.j],
-                Pp[ws.j],
-                ws.channel_ok,
-                risk_s,
-                risk_c,
-                lambda2,
-                **fusion.link_fields(tr.memory, ws.j),
-                **hooks.link_extras(ws),
-            )
-            tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-            fusion.exchange(tr.memory, *comm_edges)
-            tr.wall += time.perf_counter() - t0
-            _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record)
+            if tr.diverged is None:
+                _isolated_step(tr, k, ws, step_inputs, N)
+            if tr.diverged is not None:  # stopped: no link outcomes from here on
+                tr.link_flags.append(np.zeros(int(own.sum()), np.uint8))
+                continue
+            record_step(tr, fusion, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
         if dr is not None:
             t0 = time.perf_counter()
             dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
             dr.wall += time.perf_counter() - t0
-            _record(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
+            record_step(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
     shared = link_columns(trial0_links)
@@ -298,7 +386,15 @@ def run_scenario(
     for tr in [*tracks, *([dr] if dr is not None else [])]:
         log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
-            tr.name, tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov, log
+            tr.name,
+            tr.series,
+            tr.totals,
+            tr.raster,
+            tr.track,
+            tr.wall,
+            tr.cov,
+            log,
+            tr.diverged,
         )
     return RunResult(
         scenario,
@@ -308,6 +404,100 @@ def run_scenario(
         time.perf_counter() - t_start,
         {"robots": N, "trials": T, **hooks.meta()},
     )
+
+
+@dataclass
+class _StepInputs:
+    """What every estimator's step shares within one world step."""
+
+    params: CLParams
+    fusion: object
+    hooks: _Hooks
+    world: World
+    scenario: Scenario
+    lambda2: np.ndarray
+    comm_edges: tuple[np.ndarray, np.ndarray]
+    dt: float
+
+
+def _isolated_step(tr: EstimatorTrack, k: int, ws, inputs: _StepInputs, N: int) -> None:
+    """:func:`_step_estimator`, timed; a numerical failure or a non-finite estimate stops
+    this estimator (``tr.diverged``) instead of the run: the others' results must not be
+    lost to one filter's divergence."""
+    t0 = time.perf_counter()
+    tr.pending_P = None
+    try:
+        _step_estimator(tr, ws, inputs)
+    except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
+        last = tr.pending_P if tr.pending_P is not None else tr.P
+        tr.stop(k, inputs.dt, N, last, str(exc))
+        return
+    finally:
+        tr.wall += time.perf_counter() - t0
+    if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
+        tr.stop(k, inputs.dt, N, tr.P, "the estimate became NaN or infinite")
+
+
+def _step_estimator(tr: EstimatorTrack, ws, inputs: _StepInputs) -> None:
+    """One step (predict, links, correct, exchange) of one estimator; sets ``tr.x``,
+    ``tr.P``, ``tr.out`` (and ``tr.pending_P``, the predicted covariance, for divergence
+    reports)."""
+    params, fusion, world, dt = inputs.params, inputs.fusion, inputs.world, inputs.dt
+    xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
+    tr.pending_P = Pp
+    Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
+    if inputs.scenario.trigger.risk_source is RiskSource.ESTIMATED:
+        risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
+        risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
+    else:
+        risk_s, risk_c = ws.risk_s, ws.risk_c
+    links = LinkBatch(
+        ws.i,
+        ws.j,
+        ws.z,
+        xp[ws.j],
+        Pp[ws.j],
+        ws.channel_ok,
+        risk_s,
+        risk_c,
+        inputs.lambda2,
+        **fusion.link_fields(tr.memory, ws.j),
+        **inputs.hooks.link_extras(ws),
+    )
+    tr.x, tr.P, tr.out = correct(tr.filt, xp, Pp, links, params, tr.memory)
+    fusion.exchange(tr.memory, *inputs.comm_edges)
+
+
+def divergence(k: int, dt: float, N: int, P: np.ndarray, reason: str) -> dict:
+    """Describe a divergence at step index ``k``: when, and which robot.
+
+    The failing computation may be inside a link update, so the robot is the one whose
+    covariance among ``P`` (shape ``(T * N, 3, 3)``, the last one computed) is non-finite
+    or closest to singular (smallest eigenvalue relative to its trace).
+
+    Returns
+    -------
+    dict
+        ``step`` (1-based), ``time_s``, ``trial``, ``robot``, ``min_eigenvalue``, ``reason``.
+    """
+    P = np.asarray(P, dtype=float)
+    finite = np.all(np.isfinite(P), axis=(-1, -2))
+    score = np.full(len(P), -np.inf)
+    if finite.any():
+        Pf = symmetrize(P[finite])
+        eig = np.linalg.eigvalsh(Pf)[:, 0]
+        trace = np.maximum(np.trace(Pf, axis1=-2, axis2=-1), 1e-300)
+        score[finite] = eig / trace
+    b = int(np.argmin(score)) if len(P) else 0
+    min_eig = float(np.linalg.eigvalsh(symmetrize(P[b]))[0]) if finite[b] else float("nan")
+    return {
+        "step": k + 1,
+        "time_s": round((k + 1) * dt, 9),
+        "trial": b // N,
+        "robot": b % N,
+        "min_eigenvalue": min_eig,
+        "reason": reason.splitlines()[0] if reason else "",
+    }
 
 
 class _Hooks:
@@ -322,7 +512,14 @@ class _Hooks:
     The cl layer never imports the world: it only calls the hooks it is given.
     """
 
-    def __init__(self, scenario: Scenario, params: CLParams, world: World, distributed: bool):
+    def __init__(
+        self,
+        scenario: Scenario,
+        params: CLParams,
+        world: World,
+        distributed: bool,
+        first_trial: int = 0,
+    ):
         self.params = params
         self.world = world
         self.attack = scenario.world.attack
@@ -337,7 +534,7 @@ class _Hooks:
             y0 = np.concatenate(
                 [
                     np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
-                    for t in range(world.trials)
+                    for t in range(first_trial, first_trial + world.trials)
                 ]
             )
             self.dl2 = DistributedLambda2(
@@ -406,7 +603,7 @@ class _Hooks:
         }
 
 
-def _record(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
+def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
     s["candidates"][k] = candidates

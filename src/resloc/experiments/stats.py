@@ -12,6 +12,15 @@ the same truth, odometry, measurements, attacks and channel outcomes (common ran
 see :mod:`resloc.experiments.runner`), so a comparison of two filters is a *paired* one: the
 interval is computed on the per-seed differences, which removes the seed-to-seed variation
 both filters share.
+
+A claimed difference that the data show to be absent is established with an equivalence test
+(:func:`tost`, two one-sided tests): the difference lies within ``(low, high)`` at level
+``level`` when its ``1 - 2 (1 - level)`` interval (90% for 95%) lies inside the margins. An
+interval that merely contains 0 shows nothing (absence of evidence); an equivalence test has
+to be passed. Trends over a grid are checked step by step (:func:`monotone_steps`) and an
+interior minimum against both ends (:func:`interior_minimum`); both are intersection-union
+tests (every part must pass at ``level``, which keeps the whole at ``level`` with no
+correction).
 """
 
 from __future__ import annotations
@@ -24,16 +33,24 @@ import numpy as np
 from scipy import stats as _sps
 
 __all__ = [
+    "Equivalence",
     "Estimate",
+    "InteriorMinimum",
+    "Monotonicity",
     "Verdict",
     "combine_verdicts",
+    "interior_minimum",
     "mean_ci",
     "mean_ci_series",
+    "monotone_steps",
     "paired_difference",
+    "per_seed_slopes",
     "ratio",
     "slopes",
+    "tost",
     "verdict_above",
     "verdict_below",
+    "verdict_directional",
 ]
 
 #: Confidence level of every interval in the reports.
@@ -43,8 +60,13 @@ LEVEL = 0.95
 class Verdict(enum.StrEnum):
     """Outcome of checking one claim of the paper against the measurements."""
 
+    #: The interval lies on the claimed side (and the effect is not negligible).
     HOLDS = "holds"
+    #: The interval lies on the other side, beyond the equivalence margin.
     DOES_NOT_HOLD = "does not hold"
+    #: The claimed effect is absent: an equivalence test puts it within the margin.
+    NOT_REPRODUCED = "not reproduced"
+    #: The interval is too wide to decide either way.
     INCONCLUSIVE = "inconclusive"
 
 
@@ -189,8 +211,8 @@ def ratio(a, b, level: float = LEVEL) -> Estimate:
         return mean_ci(a / b, level)
 
 
-def slopes(x, y, level: float = LEVEL) -> Estimate:
-    """Least-squares slope of ``y`` against ``x`` fitted per seed, then averaged over seeds.
+def per_seed_slopes(x, y) -> np.ndarray:
+    """Least-squares slope of ``y`` against ``x`` fitted separately for every seed.
 
     Parameters
     ----------
@@ -202,9 +224,9 @@ def slopes(x, y, level: float = LEVEL) -> Estimate:
 
     Returns
     -------
-    Estimate
-        Of the per-seed slopes (units of ``y`` per unit of ``x``); seeds with a non-finite
-        value or no spread in ``x`` are left out.
+    ndarray, shape (n,)
+        Units of ``y`` per unit of ``x``; ``nan`` for a seed with a non-finite value or no
+        spread in ``x`` (so two sweeps over the same seeds stay paired).
     """
     y = np.asarray(y, dtype=float)
     if y.ndim != 2:
@@ -214,13 +236,20 @@ def slopes(x, y, level: float = LEVEL) -> Estimate:
         x = np.repeat(x[:, None], y.shape[1], axis=1)
     if x.shape != y.shape:
         raise ValueError(f"slopes: x has shape {x.shape}, y has shape {y.shape}")
+    out = np.full(y.shape[1], np.nan)
     ok = np.isfinite(y).all(axis=0) & np.isfinite(x).all(axis=0)
     xc = x[:, ok] - x[:, ok].mean(axis=0)
     yc = y[:, ok] - y[:, ok].mean(axis=0)
     denom = (xc**2).sum(axis=0)
-    good = denom > 0
-    per_seed = (xc[:, good] * yc[:, good]).sum(axis=0) / denom[good]
-    return mean_ci(per_seed, level)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fitted = np.where(denom > 0, (xc * yc).sum(axis=0) / denom, np.nan)
+    out[ok] = fitted
+    return out
+
+
+def slopes(x, y, level: float = LEVEL) -> Estimate:
+    """Mean and interval of :func:`per_seed_slopes` (seeds without a slope left out)."""
+    return mean_ci(per_seed_slopes(x, y), level)
 
 
 def verdict_below(est: Estimate, bound: float = 0.0) -> Verdict:
@@ -247,10 +276,199 @@ def verdict_above(est: Estimate, bound: float = 0.0) -> Verdict:
 
 
 def combine_verdicts(*verdicts: Verdict) -> Verdict:
-    """A claim made of several parts: holds when every part holds, does not hold when any part
-    does not hold, inconclusive otherwise."""
-    if any(v is Verdict.DOES_NOT_HOLD for v in verdicts):
-        return Verdict.DOES_NOT_HOLD
+    """A claim made of several parts that must all hold: *holds* when every part holds;
+    otherwise the most decisive failure: *does not hold* when any part does not hold, else
+    *not reproduced* when any part's effect is shown absent, else *inconclusive*."""
+    for outcome in (Verdict.DOES_NOT_HOLD, Verdict.NOT_REPRODUCED):
+        if any(v is outcome for v in verdicts):
+            return outcome
     if verdicts and all(v is Verdict.HOLDS for v in verdicts):
         return Verdict.HOLDS
     return Verdict.INCONCLUSIVE
+
+
+@dataclass(frozen=True)
+class Equivalence:
+    """Result of an equivalence test (TOST) of a mean against the margins ``(low, high)``.
+
+    Attributes
+    ----------
+    estimate : Estimate
+        The mean with its ``1 - 2 (1 - level)`` interval (90% for ``level = 0.95``): the
+        interval whose inclusion in ``(low, high)`` is the TOST decision.
+    low, high : float
+        The equivalence margins (``low < 0 < high`` for a difference).
+    p_value : float
+        The larger of the two one-sided p-values; equivalent when below ``1 - level``.
+    level : float
+    """
+
+    estimate: Estimate
+    low: float
+    high: float
+    p_value: float
+    level: float = LEVEL
+
+    @property
+    def equivalent(self) -> bool:
+        """True when both one-sided tests reject at ``1 - level``."""
+        return math.isfinite(self.p_value) and self.p_value < 1.0 - self.level
+
+    @property
+    def smallest_margin(self) -> float:
+        """The smallest symmetric margin ``m`` for which ``(-m, m)`` would show equivalence:
+        the largest absolute end of the TOST interval (``nan`` when undefined)."""
+        e = self.estimate
+        return max(abs(e.lo), abs(e.hi)) if e.defined else float("nan")
+
+    def to_dict(self) -> dict[str, float | bool]:
+        """Plain mapping for JSON."""
+        return {
+            "tost_interval": self.estimate.to_dict(),
+            "margin_low": self.low,
+            "margin_high": self.high,
+            "p_value": self.p_value,
+            "equivalent": self.equivalent,
+            "smallest_symmetric_margin": self.smallest_margin,
+        }
+
+
+def tost(samples, low: float, high: float, level: float = LEVEL) -> Equivalence:
+    """Two one-sided t-tests: is the mean of ``samples`` inside ``(low, high)``?
+
+    Parameters
+    ----------
+    samples : array-like, shape (n,)
+        One value per seed (for a paired comparison: the per-seed differences ``a - b``;
+        for a trend: the per-seed slopes). Non-finite entries are left out.
+    low, high : float
+        Equivalence margins, ``low < high``.
+    level : float
+        ``1 - level`` is the size of each one-sided test.
+
+    Returns
+    -------
+    Equivalence
+        ``p = max(P(T >= (mean - low) / se), P(T <= (mean - high) / se))`` with ``T`` Student-t
+        with ``n - 1`` degrees of freedom. Samples with no spread are equivalent exactly when
+        their mean lies strictly inside the margins.
+    """
+    if not low < high:
+        raise ValueError(f"tost: margins must satisfy low < high, got ({low}, {high})")
+    x = np.asarray(samples, dtype=float).ravel()
+    x = x[np.isfinite(x)]
+    inner = mean_ci(x, 2.0 * level - 1.0)
+    if x.size < 2:
+        return Equivalence(inner, low, high, float("nan"), level)
+    mean, se = float(x.mean()), float(x.std(ddof=1) / math.sqrt(x.size))
+    if se == 0.0:
+        p = 0.0 if low < mean < high else 1.0
+    else:
+        dof = x.size - 1
+        p_low = float(_sps.t.sf((mean - low) / se, dof))
+        p_high = float(_sps.t.cdf((mean - high) / se, dof))
+        p = max(p_low, p_high)
+    return Equivalence(inner, low, high, p, level)
+
+
+def verdict_directional(est: Estimate, equivalence: Equivalence, side: str) -> Verdict:
+    """Claim "the quantity is below 0" (``side = "below"``) or "above 0" (``"above"``),
+    with an equivalence test for "there is no such effect".
+
+    *not reproduced* when ``equivalence`` shows the quantity within its margins (the claimed
+    effect is absent, or too small to matter, even if its interval excludes 0); otherwise
+    :func:`verdict_below` / :func:`verdict_above` on ``est`` (*inconclusive* then means the
+    interval is too wide to decide either way).
+    """
+    if side not in ("below", "above"):
+        raise ValueError(f"side must be 'below' or 'above', got {side!r}")
+    if equivalence.equivalent:
+        return Verdict.NOT_REPRODUCED
+    return verdict_below(est) if side == "below" else verdict_above(est)
+
+
+@dataclass(frozen=True)
+class Monotonicity:
+    """Step-by-step trend over an ordered grid.
+
+    Attributes
+    ----------
+    steps : tuple of Estimate
+        Paired per-seed differences ``y[k + 1] - y[k]``, ``m - 1`` of them.
+    direction : int
+        ``+1`` when every step's interval lies above 0 (increasing over the whole grid),
+        ``-1`` when every one lies below 0, ``0`` otherwise (not shown monotone).
+    """
+
+    steps: tuple[Estimate, ...]
+    direction: int
+
+    @property
+    def significant_steps(self) -> int:
+        """How many steps have an interval that excludes 0."""
+        return sum(s.defined and (s.lo > 0 or s.hi < 0) for s in self.steps)
+
+
+def monotone_steps(y, level: float = LEVEL) -> Monotonicity:
+    """Whether ``y`` changes in one direction at every step of its grid.
+
+    Parameters
+    ----------
+    y : array-like, shape (m, n)
+        The measured value at each of ``m`` ordered grid points for each of ``n`` seeds.
+
+    Returns
+    -------
+    Monotonicity
+        An intersection-union test: monotone at ``level`` only when every step is.
+    """
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 2 or y.shape[0] < 2:
+        raise ValueError(f"monotone_steps: y must have shape (m >= 2, n), got {y.shape}")
+    steps = tuple(paired_difference(y[k + 1], y[k], level) for k in range(y.shape[0] - 1))
+    if all(s.defined and s.lo > 0 for s in steps):
+        direction = 1
+    elif all(s.defined and s.hi < 0 for s in steps):
+        direction = -1
+    else:
+        direction = 0
+    return Monotonicity(steps, direction)
+
+
+@dataclass(frozen=True)
+class InteriorMinimum:
+    """Whether the minimum over a grid lies strictly inside it.
+
+    Attributes
+    ----------
+    index : int
+        Grid index of the smallest mean.
+    to_first, to_last : Estimate
+        Paired per-seed differences ``y[index] - y[0]`` and ``y[index] - y[-1]``.
+    confirmed : bool
+        ``index`` is interior and both intervals lie below 0.
+    """
+
+    index: int
+    to_first: Estimate
+    to_last: Estimate
+    confirmed: bool
+
+
+def interior_minimum(y, level: float = LEVEL) -> InteriorMinimum:
+    """Locate the smallest mean of ``y`` over its grid and test it against both ends.
+
+    Parameters
+    ----------
+    y : array-like, shape (m, n)
+        ``m`` grid points, ``n`` seeds.
+    """
+    y = np.asarray(y, dtype=float)
+    if y.ndim != 2 or y.shape[0] < 3:
+        raise ValueError(f"interior_minimum: y must have shape (m >= 3, n), got {y.shape}")
+    means = np.array([mean_ci(row, level).mean for row in y])
+    k = int(np.nanargmin(means))
+    first = paired_difference(y[k], y[0], level)
+    last = paired_difference(y[k], y[-1], level)
+    ok = 0 < k < y.shape[0] - 1 and first.defined and last.defined
+    return InteriorMinimum(k, first, last, bool(ok and first.hi < 0 and last.hi < 0))

@@ -150,13 +150,18 @@ class Recording:
     def run_result(self, X: np.ndarray, P: np.ndarray):
         """The :class:`~resloc.experiments.runner.RunResult` of the steps so far, its
         metrics computed by the runner's own per-step bookkeeping."""
-        from resloc.experiments.runner import EstimatorResult, RunResult, _record, _Track
+        from resloc.experiments.runner import (
+            EstimatorResult,
+            EstimatorTrack,
+            RunResult,
+            record_step,
+        )
 
         K, N, name = self.steps_done, self.n, self.team.filter_name
         scenario = self.team.scenario.replace(
             **{"run.steps": max(K, 1), "run.filters": [name], "run.dead_reckoning": False}
         )
-        tr = _Track(name, None, self.x0, self.P0, K, 1, N)
+        tr = EstimatorTrack(name, None, self.x0, self.P0, K, 1, N)
         for k in range(1, K + 1):
             t = self.truth[k]
             i, j = t["i"], t["j"]
@@ -181,7 +186,7 @@ class Recording:
             tr.x, tr.P = X[k], P[k]
             ws = SimpleNamespace(pose=t["pose"], i=i, j=j, attacked=t["att"].astype(bool))
             attacked = np.array([ws.attacked.sum()])
-            _record(
+            record_step(
                 tr, None, k - 1, ws, out, np.zeros(E, np.int64), np.array([E]), attacked, 1, N, True
             )
         est = EstimatorResult(name, tr.series, tr.totals, tr.raster, tr.track)

@@ -4,9 +4,9 @@ The world process loads the dataset and cuts it into steps with the code of ``re
 (:func:`~resloc.datasets.mrclam.load_mrclam`, :func:`~resloc.experiments.mrclam.prepare_replay`)
 and publishes each step's odometry and robot-to-robot range/bearing sightings to the robot
 processes; the recorder scores the robots' reported estimates against the motion-capture
-ground truth with the same scoring and writer (``_score``, ``save_mrclam``). Landmark sightings
-are not replayed: they are absolute fixes, not robot-to-robot links (``resloc mrclam
---no-landmarks`` is the in-process equivalent).
+ground truth with the same scoring and writer (``score_estimate``, ``save_mrclam``).
+Landmark sightings are not replayed: they are absolute fixes, not robot-to-robot links
+(``resloc mrclam --no-landmarks`` is the in-process equivalent).
 """
 
 from __future__ import annotations
@@ -45,12 +45,12 @@ def replay_steps(options: SwarmOptions, team: TeamSetup) -> int:
 def replay_link_params(team: TeamSetup, z: np.ndarray) -> list[tuple[np.ndarray, object]]:
     """Rows of ``z: (E, 2)`` grouped by range-noise level with each level's parameters,
     as ``resloc mrclam`` fuses them (the range noise grows with the range)."""
-    from resloc.experiments.mrclam import _level_params, range_noise_level
+    from resloc.experiments.mrclam import level_params, range_noise_level
 
     level = range_noise_level(z[:, 0], team.mrclam)
     cache: dict = {}
     return [
-        (np.flatnonzero(level == lv), _level_params(cache, team.params, lv, team.mrclam))
+        (np.flatnonzero(level == lv), level_params(cache, team.params, lv, team.mrclam))
         for lv in np.unique(level)
     ]
 
@@ -114,7 +114,7 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
     """
     import dataclasses
 
-    from resloc.experiments.mrclam import MRCLAMResult, _score
+    from resloc.experiments.mrclam import MRCLAMResult, score_estimate
     from resloc.runtime.messages import (
         FLAG_DELIVERED,
         FLAG_DETECTED,
@@ -158,7 +158,7 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
             links["delivered"][mine] = (f & FLAG_DELIVERED) > 0
             links["fused"][mine] = (f & FLAG_FUSED) > 0
     name = team.filter_name
-    est = _score(name, rp, X, P, links, wall)
+    est = score_estimate(name, rp, X, P, links, wall)
     data = rp.dataset
     info = {
         "dataset": data.name,

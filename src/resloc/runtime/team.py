@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.params import CLParams, NeighbourEstimate
 from resloc.errors import ConfigError
 from resloc.experiments.config import RiskSource, Scenario, load_scenario
@@ -22,8 +22,18 @@ from resloc.world.attacks import AttackKind
 
 __all__ = ["TeamSetup", "check_supported", "team_setup"]
 
-#: Estimator options a robot process runs (RobotNode's fusion methods).
-NODE_FUSIONS = (FusionMethod.NAIVE, FusionMethod.GAUGE, FusionMethod.CI)
+#: End-of-step exchanges (``FusionStrategy.node_exchanges``) the runtime carries.
+RUNTIME_EXCHANGES = frozenset({"acks", "consensus"})
+
+
+def runtime_refusal(strategy: FusionStrategy) -> str | None:
+    """Why robot processes over the runtime do not run this fusion method, or None."""
+    if strategy.node_refusal is not None:
+        return strategy.node_refusal
+    missing = set(strategy.node_exchanges) - RUNTIME_EXCHANGES
+    if missing:
+        return f"its {', '.join(sorted(missing))} messages are not carried by the runtime yet"
+    return None
 
 
 @dataclass
@@ -70,7 +80,8 @@ class TeamSetup:
 
     @property
     def gauge(self) -> bool:
-        return self.params.fusion is FusionMethod.GAUGE
+        """The method exchanges gauge acknowledgements and consensus messages."""
+        return "consensus" in fusion_strategy(self.params.fusion).node_exchanges
 
     @property
     def pull(self) -> bool:
@@ -85,10 +96,11 @@ def check_supported(scenario: Scenario) -> None:
         raise ConfigError(
             f"run.trials: {scenario.run.trials}; a swarm is one team, set run.trials = 1"
         )
-    if scenario.estimator.fusion not in NODE_FUSIONS:
+    refusal = runtime_refusal(fusion_strategy(scenario.estimator.fusion))
+    if refusal is not None:
         raise ConfigError(
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
-            "processes; use naive, gauge or ci"
+            f"processes ({refusal}); use naive, gauge or ci"
         )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
@@ -134,7 +146,7 @@ def team_setup(options: SwarmOptions) -> TeamSetup:
     scenario = load_scenario(Path(options.scenario))
     check_supported(scenario)
     params = scenario.cl_params()
-    gauge = params.fusion is FusionMethod.GAUGE
+    gauge = "consensus" in fusion_strategy(params.fusion).node_exchanges
     return TeamSetup(
         robots=scenario.world.team.robots,
         dt=scenario.world.motion.dt,

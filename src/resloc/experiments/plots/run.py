@@ -77,7 +77,9 @@ def plot_trajectories(result, path: Path, estimator: str | None = None) -> Path:
     ax.set_ylim(lo[1], hi[1])
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"{result.scenario.run.name}: trajectories (trial 0)")
+    # A user's name is text, not mathtext: "$" would start a formula (and may not parse).
+    name = result.scenario.run.name.replace("$", r"\$")
+    ax.set_title(f"{name}: trajectories (trial 0)")
     ax.legend(loc="upper right", fontsize=8)
     return save(plt, fig, path)
 

@@ -9,12 +9,14 @@ Statistics: each experiment runs ``seeds`` Monte Carlo trials (batched in one ru
 per-seed scalar is summarized by its mean and 95% Student-t interval
 (:mod:`resloc.experiments.stats`). Within one seed all filters see identical data, so filter
 comparisons use paired per-seed differences. A claim *holds* when its interval lies entirely
-on the claimed side, *does not hold* when it lies entirely on the other side, and is
-*inconclusive* otherwise. Nothing is tuned to match the paper.
+on the claimed side, *does not hold* when it lies entirely on the other side, is *not
+reproduced* when an equivalence test (TOST) shows the claimed effect absent, and is
+*inconclusive* when the interval is too wide to decide. Nothing is tuned to match the paper.
 
 The package by job: :mod:`~resloc.experiments.reproduce.catalogue` (the experiments),
 :mod:`~resloc.experiments.reproduce.orchestration` (running and writing),
-:mod:`~resloc.experiments.reproduce.claims` (the claims checked) and
+:mod:`~resloc.experiments.reproduce.claims` (the claims checked),
+:mod:`~resloc.experiments.reproduce.evidence` (units and the tests that decide a claim) and
 :mod:`~resloc.experiments.reproduce.report` (the report). ``python -m
 resloc.experiments.reproduce --write-examples DIR`` rewrites ``examples/paper``.
 """

@@ -176,7 +176,8 @@ def experiments() -> list[Experiment]:
     base = default_scenario()
     rho0, alpha0, n0 = base.detector.rho, base.trigger.alpha, base.world.team.robots
     rhos = tuple(sorted({0.2, 0.3, 0.75, 1.0, 1.5, rho0}))
-    alphas = tuple(sorted({0.0, 0.2, 0.4, 0.8, 1.0, alpha0}))
+    # 0.1 resolves where the MSLE cost of the trigger starts ("costs little", alpha sweep).
+    alphas = tuple(sorted({0.0, 0.1, 0.2, 0.4, 0.8, 1.0, alpha0}))
     teams = tuple(sorted({5, 9, 12, 17, 25, 33, 40, n0}))
     return [
         Experiment(
@@ -215,6 +216,19 @@ def experiments() -> list[Experiment]:
             values=(0.2, 0.3, 0.4, 0.5),
             purpose="Radius of every SDZ and CDZ, the paper's values 0.2-0.5 (centres fixed). "
             "The sweep's transmissions_<k>.png are Fig. 5e-h.",
+        ),
+        Experiment(
+            "fig5a_zeta0",
+            "Fig. 5e-h (ablation)",
+            "CKF, zone radius, adaptive risk term off (zeta = 0)",
+            "fig5a_zone_radius_zeta0.toml",
+            (("trigger.zeta_s", 0.0), ("trigger.zeta_c", 0.0)),
+            filters=("ckf",),
+            parameter="zones.radius",
+            values=(0.2, 0.3, 0.4, 0.5),
+            purpose="Fig. 5a's radius sweep with the risk term of eq. (11) switched off "
+            "(zeta_s = zeta_c = 0): how much of the rise of the communication rate with the "
+            "radius remains without the paper's adaptive mechanism (same seeds, paired).",
         ),
         Experiment(
             "fig5b",

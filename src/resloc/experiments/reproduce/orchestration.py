@@ -13,6 +13,7 @@ from typing import Any
 
 from resloc import __version__
 from resloc.experiments.config import Scenario, dump_scenario
+from resloc.experiments.executor import Study
 from resloc.experiments.reproduce.catalogue import (
     FULL_SEEDS,
     QUICK_SEEDS,
@@ -87,8 +88,9 @@ def run_reproduction(
     seeds: int | None = None,
     steps: int | None = None,
     quick: bool = False,
-    jobs: int = 1,
+    jobs: int | None = 1,
     progress: Callable[[float, float], None] | None = None,
+    study: Study | None = None,
 ) -> Reproduction:
     """Run every experiment of :func:`experiments`.
 
@@ -99,9 +101,13 @@ def run_reproduction(
     steps : int, optional
         Steps per run (default: the scenario's, or :data:`QUICK_STEPS` with ``quick``).
     quick : bool
-    jobs : int
-        Worker processes.
+    jobs : int, optional
+        Worker processes when no ``study`` is given (``None``: the CPUs).
     progress : callable(done, total), optional
+        Over cells, when no ``study`` is given.
+    study : Study, optional
+        The study executor: backend (embedded or external Dask cluster), result store,
+        progress.
 
     Returns
     -------
@@ -118,7 +124,9 @@ def run_reproduction(
         sc = exp.scenarios(seeds, steps)
         slices[exp.key] = slice(len(scenarios), len(scenarios) + len(sc))
         scenarios += sc
-    runs = run_scenarios(scenarios, jobs=jobs, progress=progress)
+    study = study if study is not None else Study(jobs=jobs, progress=progress)
+    runs = run_scenarios(scenarios, study=study)
+    jobs = study.stats.workers
     wall = time.perf_counter() - t0
     results: dict[str, Any] = {}
     for exp in exps:

@@ -1,0 +1,120 @@
+"""Options and plumbing shared by the study commands (``reproduce``, ``compare``, ``sweep``):
+the executor (``--jobs``, ``--scheduler``), the result store (``--store``, ``--fresh``), the
+progress bar over cells, and the exits on interruption (130) and failed cells (1)."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import typer
+
+__all__ = [
+    "FRESH",
+    "JOBS",
+    "SCHEDULER",
+    "STORE",
+    "progress_bar",
+    "study_session",
+    "write_failures",
+]
+
+JOBS = typer.Option(
+    None,
+    "--jobs",
+    "-j",
+    min=1,
+    help="Worker processes of the embedded Dask cluster \\[default: the CPUs; 1: in this process].",
+)
+SCHEDULER = typer.Option(
+    None,
+    "--scheduler",
+    help="Run the cells on an existing Dask cluster: tcp://HOST:PORT of `dask scheduler`.",
+)
+STORE = typer.Option(
+    None,
+    "--store",
+    help="Result store: finished cells are kept here and never recomputed "
+    "\\[default: $RESLOC_STORE, else runs/.store].",
+)
+FRESH = typer.Option(
+    False, "--fresh", help="Ignore the result store's cells (recompute all, store them again)."
+)
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, enabled: bool) -> Iterator[Callable[[float, float], None]]:
+    """A rich progress bar on stderr; yields ``update(done, total)`` (a no-op when off)."""
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("cells"),
+        TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        transient=True,
+        disable=not enabled,
+    ) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: float, total: float) -> None:
+            bar.update(task, completed=done, total=max(total, 1))
+
+        yield update
+
+
+@contextlib.contextmanager
+def study_session(
+    description: str,
+    jobs: int | None,
+    scheduler: str | None,
+    store: Path | None,
+    fresh: bool,
+    progress: bool,
+):
+    """Yield a :class:`~resloc.experiments.executor.Study` with a progress bar; an
+    interruption prints where the finished cells are and exits 130."""
+    from resloc.experiments.executor import Study, StudyInterrupted
+    from resloc.experiments.store import ResultStore
+
+    result_store = ResultStore(store, read=not fresh)
+    with progress_bar(description, progress) as update:
+        study = Study(jobs=jobs, scheduler=scheduler, store=result_store, progress=update)
+        try:
+            yield study
+        except StudyInterrupted as exc:
+            print(str(exc), file=sys.stderr)
+            raise typer.Exit(130) from None
+    stats = study.stats
+    print(
+        f"cells: {stats.cells} ({stats.from_store} from the store {result_store.root}, "
+        f"{stats.computed} computed on {stats.workers} {stats.backend} worker(s)"
+        + (f", {stats.failed} failed" if stats.failed else "")
+        + ")",
+        file=sys.stderr,
+    )
+
+
+def write_failures(exc, out: Path, overwrite: bool) -> typer.Exit:
+    """Write ``failures.json`` (each failed cell's scenario, error and traceback) as the
+    only output, print the summary, and return exit 1."""
+    from resloc.experiments.output import atomic_output_dir, write_json
+
+    with atomic_output_dir(out, overwrite) as tmp:
+        write_json(tmp / "failures.json", [f.to_dict() for f in exc.failures])
+    print(f"error: {exc}; details (scenario, traceback): {out}/failures.json", file=sys.stderr)
+    return typer.Exit(1)
