@@ -75,6 +75,8 @@ def sample_bodies(rng: np.random.Generator) -> dict[Kind, dict]:
             "cnt": {},
         },
         Kind.CONTROL: {"cmd": "end", "arg": "complete", "n": 7},
+        Kind.REQUEST: {"round": 2, "to": np.arange(E)},
+        Kind.REPLY: {"round": 2, "to": np.arange(E), "x": rng.normal(size=3), "P": np.eye(3)},
     }
 
 
@@ -99,7 +101,7 @@ def test_every_kind_round_trips_exactly() -> None:
 def test_header_layout_is_the_documented_one() -> None:
     frame = Codec(KEY, 7).encode(Kind.ESTIMATE, 9, {"x": np.zeros(3), "P": np.eye(3)}, CH)
     magic, version, kind, sender, _, epoch, seq, ts, step = m.HEADER.unpack_from(frame)
-    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 1
+    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 2
     assert (kind, sender, seq, step) == (Kind.ESTIMATE, 7, 1, 9)
     assert abs(ts - time.time()) < 5 and epoch > 0
     assert len(frame) < 200  # compact: x, P and the header, tag
@@ -136,7 +138,7 @@ def test_schema_violations_are_malformed_even_when_signed() -> None:
     ver = Verifier(KEY)
 
     def signed(kind: int, fields: dict, seq: int) -> bytes:
-        head = m.HEADER.pack(b"RL", 1, kind, 2, 0, 1, seq, time.time(), 1)
+        head = m.HEADER.pack(b"RL", m.SCHEMA_VERSION, kind, 2, 0, 1, seq, time.time(), 1)
         payload = head + msgpack.packb(fields, use_bin_type=True)
         return payload + m._tag(KEY, CH, payload)
 

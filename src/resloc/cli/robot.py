@@ -21,6 +21,7 @@ def robot_command(
     max_age_steps: int,
     run_id: str,
     connect_timeout: float = 10.0,
+    reply_window: float = 0.4,
 ) -> int:
     """Run robot ``robot_id`` until the run ends; returns the exit code."""
     from resloc.cli.swarm import key_file_path, require_zenoh
@@ -48,6 +49,7 @@ def robot_command(
         jam_acks=jam_acks,
         max_age_steps=max_age_steps,
         connect_timeout_s=connect_timeout,
+        reply_window=reply_window,
     )
     load_or_create_key(options.key_file)
     install_signal_handlers(ignore_sigint=False)
@@ -74,6 +76,9 @@ def register(app: typer.Typer) -> None:
         filter: str = typer.Option("ckf", "--filter", "-f", help="ckf, ukf or ekf."),
         jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
         max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
+        reply_window: float = typer.Option(
+            0.4, "--reply-window", min=0.01, max=1.0, help="As the run's (fraction of dt)."
+        ),
         run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
         connect_timeout: float = typer.Option(
             10.0, "--connect-timeout", min=0.1, help="Seconds to wait for a link to the router."
@@ -92,6 +97,7 @@ def register(app: typer.Typer) -> None:
             max_age_steps,
             run_id,
             connect_timeout,
+            reply_window,
         )
         from resloc.runtime.process import exit_now
 

@@ -116,8 +116,8 @@ def print_swarm_summary(result) -> None:
             kind,
             _fmt(w["messages_per_robot_per_s"], ".1f"),
             _fmt(w["bytes_per_robot_per_s"], ".0f"),
-            str(w["copies_delivered"]),
-            str(w["copies_lost"]),
+            str(w.get("copies_delivered", "")),
+            str(w.get("copies_lost", "")),
         )
     trig = rt.get("trigger", {})
     wire.add_row(
@@ -151,6 +151,7 @@ def swarm_command(
     plots: bool,
     progress: bool,
     external: str = "",
+    reply_window: float = 0.4,
 ):
     """Parse, run :func:`~resloc.runtime.swarm.run_swarm`, print, map errors."""
     require_zenoh()
@@ -178,6 +179,7 @@ def swarm_command(
         mode=Mode(mode.value),
         jam_acks=jam_acks,
         max_age_steps=max_age_steps,
+        reply_window=reply_window,
         out=str(out),
         overwrite=overwrite,
         plots=plots,
@@ -280,6 +282,14 @@ def register(app: typer.Typer) -> None:
             min=0,
             help="Realtime: drop neighbour estimates older than this many steps.",
         ),
+        reply_window: float = typer.Option(
+            0.4,
+            "--reply-window",
+            min=0.01,
+            max=1.0,
+            help="Realtime, pulled estimates (neighbour_estimate = cached): skip a link whose "
+            "request is unanswered within this fraction of dt.",
+        ),
         run_id: str = typer.Option("team", "--run-id", help="Key-expression namespace."),
         replay: Path | None = typer.Option(
             None, "--replay", help="An MRCLAM dataset folder replaces the simulated world."
@@ -322,4 +332,5 @@ def register(app: typer.Typer) -> None:
             plots,
             progress and sys.stderr.isatty(),
             external,
+            reply_window,
         )

@@ -44,6 +44,10 @@ class SwarmOptions:
     windows : tuple of float
         Realtime: fractions of dt a robot waits for estimates, acknowledgements and each
         consensus round before going on with what arrived.
+    reply_window : float
+        Realtime, pulled estimates (``neighbour_estimate = "cached"``): a request unanswered
+        within this fraction of dt is counted (``requests_unanswered``) and its link skipped
+        (triggered, not delivered).
     barrier_timeout_s : float
         Lockstep: how long the world and radio wait for a silent (alive) robot before
         dropping it from the step.
@@ -80,6 +84,7 @@ class SwarmOptions:
     max_age_steps: int = 3
     max_age_s: float = 10.0
     windows: tuple = (0.4, 0.15, 0.1)
+    reply_window: float = 0.4
     barrier_timeout_s: float = 30.0
     startup_timeout_s: float = 120.0
     connect_timeout_s: float = 10.0

@@ -67,6 +67,12 @@ class StepChannel:
         elif msg.kind is Kind.ACK:
             want = sorted({int(d) for d in msg.body["to"]} & self.fed)
             got = [d for d in want if self.ok.get((d, s), False)] if jam_acks else want
+        elif msg.kind is Kind.REQUEST:  # i asks j on the link (i, j): that link's draw
+            want = sorted({int(d) for d in msg.body["to"]} & self.fed)
+            got = [d for d in want if self.ok.get((s, d), False)]
+        elif msg.kind is Kind.REPLY:  # j answers i on the same link, with the same draw
+            want = sorted({int(d) for d in msg.body["to"]} & self.fed)
+            got = [d for d in want if self.ok.get((d, s), False)]
         else:
             want = got = list(self.neighbours.get(s, ()))
         return got, len(want) - len(got)
@@ -82,6 +88,10 @@ class Radio:
         if self.team.gauge:
             phases += [(Kind.ACK, 0)] + [(Kind.CONSENSUS, r) for r in range(self.team.gauge_rounds)]
         self.phases = phases
+        # Pulled estimates (cached): per step, the robots still correcting and the round.
+        self.pull = self.team.pull
+        self.pull_state: dict[int, dict] = {}
+        self.sync = collections.Counter()
         self.channels: dict[int, StepChannel] = {}
         self.pending: dict[tuple[int, Kind, int], dict[int, Message]] = {}
         self.next_phase: dict[int, int] = {}
@@ -137,9 +147,14 @@ class Radio:
 
     def on_robot_message(self, msg: Message) -> None:
         k = msg.step
-        c = self.stats[k]
-        c[(msg.sender, int(msg.kind), "msgs")] += 1
-        c[(msg.sender, int(msg.kind), "bytes")] += len(msg.raw)
+        if msg.kind is Kind.REQUEST and not len(msg.body["to"]):
+            # lockstep's "this robot asks for nothing more": a barrier, not a radio message
+            self.sync["frames"] += 1
+            self.sync["bytes"] += len(msg.raw)
+        else:
+            c = self.stats[k]
+            c[(msg.sender, int(msg.kind), "msgs")] += 1
+            c[(msg.sender, int(msg.kind), "bytes")] += len(msg.raw)
         if self.realtime:
             if k in self.channels:
                 self.forward(msg)
@@ -148,7 +163,7 @@ class Radio:
             else:
                 self.dropped_unknown_step += 1
             return
-        rnd = int(msg.body["round"]) if msg.kind is Kind.CONSENSUS else 0
+        rnd = int(msg.body["round"]) if "round" in msg.body else 0
         self.pending.setdefault((k, msg.kind, rnd), {})[msg.sender] = msg
         self.try_deliver(k)
 
@@ -195,6 +210,9 @@ class Radio:
         ch = self.channels.get(k)
         if ch is None:
             return
+        if self.pull:
+            self.try_pull(k, ch)
+            return
         while self.next_phase.get(k, len(self.phases)) < len(self.phases):
             kind, rnd = self.phases[self.next_phase[k]]
             got = self.pending.get((k, kind, rnd), {})
@@ -213,6 +231,62 @@ class Radio:
                 self._deliver(r, k, int(kind), rnd, [m.raw for m in inbox[r]])
             self.pending.pop((k, kind, rnd), None)
             self.next_phase[k] += 1
+        self.flush_stats(k)
+        self.channels.pop(k, None)
+        self.next_phase.pop(k, None)
+
+    def try_pull(self, k: int, ch: StepChannel) -> None:
+        """Lockstep, pulled estimates: request rounds until every robot asks for nothing.
+
+        Round r: every robot still correcting sends its REQUEST (an empty one: it is done);
+        the radio delivers each request that got through to its target, waits for the
+        REPLY of every robot that received one, and delivers the replies to every requester
+        of the round (an empty delivery tells a requester that its requests were lost)."""
+        st = self.pull_state.setdefault(
+            k, {"active": set(ch.fed), "round": 0, "reply": False, "ask": set(), "answer": set()}
+        )
+        while True:
+            r = st["round"]
+            if not st["reply"]:
+                got = self.pending.get((k, Kind.REQUEST, r), {})
+                if not st["active"] & self.alive <= set(got):
+                    return
+                inbox: dict[int, list[Message]] = collections.defaultdict(list)
+                st["ask"] = set()
+                for s in sorted(got):
+                    msg = got[s]
+                    if not len(msg.body["to"]):
+                        st["active"].discard(s)
+                        continue
+                    st["ask"].add(s)
+                    to, lost = ch.route(msg, self.options.jam_acks)
+                    to = [t for t in to if t in self.alive]
+                    self._count(k, msg, to, lost)
+                    for t in to:
+                        inbox[t].append(msg)
+                self.pending.pop((k, Kind.REQUEST, r), None)
+                st["active"] &= self.alive
+                if not st["ask"]:
+                    break  # nobody asks for anything: the step's correction is over
+                for t in sorted(inbox):
+                    self._deliver(t, k, int(Kind.REQUEST), r, [m.raw for m in inbox[t]])
+                st["answer"], st["reply"] = set(inbox), True
+            got = self.pending.get((k, Kind.REPLY, r), {})
+            if not st["answer"] & self.alive <= set(got):
+                return
+            replies: dict[int, list[Message]] = {q: [] for q in st["ask"] & self.alive}
+            for s in sorted(got):
+                msg = got[s]
+                to, lost = ch.route(msg, self.options.jam_acks)
+                to = [q for q in to if q in replies]
+                self._count(k, msg, to, lost)
+                for q in to:
+                    replies[q].append(msg)
+            for q in sorted(replies):
+                self._deliver(q, k, int(Kind.REPLY), r, [m.raw for m in replies[q]])
+            self.pending.pop((k, Kind.REPLY, r), None)
+            st["round"], st["reply"] = r + 1, False
+        self.pull_state.pop(k, None)
         self.flush_stats(k)
         self.channels.pop(k, None)
         self.next_phase.pop(k, None)
@@ -240,6 +314,8 @@ class Radio:
                 "cnt": self.bus.verifier.counts()
                 | {
                     "unknown_step": self.dropped_unknown_step,
+                    "sync_frames": self.sync["frames"],
+                    "sync_bytes": self.sync["bytes"],
                     "cpu_ms": int(1000 * time.process_time()),
                 },
             },

@@ -51,6 +51,8 @@ KIND_NAMES = {
     int(Kind.ESTIMATE): "estimate",
     int(Kind.ACK): "ack",
     int(Kind.CONSENSUS): "consensus",
+    int(Kind.REQUEST): "request",
+    int(Kind.REPLY): "reply",
 }
 
 
@@ -226,6 +228,10 @@ class Recording:
                 "copies_delivered": sum(self.wire[(r, kd, "copies")] for r in range(N)),
                 "copies_lost": sum(self.wire[(r, kd, "lost")] for r in range(N)),
             }
+        by_kind["total"] = {
+            f: sum(v[f] for v in by_kind.values())
+            for f in ("messages_per_robot_per_s", "bytes_per_robot_per_s", "messages", "bytes")
+        }
         candidates, triggered = self.trigger_counts()
         err = np.hypot(*(X[:, :, :2] - truth[:, :, :2]).transpose(2, 0, 1))
         rejoin = []
@@ -262,6 +268,7 @@ class Recording:
             "robots": N,
             "dt_s": dt,
             "jam_acks": self.options.jam_acks,
+            "estimates": "pulled on trigger" if self.team.pull else "broadcast every step",
             "max_age_steps": self.options.max_age_steps,
             "wall_time_per_step_s": {
                 "mean": float(np.mean(walls)) if walls else None,

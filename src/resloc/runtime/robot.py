@@ -32,27 +32,19 @@ import time
 import numpy as np
 
 from resloc.cl.node import RobotNode
-from resloc.runtime.messages import (
-    FLAG_DELIVERED,
-    FLAG_DETECTED,
-    FLAG_FUSED,
-    FLAG_HEARD,
-    FLAG_REPAIRED,
-    FLAG_TRIGGERED,
-    Kind,
-    Message,
-    Verifier,
-)
+from resloc.runtime.messages import FLAG_HEARD, Kind, Message, Verifier
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
+from resloc.runtime.pull_agent import PullingRobot
 from resloc.runtime.radio import NEIGHBOURS_PHASE
+from resloc.runtime.schema import link_flags
 from resloc.runtime.team import TeamSetup, team_setup
 from resloc.runtime.transport import Bus
 
 __all__ = ["RobotAgent", "run_robots"]
 
 
-class RobotAgent:
+class RobotAgent(PullingRobot):
     """One robot's side of the protocol around its :class:`RobotNode`."""
 
     def __init__(self, rid: int, team: TeamSetup, options: SwarmOptions, bus: Bus, key: bytes):
@@ -77,6 +69,16 @@ class RobotAgent:
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
         self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
         self.cpu0 = 0.0
+        # Pulled estimates (neighbour_estimate = "cached"): this robot's predicted estimate
+        # per recent step (what it replies with), requests it cannot answer yet, and its own
+        # correction's request rounds.
+        self.snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.deferred: list[Message] = []
+        self.pulling = None
+        self.pull_round = -1
+        self.asked: list[int] = []
+        self.replies: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.unsent = 0  # requests an overrun never sent
 
     # ------------------------------------------------------------------ start
     def on_start(self, msg: Message) -> None:
@@ -154,6 +156,9 @@ class RobotAgent:
         self.consensus.clear()
         self.node.predict(b["u"], self.team.dt)
         x, P = self.node.estimate
+        if self.team.pull:
+            self.start_pull(x, P)
+            return
         self.send(Kind.ESTIMATE, {"x": x, "P": P})
         self.wait(Kind.ESTIMATE, 0)
 
@@ -162,7 +167,9 @@ class RobotAgent:
         if self.realtime:
             windows = self.options.windows
             frac = (
-                windows[0]
+                self.options.reply_window
+                if kind is Kind.REPLY
+                else windows[0]
                 if kind is Kind.ESTIMATE
                 else windows[1]
                 if kind is Kind.ACK
@@ -180,12 +187,24 @@ class RobotAgent:
             self.tables[msg.step] = [int(v) for v in body["nb"]]
             for old in [k for k in self.tables if k < msg.step - 2]:
                 del self.tables[old]
+        requests = []
         for frame in body["msgs"]:
             inner = self.inner.open(frame, self.bus.key("radio", "in"))
             if inner is None or inner.sender >= self.team.robots or inner.sender == self.id:
                 self.counts["rejected_inner"] += 1
                 continue
+            # how long robot-to-robot frames take to arrive (sender's clock to this one's)
+            self.counts[f"age_ms_sum_{inner.kind.name.lower()}"] += int(
+                1000 * (time.time() - inner.timestamp)
+            )
+            self.counts[f"age_n_{inner.kind.name.lower()}"] += 1
+            if inner.kind is Kind.REQUEST:
+                if self.id in inner.body["to"] and self.node is not None:
+                    requests.append(inner)
+                continue
             self.take(inner)
+        if requests:
+            self.answer(requests)
         if not self.realtime and self.phase == (body["phase"], body["round"]):
             if msg.step == self.step:
                 self.advance()
@@ -193,7 +212,19 @@ class RobotAgent:
             self.advance()
 
     def take(self, m: Message) -> None:
-        if m.kind is Kind.ESTIMATE:
+        if m.kind is Kind.REPLY:
+            if self.id not in m.body["to"]:
+                return
+            if (
+                self.phase != (Kind.REPLY, int(m.body["round"]))
+                or m.step != self.step
+                or m.sender not in self.asked
+            ):
+                self.counts["replies_late"] += 1  # the round closed without it: not fused
+                self.cache_late_reply(m)
+                return
+            self.replies[m.sender] = (m.body["x"], m.body["P"])
+        elif m.kind is Kind.ESTIMATE:
             hist = self.estimates.setdefault(m.sender, {})
             hist[m.step] = (m.body["x"], m.body["P"])
             keep = m.step - self.options.max_age_steps - 2
@@ -229,6 +260,8 @@ class RobotAgent:
         """Realtime: everything this phase can expect has arrived (go on before the window
         closes)."""
         kind, _ = self.phase
+        if kind is Kind.REPLY:
+            return set(self.asked) <= set(self.replies)
         if kind is Kind.ESTIMATE:
             need = {int(j) for j in self.sensors["j"]}
             return all(self.step in self.estimates.get(j, {}) for j in need)
@@ -242,7 +275,10 @@ class RobotAgent:
 
     def advance(self) -> None:
         kind, rnd = self.phase
-        if kind is Kind.ESTIMATE:
+        if kind is Kind.REPLY:
+            self.phase = None
+            self.pull_next(self.replies)
+        elif kind is Kind.ESTIMATE:
             self.correct()
             if not self.team.gauge:
                 self.phase = None
@@ -327,14 +363,7 @@ class RobotAgent:
                 s["rc"],
                 s["l2"],
             )
-            for bit, arr in (
-                (FLAG_DETECTED, out.detected),
-                (FLAG_TRIGGERED, out.triggered),
-                (FLAG_DELIVERED, out.delivered),
-                (FLAG_FUSED, out.fused),
-                (FLAG_REPAIRED, out.repaired),
-            ):
-                flags[h] |= np.where(arr, bit, 0).astype(np.uint8)
+            flags[h] |= link_flags(out)
             norm[h] = out.norm
             repairs += int(out.repairs)
         self.node.params = self.team.params
@@ -342,6 +371,8 @@ class RobotAgent:
 
     def finish_step(self) -> None:
         """Report the step (realtime overrun: first close what is still open)."""
+        if self.pulling is not None:
+            self.pull_abandon()
         if self.phase is not None:
             kind, _ = self.phase
             if kind is Kind.ESTIMATE:

@@ -1,6 +1,6 @@
 """The bodies of the wire format: each message kind's fields, their types and shapes.
 
-``FIELDS[kind]`` is the schema of one kind (version 1, ``docs/runtime.md``); arrays travel as
+``FIELDS[kind]`` is the schema of one kind (version 2, ``docs/runtime.md``); arrays travel as
 raw little-endian bytes whose dtype and shape the schema fixes, so a decoder never trusts a
 shape from the wire. :func:`decode_body` validates everything and raises
 :class:`MalformedBodyError` naming the field.
@@ -29,11 +29,13 @@ __all__ = [
     "MalformedBodyError",
     "decode_body",
     "encode_body",
+    "link_flags",
 ]
 
 
 class Kind(enum.IntEnum):
-    """Message kinds. Robot-to-robot kinds (through the radio): ESTIMATE, ACK, CONSENSUS."""
+    """Message kinds. Robot-to-robot kinds (through the radio): ESTIMATE, ACK, CONSENSUS,
+    REQUEST, REPLY."""
 
     SENSORS = 1  # world -> robot: odometry and range/bearing measurements of one step
     CHANNEL = 2  # world -> radio: this step's links and their channel outcomes
@@ -46,10 +48,12 @@ class Kind(enum.IntEnum):
     REPORT = 9  # robot -> world, recorder: corrected estimate and link decisions
     STATS = 10  # radio -> recorder: messages and bytes on the wire this step
     CONTROL = 11  # anyone -> anyone: ready / join / end / stop / progress / written
+    REQUEST = 12  # robot -> radio -> robots: "send me your estimate" (cached: pull protocol)
+    REPLY = 13  # robot -> radio -> requesters: predicted estimate (x, P), on request
 
 
 #: Kinds a robot sends to robots (what the radio model applies to).
-ROBOT_TO_ROBOT = (Kind.ESTIMATE, Kind.ACK, Kind.CONSENSUS)
+ROBOT_TO_ROBOT = (Kind.ESTIMATE, Kind.ACK, Kind.CONSENSUS, Kind.REQUEST, Kind.REPLY)
 
 
 # ---------------------------------------------------------------- schema of the bodies
@@ -125,6 +129,13 @@ FIELDS: dict[Kind, dict[str, Any]] = {
         "cnt": COUNTS,
     },
     Kind.CONTROL: {"cmd": STR, "arg": STR, "n": INT},
+    Kind.REQUEST: {"round": INT, "to": Array(I8, (-1,))},
+    Kind.REPLY: {
+        "round": INT,
+        "to": Array(I8, (-1,)),
+        "x": Array(F8, (3,)),
+        "P": Array(F8, (3, 3)),
+    },
 }
 
 #: Groups of fields whose leading dimension must be equal.
@@ -141,6 +152,22 @@ _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
 FLAG_DETECTED, FLAG_TRIGGERED, FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD = 1, 2, 4, 8, 16
 #: The observer's covariance was projected back to positive definite after this link.
 FLAG_REPAIRED = 32
+
+
+def link_flags(outcome) -> np.ndarray:
+    """``REPORT.flags`` bits of a :class:`~resloc.cl.links.LinkOutcome`, shape (E,) uint8
+    (without ``FLAG_HEARD``, which the robot sets for every link it evaluated)."""
+    flags = np.zeros(len(outcome.detected), dtype=np.uint8)
+    for bit, arr in (
+        (FLAG_DETECTED, outcome.detected),
+        (FLAG_TRIGGERED, outcome.triggered),
+        (FLAG_DELIVERED, outcome.delivered),
+        (FLAG_FUSED, outcome.fused),
+        (FLAG_REPAIRED, outcome.repaired),
+    ):
+        flags |= np.where(arr, bit, 0).astype(np.uint8)
+    return flags
+
 
 _NON_FINITE_OK = {(Kind.REPORT, "norm")}  # a discarded link's threshold norm may be nan
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
-from resloc.cl.params import CLParams
+from resloc.cl.params import CLParams, NeighbourEstimate
 from resloc.errors import ConfigError
 from resloc.experiments.config import RiskSource, Scenario, load_scenario
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
@@ -82,6 +82,12 @@ class TeamSetup:
     def gauge(self) -> bool:
         """The method exchanges gauge acknowledgements and consensus messages."""
         return "consensus" in fusion_strategy(self.params.fusion).node_exchanges
+
+    @property
+    def pull(self) -> bool:
+        """Estimates are pulled on trigger (``neighbour_estimate = "cached"``), not broadcast
+        every step (``"current"``: the trigger needs j's current estimate)."""
+        return self.params.neighbour_estimate is NeighbourEstimate.CACHED
 
 
 def check_supported(scenario: Scenario) -> None:
