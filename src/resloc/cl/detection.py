@@ -104,7 +104,7 @@ class NISCusum:
     """Per-link CUSUM of the NIS (:func:`~resloc.cl.cusum.link_cusum`)."""
 
     name: ClassVar[str] = "cusum"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
 
     def active(self, params: CLParams) -> bool:
         return bool(params.cusum)
@@ -128,7 +128,7 @@ class MeanShiftCusum:
     """Signed CUSUMs of the whitened innovation (:func:`~resloc.cl.cusum.link_mean_cusum`)."""
 
     name: ClassVar[str] = "mean_cusum"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
 
     def active(self, params: CLParams) -> bool:
         return bool(params.mean_cusum)

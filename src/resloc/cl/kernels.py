@@ -14,6 +14,8 @@ kernel function               paper                   numpy twin
 :func:`_linearized_moments`   eq. (3), linearized     ``ExtendedFilter.relative_moments``
 :func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
 :func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
+:func:`_gate_link`            Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
+``_detect_link`` (CUSUMs)     beyond the paper        :func:`resloc.cl.detection.detect`
 :func:`_decide_link`          Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
 :func:`_schur_update`         Algorithm 1             :func:`resloc.filters.update.kalman_update`
@@ -22,17 +24,22 @@ kernel function               paper                   numpy twin
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
-:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`, :class:`KernelOutputs`).
+:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`,
+:class:`~resloc.cl.kernels_detection.KernelDetection`, :class:`KernelOutputs`). The detector
+stages that keep per-link state (the CUSUMs) are in :mod:`resloc.cl.kernels_detection`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import weakref
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
@@ -42,7 +49,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
-from resloc.cl.detector import InnovationNorm
+from resloc.cl.kernels_detection import NORM_CODE, _detect_link, detector_state
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
@@ -76,8 +83,6 @@ __all__ = [
     "warm_up",
 ]
 
-#: Innovation-norm codes shared with the kernel.
-NORM_CODE = {InnovationNorm.EUCLIDEAN: 0, InnovationNorm.SCALED: 1, InnovationNorm.NIS: 2}
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 #: Kernel status codes.
@@ -222,6 +227,9 @@ def fast_correct(
         return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
+    detection = detector_state(params, memory, li, lj)
+    if detection is None:
+        return None  # the reference path raises the explanatory error
     last = np.zeros(E if last_sent else 0)
     if last_sent and len(memory):
         known, pos = memory.lookup(li, lj)
@@ -238,7 +246,10 @@ def fast_correct(
     x_out = np.array(x, dtype=float, order="C", copy=True)
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    if _correct_links(x_out, P_out, kernel_links, robots, spec, options, out) != OK:
+    detect = detection.kernel
+    status = _correct_links(x_out, P_out, kernel_links, robots, spec, options, detect, out)
+    if status != OK:
+        detection.undo()
         return None
     detected, triggered, delivered, fused, repaired = out.flags
     if last_sent and delivered.any():
@@ -494,14 +505,19 @@ def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c
 
 
 @_jit_inline
-def _decide_link(n_det, detector, rho, n_trig, delta, trigger, channel_ok):
-    """Detector (Algorithm 1: discard when the norm exceeds ``rho``), event condition
-    (eq. 10) and channel (eq. 8) of one link: ``(detected, triggered, delivered)``.
-    Twin: ``resloc.cl.step._decide`` (the gate stage of :mod:`resloc.cl.detection`)."""
-    detected = detector and n_det > rho
+def _gate_link(n_det, detector, rho):
+    """Attack detection of Algorithm 1: discard when the detector norm exceeds ``rho``.
+    Twin: :func:`resloc.cl.detector.attack_detected` (the ``gate`` stage)."""
+    return detector and n_det > rho
+
+
+@_jit_inline
+def _decide_link(detected, n_trig, delta, trigger, channel_ok):
+    """Event condition (eq. 10) and channel (eq. 8) of one link the detector judged:
+    ``(triggered, delivered)``. Twin: ``resloc.cl.step._decide``."""
     fire = (n_trig > delta) if trigger else True
     triggered = (not detected) and fire
-    return detected, triggered, triggered and channel_ok
+    return triggered, triggered and channel_ok
 
 
 @_jit_inline
@@ -516,7 +532,7 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, out):
+def _correct_links(x, P, links, robots, filt, options, detection, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -666,9 +682,9 @@ def _correct_links(x, P, links, robots, filt, options, out):
             a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
             zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
         )  # fmt: skip
-        detected, triggered, delivered = _decide_link(
-            n_det, detector, rho_i, n_trig, delta, trigger, channel_ok[e]
-        )
+        gated = _gate_link(n_det, detector, rho_i)
+        detected = _detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
+        triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
         out_norm[e] = n_trig
         out_threshold[e] = math.nan if detected else delta
         flags[0, e] = detected
@@ -716,3 +732,20 @@ def _correct_links(x, P, links, robots, filt, options, out):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
     return OK
+
+
+def _stamp_with_pieces(dispatcher, *modules) -> None:
+    """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
+    changes: numba stamps a cached kernel with its own source file only, so an edited
+    :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if cache_file is None or not hasattr(cache_file, "_source_stamp"):
+        return  # numba absent, or a numba whose cache we do not know: nothing to extend
+    digest = hashlib.sha256()
+    for module in modules:
+        digest.update(Path(module.__file__).read_bytes())
+    cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
+
+
+_stamp_with_pieces(_correct_links, _kernels_detection)
