@@ -34,12 +34,14 @@ from __future__ import annotations
 import hashlib
 import math
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
@@ -49,11 +51,19 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_detection import NORM_CODE, _detect_link, detector_state
+from resloc.cl.kernels_gauge import (
+    _gauge_record,
+    _range_bearing_jacobians,
+    gauge_commit,
+    gauge_state,
+    no_gauge,
+)
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
-from resloc.models.measurement import MIN_RANGE
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -134,6 +144,40 @@ class KernelOutputs(NamedTuple):
     norm: np.ndarray  # (E,)
     threshold: np.ndarray  # (E,)
     flags: np.ndarray  # (5, E) bool: detected, triggered, delivered, fused, repaired
+
+
+class CompiledBookkeeping(NamedTuple):
+    """What a fusion method with a compiled twin records beside the kernel's update.
+
+    Attributes
+    ----------
+    state : callable ``(memory, E) -> KernelGauge or None``
+        (:class:`~resloc.cl.kernels_gauge.KernelGauge`)
+        The kernel's working arrays for ``E`` links (None: the kernel cannot run it).
+    commit : callable ``(memory, state, i, j, fused) -> None``
+        Hands the kernel's records to the method's state in ``memory``.
+    """
+
+    state: Callable
+    commit: Callable
+
+
+def _nothing_to_commit(memory, state, i, j, fused) -> None:
+    del memory, state, i, j, fused
+
+
+def _gauge_commit(memory, state, i, j, fused) -> None:
+    gauge_commit(memory.joint, state, i, j, fused)
+
+
+#: Per fusion method with ``compiled = True``: its bookkeeping in the compiled path.
+COMPILED_BOOKKEEPING: dict[FusionMethod, CompiledBookkeeping] = {
+    FusionMethod.NAIVE: CompiledBookkeeping(lambda memory, E: no_gauge(E), _nothing_to_commit),
+    FusionMethod.GAUGE: CompiledBookkeeping(
+        lambda memory, E: None if memory is None else gauge_state(memory.joint, E),
+        _gauge_commit,
+    ),
+}
 
 
 def _per_robot(v) -> np.ndarray:
@@ -227,6 +271,13 @@ def fast_correct(
         return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
+    strategy = fusion_strategy(params.fusion)
+    if strategy.problem(params) is not None:
+        return None  # the reference path raises the explanatory error
+    bookkeeping = COMPILED_BOOKKEEPING[strategy.method]
+    gauge = bookkeeping.state(memory, E)
+    if gauge is None:
+        return None  # the reference path raises the explanatory error, or records exactly
     detection = detector_state(params, memory, li, lj)
     if detection is None:
         return None  # the reference path raises the explanatory error
@@ -247,11 +298,13 @@ def fast_correct(
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
-    status = _correct_links(x_out, P_out, kernel_links, robots, spec, options, detect, out)
+    status = _correct_links(x_out, P_out, kernel_links, robots, spec, options, detect, gauge, out)
     if status != OK:
         detection.undo()
         return None
     detected, triggered, delivered, fused, repaired = out.flags
+    bookkeeping.commit(memory, gauge, li, lj, fused)
+    P_out = strategy.finish(memory, P_out, lj, delivered)
     if last_sent and delivered.any():
         d = np.flatnonzero(delivered)
         memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
@@ -289,7 +342,6 @@ def warm_up() -> bool:
 # ---------------------------------------------------------------------------------------
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
-_MIN_R2 = MIN_RANGE**2
 
 
 @_jit
@@ -454,20 +506,7 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     """
     dx = xj0 - xi0
     dy = xj1 - xi1
-    q = dx * dx + dy * dy
-    if q < _MIN_R2:
-        q = _MIN_R2
-    r = math.sqrt(q)
-    Hj[0, 0] = dx / r
-    Hj[0, 1] = dy / r
-    Hj[0, 2] = 0.0
-    Hj[1, 0] = -dy / q
-    Hj[1, 1] = dx / q
-    Hj[1, 2] = 0.0
-    for a in range(2):
-        for b in range(3):
-            Hi[a, b] = -Hj[a, b]
-    Hi[1, 2] = -1.0
+    _range_bearing_jacobians(xi0, xi1, xj0, xj1, Hi, Hj)
     zh0 = math.hypot(dx, dy)
     zh1 = _wrap(math.atan2(dy, dx) - xi2)
     # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
@@ -532,7 +571,7 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, detection, out):
+def _correct_links(x, P, links, robots, filt, options, detection, gauge, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -560,10 +599,16 @@ def _correct_links(x, P, links, robots, filt, options, detection, out):
     Pn = np.zeros((3, 3))
     T3 = np.zeros((3, 3))
     A3 = np.zeros((3, 3))
+    G3 = np.zeros((3, 3))
     std0 = noise_std[0]
     std1 = noise_std[1]
+    record_gauge = gauge[0]
+    fused = flags[3]
+    first = 0  # robot i's first row
     for e in range(li.shape[0]):
         i = li[e]
+        if e > 0 and li[e - 1] != i:
+            first = e
         Pi = P[i]
         Pj = P_nb[e]
         xi0 = x[i, 0]
@@ -731,6 +776,8 @@ def _correct_links(x, P, links, robots, filt, options, detection, out):
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
+        if record_gauge:
+            _gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK
 
 
@@ -748,4 +795,4 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
     cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
 
 
-_stamp_with_pieces(_correct_links, _kernels_detection)
+_stamp_with_pieces(_correct_links, _kernels_detection, _kernels_gauge)
