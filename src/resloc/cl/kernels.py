@@ -42,6 +42,7 @@ import numpy as np
 
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
@@ -61,6 +62,7 @@ from resloc.cl.kernels_gauge import (
     gauge_state,
     no_gauge,
 )
+from resloc.cl.kernels_tamper import _stealthy_measurement, no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
@@ -285,9 +287,15 @@ def fast_correct(
     if last_sent and len(memory):
         known, pos = memory.lookup(li, lj)
         last = np.where(known, memory.last_norm[pos], 0.0)
+    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
+    z = links.z
+    if tamper.on:  # the attacker's honest measurements and observers must be this batch's
+        if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
+            return None
+        z = tamper.z
     kernel_links = KernelLinks(
         li,
-        _contiguous(links.z),
+        _contiguous(z),
         _contiguous(links.x_nb),
         _contiguous(links.P_nb),
         _contiguous(links.channel_ok, np.bool_),
@@ -298,7 +306,9 @@ def fast_correct(
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
-    status = _correct_links(x_out, P_out, kernel_links, robots, spec, options, detect, gauge, out)
+    status = _correct_links(
+        x_out, P_out, kernel_links, robots, spec, options, detect, gauge, tamper, out
+    )
     if status != OK:
         detection.undo()
         return None
@@ -571,7 +581,7 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, detection, gauge, out):
+def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -603,6 +613,8 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, out):
     std0 = noise_std[0]
     std1 = noise_std[1]
     record_gauge = gauge[0]
+    tampered = tamper[0]
+    attacked = tamper[3]
     fused = flags[3]
     first = 0  # robot i's first row
     for e in range(li.shape[0]):
@@ -713,6 +725,10 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, out):
         l00, l10, l11 = _chol2(S00, S01, S11, jitter)
         if l00 == 0.0:
             return NOT_PD
+        if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
+            zt0, zt1 = _stealthy_measurement(tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11)
+            nu0 = zt0 - zh0
+            nu1 = _wrap(_wrap(zt1) - zh1)
         n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
         if det_norm == trig_norm:
             n_det = n_trig
@@ -795,4 +811,4 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
     cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
 
 
-_stamp_with_pieces(_correct_links, _kernels_detection, _kernels_gauge)
+_stamp_with_pieces(_correct_links, _kernels_detection, _kernels_gauge, _kernels_tamper)
