@@ -15,7 +15,7 @@ kernel function               paper                   numpy twin
 :func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
 :func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
 :func:`_gate_link`            Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
-``_detect_link`` (CUSUMs)     beyond the paper        :func:`resloc.cl.detection.detect`
+``detect_link`` (CUSUMs)     beyond the paper        :func:`resloc.cl.detection.detect`
 :func:`_decide_link`          Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
 :func:`_schur_update`         Algorithm 1             :func:`resloc.filters.update.kalman_update`
@@ -54,15 +54,15 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
 )
 from resloc.cl.fusion import FusionMethod
 from resloc.cl.fusion_methods import fusion_strategy
-from resloc.cl.kernels_detection import NORM_CODE, _detect_link, detector_state
+from resloc.cl.kernels_detection import NORM_CODE, detect_link, detector_state
 from resloc.cl.kernels_gauge import (
-    _gauge_record,
-    _range_bearing_jacobians,
     gauge_commit,
+    gauge_record,
     gauge_state,
     no_gauge,
+    range_bearing_jacobians_into,
 )
-from resloc.cl.kernels_tamper import _stealthy_measurement, no_tamper
+from resloc.cl.kernels_tamper import no_tamper, stealthy_measurement
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
@@ -516,7 +516,7 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     """
     dx = xj0 - xi0
     dy = xj1 - xi1
-    _range_bearing_jacobians(xi0, xi1, xj0, xj1, Hi, Hj)
+    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     zh0 = math.hypot(dx, dy)
     zh1 = _wrap(math.atan2(dy, dx) - xi2)
     # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
@@ -726,7 +726,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
         if l00 == 0.0:
             return NOT_PD
         if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
-            zt0, zt1 = _stealthy_measurement(tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11)
+            zt0, zt1 = stealthy_measurement(tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11)
             nu0 = zt0 - zh0
             nu1 = _wrap(_wrap(zt1) - zh1)
         n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
@@ -744,7 +744,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
             zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
         )  # fmt: skip
         gated = _gate_link(n_det, detector, rho_i)
-        detected = _detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
+        detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
         triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
         out_norm[e] = n_trig
         out_threshold[e] = math.nan if detected else delta
@@ -793,7 +793,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
             for b in range(3):
                 P[i, a, b] = T3[a, b]
         if record_gauge:
-            _gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
+            gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK
 
 
@@ -803,7 +803,7 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
     :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
     cache = getattr(dispatcher, "_cache", None)
     cache_file = getattr(cache, "_cache_file", None)
-    if cache_file is None or not hasattr(cache_file, "_source_stamp"):
+    if getattr(cache_file, "_source_stamp", None) is None:
         return  # numba absent, or a numba whose cache we do not know: nothing to extend
     digest = hashlib.sha256()
     for module in modules:

@@ -19,7 +19,7 @@ kernel function                numpy twin
 :func:`_link_cusum`            :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``
 :func:`_link_mean_cusum`       :func:`resloc.cl.cusum.link_mean_cusum`
-:func:`_detect_link`           :func:`resloc.cl.detection.detect` (every active stage)
+:func:`detect_link`           :func:`resloc.cl.detection.detect` (every active stage)
 =============================  ========================================================
 """
 
@@ -210,7 +210,7 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
 
 
 @_jit_inline
-def _detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
+def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
     cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot = det

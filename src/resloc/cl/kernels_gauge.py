@@ -5,7 +5,7 @@ records every update's linear map for the team's gauge covariance ``G``:
 ``A_i <- (I - K H_i) A_i``, ``N_i <- (I - K H_i) N_i (I - K H_i)^T + K R K^T`` and, per fused
 link, ``B_ij = -K H_j`` left-multiplied by robot i's later gains of the step
 (:meth:`GaugeCovariance.update <resloc.cl.gauge.GaugeCovariance.update>`). The CL kernel
-(:mod:`resloc.cl.kernels`) does that in its link loop (:func:`_gauge_record`) on copies of
+(:mod:`resloc.cl.kernels`) does that in its link loop (:func:`gauge_record`) on copies of
 the step's ``A`` and ``N``; :func:`gauge_commit` then hands them, and the fused links' ``B_ij``
 in the reference's order, to the :class:`~resloc.cl.gauge.GaugeCovariance`, whose own
 ``finish`` (the leak, the addition to ``G``) runs as in the reference path. The prediction
@@ -14,8 +14,8 @@ and the consensus exchanges are once per step, vectorized, outside the correctio
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`_range_bearing_jacobians`  :func:`resloc.models.measurement.range_bearing_jacobians`
-:func:`_gauge_record`          :meth:`resloc.cl.gauge.GaugeCovariance.update` (with
+:func:`range_bearing_jacobians_into`  :func:`resloc.models.measurement.range_bearing_jacobians`
+:func:`gauge_record`          :meth:`resloc.cl.gauge.GaugeCovariance.update` (with
                                :func:`resloc.cl.tracking.update_map`)
 =============================  ==========================================================
 """
@@ -92,7 +92,7 @@ def gauge_commit(joint: GaugeCovariance, state: KernelGauge, i, j, fused) -> Non
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
 # ---------------------------------------------------------------------------------------
 @_jit_inline
-def _range_bearing_jacobians(xi0, xi1, xj0, xj1, Hi, Hj):
+def range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj):
     """Jacobians of eq. (3) with respect to ``x_i`` and ``x_j`` into ``Hi``, ``Hj`` (2 x 3).
     Twin: :func:`resloc.models.measurement.range_bearing_jacobians`."""
     dx = xj0 - xi0
@@ -114,12 +114,12 @@ def _range_bearing_jacobians(xi0, xi1, xj0, xj1, Hi, Hj):
 
 
 @_jit_inline
-def _gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3):
+def gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3):
     """Record link ``e``'s update of robot ``i`` (its links start at row ``first``; ``fused``:
     the flags of the rows so far) linearized at i's estimate before the update and j's
     transmitted one. Twin: :meth:`resloc.cl.gauge.GaugeCovariance.update`."""
     _on, A, noise, Bij = gauge
-    _range_bearing_jacobians(xi0, xi1, xj0, xj1, Hi, Hj)
+    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     for a in range(3):  # G = I - K H_i
         for b in range(3):
             G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])

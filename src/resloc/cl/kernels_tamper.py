@@ -5,7 +5,7 @@ covariance ``S`` of each link, so it acts inside the correction, between the mom
 detector. Its hook (``LinkBatch.tamper``) carries a plain-data description of itself,
 :class:`KernelTamper` (``tamper.kernel_form``); the CL kernel (:mod:`resloc.cl.kernels`)
 then computes the falsified measurement of every attacked link in its link loop
-(:func:`_stealthy_measurement`) instead of calling Python. A hook without ``kernel_form``
+(:func:`stealthy_measurement`) instead of calling Python. A hook without ``kernel_form``
 keeps the reference path (:func:`resloc.cl.backend.kernel_refusal` says so).
 
 ================================  =======================================================
@@ -13,7 +13,7 @@ kernel function                   numpy twin (:mod:`resloc.world.adversary`)
 ================================  =======================================================
 :func:`_largest_stealthy_step`    :func:`~resloc.world.adversary.largest_stealthy_step`
 :func:`_largest_linear_step`      :func:`~resloc.world.adversary.largest_linear_step`
-:func:`_stealthy_measurement`     the hook of :func:`~resloc.world.adversary.stealthy_tamper`
+:func:`stealthy_measurement`     the hook of :func:`~resloc.world.adversary.stealthy_tamper`
                                   (with :func:`resloc.world.attacks.apply_injection`)
 ================================  =======================================================
 """
@@ -149,7 +149,7 @@ def _at(gain, i):
 
 
 @_jit_inline
-def _stealthy_measurement(tamper, i, z0, z1, nu0, nu1, l00, l10, l11):
+def stealthy_measurement(tamper, i, z0, z1, nu0, nu1, l00, l10, l11):
     """The measurement robot ``i`` receives on an attacked link (honest ``z``, innovation
     ``nu`` against the victim's prediction, ``S = L L^T``): ``z + a d`` with the largest
     ``a`` every known test lets through (:func:`resloc.world.adversary.stealthy_tamper`),
