@@ -11,9 +11,11 @@ option and repeat:
 * ``simulation_ms``: the whole ``run_scenario`` per step (world, estimator, per-step metrics);
 * ``compiled``: the share of corrections the compiled kernel ran (``LinkOutcome.compiled``).
 
-Medians (and best) over the repeats, and each option's ratio to the default's median
-*measured in the same invocation*. The kernels are compiled (or loaded from numba's on-disk
-cache) and every option run once before anything is timed. Writes
+Medians (and best) over the repeats, each option's ratio to the default's median *measured
+in the same invocation*, and, robust to a machine whose load changes within seconds, the
+median of *paired* ratios: every run of an option follows a run of the default, and the
+pair's ratio of estimator times is recorded. The kernels are compiled (or loaded from
+numba's on-disk cache) and every option run once before anything is timed. Writes
 ``runs/bench_options/<timestamp>.json`` (``--out`` to choose) and prints a table.
 ``bench/run_bench.py`` may call :func:`run_options`.
 """
@@ -117,9 +119,15 @@ def run_options(steps: int = 300, repeats: int = 5, options: dict | None = None)
     for option in options.values():  # compile / load every kernel, warm every code path
         _measure(option, 5)
     samples: dict[str, list[dict]] = {name: [] for name in options}
+    paired: dict[str, list[float]] = {name: [] for name in options}
+    default = next(iter(options.values()))
     for _ in range(repeats):
         for name, option in options.items():
-            samples[name].append(_measure(option, steps))
+            # The default right before each option: the pair sees the same load.
+            base_run = _measure(default, steps)
+            run = _measure(option, steps)
+            samples[name].append(run)
+            paired[name].append(run["estimator_ms"] / base_run["estimator_ms"])
     rows = {}
     base = None
     for name, runs in samples.items():
@@ -128,6 +136,10 @@ def run_options(steps: int = 300, repeats: int = 5, options: dict | None = None)
             values = [r[key] for r in runs]
             row[key] = {"median": statistics.median(values), "best": min(values), "all": values}
         row["compiled_share"] = float(np.mean([r["compiled"] for r in runs]))
+        row["paired_estimator_ratio"] = {
+            "median": statistics.median(paired[name]),
+            "all": paired[name],
+        }
         if base is None:
             base = row
         for key in ("estimator_ms", "simulation_ms"):
@@ -164,13 +176,14 @@ def _git_commit() -> str | None:
 def _table(record: dict) -> str:
     lines = [
         f"{'option':34s} {'est ms/step':>12s} {'x default':>10s} {'sim ms/step':>12s}"
-        f" {'x default':>10s} {'compiled':>9s}"
+        f" {'x default':>10s} {'paired x':>9s} {'compiled':>9s}"
     ]
     for name, row in record["options"].items():
         e, s = row["estimator_ms"], row["simulation_ms"]
         lines.append(
             f"{name:34s} {e['median']:12.3f} {e['ratio_to_default']:10.2f} "
-            f"{s['median']:12.3f} {s['ratio_to_default']:10.2f} {row['compiled_share']:9.0%}"
+            f"{s['median']:12.3f} {s['ratio_to_default']:10.2f} "
+            f"{row['paired_estimator_ratio']['median']:9.2f} {row['compiled_share']:9.0%}"
         )
     return "\n".join(lines)
 
