@@ -23,6 +23,7 @@ from resloc.cl import (
     predict,
 )
 from resloc.cl.backend import kernel_refusal
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.graph import DENSE_MAX, Lambda2Memo, algebraic_connectivity, component_lambda2
 from resloc.cl.graph import laplacian as graph_laplacian
 from resloc.errors import ConfigError, NumericalError
@@ -293,6 +294,8 @@ def test_kernel_coverage_is_honest_for_every_option(name: str) -> None:
                 assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params) is None
                 continue
         memories = (LinkMemory(40), LinkMemory(40))
+        for memory in memories:  # a fusion method's own state, as a run sets it up
+            fusion_strategy(params.fusion).init(memory, x, P, len(x))
         assert_equivalent(*run_both(FILTERS["ckf"], x, P, links, params, memories))
 
 

@@ -188,8 +188,8 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    if links.tamper is not None:
-        return "an adversary's tamper hook runs in Python"
+    if links.tamper is not None and getattr(links.tamper, "kernel_form", None) is None:
+        return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     if links.P_nb_ind is not None:
         return "transmitted independent parts belong to split covariance intersection"
     return None

@@ -129,7 +129,7 @@ class NISCusum:
     """Per-link CUSUM of the NIS (:func:`~resloc.cl.cusum.link_cusum`)."""
 
     name: ClassVar[str] = "cusum"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
@@ -154,7 +154,7 @@ class MeanShiftCusum:
     """Signed CUSUMs of the whitened innovation (:func:`~resloc.cl.cusum.link_mean_cusum`)."""
 
     name: ClassVar[str] = "mean_cusum"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:

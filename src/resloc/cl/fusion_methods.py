@@ -301,6 +301,7 @@ class GaugeFusion(_Bookkept):
     (:mod:`resloc.cl.gauge`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.GAUGE
+    compiled: ClassVar[bool] = True
     node_exchanges: ClassVar[tuple[str, ...]] = ("acks", "consensus")
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:

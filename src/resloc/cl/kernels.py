@@ -14,6 +14,8 @@ kernel function               paper                   numpy twin
 :func:`_linearized_moments`   eq. (3), linearized     ``ExtendedFilter.relative_moments``
 :func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
 :func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
+:func:`_gate_link`            Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
+``detect_link`` (CUSUMs)     beyond the paper        :func:`resloc.cl.detection.detect`
 :func:`_decide_link`          Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
 :func:`_schur_update`         Algorithm 1             :func:`resloc.filters.update.kalman_update`
@@ -22,17 +24,25 @@ kernel function               paper                   numpy twin
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
-:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`, :class:`KernelOutputs`).
+:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`,
+:class:`~resloc.cl.kernels_detection.KernelDetection`, :class:`KernelOutputs`). The detector
+stages that keep per-link state (the CUSUMs) are in :mod:`resloc.cl.kernels_detection`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import weakref
+from collections.abc import Callable
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
@@ -42,11 +52,20 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
-from resloc.cl.detector import InnovationNorm
+from resloc.cl.fusion import FusionMethod
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_detection import NORM_CODE, detect_link, detector_state
+from resloc.cl.kernels_gauge import (
+    gauge_commit,
+    gauge_record,
+    gauge_state,
+    no_gauge,
+    range_bearing_jacobians_into,
+)
+from resloc.cl.kernels_tamper import no_tamper, stealthy_measurement
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
-from resloc.models.measurement import MIN_RANGE
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -76,8 +95,6 @@ __all__ = [
     "warm_up",
 ]
 
-#: Innovation-norm codes shared with the kernel.
-NORM_CODE = {InnovationNorm.EUCLIDEAN: 0, InnovationNorm.SCALED: 1, InnovationNorm.NIS: 2}
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 #: Kernel status codes.
@@ -129,6 +146,40 @@ class KernelOutputs(NamedTuple):
     norm: np.ndarray  # (E,)
     threshold: np.ndarray  # (E,)
     flags: np.ndarray  # (5, E) bool: detected, triggered, delivered, fused, repaired
+
+
+class CompiledBookkeeping(NamedTuple):
+    """What a fusion method with a compiled twin records beside the kernel's update.
+
+    Attributes
+    ----------
+    state : callable ``(memory, E) -> KernelGauge or None``
+        (:class:`~resloc.cl.kernels_gauge.KernelGauge`)
+        The kernel's working arrays for ``E`` links (None: the kernel cannot run it).
+    commit : callable ``(memory, state, i, j, fused) -> None``
+        Hands the kernel's records to the method's state in ``memory``.
+    """
+
+    state: Callable
+    commit: Callable
+
+
+def _nothing_to_commit(memory, state, i, j, fused) -> None:
+    del memory, state, i, j, fused
+
+
+def _gauge_commit(memory, state, i, j, fused) -> None:
+    gauge_commit(memory.joint, state, i, j, fused)
+
+
+#: Per fusion method with ``compiled = True``: its bookkeeping in the compiled path.
+COMPILED_BOOKKEEPING: dict[FusionMethod, CompiledBookkeeping] = {
+    FusionMethod.NAIVE: CompiledBookkeeping(lambda memory, E: no_gauge(E), _nothing_to_commit),
+    FusionMethod.GAUGE: CompiledBookkeeping(
+        lambda memory, E: None if memory is None else gauge_state(memory.joint, E),
+        _gauge_commit,
+    ),
+}
 
 
 def _per_robot(v) -> np.ndarray:
@@ -222,13 +273,29 @@ def fast_correct(
         return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
+    strategy = fusion_strategy(params.fusion)
+    if strategy.problem(params) is not None:
+        return None  # the reference path raises the explanatory error
+    bookkeeping = COMPILED_BOOKKEEPING[strategy.method]
+    gauge = bookkeeping.state(memory, E)
+    if gauge is None:
+        return None  # the reference path raises the explanatory error, or records exactly
+    detection = detector_state(params, memory, li, lj)
+    if detection is None:
+        return None  # the reference path raises the explanatory error
     last = np.zeros(E if last_sent else 0)
     if last_sent and len(memory):
         known, pos = memory.lookup(li, lj)
         last = np.where(known, memory.last_norm[pos], 0.0)
+    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
+    z = links.z
+    if tamper.on:  # the attacker's honest measurements and observers must be this batch's
+        if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
+            return None
+        z = tamper.z
     kernel_links = KernelLinks(
         li,
-        _contiguous(links.z),
+        _contiguous(z),
         _contiguous(links.x_nb),
         _contiguous(links.P_nb),
         _contiguous(links.channel_ok, np.bool_),
@@ -238,9 +305,16 @@ def fast_correct(
     x_out = np.array(x, dtype=float, order="C", copy=True)
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    if _correct_links(x_out, P_out, kernel_links, robots, spec, options, out) != OK:
+    detect = detection.kernel
+    status = _correct_links(
+        x_out, P_out, kernel_links, robots, spec, options, detect, gauge, tamper, out
+    )
+    if status != OK:
+        detection.undo()
         return None
     detected, triggered, delivered, fused, repaired = out.flags
+    bookkeeping.commit(memory, gauge, li, lj, fused)
+    P_out = strategy.finish(memory, P_out, lj, delivered)
     if last_sent and delivered.any():
         d = np.flatnonzero(delivered)
         memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
@@ -278,7 +352,6 @@ def warm_up() -> bool:
 # ---------------------------------------------------------------------------------------
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
-_MIN_R2 = MIN_RANGE**2
 
 
 @_jit
@@ -443,20 +516,7 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     """
     dx = xj0 - xi0
     dy = xj1 - xi1
-    q = dx * dx + dy * dy
-    if q < _MIN_R2:
-        q = _MIN_R2
-    r = math.sqrt(q)
-    Hj[0, 0] = dx / r
-    Hj[0, 1] = dy / r
-    Hj[0, 2] = 0.0
-    Hj[1, 0] = -dy / q
-    Hj[1, 1] = dx / q
-    Hj[1, 2] = 0.0
-    for a in range(2):
-        for b in range(3):
-            Hi[a, b] = -Hj[a, b]
-    Hi[1, 2] = -1.0
+    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     zh0 = math.hypot(dx, dy)
     zh1 = _wrap(math.atan2(dy, dx) - xi2)
     # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
@@ -494,14 +554,19 @@ def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c
 
 
 @_jit_inline
-def _decide_link(n_det, detector, rho, n_trig, delta, trigger, channel_ok):
-    """Detector (Algorithm 1: discard when the norm exceeds ``rho``), event condition
-    (eq. 10) and channel (eq. 8) of one link: ``(detected, triggered, delivered)``.
-    Twin: ``resloc.cl.step._decide`` (the gate stage of :mod:`resloc.cl.detection`)."""
-    detected = detector and n_det > rho
+def _gate_link(n_det, detector, rho):
+    """Attack detection of Algorithm 1: discard when the detector norm exceeds ``rho``.
+    Twin: :func:`resloc.cl.detector.attack_detected` (the ``gate`` stage)."""
+    return detector and n_det > rho
+
+
+@_jit_inline
+def _decide_link(detected, n_trig, delta, trigger, channel_ok):
+    """Event condition (eq. 10) and channel (eq. 8) of one link the detector judged:
+    ``(triggered, delivered)``. Twin: ``resloc.cl.step._decide``."""
     fire = (n_trig > delta) if trigger else True
     triggered = (not detected) and fire
-    return detected, triggered, triggered and channel_ok
+    return triggered, triggered and channel_ok
 
 
 @_jit_inline
@@ -516,7 +581,7 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, out):
+def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -544,10 +609,18 @@ def _correct_links(x, P, links, robots, filt, options, out):
     Pn = np.zeros((3, 3))
     T3 = np.zeros((3, 3))
     A3 = np.zeros((3, 3))
+    G3 = np.zeros((3, 3))
     std0 = noise_std[0]
     std1 = noise_std[1]
+    record_gauge = gauge[0]
+    tampered = tamper[0]
+    attacked = tamper[3]
+    fused = flags[3]
+    first = 0  # robot i's first row
     for e in range(li.shape[0]):
         i = li[e]
+        if e > 0 and li[e - 1] != i:
+            first = e
         Pi = P[i]
         Pj = P_nb[e]
         xi0 = x[i, 0]
@@ -652,6 +725,10 @@ def _correct_links(x, P, links, robots, filt, options, out):
         l00, l10, l11 = _chol2(S00, S01, S11, jitter)
         if l00 == 0.0:
             return NOT_PD
+        if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
+            zt0, zt1 = stealthy_measurement(tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11)
+            nu0 = zt0 - zh0
+            nu1 = _wrap(_wrap(zt1) - zh1)
         n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
         if det_norm == trig_norm:
             n_det = n_trig
@@ -666,9 +743,9 @@ def _correct_links(x, P, links, robots, filt, options, out):
             a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
             zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
         )  # fmt: skip
-        detected, triggered, delivered = _decide_link(
-            n_det, detector, rho_i, n_trig, delta, trigger, channel_ok[e]
-        )
+        gated = _gate_link(n_det, detector, rho_i)
+        detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
+        triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
         out_norm[e] = n_trig
         out_threshold[e] = math.nan if detected else delta
         flags[0, e] = detected
@@ -715,4 +792,23 @@ def _correct_links(x, P, links, robots, filt, options, out):
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
+        if record_gauge:
+            gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK
+
+
+def _stamp_with_pieces(dispatcher, *modules) -> None:
+    """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
+    changes: numba stamps a cached kernel with its own source file only, so an edited
+    :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if getattr(cache_file, "_source_stamp", None) is None:
+        return  # numba absent, or a numba whose cache we do not know: nothing to extend
+    digest = hashlib.sha256()
+    for module in modules:
+        digest.update(Path(module.__file__).read_bytes())
+    cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
+
+
+_stamp_with_pieces(_correct_links, _kernels_detection, _kernels_gauge, _kernels_tamper)

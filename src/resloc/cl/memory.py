@@ -151,3 +151,30 @@ class LinkStatistic:
             order = np.argsort(keys, kind="stable")
             self.keys = keys[order]
             self.values = np.concatenate([self.values, values[new]])[order]
+
+    def slots(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Positions of links ``(i, j)`` in :attr:`values`, inserting the missing ones with
+        0 (what :meth:`get` gives a link never stored), so that a compiled loop can read and
+        write each link's statistic in place.
+
+        Parameters
+        ----------
+        i, j : ndarray of int, shape (E,)
+
+        Returns
+        -------
+        ndarray of int64, shape (E,)
+        """
+        k = self._keys(i, j)
+        if len(k):
+            pos = np.searchsorted(self.keys, k)
+            found = pos < len(self.keys)
+            found[found] = self.keys[pos[found]] == k[found]
+            if not found.all():
+                new = np.unique(k[~found])
+                keys = np.concatenate([self.keys, new])
+                order = np.argsort(keys, kind="stable")
+                self.keys = keys[order]
+                zeros = np.zeros((len(new), *self.shape))
+                self.values = np.ascontiguousarray(np.concatenate([self.values, zeros])[order])
+        return np.searchsorted(self.keys, k).astype(np.int64)

@@ -33,6 +33,8 @@ import numpy as np
 
 from resloc.cl.cusum import whiten
 from resloc.cl.detector import InnovationNorm
+from resloc.cl.kernels_detection import NORM_CODE
+from resloc.cl.kernels_tamper import kernel_tamper
 from resloc.linalg import solve_spd
 from resloc.world.attacks import apply_injection
 
@@ -171,7 +173,9 @@ def stealthy_tamper(
     callable ``tamper(rows, z_hat, S) -> z_rows``
         Given link rows (indices into the step's links) with the victim's predicted
         measurements ``(len(rows), 2)`` and innovation covariances ``(len(rows), 2, 2)``,
-        returns the measurements robot i receives on those rows.
+        returns the measurements robot i receives on those rows. Its attribute
+        ``kernel_form`` (:class:`~resloc.cl.kernels_tamper.KernelTamper`) describes the same
+        attacker to the compiled CL kernel.
     """
     d = np.asarray(direction, dtype=float)
     d = d / np.linalg.norm(d)
@@ -212,6 +216,12 @@ def stealthy_tamper(
         out[h] = apply_injection(zr, a[:, None] * d[None, :])
         return out
 
+    # The same attacker as plain data: the compiled CL kernel computes it in its link loop.
+    full = knowledge is StealthKnowledge.FULL
+    tamper.kernel_form = kernel_tamper(
+        z, attacked, observer, d, margin, cap, detector, NORM_CODE[norm], rho, noise_std,
+        cusum_k if full else None, mean_cusum_k if full else None,
+    )  # fmt: skip
     return tamper
 
 

@@ -1,0 +1,229 @@
+"""Compiled twins of the detector stages that keep per-link state (:mod:`resloc.cl.detection`).
+
+The NIS CUSUM (:class:`~resloc.cl.detection.NISCusum`) and the mean-shift CUSUM
+(:class:`~resloc.cl.detection.MeanShiftCusum`) remember a statistic per directed link in
+:class:`~resloc.cl.memory.LinkStatistic` stores of the run's
+:class:`~resloc.cl.memory.LinkMemory`. The compiled CL loop (:mod:`resloc.cl.kernels`)
+reads and writes those stores in place: :func:`detector_state` gives it the stores' value
+arrays and the slot of every link of the step (:meth:`LinkStatistic.slots
+<resloc.cl.memory.LinkStatistic.slots>` inserts the links never seen, at 0, the value the
+reference reads for them). When the kernel gives up on a step (a covariance that is not
+positive definite), :meth:`DetectorState.undo` puts the stores back as they were, so the
+reference path then starts from the same memory.
+
+=============================  ========================================================
+kernel function                numpy twin
+=============================  ========================================================
+:func:`_nis`                   :func:`resloc.cl.cusum.nis`
+:func:`_whiten`                :func:`resloc.cl.cusum.whiten`
+:func:`_link_cusum`            :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
+                               ``cusum_alarm``) and ``NISCusum.discard``
+:func:`_link_mean_cusum`       :func:`resloc.cl.cusum.link_mean_cusum`
+:func:`detect_link`           :func:`resloc.cl.detection.detect` (every active stage)
+=============================  ========================================================
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl.backend import HAVE_NUMBA
+from resloc.cl.detector import InnovationNorm
+from resloc.cl.params import CLParams
+
+if HAVE_NUMBA:  # the optional extra ``fast``
+    import numba
+
+    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+else:  # pragma: no cover - exercised only where numba is absent
+
+    def _jit_inline(func):
+        return func
+
+
+__all__ = ["DetectorState", "KernelDetection", "detector_state"]
+
+
+class KernelDetection(NamedTuple):
+    """The stateful detector stages as the kernel takes them.
+
+    Gains are ``(1,)`` (one value) or ``(B,)`` (per observer); a stage that is off gets
+    empty arrays, never read.
+    """
+
+    cusum: bool
+    cusum_k: np.ndarray  # (1,) or (B,)
+    cusum_h: np.ndarray
+    cusum_cap: np.ndarray  # the statistic's bound (default 2 h)
+    cusum_g: np.ndarray  # (n,) the store's values, written in place
+    cusum_slot: np.ndarray  # (E,) int64, each link's position in cusum_g
+    mean_cusum: bool
+    mean_k: np.ndarray
+    mean_h: np.ndarray
+    mean_g: np.ndarray  # (n, 4): g+_r, g-_r, g+_b, g-_b, written in place
+    mean_slot: np.ndarray  # (E,) int64
+
+
+class DetectorState(NamedTuple):
+    """A :class:`KernelDetection` with what :meth:`undo` needs."""
+
+    kernel: KernelDetection
+    saved: tuple  # per store: (store, keys before, values before or None, slots, old values)
+
+    def undo(self) -> None:
+        """Put the stores back as they were before :func:`detector_state`."""
+        for store, keys, values, slots, old in self.saved:
+            if values is not None:  # links were inserted: the old arrays are untouched
+                store.keys, store.values = keys, values
+            else:
+                store.values[slots] = old
+
+
+def _gain(v) -> np.ndarray:
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
+
+
+_NO_GAIN = np.zeros(1)
+_NO_SLOTS = np.zeros(0, np.int64)
+
+
+def _slots(store, i, j, saved: list) -> np.ndarray:
+    keys, values = store.keys, store.values
+    slots = store.slots(i, j)
+    if store.values is values:
+        saved.append((store, keys, None, slots, values[slots].copy()))
+    else:
+        saved.append((store, keys, values, slots, None))
+    if not store.values.flags.c_contiguous:
+        store.values = np.ascontiguousarray(store.values)
+    return slots
+
+
+def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> DetectorState | None:
+    """The stateful stages of ``params`` for the links ``(i, j)`` of one step.
+
+    Parameters
+    ----------
+    params : CLParams
+    memory : LinkMemory or None
+    i, j : ndarray of int, shape (E,)
+        Observers and neighbour ids (distinct pairs).
+
+    Returns
+    -------
+    DetectorState or None
+        None when a stage needs a memory and there is none (the reference path raises the
+        explanatory error).
+    """
+    saved: list = []
+    cusum = bool(params.cusum)
+    mean = bool(params.mean_cusum)
+    if (cusum or mean) and memory is None:
+        return None
+    if cusum:
+        h = _gain(params.cusum_h)
+        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
+        k = _gain(params.cusum_k)
+        slot = _slots(memory.cusum, i, j, saved)
+        g = memory.cusum.values
+    else:
+        k = h = cap = _NO_GAIN
+        g, slot = np.zeros(0), _NO_SLOTS
+    if mean:
+        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
+        mslot = _slots(memory.mean_cusum, i, j, saved)
+        mg = memory.mean_cusum.values
+    else:
+        mk = mh = _NO_GAIN
+        mg, mslot = np.zeros((0, 4)), _NO_SLOTS
+    kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot)
+    return DetectorState(kernel, tuple(saved))
+
+
+#: Innovation-norm codes shared with the kernels.
+NORM_CODE = {InnovationNorm.EUCLIDEAN: 0, InnovationNorm.SCALED: 1, InnovationNorm.NIS: 2}
+NIS_CODE = NORM_CODE[InnovationNorm.NIS]
+
+
+# ---------------------------------------------------------------------------------------
+# Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
+# ---------------------------------------------------------------------------------------
+@_jit_inline
+def _at(gain, i):
+    """A gain of observer ``i`` from a ``(1,)`` or ``(B,)`` array (twin: ``at_robots``)."""
+    return gain[i] if gain.shape[0] > 1 else gain[0]
+
+
+@_jit_inline
+def _nis(nu0, nu1, l00, l10, l11):
+    """``max(Lambda^T S^-1 Lambda, 0)`` with ``S = L L^T`` (twin: :func:`~resloc.cl.cusum.nis`,
+    the same solve order as :func:`resloc.linalg.solve_spd`)."""
+    y0 = nu0 / l00
+    y1 = (nu1 - l10 * y0) / l11
+    w1 = y1 / l11
+    w0 = (y0 - l10 * w1) / l00
+    q = nu0 * w0 + nu1 * w1
+    return q if q > 0.0 else 0.0
+
+
+@_jit_inline
+def _whiten(nu0, nu1, l00, l10, l11):
+    """``w = L^-1 Lambda`` (twin: :func:`~resloc.cl.cusum.whiten`)."""
+    w0 = nu0 / l00
+    return w0, (nu1 - l10 * w0) / l11
+
+
+@_jit_inline
+def _link_cusum(g, slot, stat, k, h, cap):
+    """One step of Page's CUSUM of the NIS on one link, ``g <- min(max(0, g + NIS - k),
+    cap)`` stored in place; the stage discards while ``g > h`` a measurement with
+    ``NIS > k``. Twin: :func:`~resloc.cl.cusum.link_cusum` and ``NISCusum.discard``."""
+    v = g[slot] + stat - k
+    if v < 0.0:
+        v = 0.0
+    if v > cap:
+        v = cap
+    g[slot] = v
+    return v > h and stat > k
+
+
+@_jit_inline
+def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
+    """The four signed CUSUMs of the whitened innovation of one link (updated in place only
+    when the gate ``passed`` the measurement); discard while a component alarms a
+    measurement with ``|w_c| > k``. Twin: :func:`~resloc.cl.cusum.link_mean_cusum`."""
+    cap = 2.0 * h
+    if passed:
+        for c in range(4):
+            s = w0 if c == 0 else (-w0 if c == 1 else (w1 if c == 2 else -w1))
+            v = g[slot, c] + s - k
+            if v < 0.0:
+                v = 0.0
+            if v > cap:
+                v = cap
+            g[slot, c] = v
+    alarm_r = g[slot, 0] > h or g[slot, 1] > h
+    alarm_b = g[slot, 2] > h or g[slot, 3] > h
+    return (alarm_r and abs(w0) > k) or (alarm_b and abs(w1) > k)
+
+
+@_jit_inline
+def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
+    """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
+    ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot = det
+    detected = gated
+    if cusum:
+        if det_norm == NIS_CODE:
+            stat = n_det * n_det
+        else:
+            stat = _nis(nu0, nu1, l00, l10, l11)
+        if _link_cusum(cg, cslot[e], stat, _at(ck, i), _at(ch, i), _at(ccap, i)):
+            detected = True
+    if mean:
+        w0, w1 = _whiten(nu0, nu1, l00, l10, l11)
+        if _link_mean_cusum(mg, mslot[e], w0, w1, _at(mk, i), _at(mh, i), not gated):
+            detected = True
+    return detected

@@ -1,0 +1,107 @@
+"""The compiled ``gauge`` fusion (the kernel's update plus the gauge bookkeeping of
+:mod:`resloc.cl.kernels_gauge`) against the numpy reference over multi-step runs: same
+estimates and decisions to 1e-9, same gauge covariance ``G`` and reported covariances."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels import COMPILED_BOOKKEEPING
+from resloc.experiments.config import default_scenario
+from resloc.filters import make_filter
+from resloc.world.world import World
+from test_engine import assert_equivalent
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+FILTERS = {
+    "ckf": make_filter("ckf"),
+    "ukf": make_filter("ukf", 0.8, 2.0, 1.0),
+    "ekf": make_filter("ekf"),
+}
+
+
+def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None) -> None:
+    """The default scenario (``trials`` batched) with gauge fusion by both paths; compares the
+    correction, ``G`` as every robot knows it and the reported covariances at every step."""
+    sc = default_scenario()
+    world = World(sc.world, trials, seed, sc.trigger.lambda2)
+    x0, P0 = world.initial_estimates()
+    fusion = fusion_strategy("gauge")
+    state = {}
+    for backend in ("numba", "numpy"):
+        memory = LinkMemory(world.B)
+        fusion.init(memory, x0, P0, world.n, rounds=rounds)
+        state[backend] = (x0.copy(), P0.copy(), memory)
+    fused = 0
+    for _ in range(steps):
+        ws = world.step()
+        res = {}
+        for backend, (x, P, memory) in state.items():
+            with kernels.use_backend(backend):
+                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+                links = LinkBatch(
+                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
+                    ws.risk_s, ws.risk_c, ws.lambda2,
+                )  # fmt: skip
+                res[backend] = correct(filt, xp, Pp, links, params, memory)
+                fusion.exchange(memory, ws.i, ws.j)
+            state[backend] = (res[backend][0], res[backend][1], memory)
+        assert_equivalent(res["numba"], res["numpy"])
+        fast, ref = state["numba"][2].joint, state["numpy"][2].joint
+        np.testing.assert_allclose(fast.robot_G(), ref.robot_G(), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(fast.A, ref.A, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fast.noise, ref.noise, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(fast.acks()[0], ref.acks()[0])
+        np.testing.assert_allclose(fast.acks()[1], ref.acks()[1], rtol=0, atol=1e-9)
+        x_f, x_r = state["numba"][0], state["numpy"][0]
+        np.testing.assert_allclose(
+            fusion.reported(state["numba"][2], x_f, state["numba"][1]),
+            fusion.reported(state["numpy"][2], x_r, state["numpy"][1]),
+            rtol=1e-9,
+            atol=1e-12,
+        )
+        fused += int(res["numpy"][2].fused.sum())
+    assert fused > 0
+    assert np.abs(state["numpy"][2].joint.robot_G()).max() > 0
+
+
+@pytest.mark.parametrize("name", list(FILTERS))
+def test_compiled_gauge_matches_reference_over_a_run(name: str) -> None:
+    params = replace(default_scenario().cl_params(), fusion="gauge")
+    run_gauge(FILTERS[name], params, 40, seed=7)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_compiled_gauge_with_consensus_sums_and_cusums(seed: int) -> None:
+    """Per-robot ``G`` by consensus, with the NIS gate and both CUSUMs (the resilient
+    configuration's estimator), several seeds."""
+    params = replace(
+        default_scenario().cl_params(), fusion="gauge", detector_norm="nis", rho=3.03,
+        cusum=True, mean_cusum=True,
+    )  # fmt: skip
+    run_gauge(FILTERS["ckf"], params, 40, seed=seed, trials=1, rounds=3)
+
+
+def test_every_compiled_fusion_method_has_its_bookkeeping() -> None:
+    from resloc.cl.fusion_methods import FUSION_STRATEGIES
+
+    compiled = {m for m, s in FUSION_STRATEGIES.items() if s.compiled}
+    assert compiled == set(COMPILED_BOOKKEEPING)
+
+
+def test_gauge_without_bookkeeping_goes_to_the_reference_which_raises() -> None:
+    from test_engine import random_batch
+
+    x, P, links = random_batch(3)
+    params = replace(default_scenario().cl_params(), fusion="gauge")
+    with kernels.use_backend("numba"):
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40)) is None
+        with pytest.raises(ValueError, match=r"memory\.joint"):
+            correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40))
