@@ -35,6 +35,7 @@ from resloc.experiments.metrics import (
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.world.adversary import stealthy_tamper
+from resloc.world.attackers import AttackStep
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
@@ -223,6 +224,7 @@ def run_scenario(
     metric_stride: int = 1,
     params: CLParams | None = None,
     first_trial: int = 0,
+    adversary=None,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -244,6 +246,9 @@ def run_scenario(
         Simulate trials ``first_trial .. first_trial + run.trials - 1`` of the seed (trial
         ``t`` is identical whichever trials are batched with it), so the seeds of one
         scenario can be split across tasks and re-run alone.
+    adversary : Attacker, optional
+        A strategy of the adversary suite (:mod:`resloc.world.attackers`): it chooses the
+        links it falsifies each step and what every estimator receives on them.
 
     Returns
     -------
@@ -298,6 +303,10 @@ def run_scenario(
     trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
+        attack_step = None
+        if adversary is not None:
+            attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
+            ws.attacked = attack_step.attacked = adversary.mark(ws.attacked, attack_step)
         truth[k + 1] = ws.pose[:N]
         own = ws.i < N
         trial0_links.append(
@@ -336,6 +345,8 @@ def run_scenario(
                 **fusion.link_fields(tr.memory, ws.j),
                 **hooks.link_extras(ws),
             )
+            if adversary is not None:
+                links = adversary.attack(links, attack_step, params, tr.memory)
             tr.x, tr.P, out = correct(tr.filt, xp, Pp, links, params, tr.memory)
             fusion.exchange(tr.memory, *comm_edges)
             tr.wall += time.perf_counter() - t0
