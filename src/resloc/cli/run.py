@@ -52,7 +52,10 @@ def print_summary(result, console=None) -> None:
         "det. recall",
         "wall (s)",
     ):
-        table.add_column(col, justify="right" if col != "estimator" else "left")
+        if col == "estimator":  # never truncated, however narrow the terminal
+            table.add_column(col, justify="left", no_wrap=True, min_width=len("dead reckoning"))
+        else:
+            table.add_column(col, justify="right")
     for name, s in result.summary().items():
         table.add_row(
             name.upper() if name != "dr" else "dead reckoning",
