@@ -87,8 +87,7 @@ def _parts(comm):
 
 
 def test_wire_bytes_match_the_runtime_encoder():
-    pytest.importorskip("msgpack")
-    from resloc.runtime.messages import Codec
+    from resloc.runtime.messages import Codec  # msgpack: installed by make test (extra swarm)
     from resloc.runtime.schema import Kind
 
     codec = Codec(b"k" * 32, 3)
