@@ -59,7 +59,7 @@ DEFENCES: dict[str, dict[str, Any]] = {
 }
 
 #: Per-seed metrics of a cell.
-METRICS = ("msle", "nees", "nees_rel", "tpr", "fpr", "comm_rate", "bytes_per_step")
+CELL_METRICS = ("msle", "nees", "nees_rel", "tpr", "fpr", "comm_rate", "bytes_per_step")
 
 
 def attack_cells(
@@ -209,7 +209,7 @@ def run_attack_study(
                 ]
                 for s in range(seeds)
             ]
-            cells[dname][aname] = {m: [p[m] for p in per] for m in METRICS}
+            cells[dname][aname] = {m: [p[m] for p in per] for m in CELL_METRICS}
     table = _table(cells)
     worst = []
     for dname in defences:
@@ -244,7 +244,7 @@ def _table(cells: dict) -> list[dict]:
                     "msle": mean_ci(m["msle"]).to_dict(),
                     "msle_ratio": ratio(m["msle"], clean["msle"]).to_dict(),
                     "msle_ratio_min": float(np.nanmin(np.divide(m["msle"], clean["msle"]))),
-                    **{k: mean_ci(m[k]).to_dict() for k in METRICS if k != "msle"},
+                    **{k: mean_ci(m[k]).to_dict() for k in CELL_METRICS if k != "msle"},
                 }
             )
     return rows

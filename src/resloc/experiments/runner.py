@@ -14,7 +14,7 @@ import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
 from resloc.cl.fusion_methods import fusion_strategy
-from resloc.cl.gauge import GaugeSums
+from resloc.cl.gauge import GaugeCovariance, GaugeSums
 from resloc.cl.graph import Lambda2Source
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
@@ -507,7 +507,7 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
         for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
             tot[key] += per_trial
         tot["repairs"] += count(out.repaired)
-        if hasattr(tr.memory.joint, "acks"):  # the fusion acknowledges what it fused
+        if isinstance(tr.memory.joint, GaugeCovariance):  # gauge acknowledges what it fused
             tot["ack_links"] += count(out.fused)
             senders = np.unique(ws.i[out.fused])
             tot["ack_frames"] += np.bincount(senders // N, minlength=T)

@@ -31,13 +31,15 @@ PASSES = 2
 def _scratch(value):
     if isinstance(value, np.ndarray):
         return value.copy()
-    if hasattr(value, "__dict__"):
-        out = copy.copy(value)
-        for name, inner in vars(value).items():
-            if isinstance(inner, np.ndarray):
-                setattr(out, name, inner.copy())
-        return out
-    return copy.copy(value)
+    try:
+        fields = vars(value)
+    except TypeError:  # no attributes: a scalar, a tuple, None
+        return copy.copy(value)
+    out = copy.copy(value)
+    for name, inner in fields.items():
+        if isinstance(inner, np.ndarray):
+            setattr(out, name, inner.copy())
+    return out
 
 
 def scratch_memory(memory: LinkMemory | None) -> LinkMemory | None:
