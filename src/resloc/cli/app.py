@@ -49,6 +49,9 @@ def _register_all() -> None:
     from resloc.cli import compare as _compare
 
     _compare.register(app)
+    from resloc.cli import attack as _attack
+
+    _attack.register(app)
     from resloc.cli import export as _export
 
     _export.register(app)

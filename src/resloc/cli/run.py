@@ -46,12 +46,17 @@ def print_summary(result, console=None) -> None:
         "MSLE final",
         "RMSE (m)",
         "NEES",
+        "NEES rel.",
         "comm rate",
+        "kB/step",
         "det. precision",
         "det. recall",
         "wall (s)",
     ):
-        table.add_column(col, justify="right" if col != "estimator" else "left")
+        if col == "estimator":  # never truncated, however narrow the terminal
+            table.add_column(col, justify="left", no_wrap=True, min_width=len("dead reckoning"))
+        else:
+            table.add_column(col, justify="right")
     for name, s in result.summary().items():
         table.add_row(
             name.upper() if name != "dr" else "dead reckoning",
@@ -61,7 +66,9 @@ def print_summary(result, console=None) -> None:
             _fmt(s["msle_final"], ".3e"),
             _fmt(s["rmse_mean"], ".4f"),
             _fmt(s["nees_mean"], ".3g"),
+            _fmt(s.get("nees_rel_mean", float("nan")), ".3g"),
             _fmt(s["comm_rate"], ".3f"),
+            _fmt(s.get("bytes_total", 0) / max(s["steps"], 1) / 1e3, ".3g"),
             _fmt(s["detector_precision"], ".3f"),
             _fmt(s["detector_recall"], ".3f"),
             _fmt(s["wall_time_s"], ".2f"),

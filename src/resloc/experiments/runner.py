@@ -24,18 +24,23 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import (
+    NEES_EXCEED_3DOF,
+    communication,
     confusion_counts,
     detector_rates,
     msle,
     nees,
+    nees_consistency_counts,
     position_rmse,
     rate,
+    relative_nees,
 )
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.linalg import symmetrize
 from resloc.validation import check_memory
 from resloc.world.adversary import stealthy_tamper
+from resloc.world.attackers import AttackStep
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
@@ -67,7 +72,17 @@ RUN_OVERHEAD = 64e6
 DEAD_RECKONING = "dr"
 
 #: Per-step series recorded for every estimator, each of shape (steps, T).
-SERIES = ("msle", "rmse", "nees", "candidates", "triggered", "delivered", "detected", "attacked")
+SERIES = (
+    "msle",
+    "rmse",
+    "nees",
+    "nees_rel",
+    "candidates",
+    "triggered",
+    "delivered",
+    "detected",
+    "attacked",
+)
 #: Per-trial totals, each of shape (T,).
 TOTALS = (
     "candidates",
@@ -83,6 +98,12 @@ TOTALS = (
     "tn",
     "attacked_fused",
     "repairs",
+    "nees_samples",
+    "nees_exceed",
+    "nees_rel_exceed",
+    "ack_links",
+    "ack_frames",
+    "consensus_messages",
 )
 
 
@@ -169,7 +190,30 @@ class EstimatorResult:
         out["detector_precision"] = scores["precision"]
         out["detector_recall"] = scores["recall"]
         out["detector_false_alarm"] = scores["false_alarm_rate"]
+        out.update(self._honest_summary())
         return out
+
+    def _honest_summary(self) -> dict[str, float]:
+        """Relative NEES, the consistency tests on every per-robot, per-step sample, and the
+        messages and bytes of every kind (``WIRE_BYTES``)."""
+        s, t = self.series, self.totals
+        n = int(t["nees_samples"].sum())
+        out = {"nees_rel_mean": float(np.nanmean(s["nees_rel"]))}
+        for key, series in (("nees", s["nees"]), ("nees_rel", s["nees_rel"])):
+            test = nees_consistency_counts(
+                float(np.nanmean(series)) * n, n, int(t[f"{key}_exceed"].sum())
+            )
+            out[f"{key}_band_lo"], out[f"{key}_band_hi"] = test["band_lo"], test["band_hi"]
+            out[f"{key}_exceed_share"] = test["exceed_share"]
+            out[f"{key}_exceed_pvalue"] = test["exceed_pvalue"]
+        for kind, (messages, wire) in communication(t).items():
+            out[f"messages_{kind}"] = int(messages.sum())
+            out[f"bytes_{kind}"] = int(wire.sum())
+        return out
+
+    def bytes_per_trial(self) -> np.ndarray:
+        """Robot-to-robot bytes of every kind per trial, shape (T,) (``communication``)."""
+        return communication(self.totals)["total"][1]
 
     def per_trial(self, metric: str) -> np.ndarray:
         """A per-trial scalar, shape (T,): ``msle_mean``, ``msle_final``, ``rmse_mean``,
@@ -274,6 +318,7 @@ def run_scenario(
     metric_stride: int = 1,
     params: CLParams | None = None,
     first_trial: int = 0,
+    adversary=None,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -295,6 +340,9 @@ def run_scenario(
         Simulate trials ``first_trial .. first_trial + run.trials - 1`` of the seed (trial
         ``t`` is identical whichever trials are batched with it), so the seeds of one
         scenario can be split across tasks and re-run alone.
+    adversary : Attacker, optional
+        A strategy of the adversary suite (:mod:`resloc.world.attackers`): it chooses the
+        links it falsifies each step and what every estimator receives on them.
 
     Returns
     -------
@@ -350,6 +398,10 @@ def run_scenario(
     trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
     for k in range(steps):
         ws = world.step()
+        attack_step = None
+        if adversary is not None:
+            attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
+            ws.attacked = attack_step.attacked = adversary.mark(ws.attacked, attack_step)
         truth[k + 1] = ws.pose[:N]
         own = ws.i < N
         trial0_links.append(
@@ -366,7 +418,9 @@ def run_scenario(
         record = (k + 1) % metric_stride == 0 or k == steps - 1
         lambda2 = hooks.lambda2(ws)
         comm_edges = hooks.comm_edges(ws)
-        step_inputs = _StepInputs(params, fusion, hooks, world, scenario, lambda2, comm_edges, dt)
+        step_inputs = _StepInputs(
+            params, fusion, hooks, world, scenario, lambda2, comm_edges, dt, adversary, attack_step
+        )
         for tr in tracks:
             if tr.diverged is None:
                 _isolated_step(tr, k, ws, step_inputs, N)
@@ -381,6 +435,9 @@ def run_scenario(
             record_step(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
         if progress is not None:
             progress(k + 1, steps)
+    for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
+        exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
+        tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
     shared = link_columns(trial0_links)
     results = {}
     for tr in [*tracks, *([dr] if dr is not None else [])]:
@@ -418,6 +475,8 @@ class _StepInputs:
     lambda2: np.ndarray
     comm_edges: tuple[np.ndarray, np.ndarray]
     dt: float
+    adversary: object = None  # a strategy of resloc.world.attackers, with its AttackStep
+    attack_step: object = None
 
 
 def _isolated_step(tr: EstimatorTrack, k: int, ws, inputs: _StepInputs, N: int) -> None:
@@ -464,6 +523,8 @@ def _step_estimator(tr: EstimatorTrack, ws, inputs: _StepInputs) -> None:
         **fusion.link_fields(tr.memory, ws.j),
         **inputs.hooks.link_extras(ws),
     )
+    if inputs.adversary is not None:
+        links = inputs.adversary.attack(links, inputs.attack_step, params, tr.memory)
     tr.x, tr.P, tr.out = correct(tr.filt, xp, Pp, links, params, tr.memory)
     fusion.exchange(tr.memory, *inputs.comm_edges)
 
@@ -629,6 +690,10 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
         for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
             tot[key] += per_trial
         tot["repairs"] += count(out.repaired)
+        if fusion is not None and "acks" in fusion.node_exchanges:  # gauge acknowledges fusions
+            tot["ack_links"] += count(out.fused)
+            senders = np.unique(ws.i[out.fused])
+            tot["ack_frames"] += np.bincount(senders // N, minlength=T)
         own = ws.i < N
         tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
         flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
@@ -641,4 +706,10 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
         pos_e = tr.x[:, :2].reshape(T, N, 2)
         s["msle"][k] = msle(pos_t, pos_e)
         s["rmse"][k] = position_rmse(pos_t, pos_e)
-        s["nees"][k] = nees(ws.pose, tr.x, P).reshape(T, N).mean(axis=1)
+        per_robot = nees(ws.pose, tr.x, P).reshape(T, N)
+        rel = relative_nees(ws.pose.reshape(T, N, 3), tr.x.reshape(T, N, 3), P.reshape(T, N, 3, 3))
+        s["nees"][k] = per_robot.mean(axis=1)
+        s["nees_rel"][k] = rel.mean(axis=1)
+        tot["nees_samples"] += N
+        tot["nees_exceed"] += (per_robot > NEES_EXCEED_3DOF).sum(axis=1)
+        tot["nees_rel_exceed"] += (rel > NEES_EXCEED_3DOF).sum(axis=1)

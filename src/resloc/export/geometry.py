@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from resloc.experiments.metrics import align_se2
+
 __all__ = [
     "AlignedError",
     "align_se2",
@@ -62,32 +64,6 @@ def covariance_ellipse(P: np.ndarray, chi2: float = CHI2_95_2D) -> np.ndarray:
     minor = np.maximum(mid - rad, 0.0)
     angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
     return np.stack([np.sqrt(chi2 * major), np.sqrt(chi2 * minor), angle], axis=-1)
-
-
-def align_se2(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rigid planar transform (no scale, no reflection) that best maps ``source`` onto
-    ``target`` in least squares (Umeyama / Kabsch in 2-D).
-
-    Parameters
-    ----------
-    source, target : ndarray, shape (M, 2)
-        Paired points (estimated and true positions).
-
-    Returns
-    -------
-    R : ndarray, shape (2, 2)
-    t : ndarray, shape (2,)
-        ``target ~ source @ R.T + t``.
-    """
-    src = np.asarray(source, float)
-    dst = np.asarray(target, float)
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    H = (src - mu_s).T @ (dst - mu_d)
-    # In 2-D the optimal rotation angle is closed-form: atan2 of the cross and dot terms.
-    angle = np.arctan2(H[0, 1] - H[1, 0], H[0, 0] + H[1, 1])
-    c, s = np.cos(angle), np.sin(angle)
-    R = np.array([[c, -s], [s, c]])
-    return R, mu_d - R @ mu_s
 
 
 @dataclass(frozen=True)

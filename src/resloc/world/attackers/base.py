@@ -1,0 +1,132 @@
+"""What an attacker of the suite is: a declared protocol and the sensing-lie template."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import numpy as np
+
+from resloc.angles import wrap_angle
+from resloc.cl.links import LinkBatch
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams
+from resloc.world.attackers.oracle import largest_accepted
+
+__all__ = ["AttackStep", "Attacker", "SensingLie"]
+
+
+@dataclass
+class AttackStep:
+    """What the attacker sees of one step of the world (it knows everything).
+
+    Attributes
+    ----------
+    k : int
+        Step (1-based).
+    dt : float
+    pose : ndarray, shape (B, 3)
+        True poses.
+    i, j : ndarray of int, shape (E,)
+        This step's sensed links (batch indices).
+    z : ndarray, shape (E, 2)
+        Their honest measurements.
+    attacked : ndarray of bool, shape (E,)
+        The links the attacker controls this step (:meth:`Attacker.mark`).
+    robots : int
+        Team size N (robot ``b`` of the batch is robot ``b % N`` of its team).
+    """
+
+    k: int
+    dt: float
+    pose: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    z: np.ndarray
+    attacked: np.ndarray
+    robots: int
+
+
+class Attacker(Protocol):
+    """One strategy of the adversary suite.
+
+    Attributes
+    ----------
+    name : str
+    summary : str
+        One line: what it does and what it knows.
+    overrides : dict of str to object
+        Dotted scenario overrides the strategy needs (e.g. ``attack.kind``).
+    """
+
+    name: str
+    summary: str
+    overrides: dict
+
+    def mark(self, sdz_attacked: np.ndarray, step: AttackStep) -> np.ndarray:
+        """The links it falsifies this step, shape (E,) (ground truth of the detector
+        scores); ``sdz_attacked``: the links the world's sensing danger zones expose."""
+
+    def attack(
+        self, links: LinkBatch, step: AttackStep, params: CLParams, memory: LinkMemory | None
+    ) -> LinkBatch:
+        """The link batch the victim estimator (``params``, ``memory``) receives."""
+
+
+class SensingLie:
+    """Template of a measurement attacker: a full lie per link, scaled by the victim's
+    acceptance.
+
+    Per controlled link the strategy states the injection it wants (:meth:`lie`, shape
+    (n, 2)) and at most which fraction of it to send this step (:meth:`ceiling`); the
+    victim's own detector, with its current sequence-test state, decides the largest
+    fraction it accepts (:func:`~resloc.world.attackers.oracle.largest_accepted`), and
+    that is sent.
+    """
+
+    name: ClassVar[str] = ""
+    summary: ClassVar[str] = ""
+    overrides: ClassVar[dict] = {"attack.kind": "stealthy"}
+    #: Knows only the per-measurement gate (the outside reviewer's attacker).
+    gate_only: ClassVar[bool] = False
+
+    def mark(self, sdz_attacked: np.ndarray, step: AttackStep) -> np.ndarray:
+        return sdz_attacked
+
+    def lie(self, rows: np.ndarray, z: np.ndarray, z_hat: np.ndarray, step: AttackStep):
+        """The full injection on ``rows``, shape (len(rows), 2)."""
+        raise NotImplementedError
+
+    def ceiling(self, step: AttackStep) -> float:
+        """Largest fraction of the lie to send this step (schedules), in [0, 1]."""
+        return 1.0
+
+    def attack(self, links, step, params, memory):
+        ceiling = float(self.ceiling(step))
+
+        def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
+            out = links.z[rows].copy()
+            hit = np.flatnonzero(step.attacked[rows])
+            if not hit.size or ceiling <= 0.0:
+                return out
+            r = rows[hit]
+            lie = self.lie(r, out[hit], z_hat[hit], step) * ceiling
+            a = largest_accepted(
+                out[hit],
+                lie,
+                z_hat[hit],
+                S[hit],
+                links.i[r],
+                links.j[r],
+                params,
+                memory,
+                self.gate_only,
+            )
+            z = out[hit] + a[:, None] * lie
+            z[:, 0] = np.abs(z[:, 0])
+            z[:, 1] = wrap_angle(z[:, 1])
+            out[hit] = z
+            return out
+
+        return dataclasses.replace(links, tamper=tamper)

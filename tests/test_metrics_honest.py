@@ -1,0 +1,124 @@
+"""Relative NEES, the consistency test with power, and the wire sizes of every message kind."""
+
+import numpy as np
+import pytest
+
+from resloc.experiments.metrics import (
+    WIRE_BYTES,
+    align_se2,
+    communication,
+    nees,
+    nees_consistency,
+    relative_nees,
+    remove_team_rigid_motion,
+)
+
+
+def _team(rng, T=3, N=6):
+    x = np.zeros((T, N, 3))
+    x[..., :2] = rng.uniform(-2, 2, (T, N, 2))
+    x[..., 2] = rng.uniform(-np.pi, np.pi, (T, N))
+    return x
+
+
+def test_align_se2_batched_recovers_each_transform():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(4, 10, 2))
+    ang = np.array([0.3, -2.0, np.pi - 1e-3, 0.0])
+    t = rng.normal(size=(4, 2))
+    c, s = np.cos(ang), np.sin(ang)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    dst = src @ np.swapaxes(R, -1, -2) + t[:, None]
+    R_fit, t_fit = align_se2(src, dst)
+    np.testing.assert_allclose(R_fit, R, atol=1e-12)
+    np.testing.assert_allclose(t_fit, t, atol=1e-12)
+    R0, t0 = align_se2(src[1], dst[1])  # unbatched: same answer
+    np.testing.assert_allclose(R0, R[1], atol=1e-12)
+    np.testing.assert_allclose(t0, t[1], atol=1e-12)
+
+
+def test_relative_nees_ignores_a_common_rigid_motion_but_not_a_relative_error():
+    rng = np.random.default_rng(2)
+    truth = _team(rng)
+    ang, shift = 0.2, np.array([0.5, -0.3])
+    c, s = np.cos(ang), np.sin(ang)
+    moved = truth.copy()
+    moved[..., :2] = truth[..., :2] @ np.array([[c, -s], [s, c]]).T + shift
+    moved[..., 2] += ang
+    P = np.broadcast_to(np.eye(3) * 1e-4, (*truth.shape[:2], 3, 3))
+    absolute = nees(truth.reshape(-1, 3), moved.reshape(-1, 3), P.reshape(-1, 3, 3))
+    assert absolute.min() > 100  # the absolute error is large
+    np.testing.assert_allclose(relative_nees(truth, moved, P), 0.0, atol=1e-12)
+    np.testing.assert_allclose(remove_team_rigid_motion(truth, moved), truth, atol=1e-12)
+    lied = moved.copy()
+    lied[:, 0, :2] += 0.1  # one robot displaced relative to the others
+    assert relative_nees(truth, lied, P)[:, 0].min() > 10
+
+
+def test_consistency_test_accepts_chi2_samples_and_rejects_scaled_ones():
+    rng = np.random.default_rng(3)
+    good = rng.chisquare(3, size=20000)
+    ok = nees_consistency(good)
+    assert ok["in_band"] == 1.0
+    assert ok["exceed_pvalue"] > 0.01
+    assert ok["exceed_share"] == pytest.approx(0.05, abs=0.01)
+    bad = nees_consistency(1.3 * good)  # 30 % overconfident: seed means would not see it
+    assert bad["in_band"] == 0.0
+    assert bad["exceed_pvalue"] < 1e-6
+    assert nees_consistency(np.array([np.nan]))["samples"] == 0
+
+
+def test_communication_counts_every_kind_in_bytes():
+    totals = {
+        "triggered": np.array([10, 0]),
+        "ack_frames": np.array([2, 0]),
+        "ack_links": np.array([5, 0]),
+        "consensus_messages": np.array([7, 1]),
+    }
+    comm = communication(totals)
+    assert comm["estimate"][1][0] == 10 * WIRE_BYTES["estimate"]
+    assert comm["ack"][1][0] == 2 * WIRE_BYTES["ack"] + 5 * WIRE_BYTES["ack_per_link"]
+    np.testing.assert_array_equal(comm["total"][0], [19, 1])
+    np.testing.assert_array_equal(comm["total"][1], [sum(b[0] for b in _parts(comm)), 229])
+
+
+def _parts(comm):
+    return [comm[k][1] for k in ("estimate", "ack", "consensus")]
+
+
+def test_wire_bytes_match_the_runtime_encoder():
+    from resloc.runtime.messages import Codec  # msgpack: installed by make test (extra swarm)
+    from resloc.runtime.schema import Kind
+
+    codec = Codec(b"k" * 32, 3)
+    est = codec.encode(Kind.ESTIMATE, 1, {"x": np.zeros(3), "P": np.eye(3)}, "resloc/radio")
+    assert len(est) == WIRE_BYTES["estimate"]
+    for n in (1, 2, 3, 4, 8):
+        ack = codec.encode(
+            Kind.ACK, 1, {"to": np.arange(n), "ack": np.zeros((n, 3, 3))}, "resloc/radio"
+        )
+        # exact up to 3 links; beyond, msgpack's longer length prefix adds 1 byte
+        assert 0 <= len(ack) - (WIRE_BYTES["ack"] + n * WIRE_BYTES["ack_per_link"]) <= int(n > 3)
+    cons = codec.encode(
+        Kind.CONSENSUS, 1, {"round": 2, "m": np.zeros((2, 3, 3)), "deg": 4}, "resloc/radio"
+    )
+    assert len(cons) == WIRE_BYTES["consensus"]
+
+
+def test_run_summary_reports_relative_nees_and_bytes():
+    import resloc
+
+    sc = resloc.default_scenario().replace(
+        **{
+            "run.steps": 30,
+            "run.filters": ["ckf"],
+            "estimator.fusion": "gauge",
+            "estimator.gauge_sums": "consensus",
+        }
+    )
+    s = resloc.run_scenario(sc).summary()["ckf"]
+    assert np.isfinite(s["nees_rel_mean"]) and s["nees_rel_mean"] >= 0
+    assert s["messages_consensus"] > 0 and s["messages_ack"] > 0
+    assert s["bytes_total"] == s["bytes_estimate"] + s["bytes_ack"] + s["bytes_consensus"]
+    assert s["messages_estimate"] == s["transmissions"]
+    assert 0.0 <= s["nees_exceed_share"] <= 1.0
