@@ -34,7 +34,7 @@ def print_summary(result, console=None) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    console = console or Console(width=None if sys.stdout.isatty() else 130)
+    console = console or Console(width=None if sys.stdout.isatty() else 160)
     table = Table(
         title=f"{result.scenario.run.name}: {result.meta['robots']} robots, "
         f"{result.scenario.run.trials} trial(s), {result.scenario.run.steps} steps, "
