@@ -242,7 +242,10 @@ def _local_cluster(workers: int) -> Iterator[_DaskBackend]:
             # host; any free loopback port instead.
             scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
             worker_dashboard_address=None,
-            silence_logs=logging.ERROR,
+            # Workers' own log lines: task errors reach the client with their tracebacks and
+            # a dead worker is seen by the scheduler, but a worker whose heartbeat meets the
+            # scheduler closing (a Ctrl-C) would print a traceback at ERROR level.
+            silence_logs=logging.CRITICAL,
             env=dict(THREAD_ENV),
         )
         try:
