@@ -166,18 +166,13 @@ def test_kernel_last_sent_threshold_keeps_the_same_memory(name: str) -> None:
     np.testing.assert_allclose(mem_fast.last_norm, mem_ref.last_norm, rtol=1e-12)
 
 
-@needs_numba
-@pytest.mark.parametrize("name", ["ckf", "ukf", "ekf"])
-def test_engine_matches_reference_over_a_scenario(name: str) -> None:
-    """The default scenario (two trials batched) for 150 steps: same estimates to 1e-9 and
-    identical detector/trigger/channel decisions at every step."""
-    sc = default_scenario()
-    world = World(sc.world, 2, 1, sc.trigger.lambda2)
-    params = sc.cl_params()
-    filt = FILTERS[name]
+def lockstep_both_backends(world, filt, params, steps: int):
+    """``steps`` world steps through the compiled and the reference CL step side by side,
+    each path carrying its own estimates and link memory; after each step checks that the
+    two agree (and which path ran), then yields ``(results, memories)`` keyed by backend."""
     x0, P0 = world.initial_estimates()
     state = {b: (x0.copy(), P0.copy(), LinkMemory(world.B)) for b in ("numba", "numpy")}
-    for _ in range(150):
+    for _ in range(steps):
         ws = world.step()
         res = {}
         for backend, (x, P, memory) in state.items():
@@ -190,6 +185,20 @@ def test_engine_matches_reference_over_a_scenario(name: str) -> None:
                 res[backend] = correct(filt, xp, Pp, links, params, memory)
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
+        yield res, {backend: s[2] for backend, s in state.items()}
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["ckf", "ukf", "ekf"])
+def test_engine_matches_reference_over_a_scenario(name: str) -> None:
+    """The default scenario (two trials batched) for 150 steps: same estimates to 1e-9 and
+    identical detector/trigger/channel decisions at every step."""
+    sc = default_scenario()
+    world = World(sc.world, 2, 1, sc.trigger.lambda2)
+    params = sc.cl_params()
+    filt = FILTERS[name]
+    for _ in lockstep_both_backends(world, filt, params, 150):
+        pass  # each step is compared inside
 
 
 @needs_numba

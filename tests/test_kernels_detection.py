@@ -9,13 +9,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import CLParams, LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl import CLParams, LinkMemory, correct, kernels
 from resloc.cl.backend import kernel_refusal
 from resloc.errors import NumericalError
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
 from resloc.world.world import World
-from test_engine import assert_equivalent, random_batch, run_both
+from test_engine import assert_equivalent, lockstep_both_backends, random_batch, run_both
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -52,25 +52,11 @@ def run_scenario(filt, params, steps: int, seed: int):
     reference's detections per step and the final memories."""
     sc = default_scenario()
     world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    x0, P0 = world.initial_estimates()
-    state = {b: (x0.copy(), P0.copy(), LinkMemory(world.B)) for b in ("numba", "numpy")}
-    detected = 0
-    for _ in range(steps):
-        ws = world.step()
-        res = {}
-        for backend, (x, P, memory) in state.items():
-            with kernels.use_backend(backend):
-                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-                links = LinkBatch(
-                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
-                    ws.risk_s, ws.risk_c, ws.lambda2,
-                )  # fmt: skip
-                res[backend] = correct(filt, xp, Pp, links, params, memory)
-            state[backend] = (res[backend][0], res[backend][1], memory)
-        assert_equivalent(res["numba"], res["numpy"])
-        assert_same_statistics(state["numba"][2], state["numpy"][2])
+    detected, memories = 0, {}
+    for res, memories in lockstep_both_backends(world, filt, params, steps):
+        assert_same_statistics(memories["numba"], memories["numpy"])
         detected += int(res["numpy"][2].detected.sum())
-    return detected, state["numba"][2], state["numpy"][2]
+    return detected, memories["numba"], memories["numpy"]
 
 
 @pytest.mark.parametrize("case", list(DETECTOR_CASES))
