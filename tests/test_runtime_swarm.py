@@ -221,7 +221,9 @@ def test_lost_world_ends_the_run_with_partial_results(tmp_path) -> None:
         run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs", watch=drill)
     runtime, summary, _ = load_outputs(Path(opts.out))
     assert runtime["partial"] and "world" in runtime["end"]
-    assert runtime["steps_completed"] >= 30 and summary["steps"] == runtime["steps_completed"]
+    # The drill fires when the supervisor sees step 30; the world may die before the
+    # recorder has that step's truth, so the partial run ends at step 29 or 30.
+    assert runtime["steps_completed"] >= 29 and summary["steps"] == runtime["steps_completed"]
 
 
 def test_lost_recorder_ends_the_run_and_leaves_its_last_snapshot(tmp_path) -> None:

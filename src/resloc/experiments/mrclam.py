@@ -841,13 +841,7 @@ def _run_estimator(
     cov = np.empty((K + 1, N, 3, 3))
     track[0], cov[0] = x, P
     M = len(rp.step)
-    links = {
-        "norm": np.full(M, np.nan),
-        "detected": np.zeros(M, bool),
-        "triggered": np.zeros(M, bool),
-        "delivered": np.zeros(M, bool),
-        "fused": np.zeros(M, bool),
-    }
+    links = empty_link_log(M)
     # Landmarks as fixed "neighbours": pose (x, y, 0), covariance from the ground-truth std.
     L = len(data.landmark_subjects)
     lm_x = np.zeros((L, 3))
@@ -940,6 +934,15 @@ def level_params(
         prm = dataclasses.replace(base, range_std=float(level) * RANGE_STD_QUANTUM)
         cache[int(level)] = prm
     return prm
+
+
+def empty_link_log(M: int) -> dict[str, np.ndarray]:
+    """Per-sighting outcomes of a replay, shape (M,) each, before any step ran: trigger
+    norm (nan) and the detected / triggered / delivered / fused flags (False)."""
+    return {
+        "norm": np.full(M, np.nan),
+        **{flag: np.zeros(M, bool) for flag in ("detected", "triggered", "delivered", "fused")},
+    }
 
 
 def score_estimate(

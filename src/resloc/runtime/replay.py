@@ -114,7 +114,7 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
     """
     import dataclasses
 
-    from resloc.experiments.mrclam import MRCLAMResult, score_estimate
+    from resloc.experiments.mrclam import MRCLAMResult, empty_link_log, score_estimate
     from resloc.runtime.messages import (
         FLAG_DELIVERED,
         FLAG_DETECTED,
@@ -137,13 +137,7 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
         },
     )
     M = len(rp.step)
-    links = {
-        "norm": np.full(M, np.nan),
-        "detected": np.zeros(M, bool),
-        "triggered": np.zeros(M, bool),
-        "delivered": np.zeros(M, bool),
-        "fused": np.zeros(M, bool),
-    }
+    links = empty_link_log(M)
     for k in range(1, K + 1):
         rows = np.arange(rp.bounds[k], min(rp.bounds[k + 1], M))
         rows = rows[rp.is_robot[rows]]
