@@ -142,20 +142,25 @@ def run_attack_study(
     base = scenario.replace(**{"run.trials": int(seeds)})
     group = scenario_to_dict(base)
     study = Study(jobs=1) if study is None else study
+    cell_keys = {
+        (dname, aname): tuple(
+            cell_key(
+                "attack",
+                scenario=group,
+                defence=dict(overrides),
+                attacker=aname,
+                filter=filt,
+                trial=s,
+            )
+            for s in range(seeds)
+        )
+        for dname, overrides in defences.items()
+        for aname in [CLEAN, *names]
+    }
     tasks, found = [], {}
     for dname, overrides in defences.items():
         for aname in [CLEAN, *names]:
-            keys = tuple(
-                cell_key(
-                    "attack",
-                    scenario=group,
-                    defence=dict(overrides),
-                    attacker=aname,
-                    filter=filt,
-                    trial=s,
-                )
-                for s in range(seeds)
-            )
+            keys = cell_keys[dname, aname]
             hits = [study.lookup(k) for k in keys]
             if all(h for h, _ in hits):
                 found.update({k: v for k, (_, v) in zip(keys, hits, strict=True)})
@@ -175,22 +180,10 @@ def run_attack_study(
     if study.failures:
         raise StudyFailedError(study.failures, study.stats)
     cells: dict = {}
-    for dname, overrides in defences.items():
+    for dname in defences:
         cells[dname] = {}
         for aname in [CLEAN, *names]:
-            per = [
-                found[
-                    cell_key(
-                        "attack",
-                        scenario=group,
-                        defence=dict(overrides),
-                        attacker=aname,
-                        filter=filt,
-                        trial=s,
-                    )
-                ]
-                for s in range(seeds)
-            ]
+            per = [found[key] for key in cell_keys[dname, aname]]
             cells[dname][aname] = {m: [p[m] for p in per] for m in CELL_METRICS}
     table = _table(cells)
     worst = []
