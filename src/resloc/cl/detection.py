@@ -26,19 +26,20 @@ The CL step runs :func:`detect`; the compiled kernel's coverage is read from
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from resloc.cl.cusum import link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_robot import RobotCusum
-from resloc.cl.detector import InnovationNorm, attack_detected
+from resloc.cl.detector import NORM_RULES, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["DETECTOR_STAGES", "DetectorStage", "Evidence", "active_stages", "detect"]
+__all__ = ["DETECTOR_STAGES", "NORM_GATE", "DetectorStage", "Evidence", "active_stages", "detect"]
 
 
 @dataclass
@@ -111,11 +112,29 @@ def _memory(memory: LinkMemory | None, what: str) -> LinkMemory:
 
 
 class NormGate:
-    """``||Lambda_ij|| > rho`` with the detector norm (raw, scaled or NIS)."""
+    """``||Lambda_ij|| > rho`` with the detector norm (raw, scaled or NIS); the threshold is
+    ``rho``, or set by a false-alarm probability when the norm is chi-square."""
 
     name: ClassVar[str] = "gate"
     compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
+
+    def problem(self, options: Any) -> str | None:
+        """Why the scenario's detector ``options`` (``norm``, ``rho``, ``false_alarm``) do
+        not make a gate, naming the option and the fix; None when they do."""
+        if options.false_alarm > 0.0 and not NORM_RULES[options.norm].chi_square:
+            return (
+                f"false_alarm: {options.false_alarm!r} sets a chi-square gate on the NIS; "
+                f'set detector.norm = "nis" (now {options.norm.value!r}) or false_alarm = 0'
+            )
+        return None
+
+    def threshold(self, options: Any) -> float:
+        """The gate's ``rho`` from the scenario's detector ``options``: ``sqrt`` of the
+        chi-square quantile at ``false_alarm`` when it is set, else ``rho``."""
+        if options.false_alarm > 0.0:
+            return math.sqrt(chi2_gate(options.false_alarm))
+        return options.rho
 
     def active(self, params: CLParams) -> bool:
         return bool(params.detector)
@@ -138,10 +157,10 @@ class NISCusum:
     def discard(self, evidence, params, memory) -> np.ndarray:
         memory = _memory(memory, "CUSUM (params.cusum)")
         ev = evidence
-        if params.detector_norm is InnovationNorm.NIS:
-            stat = ev.norm * ev.norm
-        else:
-            stat = nis(ev.nu, ev.S)
+        # The gate's norm, squared, is the NIS when the norm is chi-square: no second solve.
+        stat = (
+            ev.norm * ev.norm if NORM_RULES[params.detector_norm].chi_square else nis(ev.nu, ev.S)
+        )
         k = at_robots(params.cusum_k, ev.i)
         h = at_robots(params.cusum_h, ev.i)
         alarm = link_cusum(memory.cusum, ev.i, ev.j, stat, k, h, params.cusum_cap)
@@ -176,8 +195,9 @@ class MeanShiftCusum:
 
 #: The stages, in the order they run (the gate first: the others read its verdict; the
 #: recovery last: it overrides every verdict).
+NORM_GATE = NormGate()
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
-    NormGate(),
+    NORM_GATE,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),
