@@ -19,8 +19,6 @@ class InnovationNorm(enum.StrEnum):
     ``euclidean``: the paper's ``||Lambda||`` (adds metres to radians).
     ``scaled``: ``||Lambda / sigma||`` with the measurement noise standard deviations.
     ``nis``: ``sqrt(Lambda^T S^{-1} Lambda)``, the normalized innovation (uses ``P^zz``).
-
-    Each norm's computation and properties are its :class:`NormRule` in :data:`NORM_RULES`.
     """
 
     EUCLIDEAN = "euclidean"

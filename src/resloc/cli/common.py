@@ -1,10 +1,13 @@
-"""Shared CLI plumbing: error mapping to exit code 2 and console helpers."""
+"""Shared CLI plumbing: error mapping to exit code 2, the options every command writing
+results has, the default output directory, and tables on the console."""
 
 from __future__ import annotations
 
+import datetime as _dt
 import functools
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 import typer
@@ -21,11 +24,18 @@ from resloc.errors import ResLocError
 __all__ = [
     "EXIT_BAD_INPUT",
     "EXIT_INTERRUPTED",
+    "OVERWRITE",
+    "PLOTS",
+    "PROGRESS",
     "OneLineErrors",
     "fail",
     "handle_errors",
+    "number",
     "one_line",
+    "out_option",
+    "print_table",
     "step_progress",
+    "timestamped_out",
 ]
 
 #: Exit code for bad input (config, data file, argument).
@@ -123,3 +133,57 @@ def step_progress(enabled: bool):
         transient=True,
         disable=not enabled,
     )
+
+
+OVERWRITE = typer.Option(False, "--overwrite", help="Replace a non-empty --out.")
+PLOTS = typer.Option(True, "--plots/--no-plots", help="Write PNG figures.")
+PROGRESS = typer.Option(True, "--progress/--no-progress", help="Show a progress bar on stderr.")
+
+
+def out_option(default: str) -> Any:
+    """The ``--out``/``-o`` option, its ``default`` (a description) named in the help."""
+    return typer.Option(None, "--out", "-o", help=f"Output directory \\[default: {default}].")
+
+
+def timestamped_out(prefix: str = "") -> Path:
+    """The default output directory: ``runs/<prefix>-<YYYYmmdd-HHMMSS>`` (no prefix:
+    ``runs/<YYYYmmdd-HHMMSS>``)."""
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / (f"{prefix}-{stamp}" if prefix else stamp)
+
+
+def number(value: float | None, spec: str = ".4g") -> str:
+    """``value`` formatted with ``spec``; ``-`` when it is None or NaN."""
+    return "-" if value is None or value != value else format(value, spec)
+
+
+def print_table(
+    title: str,
+    columns: Sequence[str],
+    rows: Iterable[Sequence[str]],
+    *,
+    labels: int = 1,
+    width: int | None = 130,
+    console: Any = None,
+    **label_column: Any,
+) -> None:
+    """Print a table on stdout: the first ``labels`` columns left-aligned (names, with the
+    rich column options ``label_column``), the others right-aligned (numbers).
+
+    ``width`` is the console's width when stdout is not a terminal (a pipe, a file: no
+    wrapping of a table that fits), None for rich's default; ``console`` prints instead.
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title)
+    for k, column in enumerate(columns):
+        if k < labels:
+            table.add_column(column, justify="left", **label_column)
+        else:
+            table.add_column(column, justify="right")
+    for row in rows:
+        table.add_row(*row)
+    if console is None:
+        console = Console(width=None if sys.stdout.isatty() else width)
+    console.print(table)

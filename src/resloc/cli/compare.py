@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import enum
 import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import fail, handle_errors
-from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    fail,
+    handle_errors,
+    out_option,
+    timestamped_out,
+)
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 
 __all__ = ["compare_command", "register"]
 
@@ -38,17 +45,14 @@ def compare_command(
 ):
     """Run the comparison, print the report section, write the outputs."""
     from resloc.experiments.compare import run_compare, save_compare
-    from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
 
-    if out is None:
-        out = Path("runs") / f"compare-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out = out or timestamped_out("compare")
     check_output_dir(out, overwrite)
-    try:
-        with study_session("comparing", jobs, scheduler, store, fresh, progress) as study:
-            result = run_compare(quick=quick, seeds=seeds, filt=filt.value, study=study)
-    except StudyFailedError as exc:
-        raise write_failures(exc, out, overwrite) from None
+    with study_session(
+        "comparing", jobs, scheduler, store, fresh, progress, out, overwrite
+    ) as study:
+        result = run_compare(quick=quick, seeds=seeds, filt=filt.value, study=study)
     print(result.markdown())
     with atomic_output_dir(out, overwrite) as tmp:
         save_compare(result, tmp, plots=plots)
@@ -75,14 +79,10 @@ def register(app: typer.Typer) -> None:
         filt: CompareFilter = typer.Option(
             CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
         ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory \\[default: runs/compare-<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write roc.png."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
+        out: Path | None = out_option("runs/compare-<timestamp>"),
+        overwrite: bool = OVERWRITE,
+        plots: bool = PLOTS,
+        progress: bool = PROGRESS,
     ) -> None:
         """Compare the paper's method with consistent fusion, NIS/CUSUM detection and
         distributed lambda2 over clean, SDZ (fixed, stealthy) and CDZ scenarios."""

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors
+from resloc.cli.common import handle_errors, print_table
 
 __all__ = ["EXPORT_HELP", "export_command", "export_option", "print_alignment", "write_exports"]
 
@@ -40,26 +40,24 @@ def _check_export(value: str | None) -> str | None:
 
 def print_alignment(results) -> None:
     """Print the TUM alignment table (raw, team-aligned, per-robot aligned RMSE)."""
-    from rich.console import Console
-    from rich.table import Table
-
     for res in results:
         if res.format.value != "tum":
             continue
-        table = Table(
-            title="position RMSE (m): raw / team-aligned (one SE(2) for all robots) / "
-            "per-robot aligned"
-        )
-        for col in ("estimator", "raw", "team-aligned", "per-robot aligned"):
-            table.add_column(col, justify="left" if col == "estimator" else "right")
-        for name, e in res.info.items():
-            table.add_row(
+        rows = [
+            (
                 "DR" if name == "dr" else name.upper(),
                 f"{e['raw']:.4f}",
                 f"{e['team']:.4f}",
                 f"{e['per_robot']:.4f}",
             )
-        Console().print(table)
+            for name, e in res.info.items()
+        ]
+        print_table(
+            "position RMSE (m): raw / team-aligned (one SE(2) for all robots) / per-robot aligned",
+            ("estimator", "raw", "team-aligned", "per-robot aligned"),
+            rows,
+            width=None,
+        )
 
 
 def write_exports(

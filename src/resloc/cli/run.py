@@ -2,14 +2,23 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import enum
 import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors, step_progress
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    handle_errors,
+    number,
+    out_option,
+    print_table,
+    step_progress,
+    timestamped_out,
+)
 from resloc.cli.export import export_option
 from resloc.validation import INT64_MAX
 
@@ -25,22 +34,10 @@ class FilterChoice(enum.StrEnum):
     ALL = "all"
 
 
-def _fmt(v: float, spec: str = ".4g") -> str:
-    return "-" if v is None or v != v else format(v, spec)
-
-
 def print_summary(result, console=None) -> None:
     """Print the per-estimator results table."""
-    from rich.console import Console
-    from rich.table import Table
-
-    console = console or Console(width=None if sys.stdout.isatty() else 160)
-    table = Table(
-        title=f"{result.scenario.run.name}: {result.meta['robots']} robots, "
-        f"{result.scenario.run.trials} trial(s), {result.scenario.run.steps} steps, "
-        f"seed {result.scenario.run.seed}"
-    )
-    for col in (
+    run = result.scenario.run
+    columns = (
         "estimator",
         "MSLE mean",
         "MSLE final",
@@ -52,28 +49,39 @@ def print_summary(result, console=None) -> None:
         "det. precision",
         "det. recall",
         "wall (s)",
-    ):
-        if col == "estimator":  # never truncated, however narrow the terminal
-            table.add_column(col, justify="left", no_wrap=True, min_width=len("dead reckoning"))
-        else:
-            table.add_column(col, justify="right")
-    for name, s in result.summary().items():
-        table.add_row(
+    )
+    rows = [
+        (
             name.upper() if name != "dr" else "dead reckoning",
             f"diverged (step {s['diverged_step']})"
             if s.get("diverged_step")
-            else _fmt(s["msle_mean"], ".3e"),
-            _fmt(s["msle_final"], ".3e"),
-            _fmt(s["rmse_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s.get("nees_rel_mean", float("nan")), ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
-            _fmt(s.get("bytes_total", 0) / max(s["steps"], 1) / 1e3, ".3g"),
-            _fmt(s["detector_precision"], ".3f"),
-            _fmt(s["detector_recall"], ".3f"),
-            _fmt(s["wall_time_s"], ".2f"),
+            else number(s["msle_mean"], ".3e"),
+            number(s["msle_final"], ".3e"),
+            number(s["rmse_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s.get("nees_rel_mean", float("nan")), ".3g"),
+            number(s["comm_rate"], ".3f"),
+            number(s.get("bytes_total", 0) / max(s["steps"], 1) / 1e3, ".3g"),
+            number(s["detector_precision"], ".3f"),
+            number(s["detector_recall"], ".3f"),
+            number(s["wall_time_s"], ".2f"),
         )
-    console.print(table)
+        for name, s in result.summary().items()
+    ]
+    title = (
+        f"{run.name}: {result.meta['robots']} robots, {run.trials} trial(s), {run.steps} steps, "
+        f"seed {run.seed}"
+    )
+    # the estimator column is never truncated, however narrow the terminal
+    print_table(
+        title,
+        columns,
+        rows,
+        width=160,
+        console=console,
+        no_wrap=True,
+        min_width=len("dead reckoning"),
+    )
     warn_diverged(result.estimators)
 
 
@@ -124,9 +132,7 @@ def run_command(
     if changes:  # validated like the file (--seed must fit TOML's 64-bit integers)
         scenario = scenario.replace(**changes)
     inputs = [scenario_path] if scenario_path else []
-    if out is None:
-        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-        out = Path("runs") / stamp
+    out = out or timestamped_out()
     check_output_dir(out, overwrite, inputs)  # before any work: a bad --out loses nothing
     check_run_size(scenario)
     if plots:
@@ -161,14 +167,10 @@ def register(app: typer.Typer) -> None:
         seed: int | None = typer.Option(
             None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
         ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
+        out: Path | None = out_option("runs/<timestamp>"),
+        overwrite: bool = OVERWRITE,
+        plots: bool = PLOTS,
+        progress: bool = PROGRESS,
         export: str | None = export_option(),
     ) -> None:
         """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""

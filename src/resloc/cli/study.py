@@ -85,13 +85,18 @@ def study_session(
     store: Path | None,
     fresh: bool,
     progress: bool,
+    out: Path | None = None,
+    overwrite: bool = False,
 ):
     """Yield a :class:`~resloc.experiments.executor.Study` with a progress bar; an
-    interruption prints where the finished cells are and exits 130."""
-    from resloc.experiments.executor import Study, StudyInterrupted
+    interruption prints where the finished cells are and exits 130. With ``out``, failed
+    cells (:class:`~resloc.experiments.executor.StudyFailedError`) are written there by
+    :func:`write_failures` (exit 1)."""
+    from resloc.experiments.executor import Study, StudyFailedError, StudyInterrupted
     from resloc.experiments.store import ResultStore
 
     result_store = ResultStore(store, read=not fresh)
+    failed = None
     with progress_bar(description, progress) as update:
         study = Study(jobs=jobs, scheduler=scheduler, store=result_store, progress=update)
         try:
@@ -99,6 +104,12 @@ def study_session(
         except StudyInterrupted as exc:
             print(str(exc), file=sys.stderr)
             raise typer.Exit(130) from None
+        except StudyFailedError as exc:
+            if out is None:
+                raise
+            failed = exc  # written once the progress bar is gone
+    if failed is not None:
+        raise write_failures(failed, out, overwrite)
     stats = study.stats
     print(
         f"cells: {stats.cells} ({stats.from_store} from the store {result_store.root}, "

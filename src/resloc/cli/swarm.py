@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import enum
 import sys
 import tempfile
@@ -10,7 +9,18 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import fail, handle_errors, step_progress
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    fail,
+    handle_errors,
+    number,
+    out_option,
+    print_table,
+    step_progress,
+    timestamped_out,
+)
 
 __all__ = ["DEFAULT_KEY_FILE", "print_swarm_summary", "register", "require_zenoh", "swarm_command"]
 
@@ -49,57 +59,56 @@ def key_file_path(path: Path | None) -> Path:
     return DEFAULT_KEY_FILE
 
 
-def _fmt(v, spec: str) -> str:
-    return "-" if v is None or v != v else format(v, spec)
-
-
 def print_swarm_summary(result) -> None:
     """The estimator row of ``resloc run`` and the wire table, from the written outputs."""
     from rich.console import Console
-    from rich.table import Table
 
     console = Console(width=None if sys.stdout.isatty() else 130)
     rt = result.runtime
     for name, s in result.summary.get("overall", {}).items():  # a replay, scored on truth
-        table = Table(title=f"swarm replay ({rt.get('mode')}): {name.upper()}")
-        for col in ("RMSE (m)", "heading (deg)", "MSLE", "NEES", "comm rate", "fused"):
-            table.add_column(col, justify="right")
-        table.add_row(
-            _fmt(s["position_rmse"], ".4f"),
-            _fmt(s["heading_rmse_deg"], ".2f"),
-            _fmt(s["msle_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
+        row = (
+            number(s["position_rmse"], ".4f"),
+            number(s["heading_rmse_deg"], ".2f"),
+            number(s["msle_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s["comm_rate"], ".3f"),
             str(s["robot_fused"]),
         )
-        console.print(table)
+        print_table(
+            f"swarm replay ({rt.get('mode')}): {name.upper()}",
+            ("RMSE (m)", "heading (deg)", "MSLE", "NEES", "comm rate", "fused"),
+            [row],
+            labels=0,
+            console=console,
+        )
     for name, s in result.summary.get("estimators", {}).items():
-        table = Table(
-            title=f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "
-            f"{rt.get('steps_completed')} steps, {name.upper()}"
+        row = (
+            number(s["msle_mean"], ".3e"),
+            number(s["msle_final"], ".3e"),
+            number(s["rmse_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s["comm_rate"], ".3f"),
+            number(s["detector_precision"], ".3f"),
+            number(s["detector_recall"], ".3f"),
+            number((rt.get("wall_time_per_step_s") or {}).get("mean"), ".4f"),
         )
-        for col in (
-            "MSLE mean",
-            "MSLE final",
-            "RMSE (m)",
-            "NEES",
-            "comm rate",
-            "det. prec.",
-            "det. recall",
-            "wall/step (s)",
-        ):
-            table.add_column(col, justify="right")
-        table.add_row(
-            _fmt(s["msle_mean"], ".3e"),
-            _fmt(s["msle_final"], ".3e"),
-            _fmt(s["rmse_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
-            _fmt(s["detector_precision"], ".3f"),
-            _fmt(s["detector_recall"], ".3f"),
-            _fmt((rt.get("wall_time_per_step_s") or {}).get("mean"), ".4f"),
+        print_table(
+            f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "
+            f"{rt.get('steps_completed')} steps, {name.upper()}",
+            (
+                "MSLE mean",
+                "MSLE final",
+                "RMSE (m)",
+                "NEES",
+                "comm rate",
+                "det. prec.",
+                "det. recall",
+                "wall/step (s)",
+            ),
+            [row],
+            labels=0,
+            console=console,
         )
-        console.print(table)
     if rt.get("msle_mean_lockstep") is not None:
         console.print(
             f"realtime MSLE {rt['msle_mean']:.3e} beside {rt['msle_mean_lockstep']:.3e} in "
@@ -108,26 +117,26 @@ def print_swarm_summary(result) -> None:
             f"late estimates used: {rt['robot_counters'].get('estimates_late_used', 0)}, "
             f"stale dropped: {rt['robot_counters'].get('estimates_stale_dropped', 0)}"
         )
-    wire = Table(title="on the wire, per robot per second of simulated time")
-    for col in ("kind", "messages/s", "bytes/s", "copies delivered", "copies lost"):
-        wire.add_column(col, justify="left" if col == "kind" else "right")
-    for kind, w in rt.get("wire_by_kind", {}).items():
-        wire.add_row(
+    wire = [
+        (
             kind,
-            _fmt(w["messages_per_robot_per_s"], ".1f"),
-            _fmt(w["bytes_per_robot_per_s"], ".0f"),
+            number(w["messages_per_robot_per_s"], ".1f"),
+            number(w["bytes_per_robot_per_s"], ".0f"),
             str(w.get("copies_delivered", "")),
             str(w.get("copies_lost", "")),
         )
+        for kind, w in rt.get("wire_by_kind", {}).items()
+    ]
     trig = rt.get("trigger", {})
-    wire.add_row(
-        "(trigger)",
-        _fmt(trig.get("triggered_links_per_robot_per_s"), ".1f"),
-        "",
-        "",
-        "",
+    wire.append(
+        ("(trigger)", number(trig.get("triggered_links_per_robot_per_s"), ".1f"), "", "", "")
     )
-    console.print(wire)
+    print_table(
+        "on the wire, per robot per second of simulated time",
+        ("kind", "messages/s", "bytes/s", "copies delivered", "copies lost"),
+        wire,
+        console=console,
+    )
 
 
 def swarm_command(
@@ -168,8 +177,7 @@ def swarm_command(
         raise ConfigError(
             f"--external-robots {external!r}: give robot ids separated by commas, e.g. 3,4"
         ) from None
-    if out is None:
-        out = Path("runs") / ("swarm-" + _dt.datetime.now().strftime("%Y%m%d-%H%M%S"))
+    out = out or timestamped_out("swarm")
     check_output_dir(out, overwrite)
     work = Path(tempfile.mkdtemp(prefix="resloc-swarm-"))
     options = SwarmOptions(
@@ -250,8 +258,8 @@ def register(app: typer.Typer) -> None:
         robots_per_process: int = typer.Option(
             1, "--robots-per-process", "-k", min=1, help="Robots hosted by each robot process."
         ),
-        out: Path | None = typer.Option(None, "--out", "-o", help="Output directory."),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        out: Path | None = out_option("runs/swarm-<timestamp>"),
+        overwrite: bool = OVERWRITE,
         listen: list[str] = typer.Option(
             [],
             "--listen",
@@ -300,8 +308,8 @@ def register(app: typer.Typer) -> None:
         replay_dt: float = typer.Option(
             0.1, "--replay-dt", min=0.005, max=1.0, help="Replay step (s)."
         ),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
-        progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar."),
+        plots: bool = PLOTS,
+        progress: bool = PROGRESS,
         external: str = typer.Option(
             "",
             "--external-robots",
