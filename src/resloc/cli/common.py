@@ -4,6 +4,7 @@ results has, the default output directory, and tables on the console."""
 from __future__ import annotations
 
 import datetime as _dt
+import enum
 import functools
 import sys
 from collections.abc import Callable, Iterable, Sequence
@@ -27,6 +28,9 @@ __all__ = [
     "OVERWRITE",
     "PLOTS",
     "PROGRESS",
+    "SCENARIO",
+    "FilterChoice",
+    "OneFilter",
     "OneLineErrors",
     "fail",
     "handle_errors",
@@ -187,3 +191,28 @@ def print_table(
     if console is None:
         console = Console(width=None if sys.stdout.isatty() else width)
     console.print(table)
+
+
+class OneFilter(enum.StrEnum):
+    """One filter on the command line (the names of :class:`resloc.filters.FilterKind`,
+    without importing the filters at start-up)."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+
+
+class FilterChoice(enum.StrEnum):
+    """Filter selection on the command line: one filter, or ``all``."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+    ALL = "all"
+
+
+SCENARIO = typer.Argument(
+    None,
+    help="Scenario TOML file (default: the embedded 17-robot arc-turn).",
+    show_default=False,
+)

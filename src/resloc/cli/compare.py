@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 import sys
 from pathlib import Path
 
@@ -12,6 +11,7 @@ from resloc.cli.common import (
     OVERWRITE,
     PLOTS,
     PROGRESS,
+    OneFilter,
     fail,
     handle_errors,
     out_option,
@@ -22,19 +22,11 @@ from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 __all__ = ["compare_command", "register"]
 
 
-class CompareFilter(enum.StrEnum):
-    """Filter used by every cell of the comparison."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-
-
 def compare_command(
     quick: bool,
     seeds: int | None,
     jobs: int | None,
-    filt: CompareFilter,
+    filt: OneFilter,
     out: Path | None,
     overwrite: bool,
     plots: bool,
@@ -76,8 +68,8 @@ def register(app: typer.Typer) -> None:
         scheduler: str | None = SCHEDULER,
         store: Path | None = STORE,
         fresh: bool = FRESH,
-        filt: CompareFilter = typer.Option(
-            CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
+        filt: OneFilter = typer.Option(
+            OneFilter.CKF, "--filter", "-f", help="Filter of every cell."
         ),
         out: Path | None = out_option("runs/compare-<timestamp>"),
         overwrite: bool = OVERWRITE,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 import sys
 from pathlib import Path
 
@@ -12,6 +11,8 @@ from resloc.cli.common import (
     OVERWRITE,
     PLOTS,
     PROGRESS,
+    SCENARIO,
+    FilterChoice,
     handle_errors,
     number,
     out_option,
@@ -23,15 +24,6 @@ from resloc.cli.export import export_option
 from resloc.validation import INT64_MAX
 
 __all__ = ["print_summary", "register", "run_command"]
-
-
-class FilterChoice(enum.StrEnum):
-    """Filter selection on the command line."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-    ALL = "all"
 
 
 def print_summary(result, console=None) -> None:
@@ -156,11 +148,7 @@ def register(app: typer.Typer) -> None:
     @app.command("run")
     @handle_errors
     def run(
-        scenario: Path | None = typer.Argument(
-            None,
-            help="Scenario TOML file (default: the embedded 17-robot arc-turn).",
-            show_default=False,
-        ),
+        scenario: Path | None = SCENARIO,
         filter: FilterChoice = typer.Option(
             FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
         ),

@@ -13,6 +13,8 @@ from resloc.cli.common import (
     OVERWRITE,
     PLOTS,
     PROGRESS,
+    SCENARIO,
+    OneFilter,
     fail,
     handle_errors,
     number,
@@ -31,12 +33,6 @@ DEFAULT_KEY_FILE = Path.home() / ".config" / "resloc" / "team.key"
 class ModeChoice(enum.StrEnum):
     LOCKSTEP = "lockstep"
     REALTIME = "realtime"
-
-
-class FilterChoice(enum.StrEnum):
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
 
 
 def require_zenoh() -> None:
@@ -148,7 +144,7 @@ def swarm_command(
     listen: list[str],
     connect: list[str],
     key_file: Path | None,
-    filter_choice: FilterChoice | None,
+    filter_choice: OneFilter | None,
     seed: int | None,
     steps: int | None,
     jam_acks: bool,
@@ -203,7 +199,7 @@ def swarm_command(
         options.replay = str(replay.resolve())
         options.replay_seconds = replay_seconds
         options.replay_dt = replay_dt
-        options.filter = (filter_choice or FilterChoice.CKF).value
+        options.filter = (filter_choice or OneFilter.CKF).value
     else:
         scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
         changes = {}
@@ -246,9 +242,7 @@ def register(app: typer.Typer) -> None:
     @app.command("swarm")
     @handle_errors
     def swarm(
-        scenario: Path | None = typer.Argument(
-            None, help="Scenario TOML (default: the embedded one).", show_default=False
-        ),
+        scenario: Path | None = SCENARIO,
         mode: ModeChoice = typer.Option(
             ModeChoice.LOCKSTEP,
             "--mode",
@@ -263,7 +257,7 @@ def register(app: typer.Typer) -> None:
         listen: list[str] = typer.Option(
             [],
             "--listen",
-            help="Endpoint(s) of the run's Zenoh router [default: a free port on 127.0.0.1].",
+            help="Endpoint(s) of the run's Zenoh router \\[default: a free port on 127.0.0.1].",
         ),
         connect: list[str] = typer.Option(
             [], "--connect", help="Use an external router (zenohd) at these endpoint(s)."
@@ -271,10 +265,10 @@ def register(app: typer.Typer) -> None:
         key_file: Path | None = typer.Option(
             None,
             "--key-file",
-            help=f"Team key (created, mode 0600, if absent) [default: {DEFAULT_KEY_FILE}].",
+            help=f"Team key (created, mode 0600, if absent) \\[default: {DEFAULT_KEY_FILE}].",
         ),
-        filter: FilterChoice | None = typer.Option(
-            None, "--filter", "-f", help="Every robot's filter [default: the scenario's first]."
+        filter: OneFilter | None = typer.Option(
+            None, "--filter", "-f", help="Every robot's filter \\[default: the scenario's first]."
         ),
         seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
         steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
