@@ -21,36 +21,36 @@ from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 __all__ = ["register", "reproduce_command"]
 
 
+@handle_errors
 def reproduce_command(
-    seeds: int | None,
-    steps: int | None,
-    jobs: int | None,
-    quick: bool,
-    out: Path | None,
-    overwrite: bool,
-    progress: bool,
-    scheduler: str | None = None,
-    store: Path | None = None,
-    fresh: bool = False,
+    seeds: int | None = typer.Option(
+        None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
+    ),
+    jobs: int | None = JOBS,
+    scheduler: str | None = SCHEDULER,
+    store: Path | None = STORE,
+    fresh: bool = FRESH,
+    quick: bool = typer.Option(
+        False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
+    ),
+    steps: int | None = typer.Option(
+        None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
+    ),
+    out: Path | None = out_option("runs/reproduce-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    progress: bool = PROGRESS,
 ):
-    """Run every experiment, write the report, print where it is and the claims table."""
+    """Re-run every experiment of the paper over seeds and write report.md/report.html."""
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.plots import pyplot
     from resloc.experiments.reproduce import run_reproduction, write_reproduction
 
     out = out or timestamped_out("reproduce")
     check_output_dir(out, overwrite)
+    progress = progress and sys.stderr.isatty()
     pyplot()  # the report needs matplotlib: fail before the runs if it is missing
-    with study_session(
-        "reproducing the paper's experiments",
-        jobs,
-        scheduler,
-        store,
-        fresh,
-        progress,
-        out,
-        overwrite,
-    ) as study:
+    what = "reproducing the paper's experiments"
+    with study_session(what, jobs, scheduler, store, fresh, progress, out, overwrite) as study:
         rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, study=study)
     status = contextlib.nullcontext()
     if progress:
@@ -82,37 +82,4 @@ def print_claims(claims, rep) -> None:
 
 def register(app: typer.Typer) -> None:
     """Add ``reproduce`` to ``app``."""
-
-    @app.command("reproduce")
-    @handle_errors
-    def reproduce(
-        seeds: int | None = typer.Option(
-            None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
-        ),
-        jobs: int | None = JOBS,
-        scheduler: str | None = SCHEDULER,
-        store: Path | None = STORE,
-        fresh: bool = FRESH,
-        quick: bool = typer.Option(
-            False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
-        ),
-        steps: int | None = typer.Option(
-            None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
-        ),
-        out: Path | None = out_option("runs/reproduce-<timestamp>"),
-        overwrite: bool = OVERWRITE,
-        progress: bool = PROGRESS,
-    ) -> None:
-        """Re-run every experiment of the paper over seeds and write report.md/report.html."""
-        reproduce_command(
-            seeds,
-            steps,
-            jobs,
-            quick,
-            out,
-            overwrite,
-            progress and sys.stderr.isatty(),
-            scheduler,
-            store,
-            fresh,
-        )
+    app.command("reproduce")(reproduce_command)

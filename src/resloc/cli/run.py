@@ -91,17 +91,22 @@ def warn_diverged(estimators: dict) -> None:
             )
 
 
+@handle_errors
 def run_command(
-    scenario_path: Path | None,
-    filter_choice: FilterChoice,
-    seed: int | None,
-    out: Path | None,
-    overwrite: bool,
-    plots: bool,
-    progress: bool,
-    export: str | None = None,
+    scenario: Path | None = SCENARIO,
+    filter: FilterChoice = typer.Option(
+        FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
+    ),
+    seed: int | None = typer.Option(
+        None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
+    ),
+    out: Path | None = out_option("runs/<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
+    export: str | None = export_option(),
 ):
-    """Load (or embed) the scenario, run it, print the table, write the outputs."""
+    """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
     from resloc.cli.export import write_exports
     from resloc.experiments.config import default_scenario, load_scenario
     from resloc.experiments.output import (
@@ -112,9 +117,10 @@ def run_command(
     )
     from resloc.experiments.runner import check_run_size, run_scenario
 
-    scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
-    filters = None if filter_choice is FilterChoice.ALL else [filter_choice.value]
-    if filter_choice is FilterChoice.ALL and scenario_path is None:
+    path = scenario
+    scenario = load_scenario(path) if path else default_scenario()
+    filters = None if filter is FilterChoice.ALL else [filter.value]
+    if filter is FilterChoice.ALL and path is None:
         filters = ["ckf", "ukf", "ekf"]
     changes = {}
     if filters is not None:
@@ -123,7 +129,7 @@ def run_command(
         changes["run.seed"] = seed
     if changes:  # validated like the file (--seed must fit TOML's 64-bit integers)
         scenario = scenario.replace(**changes)
-    inputs = [scenario_path] if scenario_path else []
+    inputs = [path] if path else []
     out = out or timestamped_out()
     check_output_dir(out, overwrite, inputs)  # before any work: a bad --out loses nothing
     check_run_size(scenario)
@@ -131,7 +137,7 @@ def run_command(
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early, before the run, if matplotlib is missing
-    with signals_as_exceptions(), step_progress(progress) as bar:
+    with signals_as_exceptions(), step_progress(progress and sys.stderr.isatty()) as bar:
         task = bar.add_task("simulating", total=scenario.run.steps)
         result = run_scenario(scenario, progress=lambda k, n: bar.update(task, completed=k))
     print_summary(result)
@@ -145,27 +151,7 @@ def run_command(
 def register(app: typer.Typer) -> None:
     """Add ``run`` and the ``scenario`` group to ``app``."""
 
-    @app.command("run")
-    @handle_errors
-    def run(
-        scenario: Path | None = SCENARIO,
-        filter: FilterChoice = typer.Option(
-            FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
-        ),
-        seed: int | None = typer.Option(
-            None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
-        ),
-        out: Path | None = out_option("runs/<timestamp>"),
-        overwrite: bool = OVERWRITE,
-        plots: bool = PLOTS,
-        progress: bool = PROGRESS,
-        export: str | None = export_option(),
-    ) -> None:
-        """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
-        run_command(
-            scenario, filter, seed, out, overwrite, plots, progress and sys.stderr.isatty(), export
-        )
-
+    app.command("run")(run_command)
     scenario_app = typer.Typer(help="Scenario files.", no_args_is_help=True)
 
     @scenario_app.command("show")

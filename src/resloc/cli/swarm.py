@@ -135,30 +135,80 @@ def print_swarm_summary(result) -> None:
     )
 
 
+@handle_errors
 def swarm_command(
-    scenario_path: Path | None,
-    mode: ModeChoice,
-    robots_per_process: int,
-    out: Path | None,
-    overwrite: bool,
-    listen: list[str],
-    connect: list[str],
-    key_file: Path | None,
-    filter_choice: OneFilter | None,
-    seed: int | None,
-    steps: int | None,
-    jam_acks: bool,
-    max_age_steps: int,
-    run_id: str,
-    replay: Path | None,
-    replay_seconds: float,
-    replay_dt: float,
-    plots: bool,
-    progress: bool,
-    external: str = "",
-    reply_window: float = 0.4,
+    scenario: Path | None = SCENARIO,
+    mode: ModeChoice = typer.Option(
+        ModeChoice.LOCKSTEP,
+        "--mode",
+        help="lockstep: the world waits for every robot; "
+        "realtime: the world steps at dt in wall time.",
+    ),
+    robots_per_process: int = typer.Option(
+        1, "--robots-per-process", "-k", min=1, help="Robots hosted by each robot process."
+    ),
+    out: Path | None = out_option("runs/swarm-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    listen: list[str] = typer.Option(
+        [],
+        "--listen",
+        help="Endpoint(s) of the run's Zenoh router \\[default: a free port on 127.0.0.1].",
+    ),
+    connect: list[str] = typer.Option(
+        [], "--connect", help="Use an external router (zenohd) at these endpoint(s)."
+    ),
+    key_file: Path | None = typer.Option(
+        None,
+        "--key-file",
+        help=f"Team key (created, mode 0600, if absent) \\[default: {DEFAULT_KEY_FILE}].",
+    ),
+    filter: OneFilter | None = typer.Option(
+        None, "--filter", "-f", help="Every robot's filter \\[default: the scenario's first]."
+    ),
+    seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
+    jam_acks: bool = typer.Option(
+        False,
+        "--jam-acks",
+        help="The radio jams gauge acknowledgements too (the "
+        "simulator delivers them even inside a CDZ).",
+    ),
+    max_age_steps: int = typer.Option(
+        3,
+        "--max-age-steps",
+        min=0,
+        help="Realtime: drop neighbour estimates older than this many steps.",
+    ),
+    reply_window: float = typer.Option(
+        0.4,
+        "--reply-window",
+        min=0.01,
+        max=1.0,
+        help="Realtime, pulled estimates (neighbour_estimate = cached): skip a link whose "
+        "request is unanswered within this fraction of dt.",
+    ),
+    run_id: str = typer.Option("team", "--run-id", help="Key-expression namespace."),
+    replay: Path | None = typer.Option(
+        None, "--replay", help="An MRCLAM dataset folder replaces the simulated world."
+    ),
+    replay_seconds: float = typer.Option(
+        0.0, "--replay-seconds", min=0.0, help="Replay only the first seconds (0: all)."
+    ),
+    replay_dt: float = typer.Option(
+        0.1, "--replay-dt", min=0.005, max=1.0, help="Replay step (s)."
+    ),
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
+    external: str = typer.Option(
+        "",
+        "--external-robots",
+        help="Robot ids started elsewhere with resloc robot (another host), e.g. 3,4.",
+    ),
 ):
-    """Parse, run :func:`~resloc.runtime.swarm.run_swarm`, print, map errors."""
+    """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
+    if not run_id.replace("-", "").replace("_", "").isalnum():
+        raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
+    progress = progress and sys.stderr.isatty()
     require_zenoh()
     from resloc.errors import ConfigError
     from resloc.experiments.config import default_scenario, dump_scenario, load_scenario
@@ -192,27 +242,27 @@ def swarm_command(
 
     load_or_create_key(options.key_file)  # created (0600) or checked before anything runs
     if replay is not None:
-        if scenario_path is not None:
+        if scenario is not None:
             raise ConfigError("SCENARIO and --replay: give one of them")
         if not replay.is_dir():
             raise ConfigError(f"--replay {replay}: no such dataset folder")
         options.replay = str(replay.resolve())
         options.replay_seconds = replay_seconds
         options.replay_dt = replay_dt
-        options.filter = (filter_choice or OneFilter.CKF).value
+        options.filter = (filter or OneFilter.CKF).value
     else:
-        scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
+        validated = load_scenario(scenario) if scenario else default_scenario()
         changes = {}
         if seed is not None:
             changes["run.seed"] = seed
         if steps is not None:
             changes["run.steps"] = steps
         if changes:
-            scenario = scenario.replace(**changes)
-        check_supported(scenario)
-        options.filter = filter_choice.value if filter_choice else scenario.run.filters[0]
+            validated = validated.replace(**changes)
+        check_supported(validated)
+        options.filter = filter.value if filter else validated.run.filters[0]
         path = work / "scenario.toml"
-        path.write_text(dump_scenario(scenario), encoding="utf-8")
+        path.write_text(dump_scenario(validated), encoding="utf-8")
         options.scenario = str(path)
     with step_progress(progress) as bar:
         task = bar.add_task(f"swarm ({mode.value})", total=None)
@@ -238,101 +288,4 @@ def swarm_command(
 
 def register(app: typer.Typer) -> None:
     """Add ``swarm`` to ``app``."""
-
-    @app.command("swarm")
-    @handle_errors
-    def swarm(
-        scenario: Path | None = SCENARIO,
-        mode: ModeChoice = typer.Option(
-            ModeChoice.LOCKSTEP,
-            "--mode",
-            help="lockstep: the world waits for every robot; "
-            "realtime: the world steps at dt in wall time.",
-        ),
-        robots_per_process: int = typer.Option(
-            1, "--robots-per-process", "-k", min=1, help="Robots hosted by each robot process."
-        ),
-        out: Path | None = out_option("runs/swarm-<timestamp>"),
-        overwrite: bool = OVERWRITE,
-        listen: list[str] = typer.Option(
-            [],
-            "--listen",
-            help="Endpoint(s) of the run's Zenoh router \\[default: a free port on 127.0.0.1].",
-        ),
-        connect: list[str] = typer.Option(
-            [], "--connect", help="Use an external router (zenohd) at these endpoint(s)."
-        ),
-        key_file: Path | None = typer.Option(
-            None,
-            "--key-file",
-            help=f"Team key (created, mode 0600, if absent) \\[default: {DEFAULT_KEY_FILE}].",
-        ),
-        filter: OneFilter | None = typer.Option(
-            None, "--filter", "-f", help="Every robot's filter \\[default: the scenario's first]."
-        ),
-        seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
-        steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
-        jam_acks: bool = typer.Option(
-            False,
-            "--jam-acks",
-            help="The radio jams gauge acknowledgements too (the "
-            "simulator delivers them even inside a CDZ).",
-        ),
-        max_age_steps: int = typer.Option(
-            3,
-            "--max-age-steps",
-            min=0,
-            help="Realtime: drop neighbour estimates older than this many steps.",
-        ),
-        reply_window: float = typer.Option(
-            0.4,
-            "--reply-window",
-            min=0.01,
-            max=1.0,
-            help="Realtime, pulled estimates (neighbour_estimate = cached): skip a link whose "
-            "request is unanswered within this fraction of dt.",
-        ),
-        run_id: str = typer.Option("team", "--run-id", help="Key-expression namespace."),
-        replay: Path | None = typer.Option(
-            None, "--replay", help="An MRCLAM dataset folder replaces the simulated world."
-        ),
-        replay_seconds: float = typer.Option(
-            0.0, "--replay-seconds", min=0.0, help="Replay only the first seconds (0: all)."
-        ),
-        replay_dt: float = typer.Option(
-            0.1, "--replay-dt", min=0.005, max=1.0, help="Replay step (s)."
-        ),
-        plots: bool = PLOTS,
-        progress: bool = PROGRESS,
-        external: str = typer.Option(
-            "",
-            "--external-robots",
-            help="Robot ids started elsewhere with resloc robot (another host), e.g. 3,4.",
-        ),
-    ) -> None:
-        """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
-        if not run_id.replace("-", "").replace("_", "").isalnum():
-            raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
-        swarm_command(
-            scenario,
-            mode,
-            robots_per_process,
-            out,
-            overwrite,
-            listen,
-            connect,
-            key_file,
-            filter,
-            seed,
-            steps,
-            jam_acks,
-            max_age_steps,
-            run_id,
-            replay,
-            replay_seconds,
-            replay_dt,
-            plots,
-            progress and sys.stderr.isatty(),
-            external,
-            reply_window,
-        )
+    app.command("swarm")(swarm_command)

@@ -21,24 +21,29 @@ from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 __all__ = ["print_sweep", "register", "sweep_command"]
 
 
+@handle_errors
 def sweep_command(
-    path: Path,
-    seeds: int | None,
-    steps: int | None,
-    jobs: int | None,
-    out: Path | None,
-    overwrite: bool,
-    plots: bool,
-    progress: bool,
-    scheduler: str | None = None,
-    store: Path | None = None,
-    fresh: bool = False,
+    path: Path = typer.Argument(
+        ...,
+        help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
+        "\\[sweep.grid] / \\[sweep.zip]).",
+    ),
+    seeds: int | None = typer.Option(
+        None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
+    ),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
+    jobs: int | None = JOBS,
+    scheduler: str | None = SCHEDULER,
+    store: Path | None = STORE,
+    fresh: bool = FRESH,
+    out: Path | None = out_option("runs/sweep-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
 ):
-    """Load the sweep file, run its cells, print the table, write the outputs.
-
-    A failed cell does not stop the sweep: the outputs are written (the failed cells in
-    ``cells.csv`` and ``failures.json``) and the exit code is 1.
-    """
+    """Run a scenario at every point of a sweep (one parameter, a grid or zipped
+    parameters) x seeds x filters, as cells on a Dask cluster, kept in the result store
+    (a failed cell does not stop the others; it is in cells.csv and failures.json, exit 1)."""
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.sweep import load_sweep, run_sweep, save_sweep
 
@@ -51,6 +56,7 @@ def sweep_command(
 
         pyplot()
     points = len(spec.values)
+    progress = progress and sys.stderr.isatty()
     with study_session(
         f"sweep {spec.axis_label} ({points} points)", jobs, scheduler, store, fresh, progress
     ) as study:
@@ -96,40 +102,4 @@ def print_sweep(result) -> None:
 
 def register(app: typer.Typer) -> None:
     """Add ``sweep`` to ``app``."""
-
-    @app.command("sweep")
-    @handle_errors
-    def sweep(
-        path: Path = typer.Argument(
-            ...,
-            help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
-            "\\[sweep.grid] / \\[sweep.zip]).",
-        ),
-        seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
-        ),
-        steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
-        jobs: int | None = JOBS,
-        scheduler: str | None = SCHEDULER,
-        store: Path | None = STORE,
-        fresh: bool = FRESH,
-        out: Path | None = out_option("runs/sweep-<timestamp>"),
-        overwrite: bool = OVERWRITE,
-        plots: bool = PLOTS,
-        progress: bool = PROGRESS,
-    ) -> None:
-        """Run a scenario at every point of a sweep (one parameter, a grid or zipped
-        parameters) x seeds x filters, as cells on a Dask cluster, kept in the result store."""
-        sweep_command(
-            path,
-            seeds,
-            steps,
-            jobs,
-            out,
-            overwrite,
-            plots,
-            progress and sys.stderr.isatty(),
-            scheduler,
-            store,
-            fresh,
-        )
+    app.command("sweep")(sweep_command)
