@@ -153,7 +153,7 @@ def test_a_new_fusion_method_is_one_registry_entry(monkeypatch):
     # unregistered again: the name is refused everywhere
     with pytest.raises(ConfigError, match="counting_naive"):
         base.replace(**{"estimator.fusion": "counting_naive"})
-    with pytest.raises(ConfigError, match="CLParams.fusion"):
+    with pytest.raises(ConfigError, match=r"CLParams\.fusion"):
         CLParams(fusion="counting_naive")
 
 

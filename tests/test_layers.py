@@ -80,16 +80,16 @@ def _tests_an_innovation_norm(node: ast.Compare) -> bool:
 
 
 #: Modules that still branch on a norm's name instead of asking its rule
-#: (``resloc.cl.detector.NORM_RULES``); each is to move there, and no other may join them.
+#: (``resloc.cl.detection.CHI_SQUARE_NORMS``); each is to move there, and no other may join them.
 NORM_BRANCHES_TO_MOVE = {
     "resloc/world/adversary.py",  # the stealthy attacker's own copy of each norm's metric
     "resloc/experiments/mrclam.py",  # the default gate of a chi-square norm
 }
 
 
-def test_detector_norms_are_dispatched_only_by_their_rules() -> None:
+def test_detector_norms_are_dispatched_only_where_declared() -> None:
     """No comparison with an InnovationNorm member outside the module that declares the
-    norms' rules (the gate's false-alarm check and threshold ask ``NORM_RULES``)."""
+    norms (the gate's false-alarm check and threshold ask ``CHI_SQUARE_NORMS``)."""
     branching = {
         path
         for path, tree in _modules().items()

@@ -35,11 +35,19 @@ import numpy as np
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_robot import RobotCusum
-from resloc.cl.detector import NORM_RULES, attack_detected
+from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["DETECTOR_STAGES", "NORM_GATE", "DetectorStage", "Evidence", "active_stages", "detect"]
+__all__ = [
+    "CHI_SQUARE_NORMS",
+    "DETECTOR_STAGES",
+    "NORM_GATE",
+    "DetectorStage",
+    "Evidence",
+    "active_stages",
+    "detect",
+]
 
 
 @dataclass
@@ -105,6 +113,11 @@ class DetectorStage(Protocol):
         """Measurements to discard, shape (E,); updates the stage's state in ``memory``."""
 
 
+#: The detector norms whose square is the NIS (chi-square, 2 degrees of freedom, for honest
+#: measurements): a gate on them can be set by a false-alarm probability.
+CHI_SQUARE_NORMS = frozenset({InnovationNorm.NIS})
+
+
 def _memory(memory: LinkMemory | None, what: str) -> LinkMemory:
     if memory is None:
         raise ValueError(f"detector {what} needs a LinkMemory")
@@ -120,9 +133,8 @@ class NormGate:
     overrides: ClassVar[bool] = False
 
     def problem(self, options: Any) -> str | None:
-        """Why the scenario's detector ``options`` (``norm``, ``rho``, ``false_alarm``) do
-        not make a gate, naming the option and the fix; None when they do."""
-        if options.false_alarm > 0.0 and not NORM_RULES[options.norm].chi_square:
+        """Why the scenario's ``[detector]`` ``options`` make no gate (names the fix)."""
+        if options.false_alarm > 0.0 and options.norm not in CHI_SQUARE_NORMS:
             return (
                 f"false_alarm: {options.false_alarm!r} sets a chi-square gate on the NIS; "
                 f'set detector.norm = "nis" (now {options.norm.value!r}) or false_alarm = 0'
@@ -158,9 +170,7 @@ class NISCusum:
         memory = _memory(memory, "CUSUM (params.cusum)")
         ev = evidence
         # The gate's norm, squared, is the NIS when the norm is chi-square: no second solve.
-        stat = (
-            ev.norm * ev.norm if NORM_RULES[params.detector_norm].chi_square else nis(ev.nu, ev.S)
-        )
+        stat = ev.norm * ev.norm if params.detector_norm in CHI_SQUARE_NORMS else nis(ev.nu, ev.S)
         k = at_robots(params.cusum_k, ev.i)
         h = at_robots(params.cusum_h, ev.i)
         alarm = link_cusum(memory.cusum, ev.i, ev.j, stat, k, h, params.cusum_cap)

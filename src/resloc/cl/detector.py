@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
 from resloc.linalg import solve_spd
 
-__all__ = ["NORM_RULES", "InnovationNorm", "NormRule", "attack_detected", "innovation_norm"]
+__all__ = ["InnovationNorm", "attack_detected", "innovation_norm"]
 
 
 class InnovationNorm(enum.StrEnum):
@@ -24,46 +22,6 @@ class InnovationNorm(enum.StrEnum):
     EUCLIDEAN = "euclidean"
     SCALED = "scaled"
     NIS = "nis"
-
-
-@dataclass(frozen=True)
-class NormRule:
-    """One innovation norm.
-
-    Attributes
-    ----------
-    measure : callable(nu, S, noise_std) -> ndarray
-        The norm of innovations ``nu: (E, 2)`` with covariances ``S: (E, 2, 2)`` and the
-        noise standard deviations ``noise_std: (2,)``; shape ``(E,)``.
-    chi_square : bool
-        Its square is the NIS: chi-square with 2 degrees of freedom for honest measurements,
-        so a gate can be set by a false-alarm probability.
-    """
-
-    measure: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-    chi_square: bool
-
-
-def _euclidean(nu: np.ndarray, S: np.ndarray, noise_std: np.ndarray) -> np.ndarray:
-    return np.hypot(nu[:, 0], nu[:, 1])
-
-
-def _scaled(nu: np.ndarray, S: np.ndarray, noise_std: np.ndarray) -> np.ndarray:
-    s = nu / np.asarray(noise_std, float)
-    return np.hypot(s[:, 0], s[:, 1])
-
-
-def _normalized(nu: np.ndarray, S: np.ndarray, noise_std: np.ndarray) -> np.ndarray:
-    w = solve_spd(S, nu[:, :, None])[:, :, 0]
-    return np.sqrt(np.maximum(np.einsum("ei,ei->e", nu, w), 0.0))
-
-
-#: Every innovation norm's rule.
-NORM_RULES: dict[InnovationNorm, NormRule] = {
-    InnovationNorm.EUCLIDEAN: NormRule(_euclidean, chi_square=False),
-    InnovationNorm.SCALED: NormRule(_scaled, chi_square=False),
-    InnovationNorm.NIS: NormRule(_normalized, chi_square=True),
-}
 
 
 def innovation_norm(
@@ -85,7 +43,14 @@ def innovation_norm(
     -------
     ndarray, shape (E,)
     """
-    return NORM_RULES[InnovationNorm(kind)].measure(nu, S, noise_std)
+    kind = InnovationNorm(kind)  # a plain string would otherwise fall through to "nis"
+    if kind is InnovationNorm.EUCLIDEAN:
+        return np.hypot(nu[:, 0], nu[:, 1])
+    if kind is InnovationNorm.SCALED:
+        s = nu / np.asarray(noise_std, float)
+        return np.hypot(s[:, 0], s[:, 1])
+    w = solve_spd(S, nu[:, :, None])[:, :, 0]
+    return np.sqrt(np.maximum(np.einsum("ei,ei->e", nu, w), 0.0))
 
 
 def attack_detected(norm: np.ndarray, rho: np.ndarray | float) -> np.ndarray:

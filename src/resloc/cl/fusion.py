@@ -58,44 +58,21 @@ __all__ = [
 
 
 class _RegisteredFusion(type):
-    """Iterating :class:`FusionMethod` gives every registered method, like an enum."""
-
     def __iter__(cls) -> Iterator[FusionMethod]:
         from resloc.cl.fusion_methods import FUSION_STRATEGIES
 
         return iter([cls(name) for name in FUSION_STRATEGIES])
 
-    def __len__(cls) -> int:
-        from resloc.cl.fusion_methods import FUSION_STRATEGIES
-
-        return len(FUSION_STRATEGIES)
-
 
 class FusionMethod(str, metaclass=_RegisteredFusion):
-    """The name of a neighbour-fusion method: a key of
-    :data:`~resloc.cl.fusion_methods.FUSION_STRATEGIES`, which holds each method's behaviour.
-
-    Used like a string enum: ``FusionMethod("ci")`` (a ``ValueError`` naming the registered
-    methods when unknown), ``FusionMethod.CI``, ``.value``, ``list(FusionMethod)``, equal to
-    its string, one object per name (``is`` compares). The methods resloc ships:
-
-    ``naive``: independent (the paper). ``ci``: covariance intersection of the joint.
-    ``split_ci``: split covariance intersection (independent parts tracked per robot).
-    ``tracked``: the cross-covariances are tracked (:mod:`resloc.cl.tracking`).
-    ``factorized``: tracked by factors each robot keeps (:mod:`resloc.cl.factorized`).
-    ``gauge``: the team's common rigid-body error modelled (:mod:`resloc.cl.gauge`).
-
-    A new method needs no member here: registering its strategy makes its name valid.
+    """The name of a fusion method: a key of :data:`~resloc.cl.fusion_methods.FUSION_STRATEGIES`
+    (registering a strategy makes its name valid). Used like a string enum: ``FusionMethod("ci")``
+    (``ValueError`` naming the registered methods), ``FusionMethod.CI``, ``.value``,
+    ``list(FusionMethod)``; equal to its string, one object per name.
     """
 
     __slots__ = ()
     _interned: ClassVar[dict[str, FusionMethod]] = {}
-    NAIVE: ClassVar[FusionMethod]
-    CI: ClassVar[FusionMethod]
-    SPLIT_CI: ClassVar[FusionMethod]
-    TRACKED: ClassVar[FusionMethod]
-    FACTORIZED: ClassVar[FusionMethod]
-    GAUGE: ClassVar[FusionMethod]
 
     def __new__(cls, name: str) -> FusionMethod:
         from resloc.cl.fusion_methods import FUSION_STRATEGIES
@@ -104,12 +81,12 @@ class FusionMethod(str, metaclass=_RegisteredFusion):
             raise ValueError(
                 f"{name!r} is not a fusion method; registered: {', '.join(FUSION_STRATEGIES)}"
             )
-        return cls._named(str(name))
+        return cls._named(name)
 
     @classmethod
     def _named(cls, name: str) -> FusionMethod:
         if name not in cls._interned:
-            cls._interned[name] = super().__new__(cls, name)
+            cls._interned[name] = str.__new__(cls, name)
         return cls._interned[name]
 
     @property
@@ -121,6 +98,7 @@ class FusionMethod(str, metaclass=_RegisteredFusion):
         return f"FusionMethod({self.value!r})"
 
 
+# resloc's methods, by the names the code spells them with (``FusionMethod.GAUGE``).
 for _name in ("naive", "ci", "split_ci", "tracked", "factorized", "gauge"):
     setattr(FusionMethod, _name.upper(), FusionMethod._named(_name))
 

@@ -38,6 +38,7 @@ __all__ = [
     "one_line",
     "out_option",
     "print_table",
+    "progress_display",
     "step_progress",
     "timestamped_out",
 ]
@@ -123,25 +124,45 @@ class OneLineErrors(TyperGroup):
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
-def step_progress(enabled: bool):
-    """A transient rich progress bar on stderr counting steps (disabled: prints nothing)."""
+def progress_display(enabled: bool, *columns: Any):
+    """A transient rich progress display on stderr: the description, a bar, then ``columns``
+    (rich progress columns; disabled: prints nothing)."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, Progress, TextColumn
 
     return Progress(
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed}/{task.total} steps"),
-        TimeRemainingColumn(),
+        *columns,
         console=Console(stderr=True),
         transient=True,
         disable=not enabled,
     )
 
 
+def step_progress(enabled: bool):
+    """A progress bar counting steps (disabled: prints nothing)."""
+    from rich.progress import TextColumn, TimeRemainingColumn
+
+    steps = TextColumn("{task.completed}/{task.total} steps")
+    return progress_display(enabled, steps, TimeRemainingColumn())
+
+
 OVERWRITE = typer.Option(False, "--overwrite", help="Replace a non-empty --out.")
 PLOTS = typer.Option(True, "--plots/--no-plots", help="Write PNG figures.")
-PROGRESS = typer.Option(True, "--progress/--no-progress", help="Show a progress bar on stderr.")
+
+
+def _on_a_terminal(show: bool) -> bool:
+    return show and sys.stderr.isatty()
+
+
+#: ``--progress/--no-progress``; the value is False when stderr is not a terminal.
+PROGRESS = typer.Option(
+    True,
+    "--progress/--no-progress",
+    callback=_on_a_terminal,
+    help="Show a progress bar on stderr.",
+)
 
 
 def out_option(default: str) -> Any:
@@ -171,12 +192,9 @@ def print_table(
     console: Any = None,
     **label_column: Any,
 ) -> None:
-    """Print a table on stdout: the first ``labels`` columns left-aligned (names, with the
-    rich column options ``label_column``), the others right-aligned (numbers).
-
-    ``width`` is the console's width when stdout is not a terminal (a pipe, a file: no
-    wrapping of a table that fits), None for rich's default; ``console`` prints instead.
-    """
+    """Print a table on stdout (or ``console``): the first ``labels`` columns left-aligned,
+    with the rich column options ``label_column``, the others right-aligned; ``width``: the
+    console's when stdout is not a terminal (None: rich's default)."""
     from rich.console import Console
     from rich.table import Table
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
@@ -49,7 +48,6 @@ def compare_command(
         raise fail("--seeds: confidence intervals need at least 2 seeds")
     out = out or timestamped_out("compare")
     check_output_dir(out, overwrite)
-    progress = progress and sys.stderr.isatty()
     with study_session(
         "comparing", jobs, scheduler, store, fresh, progress, out, overwrite
     ) as study:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import sys
 from pathlib import Path
 
 import typer
@@ -47,7 +46,6 @@ def reproduce_command(
 
     out = out or timestamped_out("reproduce")
     check_output_dir(out, overwrite)
-    progress = progress and sys.stderr.isatty()
     pyplot()  # the report needs matplotlib: fail before the runs if it is missing
     what = "reproducing the paper's experiments"
     with study_session(what, jobs, scheduler, store, fresh, progress, out, overwrite) as study:

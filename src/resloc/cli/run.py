@@ -30,18 +30,9 @@ def print_summary(result, console=None) -> None:
     """Print the per-estimator results table."""
     run = result.scenario.run
     columns = (
-        "estimator",
-        "MSLE mean",
-        "MSLE final",
-        "RMSE (m)",
-        "NEES",
-        "NEES rel.",
-        "comm rate",
-        "kB/step",
-        "det. precision",
-        "det. recall",
-        "wall (s)",
-    )
+        "estimator | MSLE mean | MSLE final | RMSE (m) | NEES | NEES rel. | comm rate | kB/step | "
+        "det. precision | det. recall | wall (s)"
+    ).split(" | ")
     rows = [
         (
             name.upper() if name != "dr" else "dead reckoning",
@@ -119,14 +110,9 @@ def run_command(
 
     path = scenario
     scenario = load_scenario(path) if path else default_scenario()
-    filters = None if filter is FilterChoice.ALL else [filter.value]
-    if filter is FilterChoice.ALL and path is None:
-        filters = ["ckf", "ukf", "ekf"]
-    changes = {}
-    if filters is not None:
-        changes["run.filters"] = filters
-    if seed is not None:
-        changes["run.seed"] = seed
+    changes = {} if seed is None else {"run.seed": seed}
+    if filter is not FilterChoice.ALL:
+        changes["run.filters"] = [filter.value]
     if changes:  # validated like the file (--seed must fit TOML's 64-bit integers)
         scenario = scenario.replace(**changes)
     inputs = [path] if path else []
@@ -137,7 +123,7 @@ def run_command(
         from resloc.experiments.plots import pyplot
 
         pyplot()  # fail early, before the run, if matplotlib is missing
-    with signals_as_exceptions(), step_progress(progress and sys.stderr.isatty()) as bar:
+    with signals_as_exceptions(), step_progress(progress) as bar:
         task = bar.add_task("simulating", total=scenario.run.steps)
         result = run_scenario(scenario, progress=lambda k, n: bar.update(task, completed=k))
     print_summary(result)

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import typer
 
+from resloc.cli.common import progress_display
+
 __all__ = [
     "FRESH",
     "JOBS",
@@ -46,29 +48,18 @@ FRESH = typer.Option(
 
 @contextlib.contextmanager
 def progress_bar(description: str, enabled: bool) -> Iterator[Callable[[float, float], None]]:
-    """A rich progress bar on stderr; yields ``update(done, total)`` (a no-op when off)."""
-    from rich.console import Console
+    """A progress bar over cells on stderr; yields ``update(done, total)`` (a no-op when
+    off)."""
     from rich.progress import (
-        BarColumn,
         MofNCompleteColumn,
-        Progress,
         TextColumn,
         TimeElapsedColumn,
         TimeRemainingColumn,
     )
 
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("cells"),
-        TimeElapsedColumn(),
-        TextColumn("eta"),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        transient=True,
-        disable=not enabled,
-    ) as bar:
+    cells, eta = TextColumn("cells"), TextColumn("eta")
+    columns = (MofNCompleteColumn(), cells, TimeElapsedColumn(), eta, TimeRemainingColumn())
+    with progress_display(enabled, *columns) as bar:
         task = bar.add_task(description, total=None)
 
         def update(done: float, total: float) -> None:
@@ -96,7 +87,6 @@ def study_session(
     from resloc.experiments.store import ResultStore
 
     result_store = ResultStore(store, read=not fresh)
-    failed = None
     with progress_bar(description, progress) as update:
         study = Study(jobs=jobs, scheduler=scheduler, store=result_store, progress=update)
         try:
@@ -107,9 +97,7 @@ def study_session(
         except StudyFailedError as exc:
             if out is None:
                 raise
-            failed = exc  # written once the progress bar is gone
-    if failed is not None:
-        raise write_failures(failed, out, overwrite)
+            raise write_failures(exc, out, overwrite) from None
     stats = study.stats
     print(
         f"cells: {stats.cells} ({stats.from_store} from the store {result_store.root}, "

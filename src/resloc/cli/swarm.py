@@ -92,15 +92,9 @@ def print_swarm_summary(result) -> None:
             f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "
             f"{rt.get('steps_completed')} steps, {name.upper()}",
             (
-                "MSLE mean",
-                "MSLE final",
-                "RMSE (m)",
-                "NEES",
-                "comm rate",
-                "det. prec.",
-                "det. recall",
-                "wall/step (s)",
-            ),
+                "MSLE mean | MSLE final | RMSE (m) | NEES | comm rate | det. prec. | det. recall | "
+                "wall/step (s)"
+            ).split(" | "),
             [row],
             labels=0,
             console=console,
@@ -208,7 +202,6 @@ def swarm_command(
     """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
     if not run_id.replace("-", "").replace("_", "").isalnum():
         raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
-    progress = progress and sys.stderr.isatty()
     require_zenoh()
     from resloc.errors import ConfigError
     from resloc.experiments.config import default_scenario, dump_scenario, load_scenario

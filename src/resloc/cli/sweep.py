@@ -56,7 +56,6 @@ def sweep_command(
 
         pyplot()
     points = len(spec.values)
-    progress = progress and sys.stderr.isatty()
     with study_session(
         f"sweep {spec.axis_label} ({points} points)", jobs, scheduler, store, fresh, progress
     ) as study:

@@ -30,7 +30,7 @@ from resloc.cl.graph import Lambda2Source
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
-from resloc.schema import spec_field
+from resloc.schema import option
 from resloc.validation import INT64_MAX, check_one_line_name
 from resloc.world.control import LeaderPath
 from resloc.world.spec import (
@@ -73,51 +73,47 @@ class RiskSource(enum.StrEnum):
 class RunSpec:
     """What to run."""
 
-    name: str = spec_field("arc-turn", "scenario name (one printable line)")
-    seed: int = spec_field(
+    name: str = option("arc-turn", "scenario name (one printable line)")
+    seed: int = option(
         0, "random seed of the world (truth, noise, attacks, channel)", min=0, max=INT64_MAX
     )
-    steps: int = spec_field(1000, "number of time steps", min=1, max=10_000_000)
-    trials: int = spec_field(
+    steps: int = option(1000, "number of time steps", min=1, max=10_000_000)
+    trials: int = option(
         1,
         "Monte Carlo trials simulated together (seeds seed.0 .. seed.T-1)",
         min=1,
         max=5_000_000,
     )
-    filters: list = spec_field(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
-    dead_reckoning: bool = spec_field(True, "also run odometry-only dead reckoning as a floor")
+    filters: list = option(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
+    dead_reckoning: bool = option(True, "also run odometry-only dead reckoning as a floor")
 
 
 @dataclass(frozen=True)
 class EstimatorSpec:
     """Per-robot filter options (see ``docs/algorithm.md``)."""
 
-    update_mode: UpdateMode = spec_field(
-        UpdateMode.SEQUENTIAL, "sequential or summed neighbour fusion"
-    )
-    neighbour_estimate: NeighbourEstimate = spec_field(
+    update_mode: UpdateMode = option(UpdateMode.SEQUENTIAL, "sequential or summed neighbour fusion")
+    neighbour_estimate: NeighbourEstimate = option(
         NeighbourEstimate.CURRENT, "neighbour estimate for detector/trigger: current or cached"
     )
-    update_without_transmission: bool = spec_field(
+    update_without_transmission: bool = option(
         False, "with cached estimates, fuse untriggered measurements with the cache"
     )
-    ukf_alpha: float = spec_field(0.5, "UKF alpha (scaled sigma points)", min=1e-4, max=1.0)
-    ukf_beta: float = spec_field(2.0, "UKF beta", min=0.0, max=100.0)
-    ukf_kappa: float = spec_field(
+    ukf_alpha: float = option(0.5, "UKF alpha (scaled sigma points)", min=1e-4, max=1.0)
+    ukf_beta: float = option(2.0, "UKF beta", min=0.0, max=100.0)
+    ukf_kappa: float = option(
         0.0, "UKF kappa (n + kappa > 0 with n = 3: kappa > -3)", gt=-3.0, max=100.0
     )
-    fusion: FusionMethod = spec_field(
+    fusion: FusionMethod = option(
         FusionMethod.NAIVE,
         f"neighbour fusion: {', '.join(FUSION_STRATEGIES)} (naive: the paper; docs/beyond.md)",
     )
-    ci_criterion: CICriterion = spec_field(
-        CICriterion.TRACE, "CI weight minimises trace or det of P_i"
-    )
-    gauge_sums: GaugeSums = spec_field(
+    ci_criterion: CICriterion = option(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
+    gauge_sums: GaugeSums = option(
         GaugeSums.EXACT,
         "gauge fusion's team sums: exact, or each robot's own by neighbour consensus",
     )
-    gauge_rounds: int = spec_field(
+    gauge_rounds: int = option(
         3, "gauge sums by consensus: neighbour exchanges per step", min=1, max=1000
     )
 
@@ -126,52 +122,46 @@ class EstimatorSpec:
 class DetectorSpec:
     """Innovation-residual attack detector (Algorithm 1)."""
 
-    enabled: bool = spec_field(True, "discard measurements whose innovation norm exceeds rho")
-    rho: float = spec_field(
-        0.5, "detection threshold rho (units of the chosen norm)", gt=0.0, max=1e6
-    )
-    norm: InnovationNorm = spec_field(
+    enabled: bool = option(True, "discard measurements whose innovation norm exceeds rho")
+    rho: float = option(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0, max=1e6)
+    norm: InnovationNorm = option(
         InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis"
     )
-    false_alarm: float = spec_field(
+    false_alarm: float = option(
         0.0,
         "with norm = nis: chi-square gate at this false-alarm probability (0: use rho)",
         min=0.0,
         max=0.5,
     )
-    cusum: bool = spec_field(
-        False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h"
-    )
-    cusum_k: float = spec_field(3.0, "CUSUM reference (drift) in NIS units", gt=0.0, max=1e6)
-    cusum_h: float = spec_field(20.0, "CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
-    mean_cusum: bool = spec_field(
+    cusum: bool = option(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
+    cusum_k: float = option(3.0, "CUSUM reference (drift) in NIS units", gt=0.0, max=1e6)
+    cusum_h: float = option(20.0, "CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
+    mean_cusum: bool = option(
         False, "also discard while a signed CUSUM of the whitened innovation exceeds mean_cusum_h"
     )
-    mean_cusum_k: float = spec_field(
+    mean_cusum_k: float = option(
         0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0, max=1e6
     )
-    mean_cusum_h: float = spec_field(
+    mean_cusum_h: float = option(
         8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0, max=1e6
     )
-    robot_cusum: bool = spec_field(
+    robot_cusum: bool = option(
         False, "also discard while the CUSUM of the NIS over all of a robot's links alarms"
     )
-    robot_cusum_k: float = spec_field(
-        3.0, "per-robot CUSUM reference in NIS units", gt=0.0, max=1e6
-    )
-    robot_cusum_h: float = spec_field(
+    robot_cusum_k: float = option(3.0, "per-robot CUSUM reference in NIS units", gt=0.0, max=1e6)
+    robot_cusum_h: float = option(
         30.0, "per-robot CUSUM alarm threshold in NIS units", gt=0.0, max=1e6
     )
-    recovery: bool = spec_field(
+    recovery: bool = option(
         False, "re-admit a robot's measurements after recovery_after consecutive rejections"
     )
-    recovery_after: int = spec_field(
+    recovery_after: int = option(
         10, "consecutive rejections of one robot before recovery", min=1, max=1_000_000
     )
-    recovery_false_alarm: float = spec_field(
+    recovery_false_alarm: float = option(
         1e-3, "recovery: chi-square gate on the inflated NIS at this probability", gt=0.0, max=0.5
     )
-    recovery_inflation_cap: float = spec_field(
+    recovery_inflation_cap: float = option(
         100.0, "recovery: largest inflation of the innovation covariance", min=1.0, max=1e12
     )
 
@@ -180,29 +170,29 @@ class DetectorSpec:
 class TriggerSpec:
     """Adaptive event trigger, eq. (11)."""
 
-    enabled: bool = spec_field(True, "event-triggered communication (off: transmit every step)")
-    alpha: float = spec_field(0.6, "alpha of eq. (11)", min=0.0, max=1e6)
-    gamma: float = spec_field(0.5, "gamma of eq. (11)", min=0.0, max=1e6)
-    zeta_s: float = spec_field(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
-    zeta_c: float = spec_field(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
-    norm: InnovationNorm = spec_field(
+    enabled: bool = option(True, "event-triggered communication (off: transmit every step)")
+    alpha: float = option(0.6, "alpha of eq. (11)", min=0.0, max=1e6)
+    gamma: float = option(0.5, "gamma of eq. (11)", min=0.0, max=1e6)
+    zeta_s: float = option(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
+    zeta_c: float = option(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
+    norm: InnovationNorm = option(
         InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis"
     )
-    lambda2: Lambda2Source = spec_field(
+    lambda2: Lambda2Source = option(
         Lambda2Source.COMPONENT,
         "lambda2 of the robot's component, of the global graph, or each robot's distributed "
         "estimate",
     )
-    lambda2_rounds: int = spec_field(
+    lambda2_rounds: int = option(
         3, "distributed lambda2: neighbour exchanges per step", min=1, max=1000
     )
-    risk_factor_floor: float = spec_field(
+    risk_factor_floor: float = option(
         0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)", min=-100.0, max=100.0
     )
-    threshold_innovation: ThresholdInnovation = spec_field(
+    threshold_innovation: ThresholdInnovation = option(
         ThresholdInnovation.CURRENT, "innovation inside the threshold: current or last_sent"
     )
-    risk_source: RiskSource = spec_field(RiskSource.TRUE, "Ds/Dc at the true or estimated position")
+    risk_source: RiskSource = option(RiskSource.TRUE, "Ds/Dc at the true or estimated position")
 
 
 @dataclass(frozen=True)
@@ -283,10 +273,6 @@ _LIST_LENGTHS = {
 }
 
 
-#: Types whose values are a set of names: an enum, or the registered fusion methods.
-_CHOICES = (enum.Enum, FusionMethod)
-
-
 def _type_name(v: Any) -> str:
     return {bool: "boolean", int: "integer", float: "number", str: "string", list: "array"}.get(
         type(v), type(v).__name__
@@ -337,7 +323,7 @@ def build(cls: type, data: Any, path: str) -> Any:
 
 def _convert(path: str, value: Any, hint: Any, meta: Any) -> Any:
     meta = dict(meta or {})
-    if isinstance(hint, type) and issubclass(hint, _CHOICES):
+    if isinstance(hint, type) and issubclass(hint, enum.Enum | FusionMethod):  # names
         choices = [m.value for m in hint]
         if not isinstance(value, str) or value not in choices:
             raise ConfigError(f"{path}: {value!r} is not one of {', '.join(choices)}")
@@ -516,8 +502,6 @@ def _plain(v: Any) -> Any:
         return v.value
     if isinstance(v, tuple | list):
         return [_plain(x) for x in v]
-    if isinstance(v, float) and math.isinf(v):
-        return v
     return v
 
 

@@ -40,25 +40,23 @@ _NIS = {"detector.norm": "nis", "detector.false_alarm": 0.01}
 _NIS_CUSUM = {**_NIS, "detector.cusum": True}
 _MEAN = {"detector.mean_cusum": True}
 
+
+def _fusion(method: str, *options: dict) -> dict:
+    """The changes that select fusion ``method``, then ``options`` (dotted changes)."""
+    return {"estimator.fusion": method, **{k: v for o in options for k, v in o.items()}}
+
+
 #: The main table's methods (the paper first).
 METHODS: tuple[Method, ...] = (
     Method("paper", "paper: naive fusion, raw-norm gate", {}),
-    Method("ci", "CI fusion, raw-norm gate", {"estimator.fusion": "ci"}),
-    Method(
-        "tracked+nis+cusum",
-        "tracked, NIS gate + CUSUM",
-        {"estimator.fusion": "tracked", **_NIS_CUSUM},
-    ),
-    Method("gauge+nis", "gauge, NIS gate", {"estimator.fusion": "gauge", **_NIS}),
-    Method(
-        "gauge+nis+cusum",
-        "gauge, NIS gate + CUSUM",
-        {"estimator.fusion": "gauge", **_NIS_CUSUM},
-    ),
+    Method("ci", "CI fusion, raw-norm gate", _fusion("ci")),
+    Method("tracked+nis+cusum", "tracked, NIS gate + CUSUM", _fusion("tracked", _NIS_CUSUM)),
+    Method("gauge+nis", "gauge, NIS gate", _fusion("gauge", _NIS)),
+    Method("gauge+nis+cusum", "gauge, NIS gate + CUSUM", _fusion("gauge", _NIS_CUSUM)),
     Method(
         "gauge+nis+cusum+mean",
         "gauge, NIS gate + CUSUM + mean-shift CUSUM",
-        {"estimator.fusion": "gauge", **_NIS_CUSUM, **_MEAN},
+        _fusion("gauge", _NIS_CUSUM, _MEAN),
     ),
 )
 
@@ -69,37 +67,25 @@ METHODS: tuple[Method, ...] = (
 FUSION_METHODS: tuple[Method, ...] = (
     Method("naive", "naive, raw-norm gate (paper)", {}),
     Method("naive+nis+cusum", "naive, NIS gate + CUSUM", dict(_NIS_CUSUM)),
-    Method("ci+nis+cusum", "CI, NIS gate + CUSUM", {"estimator.fusion": "ci", **_NIS_CUSUM}),
-    Method(
-        "split_ci+nis+cusum",
-        "split CI, NIS gate + CUSUM",
-        {"estimator.fusion": "split_ci", **_NIS_CUSUM},
-    ),
+    Method("ci+nis+cusum", "CI, NIS gate + CUSUM", _fusion("ci", _NIS_CUSUM)),
+    Method("split_ci+nis+cusum", "split CI, NIS gate + CUSUM", _fusion("split_ci", _NIS_CUSUM)),
     Method(
         "factorized+nis+cusum",
         "factorized (Luft et al.), NIS gate + CUSUM",
-        {"estimator.fusion": "factorized", **_NIS_CUSUM},
+        _fusion("factorized", _NIS_CUSUM),
     ),
-    Method("tracked", "tracked, raw-norm gate", {"estimator.fusion": "tracked"}),
-    Method(
-        "tracked+nis+cusum",
-        "tracked, NIS gate + CUSUM",
-        {"estimator.fusion": "tracked", **_NIS_CUSUM},
-    ),
-    Method(
-        "gauge+nis+cusum",
-        "gauge, NIS gate + CUSUM",
-        {"estimator.fusion": "gauge", **_NIS_CUSUM},
-    ),
+    Method("tracked", "tracked, raw-norm gate", _fusion("tracked")),
+    Method("tracked+nis+cusum", "tracked, NIS gate + CUSUM", _fusion("tracked", _NIS_CUSUM)),
+    Method("gauge+nis+cusum", "gauge, NIS gate + CUSUM", _fusion("gauge", _NIS_CUSUM)),
     Method(
         "gauge(consensus)+nis+cusum",
         "gauge with consensus sums, NIS gate + CUSUM",
-        {"estimator.fusion": "gauge", "estimator.gauge_sums": "consensus", **_NIS_CUSUM},
+        _fusion("gauge", {"estimator.gauge_sums": "consensus"}, _NIS_CUSUM),
     ),
     Method(
         "gauge+nis+cusum+mean",
         "gauge, NIS gate + CUSUM + mean-shift CUSUM",
-        {"estimator.fusion": "gauge", **_NIS_CUSUM, **_MEAN},
+        _fusion("gauge", _NIS_CUSUM, _MEAN),
     ),
 )
 

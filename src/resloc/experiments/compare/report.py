@@ -87,22 +87,16 @@ def compare_result(config: dict, outputs: list[dict]) -> CompareResult:
     return CompareResult(config, table, fusion, roc, lam, _targets(fusion, raw))
 
 
+#: The per-trial metrics of a cell summarized as mean and interval.
+_SUMMARIZED = (
+    "msle msle_final rmse nees nees_rel comm_rate bytes_per_step tpr fpr attacked_fused"
+).split()
+
+
 def _summarize_cell(out: dict) -> dict:
     m = out["metrics"]
-    return {
-        "msle": _est(m["msle"]),
-        "msle_final": _est(m["msle_final"]),
-        "rmse": _est(m["rmse"]),
-        "nees": _est(m["nees"]),
-        "nees_rel": _est(m.get("nees_rel", [float("nan")])),
-        "comm_rate": _est(m["comm_rate"]),
-        "bytes_per_step": _est(m.get("bytes_per_step", [float("nan")])),
-        "tpr": _est(m["tpr"]),
-        "fpr": _est(m["fpr"]),
-        "attacked_fused": _est(m["attacked_fused"]),
-        "repairs": m["repairs"],
-        "wall_time_s": m["wall_time_s"],
-    }
+    summary = {key: _est(m.get(key, [float("nan")])) for key in _SUMMARIZED}
+    return {**summary, "repairs": m["repairs"], "wall_time_s": m["wall_time_s"]}
 
 
 def _table_row(o: dict) -> dict:

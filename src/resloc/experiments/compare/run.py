@@ -100,14 +100,9 @@ def _cell_task(task: dict) -> Task:
 def _run_cells(tasks: list[dict], study: Study) -> list[dict]:
     """Every cell: from the study's store, or computed on its backend (in task order)."""
     work = [_cell_task(t) for t in tasks]
-    found: dict[str, Any] = {}
-    todo = []
-    for w in work:
-        hit, value = study.lookup(w.keys[0])
-        if hit:
-            found[w.keys[0]] = value
-        else:
-            todo.append(w)
+    looked_up = {w.keys[0]: study.lookup(w.keys[0]) for w in work}
+    found = {key: value for key, (hit, value) in looked_up.items() if hit}
+    todo = [w for w in work if w.keys[0] not in found]
     found.update(study.run(todo, cells=len(work), from_store=len(found)))
     if study.failures:
         raise StudyFailedError(study.failures, study.stats)
@@ -127,12 +122,10 @@ def _task(study, sc: StudyScenario, me: Method, seeds, steps, filt, quick, robot
     }
 
 
-def _roc_tasks(quick: bool, filt: str, steps=None, robots=None) -> list[dict]:
+def _roc_tasks(quick: bool, filt: str, steps: int, robots=None) -> list[dict]:
     """Closed-loop ROC runs: gauge fusion, one threshold per group of trials (threshold k on
     trials ``k*seeds .. (k+1)*seeds - 1``, as a per-robot gate threshold)."""
     seeds = 1 if quick else 3
-    if steps is None:
-        steps = 200 if quick else 650  # the SDZ is crossed within the first 650 steps
     tasks = []
     for attack in ("sdz_stealthy",) if quick else ("sdz_fixed", "sdz_stealthy"):
         sc = next(s for s in SCENARIOS if s.key == attack)
@@ -166,10 +159,8 @@ def _roc_tasks(quick: bool, filt: str, steps=None, robots=None) -> list[dict]:
     return tasks
 
 
-def _lambda2_tasks(quick: bool, seeds: int, filt: str, steps=None) -> list[dict]:
+def _lambda2_tasks(quick: bool, seeds: int, filt: str, steps: int) -> list[dict]:
     sizes = QUICK_TEAM_SIZES if quick else TEAM_SIZES
-    if steps is None:
-        steps = 200 if quick else 1000
     tasks = []
     clean = SCENARIOS[0]
     for n in sizes:

@@ -18,7 +18,9 @@ def plot_roc(rows: list[dict], path: Path) -> Path:
     fewest alarms) to the strictest.
     """
     attacks = list(dict.fromkeys(r["attack"] for r in rows))
-    plt, fig, axes = figure(1, len(attacks), figsize=(4.5 * len(attacks), 4), sharey=True, squeeze=False)
+    plt, fig, axes = figure(
+        1, len(attacks), figsize=(4.5 * len(attacks), 4), sharey=True, squeeze=False
+    )
     for ax, attack in zip(axes[0], attacks, strict=True):
         gates = dict.fromkeys(r["gate"] for r in rows)
         for gate, style in zip(gates, ("o-", "s-", "^-", "d-"), strict=False):
