@@ -115,3 +115,37 @@ def test_scenario_show_prints_loadable_toml(tmp_path):
     res2 = runner.invoke(app, ["scenario", "show", str(p)])
     assert res2.exit_code == 0 and res2.stdout == res.stdout
     assert "[[sdz]]" in res.stdout and "robots = 17" in res.stdout
+
+
+def test_table_helpers(capsys, monkeypatch):
+    """One table printer for every command: labels left, numbers right, ``-`` for a missing
+    number, the given width when stdout is not a terminal (no wrapping in a log file)."""
+    from resloc.cli.common import number, print_table, timestamped_out
+
+    assert number(float("nan")) == "-" and number(None) == "-" and number(0.5, ".2f") == "0.50"
+    rows = [("dead reckoning", number(1234.5678, ".1f")), ("CKF", number(2.0, ".1f"))]
+    print_table("title", ("estimator", "value"), rows, width=60)
+    out = capsys.readouterr().out.splitlines()
+    assert max(len(line) for line in out) <= 60
+    body = [line for line in out if "CKF" in line or "dead" in line]
+    assert body[0].index("1234.6") > body[0].index("dead reckoning")
+    assert body[1].endswith("    2.0 │") and body[1].startswith("│ CKF ")  # right / left
+    wide = [("x" * 150, "1")]
+    print_table("t", ("name", "n"), wide, width=200)
+    assert any("x" * 150 in line for line in capsys.readouterr().out.splitlines())
+    stamp = timestamped_out("sweep")
+    assert stamp.parent.name == "runs" and stamp.name.startswith("sweep-")
+    assert timestamped_out().name[:2] == "20"
+
+
+def test_progress_is_off_without_a_terminal(monkeypatch):
+    """``--progress`` (the default) draws a bar only when stderr is a terminal."""
+    import sys
+
+    import typer
+
+    compare = typer.main.get_command(app).commands["compare"]
+    assert compare.make_context("compare", []).params["progress"] is False
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert compare.make_context("compare", []).params["progress"] is True
+    assert compare.make_context("compare", ["--no-progress"]).params["progress"] is False

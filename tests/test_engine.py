@@ -276,7 +276,9 @@ def test_uncovered_options_fall_back_to_the_reference() -> None:
 
 def _other_values(value):
     """Non-default values of a CLParams field, whatever its type (also for fields added later)."""
-    if isinstance(value, enum.Enum):
+    from resloc.cl.fusion import FusionMethod  # the registered fusion methods' names
+
+    if isinstance(value, enum.Enum | FusionMethod):
         return [v for v in type(value) if v is not value]
     if isinstance(value, bool):
         return [not value]

@@ -9,11 +9,12 @@ from __future__ import annotations
 from dataclasses import field
 from typing import Any
 
-__all__ = ["spec_field"]
+__all__ = ["option"]
 
 
-def spec_field(default: Any, doc: str, **bounds: Any) -> Any:
-    """A dataclass field with a default, a doc string and validation bounds."""
+def option(default: Any, doc: str, **bounds: Any) -> Any:
+    """A scenario option: a dataclass field with a default, a doc string and validation
+    bounds."""
     if isinstance(default, list | dict):
         return field(
             default_factory=lambda: type(default)(default), metadata={"doc": doc, **bounds}

@@ -26,19 +26,28 @@ The CL step runs :func:`detect`; the compiled kernel's coverage is read from
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from resloc.cl.cusum import link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_robot import RobotCusum
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["DETECTOR_STAGES", "DetectorStage", "Evidence", "active_stages", "detect"]
+__all__ = [
+    "CHI_SQUARE_NORMS",
+    "DETECTOR_STAGES",
+    "NORM_GATE",
+    "DetectorStage",
+    "Evidence",
+    "active_stages",
+    "detect",
+]
 
 
 @dataclass
@@ -104,6 +113,11 @@ class DetectorStage(Protocol):
         """Measurements to discard, shape (E,); updates the stage's state in ``memory``."""
 
 
+#: The detector norms whose square is the NIS (chi-square, 2 degrees of freedom, for honest
+#: measurements): a gate on them can be set by a false-alarm probability.
+CHI_SQUARE_NORMS = frozenset({InnovationNorm.NIS})
+
+
 def _memory(memory: LinkMemory | None, what: str) -> LinkMemory:
     if memory is None:
         raise ValueError(f"detector {what} needs a LinkMemory")
@@ -111,11 +125,28 @@ def _memory(memory: LinkMemory | None, what: str) -> LinkMemory:
 
 
 class NormGate:
-    """``||Lambda_ij|| > rho`` with the detector norm (raw, scaled or NIS)."""
+    """``||Lambda_ij|| > rho`` with the detector norm (raw, scaled or NIS); the threshold is
+    ``rho``, or set by a false-alarm probability when the norm is chi-square."""
 
     name: ClassVar[str] = "gate"
     compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
+
+    def problem(self, options: Any) -> str | None:
+        """Why the scenario's ``[detector]`` ``options`` make no gate (names the fix)."""
+        if options.false_alarm > 0.0 and options.norm not in CHI_SQUARE_NORMS:
+            return (
+                f"false_alarm: {options.false_alarm!r} sets a chi-square gate on the NIS; "
+                f'set detector.norm = "nis" (now {options.norm.value!r}) or false_alarm = 0'
+            )
+        return None
+
+    def threshold(self, options: Any) -> float:
+        """The gate's ``rho`` from the scenario's detector ``options``: ``sqrt`` of the
+        chi-square quantile at ``false_alarm`` when it is set, else ``rho``."""
+        if options.false_alarm > 0.0:
+            return math.sqrt(chi2_gate(options.false_alarm))
+        return options.rho
 
     def active(self, params: CLParams) -> bool:
         return bool(params.detector)
@@ -138,10 +169,8 @@ class NISCusum:
     def discard(self, evidence, params, memory) -> np.ndarray:
         memory = _memory(memory, "CUSUM (params.cusum)")
         ev = evidence
-        if params.detector_norm is InnovationNorm.NIS:
-            stat = ev.norm * ev.norm
-        else:
-            stat = nis(ev.nu, ev.S)
+        # The gate's norm, squared, is the NIS when the norm is chi-square: no second solve.
+        stat = ev.norm * ev.norm if params.detector_norm in CHI_SQUARE_NORMS else nis(ev.nu, ev.S)
         k = at_robots(params.cusum_k, ev.i)
         h = at_robots(params.cusum_h, ev.i)
         alarm = link_cusum(memory.cusum, ev.i, ev.j, stat, k, h, params.cusum_cap)
@@ -176,8 +205,9 @@ class MeanShiftCusum:
 
 #: The stages, in the order they run (the gate first: the others read its verdict; the
 #: recovery last: it overrides every verdict).
+NORM_GATE = NormGate()
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
-    NormGate(),
+    NORM_GATE,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

@@ -34,6 +34,8 @@ Every function works on batches of links with a leading axis ``E``.
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterator
+from typing import ClassVar
 
 import numpy as np
 
@@ -55,24 +57,50 @@ __all__ = [
 ]
 
 
-class FusionMethod(enum.StrEnum):
-    """How a relative update treats the unknown correlation of ``x_i`` and ``x_j``.
+class _RegisteredFusion(type):
+    def __iter__(cls) -> Iterator[FusionMethod]:
+        from resloc.cl.fusion_methods import FUSION_STRATEGIES
 
-    ``naive``: independent (the paper). ``ci``: covariance intersection of the joint.
-    ``split_ci``: split covariance intersection (independent parts tracked per robot).
-    ``tracked``: the cross-covariances are tracked (:mod:`resloc.cl.tracking`).
-    ``factorized``: tracked by factors each robot keeps (:mod:`resloc.cl.factorized`).
-    ``gauge``: the team's common rigid-body error modelled (:mod:`resloc.cl.gauge`).
+        return iter([cls(name) for name in FUSION_STRATEGIES])
 
-    Each method's behaviour is its strategy (:mod:`resloc.cl.fusion_methods`).
+
+class FusionMethod(str, metaclass=_RegisteredFusion):
+    """The name of a fusion method: a key of :data:`~resloc.cl.fusion_methods.FUSION_STRATEGIES`
+    (registering a strategy makes its name valid). Used like a string enum: ``FusionMethod("ci")``
+    (``ValueError`` naming the registered methods), ``FusionMethod.CI``, ``.value``,
+    ``list(FusionMethod)``; equal to its string, one object per name.
     """
 
-    NAIVE = "naive"
-    CI = "ci"
-    SPLIT_CI = "split_ci"
-    TRACKED = "tracked"
-    FACTORIZED = "factorized"
-    GAUGE = "gauge"
+    __slots__ = ()
+    _interned: ClassVar[dict[str, FusionMethod]] = {}
+
+    def __new__(cls, name: str) -> FusionMethod:
+        from resloc.cl.fusion_methods import FUSION_STRATEGIES
+
+        if name not in FUSION_STRATEGIES:
+            raise ValueError(
+                f"{name!r} is not a fusion method; registered: {', '.join(FUSION_STRATEGIES)}"
+            )
+        return cls._named(name)
+
+    @classmethod
+    def _named(cls, name: str) -> FusionMethod:
+        if name not in cls._interned:
+            cls._interned[name] = str.__new__(cls, name)
+        return cls._interned[name]
+
+    @property
+    def value(self) -> str:
+        """The name, as a plain string."""
+        return str.__str__(self)
+
+    def __repr__(self) -> str:
+        return f"FusionMethod({self.value!r})"
+
+
+# resloc's methods, by the names the code spells them with (``FusionMethod.GAUGE``).
+for _name in ("naive", "ci", "split_ci", "tracked", "factorized", "gauge"):
+    setattr(FusionMethod, _name.upper(), FusionMethod._named(_name))
 
 
 class CICriterion(enum.StrEnum):

@@ -3,7 +3,9 @@
 The CL step (:mod:`resloc.cl.step`), the simulator's runner, the robot node
 (:mod:`resloc.cl.node`) and the scenario layer look a method up with
 :func:`fusion_strategy` and call it; none of them tests the method's name. Adding a method is
-its mathematics in one module, one class here and one line in :data:`FUSION_STRATEGIES`.
+its mathematics and its strategy class in one module and one entry in
+:data:`FUSION_STRATEGIES`: its name is then a valid :class:`~resloc.cl.fusion.FusionMethod`,
+``CLParams.fusion`` and ``estimator.fusion`` value.
 
 A strategy is stateless; what a method remembers between steps lives in the
 :class:`~resloc.cl.memory.LinkMemory` of the robots it serves (``memory.joint``: the
@@ -45,7 +47,8 @@ class FusionStrategy(Protocol):
 
     Attributes
     ----------
-    method : FusionMethod
+    method : str
+        The method's name (its key in :data:`FUSION_STRATEGIES`).
     compiled : bool
         The compiled CL kernel (:mod:`resloc.cl.kernels`) implements the method.
     node_refusal : str or None
@@ -57,7 +60,7 @@ class FusionStrategy(Protocol):
         ``"factors"`` for factorized fusion): what a transport must carry for the method.
     """
 
-    method: ClassVar[FusionMethod]
+    method: ClassVar[str]
     compiled: ClassVar[bool] = False
     node_refusal: ClassVar[str | None] = None
     node_exchanges: ClassVar[tuple[str, ...]] = ()
@@ -242,7 +245,7 @@ class _Bookkept(_TransmittedOnly):
     def _joint(self, memory: LinkMemory | None):
         if memory is None or memory.joint is None:
             raise ValueError(
-                f"fusion {self.method.value!r} needs its bookkeeping in memory.joint "
+                f"fusion {str(self.method)!r} needs its bookkeeping in memory.joint "
                 "(fusion_strategy(method).init(memory, x0, P0, team_size))"
             )
         return memory.joint
@@ -261,9 +264,9 @@ class _Bookkept(_TransmittedOnly):
         return self._joint(memory).finish(P)
 
 
-def _team_size(method: FusionMethod, team_size: int | None) -> int:
+def _team_size(method: str, team_size: int | None) -> int:
     if team_size is None:
-        raise ValueError(f"fusion {method.value!r} needs team_size (the team's number of robots)")
+        raise ValueError(f"fusion {str(method)!r} needs team_size (the team's number of robots)")
     return int(team_size)
 
 
@@ -316,9 +319,9 @@ class GaugeFusion(_Bookkept):
         return self._joint(memory).reported(x, P)
 
 
-#: Every fusion method's strategy.
-FUSION_STRATEGIES: dict[FusionMethod, FusionStrategy] = {
-    s.method: s
+#: Every fusion method's strategy, by name.
+FUSION_STRATEGIES: dict[str, FusionStrategy] = {
+    str(s.method): s
     for s in (
         NaiveFusion(),
         CIFusion(),
@@ -331,5 +334,6 @@ FUSION_STRATEGIES: dict[FusionMethod, FusionStrategy] = {
 
 
 def fusion_strategy(method: FusionMethod | str) -> FusionStrategy:
-    """The strategy of fusion ``method``."""
-    return FUSION_STRATEGIES[FusionMethod(method)]
+    """The strategy of fusion ``method`` (``ValueError`` naming the registered methods when
+    there is none)."""
+    return FUSION_STRATEGIES[FusionMethod(method).value]

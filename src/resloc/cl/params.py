@@ -91,8 +91,9 @@ class CLParams:
         With ``cached`` neighbour estimates: fuse an accepted but untriggered measurement
         with the cached estimate of j (no message). Off in the paper.
     fusion : FusionMethod
-        ``naive`` (the paper) or an issue-6 method: ``gauge``, ``tracked``, ``factorized``,
-        ``ci``, ``split_ci`` (:mod:`resloc.cl.fusion`).
+        The name of a registered fusion strategy: ``naive`` (the paper), ``gauge``,
+        ``tracked``, ``factorized``, ``ci``, ``split_ci`` or one a caller registered
+        (:mod:`resloc.cl.fusion_methods`).
     ci_criterion : CICriterion
         What the CI weight minimises: posterior ``trace`` or ``det`` of ``P_i``.
     cusum : bool

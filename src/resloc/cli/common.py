@@ -1,10 +1,14 @@
-"""Shared CLI plumbing: error mapping to exit code 2 and console helpers."""
+"""Shared CLI plumbing: error mapping to exit code 2, the options every command writing
+results has, the default output directory, and tables on the console."""
 
 from __future__ import annotations
 
+import datetime as _dt
+import enum
 import functools
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 import typer
@@ -21,11 +25,22 @@ from resloc.errors import ResLocError
 __all__ = [
     "EXIT_BAD_INPUT",
     "EXIT_INTERRUPTED",
+    "OVERWRITE",
+    "PLOTS",
+    "PROGRESS",
+    "SCENARIO",
+    "FilterChoice",
+    "OneFilter",
     "OneLineErrors",
     "fail",
     "handle_errors",
+    "number",
     "one_line",
+    "out_option",
+    "print_table",
+    "progress_display",
     "step_progress",
+    "timestamped_out",
 ]
 
 #: Exit code for bad input (config, data file, argument).
@@ -109,17 +124,113 @@ class OneLineErrors(TyperGroup):
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
-def step_progress(enabled: bool):
-    """A transient rich progress bar on stderr counting steps (disabled: prints nothing)."""
+def progress_display(enabled: bool, *columns: Any):
+    """A transient rich progress display on stderr: the description, a bar, then ``columns``
+    (rich progress columns; disabled: prints nothing)."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, Progress, TextColumn
 
     return Progress(
         TextColumn("[progress.description]{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed}/{task.total} steps"),
-        TimeRemainingColumn(),
+        *columns,
         console=Console(stderr=True),
         transient=True,
         disable=not enabled,
     )
+
+
+def step_progress(enabled: bool):
+    """A progress bar counting steps (disabled: prints nothing)."""
+    from rich.progress import TextColumn, TimeRemainingColumn
+
+    steps = TextColumn("{task.completed}/{task.total} steps")
+    return progress_display(enabled, steps, TimeRemainingColumn())
+
+
+OVERWRITE = typer.Option(False, "--overwrite", help="Replace a non-empty --out.")
+PLOTS = typer.Option(True, "--plots/--no-plots", help="Write PNG figures.")
+
+
+def _on_a_terminal(show: bool) -> bool:
+    return show and sys.stderr.isatty()
+
+
+#: ``--progress/--no-progress``; the value is False when stderr is not a terminal.
+PROGRESS = typer.Option(
+    True,
+    "--progress/--no-progress",
+    callback=_on_a_terminal,
+    help="Show a progress bar on stderr.",
+)
+
+
+def out_option(default: str) -> Any:
+    """The ``--out``/``-o`` option, its ``default`` (a description) named in the help."""
+    return typer.Option(None, "--out", "-o", help=f"Output directory \\[default: {default}].")
+
+
+def timestamped_out(prefix: str = "") -> Path:
+    """The default output directory: ``runs/<prefix>-<YYYYmmdd-HHMMSS>`` (no prefix:
+    ``runs/<YYYYmmdd-HHMMSS>``)."""
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / (f"{prefix}-{stamp}" if prefix else stamp)
+
+
+def number(value: float | None, spec: str = ".4g") -> str:
+    """``value`` formatted with ``spec``; ``-`` when it is None or NaN."""
+    return "-" if value is None or value != value else format(value, spec)
+
+
+def print_table(
+    title: str,
+    columns: Sequence[str],
+    rows: Iterable[Sequence[str]],
+    *,
+    labels: int = 1,
+    width: int | None = 130,
+    console: Any = None,
+    **label_column: Any,
+) -> None:
+    """Print a table on stdout (or ``console``): the first ``labels`` columns left-aligned,
+    with the rich column options ``label_column``, the others right-aligned; ``width``: the
+    console's when stdout is not a terminal (None: rich's default)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title)
+    for k, column in enumerate(columns):
+        if k < labels:
+            table.add_column(column, justify="left", **label_column)
+        else:
+            table.add_column(column, justify="right")
+    for row in rows:
+        table.add_row(*row)
+    if console is None:
+        console = Console(width=None if sys.stdout.isatty() else width)
+    console.print(table)
+
+
+class OneFilter(enum.StrEnum):
+    """One filter on the command line (the names of :class:`resloc.filters.FilterKind`,
+    without importing the filters at start-up)."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+
+
+class FilterChoice(enum.StrEnum):
+    """Filter selection on the command line: one filter, or ``all``."""
+
+    CKF = "ckf"
+    UKF = "ukf"
+    EKF = "ekf"
+    ALL = "all"
+
+
+SCENARIO = typer.Argument(
+    None,
+    help="Scenario TOML file (default: the embedded 17-robot arc-turn).",
+    show_default=False,
+)

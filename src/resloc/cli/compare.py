@@ -1,54 +1,57 @@
-"""``resloc compare``: resloc's fixes against the paper's method (issue 6, docs/beyond.md)."""
+"""``resloc compare``: resloc's fixes against the paper's method (docs/beyond.md)."""
 
 from __future__ import annotations
 
-import datetime as _dt
-import enum
-import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import fail, handle_errors
-from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    OneFilter,
+    fail,
+    handle_errors,
+    out_option,
+    timestamped_out,
+)
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 
 __all__ = ["compare_command", "register"]
 
 
-class CompareFilter(enum.StrEnum):
-    """Filter used by every cell of the comparison."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-
-
+@handle_errors
 def compare_command(
-    quick: bool,
-    seeds: int | None,
-    jobs: int | None,
-    filt: CompareFilter,
-    out: Path | None,
-    overwrite: bool,
-    plots: bool,
-    progress: bool,
-    scheduler: str | None = None,
-    store: Path | None = None,
-    fresh: bool = False,
+    quick: bool = typer.Option(
+        False, "--quick", help="Smoke-test size: 2 seeds, 200 steps, fewer methods."
+    ),
+    seeds: int | None = typer.Option(
+        None, "--seeds", min=1, help="Seeds per cell \\[default: 10, quick 2]."
+    ),
+    jobs: int | None = JOBS,
+    scheduler: str | None = SCHEDULER,
+    store: Path | None = STORE,
+    fresh: bool = FRESH,
+    filt: OneFilter = typer.Option(OneFilter.CKF, "--filter", "-f", help="Filter of every cell."),
+    out: Path | None = out_option("runs/compare-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
 ):
-    """Run the comparison, print the report section, write the outputs."""
+    """Compare the paper's method with consistent fusion, NIS/CUSUM detection and
+    distributed lambda2 over clean, SDZ (fixed, stealthy) and CDZ scenarios."""
     from resloc.experiments.compare import run_compare, save_compare
-    from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
 
-    if out is None:
-        out = Path("runs") / f"compare-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    if seeds is not None and seeds < 2:
+        raise fail("--seeds: confidence intervals need at least 2 seeds")
+    out = out or timestamped_out("compare")
     check_output_dir(out, overwrite)
-    try:
-        with study_session("comparing", jobs, scheduler, store, fresh, progress) as study:
-            result = run_compare(quick=quick, seeds=seeds, filt=filt.value, study=study)
-    except StudyFailedError as exc:
-        raise write_failures(exc, out, overwrite) from None
+    with study_session(
+        "comparing", jobs, scheduler, store, fresh, progress, out, overwrite
+    ) as study:
+        result = run_compare(quick=quick, seeds=seeds, filt=filt.value, study=study)
     print(result.markdown())
     with atomic_output_dir(out, overwrite) as tmp:
         save_compare(result, tmp, plots=plots)
@@ -58,46 +61,4 @@ def compare_command(
 
 def register(app: typer.Typer) -> None:
     """Add ``compare`` to ``app``."""
-
-    @app.command("compare")
-    @handle_errors
-    def compare(
-        quick: bool = typer.Option(
-            False, "--quick", help="Smoke-test size: 2 seeds, 200 steps, fewer methods."
-        ),
-        seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per cell \\[default: 10, quick 2]."
-        ),
-        jobs: int | None = JOBS,
-        scheduler: str | None = SCHEDULER,
-        store: Path | None = STORE,
-        fresh: bool = FRESH,
-        filt: CompareFilter = typer.Option(
-            CompareFilter.CKF, "--filter", "-f", help="Filter of every cell."
-        ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory \\[default: runs/compare-<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write roc.png."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
-    ) -> None:
-        """Compare the paper's method with consistent fusion, NIS/CUSUM detection and
-        distributed lambda2 over clean, SDZ (fixed, stealthy) and CDZ scenarios."""
-        if seeds is not None and seeds < 2:
-            raise fail("--seeds: confidence intervals need at least 2 seeds")
-        compare_command(
-            quick,
-            seeds,
-            jobs,
-            filt,
-            out,
-            overwrite,
-            plots,
-            progress and sys.stderr.isatty(),
-            scheduler,
-            store,
-            fresh,
-        )
+    app.command("compare")(compare_command)

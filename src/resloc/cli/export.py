@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors
+from resloc.cli.common import handle_errors, print_table
 
 __all__ = ["EXPORT_HELP", "export_command", "export_option", "print_alignment", "write_exports"]
 
@@ -40,26 +40,24 @@ def _check_export(value: str | None) -> str | None:
 
 def print_alignment(results) -> None:
     """Print the TUM alignment table (raw, team-aligned, per-robot aligned RMSE)."""
-    from rich.console import Console
-    from rich.table import Table
-
     for res in results:
         if res.format.value != "tum":
             continue
-        table = Table(
-            title="position RMSE (m): raw / team-aligned (one SE(2) for all robots) / "
-            "per-robot aligned"
-        )
-        for col in ("estimator", "raw", "team-aligned", "per-robot aligned"):
-            table.add_column(col, justify="left" if col == "estimator" else "right")
-        for name, e in res.info.items():
-            table.add_row(
+        rows = [
+            (
                 "DR" if name == "dr" else name.upper(),
                 f"{e['raw']:.4f}",
                 f"{e['team']:.4f}",
                 f"{e['per_robot']:.4f}",
             )
-        Console().print(table)
+            for name, e in res.info.items()
+        ]
+        print_table(
+            "position RMSE (m): raw / team-aligned (one SE(2) for all robots) / per-robot aligned",
+            ("estimator", "raw", "team-aligned", "per-robot aligned"),
+            rows,
+            width=None,
+        )
 
 
 def write_exports(
@@ -84,15 +82,32 @@ def write_exports(
     return results
 
 
+@handle_errors
 def export_command(
-    run_dir: Path,
-    formats: list[str],
-    out: Path | None,
-    overwrite: bool,
-    estimator: str | None,
-    rate: float | None,
+    run_dir: Path = typer.Argument(..., help="A directory written by resloc run or resloc mrclam."),
+    formats: list[str] = typer.Option(
+        [],
+        "--format",
+        "-F",
+        help="tum, rosbag, foxglove, html or all (repeat, or comma-separate).",
+    ),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Export directory (default: RUN_DIR/export)."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing exports."),
+    estimator: str | None = typer.Option(
+        None,
+        "--estimator",
+        "-e",
+        help="Estimator on /tf and shown first (default: the first filter).",
+    ),
+    rate: float | None = typer.Option(
+        None,
+        "--rate",
+        help="Highest rate (Hz) of bag, scene, viewer (default: every step; scene 10 Hz).",
+    ),
 ):
-    """``resloc export``: formats are required here."""
+    """Export a run for evo (TUM), ROS 2 (MCAP bag), Foxglove, or a browser (HTML)."""
     from resloc.errors import ConfigError
 
     if not formats:
@@ -104,34 +119,4 @@ def export_command(
 
 def register(app: typer.Typer) -> None:
     """Add ``export`` to ``app``."""
-
-    @app.command("export")
-    @handle_errors
-    def export(
-        run_dir: Path = typer.Argument(
-            ..., help="A directory written by resloc run or resloc mrclam."
-        ),
-        format: list[str] = typer.Option(
-            [],
-            "--format",
-            "-F",
-            help="tum, rosbag, foxglove, html or all (repeat, or comma-separate).",
-        ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Export directory (default: RUN_DIR/export)."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing exports."),
-        estimator: str | None = typer.Option(
-            None,
-            "--estimator",
-            "-e",
-            help="Estimator on /tf and shown first (default: the first filter).",
-        ),
-        rate: float | None = typer.Option(
-            None,
-            "--rate",
-            help="Highest rate (Hz) of bag, scene, viewer (default: every step; scene 10 Hz).",
-        ),
-    ) -> None:
-        """Export a run for evo (TUM), ROS 2 (MCAP bag), Foxglove, or a browser (HTML)."""
-        export_command(run_dir, format, out, overwrite, estimator, rate)
+    app.command("export")(export_command)

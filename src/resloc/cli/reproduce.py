@@ -3,47 +3,53 @@
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
-import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors
-from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
+from resloc.cli.common import (
+    OVERWRITE,
+    PROGRESS,
+    handle_errors,
+    out_option,
+    print_table,
+    timestamped_out,
+)
+from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 
 __all__ = ["register", "reproduce_command"]
 
 
+@handle_errors
 def reproduce_command(
-    seeds: int | None,
-    steps: int | None,
-    jobs: int | None,
-    quick: bool,
-    out: Path | None,
-    overwrite: bool,
-    progress: bool,
-    scheduler: str | None = None,
-    store: Path | None = None,
-    fresh: bool = False,
+    seeds: int | None = typer.Option(
+        None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
+    ),
+    jobs: int | None = JOBS,
+    scheduler: str | None = SCHEDULER,
+    store: Path | None = STORE,
+    fresh: bool = FRESH,
+    quick: bool = typer.Option(
+        False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
+    ),
+    steps: int | None = typer.Option(
+        None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
+    ),
+    out: Path | None = out_option("runs/reproduce-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    progress: bool = PROGRESS,
 ):
-    """Run every experiment, write the report, print where it is and the claims table."""
-    from resloc.experiments.executor import StudyFailedError
+    """Re-run every experiment of the paper over seeds and write report.md/report.html."""
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.plots import pyplot
     from resloc.experiments.reproduce import run_reproduction, write_reproduction
 
-    if out is None:
-        out = Path("runs") / f"reproduce-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out = out or timestamped_out("reproduce")
     check_output_dir(out, overwrite)
     pyplot()  # the report needs matplotlib: fail before the runs if it is missing
-    try:
-        with study_session(
-            "reproducing the paper's experiments", jobs, scheduler, store, fresh, progress
-        ) as study:
-            rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, study=study)
-    except StudyFailedError as exc:
-        raise write_failures(exc, out, overwrite) from None
+    what = "reproducing the paper's experiments"
+    with study_session(what, jobs, scheduler, store, fresh, progress, out, overwrite) as study:
+        rep = run_reproduction(seeds=seeds, steps=steps, quick=quick, study=study)
     status = contextlib.nullcontext()
     if progress:
         from rich.console import Console
@@ -58,65 +64,20 @@ def reproduce_command(
 
 def print_claims(claims, rep) -> None:
     """The short claims table."""
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(
-        title=f"paper claims vs measured ({rep.seeds} seeds, {rep.steps} steps, "
-        f"{rep.wall_time:.0f} s{', quick' if rep.quick else ''})"
-    )
-    table.add_column("figure")
-    table.add_column("claim")
-    table.add_column("verdict")
     style = {
         "holds": "green",
         "does not hold": "red",
         "not reproduced": "magenta",
         "inconclusive": "yellow",
     }
-    for c in claims:
-        v = c.verdict.value
-        table.add_row(c.figure, c.short, f"[{style[v]}]{v}[/]")
-    Console(width=None if sys.stdout.isatty() else 110).print(table)
+    rows = [(c.figure, c.short, f"[{style[c.verdict.value]}]{c.verdict.value}[/]") for c in claims]
+    title = (
+        f"paper claims vs measured ({rep.seeds} seeds, {rep.steps} steps, "
+        f"{rep.wall_time:.0f} s{', quick' if rep.quick else ''})"
+    )
+    print_table(title, ("figure", "claim", "verdict"), rows, labels=3, width=110)
 
 
 def register(app: typer.Typer) -> None:
     """Add ``reproduce`` to ``app``."""
-
-    @app.command("reproduce")
-    @handle_errors
-    def reproduce(
-        seeds: int | None = typer.Option(
-            None, "--seeds", min=2, help="Seeds per experiment \\[default: 10; 2 with --quick]."
-        ),
-        jobs: int | None = JOBS,
-        scheduler: str | None = SCHEDULER,
-        store: Path | None = STORE,
-        fresh: bool = FRESH,
-        quick: bool = typer.Option(
-            False, "--quick", help="2 seeds and short runs: a smoke test (under a minute)."
-        ),
-        steps: int | None = typer.Option(
-            None, "--steps", min=1, help="Steps per run \\[default: the scenario's]."
-        ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory \\[default: runs/reproduce-<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
-    ) -> None:
-        """Re-run every experiment of the paper over seeds and write report.md/report.html."""
-        reproduce_command(
-            seeds,
-            steps,
-            jobs,
-            quick,
-            out,
-            overwrite,
-            progress and sys.stderr.isatty(),
-            scheduler,
-            store,
-            fresh,
-        )
+    app.command("reproduce")(reproduce_command)

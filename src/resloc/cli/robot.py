@@ -6,24 +6,29 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import fail, handle_errors
+from resloc.cli.common import OneFilter, handle_errors
 
 __all__ = ["register", "robot_command"]
 
 
+@handle_errors
 def robot_command(
-    robot_id: int,
-    config: Path,
-    connect: list[str],
-    key_file: Path | None,
-    filter_name: str,
-    jam_acks: bool,
-    max_age_steps: int,
-    run_id: str,
-    connect_timeout: float = 10.0,
-    reply_window: float = 0.4,
-) -> int:
-    """Run robot ``robot_id`` until the run ends; returns the exit code."""
+    robot_id: int = typer.Option(..., "--id", min=0, help="This robot's id (0 .. N-1)."),
+    config: Path = typer.Option(..., "--config", help="The run's scenario TOML."),
+    connect: list[str] = typer.Option([], "--connect", help="The run's Zenoh router endpoint(s)."),
+    key_file: Path | None = typer.Option(None, "--key-file", help="The team key."),
+    filter: OneFilter = typer.Option(OneFilter.CKF, "--filter", "-f", help="The run's filter."),
+    jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
+    max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
+    reply_window: float = typer.Option(
+        0.4, "--reply-window", min=0.01, max=1.0, help="As the run's (fraction of dt)."
+    ),
+    run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
+    connect_timeout: float = typer.Option(
+        10.0, "--connect-timeout", min=0.1, help="Seconds to wait for a link to the router."
+    ),
+) -> None:
+    """Run one robot: join (or re-join) a running swarm (it follows the run's mode)."""
     from resloc.cli.swarm import key_file_path, require_zenoh
 
     require_zenoh()
@@ -45,7 +50,7 @@ def robot_command(
         connect=list(connect),
         key_file=str(key_file_path(key_file)),
         scenario=str(config),
-        filter=filter_name,
+        filter=filter.value,
         jam_acks=jam_acks,
         max_age_steps=max_age_steps,
         connect_timeout_s=connect_timeout,
@@ -53,52 +58,15 @@ def robot_command(
     )
     load_or_create_key(options.key_file)
     install_signal_handlers(ignore_sigint=False)
-    from resloc.runtime.process import TerminatedError
+    from resloc.runtime.process import TerminatedError, exit_now
 
     try:
-        return run_robots(options, [robot_id])
+        code = run_robots(options, [robot_id])
     except TerminatedError:
-        return 0
+        code = 0
+    exit_now(code)
 
 
 def register(app: typer.Typer) -> None:
     """Add ``robot`` to ``app``."""
-
-    @app.command("robot")
-    @handle_errors
-    def robot(
-        robot_id: int = typer.Option(..., "--id", min=0, help="This robot's id (0 .. N-1)."),
-        config: Path = typer.Option(..., "--config", help="The run's scenario TOML."),
-        connect: list[str] = typer.Option(
-            [], "--connect", help="The run's Zenoh router endpoint(s)."
-        ),
-        key_file: Path | None = typer.Option(None, "--key-file", help="The team key."),
-        filter: str = typer.Option("ckf", "--filter", "-f", help="ckf, ukf or ekf."),
-        jam_acks: bool = typer.Option(False, "--jam-acks", help="As the run's radio."),
-        max_age_steps: int = typer.Option(3, "--max-age-steps", min=0),
-        reply_window: float = typer.Option(
-            0.4, "--reply-window", min=0.01, max=1.0, help="As the run's (fraction of dt)."
-        ),
-        run_id: str = typer.Option("team", "--run-id", help="The run's namespace."),
-        connect_timeout: float = typer.Option(
-            10.0, "--connect-timeout", min=0.1, help="Seconds to wait for a link to the router."
-        ),
-    ) -> None:
-        """Run one robot: join (or re-join) a running swarm (it follows the run's mode)."""
-        if filter not in ("ckf", "ukf", "ekf"):
-            raise fail(f"--filter {filter!r}: use ckf, ukf or ekf")
-        code = robot_command(
-            robot_id,
-            config,
-            connect,
-            key_file,
-            filter,
-            jam_acks,
-            max_age_steps,
-            run_id,
-            connect_timeout,
-            reply_window,
-        )
-        from resloc.runtime.process import exit_now
-
-        exit_now(code)
+    app.command("robot")(robot_command)

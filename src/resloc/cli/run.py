@@ -2,78 +2,69 @@
 
 from __future__ import annotations
 
-import datetime as _dt
-import enum
 import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors, step_progress
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    SCENARIO,
+    FilterChoice,
+    handle_errors,
+    number,
+    out_option,
+    print_table,
+    step_progress,
+    timestamped_out,
+)
 from resloc.cli.export import export_option
 from resloc.validation import INT64_MAX
 
 __all__ = ["print_summary", "register", "run_command"]
 
 
-class FilterChoice(enum.StrEnum):
-    """Filter selection on the command line."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-    ALL = "all"
-
-
-def _fmt(v: float, spec: str = ".4g") -> str:
-    return "-" if v is None or v != v else format(v, spec)
-
-
 def print_summary(result, console=None) -> None:
     """Print the per-estimator results table."""
-    from rich.console import Console
-    from rich.table import Table
-
-    console = console or Console(width=None if sys.stdout.isatty() else 160)
-    table = Table(
-        title=f"{result.scenario.run.name}: {result.meta['robots']} robots, "
-        f"{result.scenario.run.trials} trial(s), {result.scenario.run.steps} steps, "
-        f"seed {result.scenario.run.seed}"
-    )
-    for col in (
-        "estimator",
-        "MSLE mean",
-        "MSLE final",
-        "RMSE (m)",
-        "NEES",
-        "NEES rel.",
-        "comm rate",
-        "kB/step",
-        "det. precision",
-        "det. recall",
-        "wall (s)",
-    ):
-        if col == "estimator":  # never truncated, however narrow the terminal
-            table.add_column(col, justify="left", no_wrap=True, min_width=len("dead reckoning"))
-        else:
-            table.add_column(col, justify="right")
-    for name, s in result.summary().items():
-        table.add_row(
+    run = result.scenario.run
+    columns = (
+        "estimator | MSLE mean | MSLE final | RMSE (m) | NEES | NEES rel. | comm rate | kB/step | "
+        "det. precision | det. recall | wall (s)"
+    ).split(" | ")
+    rows = [
+        (
             name.upper() if name != "dr" else "dead reckoning",
             f"diverged (step {s['diverged_step']})"
             if s.get("diverged_step")
-            else _fmt(s["msle_mean"], ".3e"),
-            _fmt(s["msle_final"], ".3e"),
-            _fmt(s["rmse_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s.get("nees_rel_mean", float("nan")), ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
-            _fmt(s.get("bytes_total", 0) / max(s["steps"], 1) / 1e3, ".3g"),
-            _fmt(s["detector_precision"], ".3f"),
-            _fmt(s["detector_recall"], ".3f"),
-            _fmt(s["wall_time_s"], ".2f"),
+            else number(s["msle_mean"], ".3e"),
+            number(s["msle_final"], ".3e"),
+            number(s["rmse_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s.get("nees_rel_mean", float("nan")), ".3g"),
+            number(s["comm_rate"], ".3f"),
+            number(s.get("bytes_total", 0) / max(s["steps"], 1) / 1e3, ".3g"),
+            number(s["detector_precision"], ".3f"),
+            number(s["detector_recall"], ".3f"),
+            number(s["wall_time_s"], ".2f"),
         )
-    console.print(table)
+        for name, s in result.summary().items()
+    ]
+    title = (
+        f"{run.name}: {result.meta['robots']} robots, {run.trials} trial(s), {run.steps} steps, "
+        f"seed {run.seed}"
+    )
+    # the estimator column is never truncated, however narrow the terminal
+    print_table(
+        title,
+        columns,
+        rows,
+        width=160,
+        console=console,
+        no_wrap=True,
+        min_width=len("dead reckoning"),
+    )
     warn_diverged(result.estimators)
 
 
@@ -91,17 +82,22 @@ def warn_diverged(estimators: dict) -> None:
             )
 
 
+@handle_errors
 def run_command(
-    scenario_path: Path | None,
-    filter_choice: FilterChoice,
-    seed: int | None,
-    out: Path | None,
-    overwrite: bool,
-    plots: bool,
-    progress: bool,
-    export: str | None = None,
+    scenario: Path | None = SCENARIO,
+    filter: FilterChoice = typer.Option(
+        FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
+    ),
+    seed: int | None = typer.Option(
+        None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
+    ),
+    out: Path | None = out_option("runs/<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
+    export: str | None = export_option(),
 ):
-    """Load (or embed) the scenario, run it, print the table, write the outputs."""
+    """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
     from resloc.cli.export import write_exports
     from resloc.experiments.config import default_scenario, load_scenario
     from resloc.experiments.output import (
@@ -112,21 +108,15 @@ def run_command(
     )
     from resloc.experiments.runner import check_run_size, run_scenario
 
-    scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
-    filters = None if filter_choice is FilterChoice.ALL else [filter_choice.value]
-    if filter_choice is FilterChoice.ALL and scenario_path is None:
-        filters = ["ckf", "ukf", "ekf"]
-    changes = {}
-    if filters is not None:
-        changes["run.filters"] = filters
-    if seed is not None:
-        changes["run.seed"] = seed
+    path = scenario
+    scenario = load_scenario(path) if path else default_scenario()
+    changes = {} if seed is None else {"run.seed": seed}
+    if filter is not FilterChoice.ALL:
+        changes["run.filters"] = [filter.value]
     if changes:  # validated like the file (--seed must fit TOML's 64-bit integers)
         scenario = scenario.replace(**changes)
-    inputs = [scenario_path] if scenario_path else []
-    if out is None:
-        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-        out = Path("runs") / stamp
+    inputs = [path] if path else []
+    out = out or timestamped_out()
     check_output_dir(out, overwrite, inputs)  # before any work: a bad --out loses nothing
     check_run_size(scenario)
     if plots:
@@ -147,35 +137,7 @@ def run_command(
 def register(app: typer.Typer) -> None:
     """Add ``run`` and the ``scenario`` group to ``app``."""
 
-    @app.command("run")
-    @handle_errors
-    def run(
-        scenario: Path | None = typer.Argument(
-            None,
-            help="Scenario TOML file (default: the embedded 17-robot arc-turn).",
-            show_default=False,
-        ),
-        filter: FilterChoice = typer.Option(
-            FilterChoice.ALL, "--filter", "-f", help="Which filter(s) to run."
-        ),
-        seed: int | None = typer.Option(
-            None, "--seed", "-s", min=0, max=INT64_MAX, help="Override run.seed."
-        ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory [default: runs/<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
-        export: str | None = export_option(),
-    ) -> None:
-        """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
-        run_command(
-            scenario, filter, seed, out, overwrite, plots, progress and sys.stderr.isatty(), export
-        )
-
+    app.command("run")(run_command)
     scenario_app = typer.Typer(help="Scenario files.", no_args_is_help=True)
 
     @scenario_app.command("show")

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import typer
 
+from resloc.cli.common import progress_display
+
 __all__ = [
     "FRESH",
     "JOBS",
@@ -46,29 +48,18 @@ FRESH = typer.Option(
 
 @contextlib.contextmanager
 def progress_bar(description: str, enabled: bool) -> Iterator[Callable[[float, float], None]]:
-    """A rich progress bar on stderr; yields ``update(done, total)`` (a no-op when off)."""
-    from rich.console import Console
+    """A progress bar over cells on stderr; yields ``update(done, total)`` (a no-op when
+    off)."""
     from rich.progress import (
-        BarColumn,
         MofNCompleteColumn,
-        Progress,
         TextColumn,
         TimeElapsedColumn,
         TimeRemainingColumn,
     )
 
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("cells"),
-        TimeElapsedColumn(),
-        TextColumn("eta"),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        transient=True,
-        disable=not enabled,
-    ) as bar:
+    cells, eta = TextColumn("cells"), TextColumn("eta")
+    columns = (MofNCompleteColumn(), cells, TimeElapsedColumn(), eta, TimeRemainingColumn())
+    with progress_display(enabled, *columns) as bar:
         task = bar.add_task(description, total=None)
 
         def update(done: float, total: float) -> None:
@@ -85,10 +76,14 @@ def study_session(
     store: Path | None,
     fresh: bool,
     progress: bool,
+    out: Path | None = None,
+    overwrite: bool = False,
 ):
     """Yield a :class:`~resloc.experiments.executor.Study` with a progress bar; an
-    interruption prints where the finished cells are and exits 130."""
-    from resloc.experiments.executor import Study, StudyInterrupted
+    interruption prints where the finished cells are and exits 130. With ``out``, failed
+    cells (:class:`~resloc.experiments.executor.StudyFailedError`) are written there by
+    :func:`write_failures` (exit 1)."""
+    from resloc.experiments.executor import Study, StudyFailedError, StudyInterrupted
     from resloc.experiments.store import ResultStore
 
     result_store = ResultStore(store, read=not fresh)
@@ -99,6 +94,10 @@ def study_session(
         except StudyInterrupted as exc:
             print(str(exc), file=sys.stderr)
             raise typer.Exit(130) from None
+        except StudyFailedError as exc:
+            if out is None:
+                raise
+            raise write_failures(exc, out, overwrite) from None
     stats = study.stats
     print(
         f"cells: {stats.cells} ({stats.from_store} from the store {result_store.root}, "

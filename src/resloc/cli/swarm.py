@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import enum
 import sys
 import tempfile
@@ -10,7 +9,20 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import fail, handle_errors, step_progress
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    SCENARIO,
+    OneFilter,
+    fail,
+    handle_errors,
+    number,
+    out_option,
+    print_table,
+    step_progress,
+    timestamped_out,
+)
 
 __all__ = ["DEFAULT_KEY_FILE", "print_swarm_summary", "register", "require_zenoh", "swarm_command"]
 
@@ -21,12 +33,6 @@ DEFAULT_KEY_FILE = Path.home() / ".config" / "resloc" / "team.key"
 class ModeChoice(enum.StrEnum):
     LOCKSTEP = "lockstep"
     REALTIME = "realtime"
-
-
-class FilterChoice(enum.StrEnum):
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
 
 
 def require_zenoh() -> None:
@@ -49,57 +55,50 @@ def key_file_path(path: Path | None) -> Path:
     return DEFAULT_KEY_FILE
 
 
-def _fmt(v, spec: str) -> str:
-    return "-" if v is None or v != v else format(v, spec)
-
-
 def print_swarm_summary(result) -> None:
     """The estimator row of ``resloc run`` and the wire table, from the written outputs."""
     from rich.console import Console
-    from rich.table import Table
 
     console = Console(width=None if sys.stdout.isatty() else 130)
     rt = result.runtime
     for name, s in result.summary.get("overall", {}).items():  # a replay, scored on truth
-        table = Table(title=f"swarm replay ({rt.get('mode')}): {name.upper()}")
-        for col in ("RMSE (m)", "heading (deg)", "MSLE", "NEES", "comm rate", "fused"):
-            table.add_column(col, justify="right")
-        table.add_row(
-            _fmt(s["position_rmse"], ".4f"),
-            _fmt(s["heading_rmse_deg"], ".2f"),
-            _fmt(s["msle_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
+        row = (
+            number(s["position_rmse"], ".4f"),
+            number(s["heading_rmse_deg"], ".2f"),
+            number(s["msle_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s["comm_rate"], ".3f"),
             str(s["robot_fused"]),
         )
-        console.print(table)
+        print_table(
+            f"swarm replay ({rt.get('mode')}): {name.upper()}",
+            ("RMSE (m)", "heading (deg)", "MSLE", "NEES", "comm rate", "fused"),
+            [row],
+            labels=0,
+            console=console,
+        )
     for name, s in result.summary.get("estimators", {}).items():
-        table = Table(
-            title=f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "
-            f"{rt.get('steps_completed')} steps, {name.upper()}"
+        row = (
+            number(s["msle_mean"], ".3e"),
+            number(s["msle_final"], ".3e"),
+            number(s["rmse_mean"], ".4f"),
+            number(s["nees_mean"], ".3g"),
+            number(s["comm_rate"], ".3f"),
+            number(s["detector_precision"], ".3f"),
+            number(s["detector_recall"], ".3f"),
+            number((rt.get("wall_time_per_step_s") or {}).get("mean"), ".4f"),
         )
-        for col in (
-            "MSLE mean",
-            "MSLE final",
-            "RMSE (m)",
-            "NEES",
-            "comm rate",
-            "det. prec.",
-            "det. recall",
-            "wall/step (s)",
-        ):
-            table.add_column(col, justify="right")
-        table.add_row(
-            _fmt(s["msle_mean"], ".3e"),
-            _fmt(s["msle_final"], ".3e"),
-            _fmt(s["rmse_mean"], ".4f"),
-            _fmt(s["nees_mean"], ".3g"),
-            _fmt(s["comm_rate"], ".3f"),
-            _fmt(s["detector_precision"], ".3f"),
-            _fmt(s["detector_recall"], ".3f"),
-            _fmt((rt.get("wall_time_per_step_s") or {}).get("mean"), ".4f"),
+        print_table(
+            f"swarm ({rt.get('mode')}): {rt.get('robots')} robot processes' estimates, "
+            f"{rt.get('steps_completed')} steps, {name.upper()}",
+            (
+                "MSLE mean | MSLE final | RMSE (m) | NEES | comm rate | det. prec. | det. recall | "
+                "wall/step (s)"
+            ).split(" | "),
+            [row],
+            labels=0,
+            console=console,
         )
-        console.print(table)
     if rt.get("msle_mean_lockstep") is not None:
         console.print(
             f"realtime MSLE {rt['msle_mean']:.3e} beside {rt['msle_mean_lockstep']:.3e} in "
@@ -108,52 +107,101 @@ def print_swarm_summary(result) -> None:
             f"late estimates used: {rt['robot_counters'].get('estimates_late_used', 0)}, "
             f"stale dropped: {rt['robot_counters'].get('estimates_stale_dropped', 0)}"
         )
-    wire = Table(title="on the wire, per robot per second of simulated time")
-    for col in ("kind", "messages/s", "bytes/s", "copies delivered", "copies lost"):
-        wire.add_column(col, justify="left" if col == "kind" else "right")
-    for kind, w in rt.get("wire_by_kind", {}).items():
-        wire.add_row(
+    wire = [
+        (
             kind,
-            _fmt(w["messages_per_robot_per_s"], ".1f"),
-            _fmt(w["bytes_per_robot_per_s"], ".0f"),
+            number(w["messages_per_robot_per_s"], ".1f"),
+            number(w["bytes_per_robot_per_s"], ".0f"),
             str(w.get("copies_delivered", "")),
             str(w.get("copies_lost", "")),
         )
+        for kind, w in rt.get("wire_by_kind", {}).items()
+    ]
     trig = rt.get("trigger", {})
-    wire.add_row(
-        "(trigger)",
-        _fmt(trig.get("triggered_links_per_robot_per_s"), ".1f"),
-        "",
-        "",
-        "",
+    wire.append(
+        ("(trigger)", number(trig.get("triggered_links_per_robot_per_s"), ".1f"), "", "", "")
     )
-    console.print(wire)
+    print_table(
+        "on the wire, per robot per second of simulated time",
+        ("kind", "messages/s", "bytes/s", "copies delivered", "copies lost"),
+        wire,
+        console=console,
+    )
 
 
+@handle_errors
 def swarm_command(
-    scenario_path: Path | None,
-    mode: ModeChoice,
-    robots_per_process: int,
-    out: Path | None,
-    overwrite: bool,
-    listen: list[str],
-    connect: list[str],
-    key_file: Path | None,
-    filter_choice: FilterChoice | None,
-    seed: int | None,
-    steps: int | None,
-    jam_acks: bool,
-    max_age_steps: int,
-    run_id: str,
-    replay: Path | None,
-    replay_seconds: float,
-    replay_dt: float,
-    plots: bool,
-    progress: bool,
-    external: str = "",
-    reply_window: float = 0.4,
+    scenario: Path | None = SCENARIO,
+    mode: ModeChoice = typer.Option(
+        ModeChoice.LOCKSTEP,
+        "--mode",
+        help="lockstep: the world waits for every robot; "
+        "realtime: the world steps at dt in wall time.",
+    ),
+    robots_per_process: int = typer.Option(
+        1, "--robots-per-process", "-k", min=1, help="Robots hosted by each robot process."
+    ),
+    out: Path | None = out_option("runs/swarm-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    listen: list[str] = typer.Option(
+        [],
+        "--listen",
+        help="Endpoint(s) of the run's Zenoh router \\[default: a free port on 127.0.0.1].",
+    ),
+    connect: list[str] = typer.Option(
+        [], "--connect", help="Use an external router (zenohd) at these endpoint(s)."
+    ),
+    key_file: Path | None = typer.Option(
+        None,
+        "--key-file",
+        help=f"Team key (created, mode 0600, if absent) \\[default: {DEFAULT_KEY_FILE}].",
+    ),
+    filter: OneFilter | None = typer.Option(
+        None, "--filter", "-f", help="Every robot's filter \\[default: the scenario's first]."
+    ),
+    seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
+    jam_acks: bool = typer.Option(
+        False,
+        "--jam-acks",
+        help="The radio jams gauge acknowledgements too (the "
+        "simulator delivers them even inside a CDZ).",
+    ),
+    max_age_steps: int = typer.Option(
+        3,
+        "--max-age-steps",
+        min=0,
+        help="Realtime: drop neighbour estimates older than this many steps.",
+    ),
+    reply_window: float = typer.Option(
+        0.4,
+        "--reply-window",
+        min=0.01,
+        max=1.0,
+        help="Realtime, pulled estimates (neighbour_estimate = cached): skip a link whose "
+        "request is unanswered within this fraction of dt.",
+    ),
+    run_id: str = typer.Option("team", "--run-id", help="Key-expression namespace."),
+    replay: Path | None = typer.Option(
+        None, "--replay", help="An MRCLAM dataset folder replaces the simulated world."
+    ),
+    replay_seconds: float = typer.Option(
+        0.0, "--replay-seconds", min=0.0, help="Replay only the first seconds (0: all)."
+    ),
+    replay_dt: float = typer.Option(
+        0.1, "--replay-dt", min=0.005, max=1.0, help="Replay step (s)."
+    ),
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
+    external: str = typer.Option(
+        "",
+        "--external-robots",
+        help="Robot ids started elsewhere with resloc robot (another host), e.g. 3,4.",
+    ),
 ):
-    """Parse, run :func:`~resloc.runtime.swarm.run_swarm`, print, map errors."""
+    """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
+    if not run_id.replace("-", "").replace("_", "").isalnum():
+        raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
     require_zenoh()
     from resloc.errors import ConfigError
     from resloc.experiments.config import default_scenario, dump_scenario, load_scenario
@@ -168,8 +216,7 @@ def swarm_command(
         raise ConfigError(
             f"--external-robots {external!r}: give robot ids separated by commas, e.g. 3,4"
         ) from None
-    if out is None:
-        out = Path("runs") / ("swarm-" + _dt.datetime.now().strftime("%Y%m%d-%H%M%S"))
+    out = out or timestamped_out("swarm")
     check_output_dir(out, overwrite)
     work = Path(tempfile.mkdtemp(prefix="resloc-swarm-"))
     options = SwarmOptions(
@@ -188,27 +235,27 @@ def swarm_command(
 
     load_or_create_key(options.key_file)  # created (0600) or checked before anything runs
     if replay is not None:
-        if scenario_path is not None:
+        if scenario is not None:
             raise ConfigError("SCENARIO and --replay: give one of them")
         if not replay.is_dir():
             raise ConfigError(f"--replay {replay}: no such dataset folder")
         options.replay = str(replay.resolve())
         options.replay_seconds = replay_seconds
         options.replay_dt = replay_dt
-        options.filter = (filter_choice or FilterChoice.CKF).value
+        options.filter = (filter or OneFilter.CKF).value
     else:
-        scenario = load_scenario(scenario_path) if scenario_path else default_scenario()
+        validated = load_scenario(scenario) if scenario else default_scenario()
         changes = {}
         if seed is not None:
             changes["run.seed"] = seed
         if steps is not None:
             changes["run.steps"] = steps
         if changes:
-            scenario = scenario.replace(**changes)
-        check_supported(scenario)
-        options.filter = filter_choice.value if filter_choice else scenario.run.filters[0]
+            validated = validated.replace(**changes)
+        check_supported(validated)
+        options.filter = filter.value if filter else validated.run.filters[0]
         path = work / "scenario.toml"
-        path.write_text(dump_scenario(scenario), encoding="utf-8")
+        path.write_text(dump_scenario(validated), encoding="utf-8")
         options.scenario = str(path)
     with step_progress(progress) as bar:
         task = bar.add_task(f"swarm ({mode.value})", total=None)
@@ -234,103 +281,4 @@ def swarm_command(
 
 def register(app: typer.Typer) -> None:
     """Add ``swarm`` to ``app``."""
-
-    @app.command("swarm")
-    @handle_errors
-    def swarm(
-        scenario: Path | None = typer.Argument(
-            None, help="Scenario TOML (default: the embedded one).", show_default=False
-        ),
-        mode: ModeChoice = typer.Option(
-            ModeChoice.LOCKSTEP,
-            "--mode",
-            help="lockstep: the world waits for every robot; "
-            "realtime: the world steps at dt in wall time.",
-        ),
-        robots_per_process: int = typer.Option(
-            1, "--robots-per-process", "-k", min=1, help="Robots hosted by each robot process."
-        ),
-        out: Path | None = typer.Option(None, "--out", "-o", help="Output directory."),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        listen: list[str] = typer.Option(
-            [],
-            "--listen",
-            help="Endpoint(s) of the run's Zenoh router [default: a free port on 127.0.0.1].",
-        ),
-        connect: list[str] = typer.Option(
-            [], "--connect", help="Use an external router (zenohd) at these endpoint(s)."
-        ),
-        key_file: Path | None = typer.Option(
-            None,
-            "--key-file",
-            help=f"Team key (created, mode 0600, if absent) [default: {DEFAULT_KEY_FILE}].",
-        ),
-        filter: FilterChoice | None = typer.Option(
-            None, "--filter", "-f", help="Every robot's filter [default: the scenario's first]."
-        ),
-        seed: int | None = typer.Option(None, "--seed", "-s", min=0, help="Override run.seed."),
-        steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
-        jam_acks: bool = typer.Option(
-            False,
-            "--jam-acks",
-            help="The radio jams gauge acknowledgements too (the "
-            "simulator delivers them even inside a CDZ).",
-        ),
-        max_age_steps: int = typer.Option(
-            3,
-            "--max-age-steps",
-            min=0,
-            help="Realtime: drop neighbour estimates older than this many steps.",
-        ),
-        reply_window: float = typer.Option(
-            0.4,
-            "--reply-window",
-            min=0.01,
-            max=1.0,
-            help="Realtime, pulled estimates (neighbour_estimate = cached): skip a link whose "
-            "request is unanswered within this fraction of dt.",
-        ),
-        run_id: str = typer.Option("team", "--run-id", help="Key-expression namespace."),
-        replay: Path | None = typer.Option(
-            None, "--replay", help="An MRCLAM dataset folder replaces the simulated world."
-        ),
-        replay_seconds: float = typer.Option(
-            0.0, "--replay-seconds", min=0.0, help="Replay only the first seconds (0: all)."
-        ),
-        replay_dt: float = typer.Option(
-            0.1, "--replay-dt", min=0.005, max=1.0, help="Replay step (s)."
-        ),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
-        progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bar."),
-        external: str = typer.Option(
-            "",
-            "--external-robots",
-            help="Robot ids started elsewhere with resloc robot (another host), e.g. 3,4.",
-        ),
-    ) -> None:
-        """Run the team as separate OS processes over Zenoh (world, radio, robots, recorder)."""
-        if not run_id.replace("-", "").replace("_", "").isalnum():
-            raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
-        swarm_command(
-            scenario,
-            mode,
-            robots_per_process,
-            out,
-            overwrite,
-            listen,
-            connect,
-            key_file,
-            filter,
-            seed,
-            steps,
-            jam_acks,
-            max_age_steps,
-            run_id,
-            replay,
-            replay_seconds,
-            replay_dt,
-            plots,
-            progress and sys.stderr.isatty(),
-            external,
-            reply_window,
-        )
+    app.command("swarm")(swarm_command)

@@ -2,42 +2,53 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import sys
 from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors
+from resloc.cli.common import (
+    OVERWRITE,
+    PLOTS,
+    PROGRESS,
+    handle_errors,
+    out_option,
+    print_table,
+    timestamped_out,
+)
 from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session
 
 __all__ = ["print_sweep", "register", "sweep_command"]
 
 
+@handle_errors
 def sweep_command(
-    path: Path,
-    seeds: int | None,
-    steps: int | None,
-    jobs: int | None,
-    out: Path | None,
-    overwrite: bool,
-    plots: bool,
-    progress: bool,
-    scheduler: str | None = None,
-    store: Path | None = None,
-    fresh: bool = False,
+    path: Path = typer.Argument(
+        ...,
+        help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
+        "\\[sweep.grid] / \\[sweep.zip]).",
+    ),
+    seeds: int | None = typer.Option(
+        None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
+    ),
+    steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
+    jobs: int | None = JOBS,
+    scheduler: str | None = SCHEDULER,
+    store: Path | None = STORE,
+    fresh: bool = FRESH,
+    out: Path | None = out_option("runs/sweep-<timestamp>"),
+    overwrite: bool = OVERWRITE,
+    plots: bool = PLOTS,
+    progress: bool = PROGRESS,
 ):
-    """Load the sweep file, run its cells, print the table, write the outputs.
-
-    A failed cell does not stop the sweep: the outputs are written (the failed cells in
-    ``cells.csv`` and ``failures.json``) and the exit code is 1.
-    """
+    """Run a scenario at every point of a sweep (one parameter, a grid or zipped
+    parameters) x seeds x filters, as cells on a Dask cluster, kept in the result store
+    (a failed cell does not stop the others; it is in cells.csv and failures.json, exit 1)."""
     from resloc.experiments.output import atomic_output_dir, check_output_dir
     from resloc.experiments.sweep import load_sweep, run_sweep, save_sweep
 
     spec = load_sweep(path)
-    if out is None:
-        out = Path("runs") / f"sweep-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out = out or timestamped_out("sweep")
     check_output_dir(out, overwrite, [path])  # before any work: a bad --out loses nothing
     spec.with_run(seeds, steps).scenarios()  # every point valid before any work
     if plots:
@@ -65,72 +76,29 @@ def sweep_command(
 
 def print_sweep(result) -> None:
     """Print one row per value: each filter's metric and the communication rate (95% CI)."""
-    from rich.console import Console
-    from rich.table import Table
-
     from resloc.experiments.stats import mean_ci
 
     spec = result.spec
-    table = Table(
-        title=f"{spec.name}: {result.seeds} seed(s), {spec.base.run.steps} steps, "
-        f"mean ± 95% CI, {result.wall_time:.1f} s"
-    )
-    table.add_column(spec.axis_label)
+    columns = [spec.axis_label]
     for f in result.filters:
-        table.add_column(f"{f.upper()} {spec.metric}", justify="right")
-        table.add_column(f"{f.upper()} comm rate", justify="right")
+        columns += [f"{f.upper()} {spec.metric}", f"{f.upper()} comm rate"]
+    rows = []
     for k, v in enumerate(spec.values):
         row = [spec.label(v)]
-        if result.runs[k] is None:
-            table.add_row(*row, *(["failed"] * (2 * len(result.filters))))
-            continue
         for f in result.filters:
-            row.append(mean_ci(result.per_trial(f)[k]).format(".3g"))
-            row.append(mean_ci(result.per_trial(f, "comm_rate")[k]).format(".3f"))
-        table.add_row(*row)
-    Console(width=None if sys.stdout.isatty() else 130).print(table)
+            if result.runs[k] is None:
+                row += ["failed", "failed"]
+            else:
+                row.append(mean_ci(result.per_trial(f)[k]).format(".3g"))
+                row.append(mean_ci(result.per_trial(f, "comm_rate")[k]).format(".3f"))
+        rows.append(row)
+    title = (
+        f"{spec.name}: {result.seeds} seed(s), {spec.base.run.steps} steps, "
+        f"mean ± 95% CI, {result.wall_time:.1f} s"
+    )
+    print_table(title, columns, rows)
 
 
 def register(app: typer.Typer) -> None:
     """Add ``sweep`` to ``app``."""
-
-    @app.command("sweep")
-    @handle_errors
-    def sweep(
-        path: Path = typer.Argument(
-            ...,
-            help="Sweep file: a scenario file plus \\[sweep] (parameter and values, or "
-            "\\[sweep.grid] / \\[sweep.zip]).",
-        ),
-        seeds: int | None = typer.Option(
-            None, "--seeds", min=1, help="Seeds per value \\[default: the file's run.trials]."
-        ),
-        steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
-        jobs: int | None = JOBS,
-        scheduler: str | None = SCHEDULER,
-        store: Path | None = STORE,
-        fresh: bool = FRESH,
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output directory \\[default: runs/sweep-<timestamp>]."
-        ),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
-        progress: bool = typer.Option(
-            True, "--progress/--no-progress", help="Show a progress bar on stderr."
-        ),
-    ) -> None:
-        """Run a scenario at every point of a sweep (one parameter, a grid or zipped
-        parameters) x seeds x filters, as cells on a Dask cluster, kept in the result store."""
-        sweep_command(
-            path,
-            seeds,
-            steps,
-            jobs,
-            out,
-            overwrite,
-            plots,
-            progress and sys.stderr.isatty(),
-            scheduler,
-            store,
-            fresh,
-        )
+    app.command("sweep")(sweep_command)

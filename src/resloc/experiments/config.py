@@ -21,15 +21,16 @@ from pathlib import Path
 from typing import Any
 
 from resloc.cl.cusum import chi2_gate
+from resloc.cl.detection import NORM_GATE
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
-from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.fusion_methods import FUSION_STRATEGIES, fusion_strategy
 from resloc.cl.gauge import GaugeSums
 from resloc.cl.graph import Lambda2Source
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
-from resloc.schema import spec_field as _f
+from resloc.schema import option
 from resloc.validation import INT64_MAX, check_one_line_name
 from resloc.world.control import LeaderPath
 from resloc.world.spec import (
@@ -72,48 +73,47 @@ class RiskSource(enum.StrEnum):
 class RunSpec:
     """What to run."""
 
-    name: str = _f("arc-turn", "scenario name (one printable line)")
-    seed: int = _f(
+    name: str = option("arc-turn", "scenario name (one printable line)")
+    seed: int = option(
         0, "random seed of the world (truth, noise, attacks, channel)", min=0, max=INT64_MAX
     )
-    steps: int = _f(1000, "number of time steps", min=1, max=10_000_000)
-    trials: int = _f(
+    steps: int = option(1000, "number of time steps", min=1, max=10_000_000)
+    trials: int = option(
         1,
         "Monte Carlo trials simulated together (seeds seed.0 .. seed.T-1)",
         min=1,
         max=5_000_000,
     )
-    filters: list = _f(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
-    dead_reckoning: bool = _f(True, "also run odometry-only dead reckoning as a floor")
+    filters: list = option(["ckf", "ukf", "ekf"], "filters to run: any of ckf, ukf, ekf")
+    dead_reckoning: bool = option(True, "also run odometry-only dead reckoning as a floor")
 
 
 @dataclass(frozen=True)
 class EstimatorSpec:
     """Per-robot filter options (see ``docs/algorithm.md``)."""
 
-    update_mode: UpdateMode = _f(UpdateMode.SEQUENTIAL, "sequential or summed neighbour fusion")
-    neighbour_estimate: NeighbourEstimate = _f(
+    update_mode: UpdateMode = option(UpdateMode.SEQUENTIAL, "sequential or summed neighbour fusion")
+    neighbour_estimate: NeighbourEstimate = option(
         NeighbourEstimate.CURRENT, "neighbour estimate for detector/trigger: current or cached"
     )
-    update_without_transmission: bool = _f(
+    update_without_transmission: bool = option(
         False, "with cached estimates, fuse untriggered measurements with the cache"
     )
-    ukf_alpha: float = _f(0.5, "UKF alpha (scaled sigma points)", min=1e-4, max=1.0)
-    ukf_beta: float = _f(2.0, "UKF beta", min=0.0, max=100.0)
-    ukf_kappa: float = _f(
+    ukf_alpha: float = option(0.5, "UKF alpha (scaled sigma points)", min=1e-4, max=1.0)
+    ukf_beta: float = option(2.0, "UKF beta", min=0.0, max=100.0)
+    ukf_kappa: float = option(
         0.0, "UKF kappa (n + kappa > 0 with n = 3: kappa > -3)", gt=-3.0, max=100.0
     )
-    fusion: FusionMethod = _f(
+    fusion: FusionMethod = option(
         FusionMethod.NAIVE,
-        "neighbour fusion: naive (paper), gauge, ci, split_ci, tracked or factorized "
-        "(docs/beyond.md)",
+        f"neighbour fusion: {', '.join(FUSION_STRATEGIES)} (naive: the paper; docs/beyond.md)",
     )
-    ci_criterion: CICriterion = _f(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
-    gauge_sums: GaugeSums = _f(
+    ci_criterion: CICriterion = option(CICriterion.TRACE, "CI weight minimises trace or det of P_i")
+    gauge_sums: GaugeSums = option(
         GaugeSums.EXACT,
         "gauge fusion's team sums: exact, or each robot's own by neighbour consensus",
     )
-    gauge_rounds: int = _f(
+    gauge_rounds: int = option(
         3, "gauge sums by consensus: neighbour exchanges per step", min=1, max=1000
     )
 
@@ -122,40 +122,46 @@ class EstimatorSpec:
 class DetectorSpec:
     """Innovation-residual attack detector (Algorithm 1)."""
 
-    enabled: bool = _f(True, "discard measurements whose innovation norm exceeds rho")
-    rho: float = _f(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0, max=1e6)
-    norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
-    false_alarm: float = _f(
+    enabled: bool = option(True, "discard measurements whose innovation norm exceeds rho")
+    rho: float = option(0.5, "detection threshold rho (units of the chosen norm)", gt=0.0, max=1e6)
+    norm: InnovationNorm = option(
+        InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis"
+    )
+    false_alarm: float = option(
         0.0,
         "with norm = nis: chi-square gate at this false-alarm probability (0: use rho)",
         min=0.0,
         max=0.5,
     )
-    cusum: bool = _f(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
-    cusum_k: float = _f(3.0, "CUSUM reference (drift) in NIS units", gt=0.0, max=1e6)
-    cusum_h: float = _f(20.0, "CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
-    mean_cusum: bool = _f(
+    cusum: bool = option(False, "also discard while the per-link CUSUM of the NIS exceeds cusum_h")
+    cusum_k: float = option(3.0, "CUSUM reference (drift) in NIS units", gt=0.0, max=1e6)
+    cusum_h: float = option(20.0, "CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
+    mean_cusum: bool = option(
         False, "also discard while a signed CUSUM of the whitened innovation exceeds mean_cusum_h"
     )
-    mean_cusum_k: float = _f(
+    mean_cusum_k: float = option(
         0.5, "mean-shift CUSUM reference, in innovation sigmas", gt=0.0, max=1e6
     )
-    mean_cusum_h: float = _f(8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0, max=1e6)
-    robot_cusum: bool = _f(
+    mean_cusum_h: float = option(
+        8.0, "mean-shift CUSUM alarm threshold, in sigmas", gt=0.0, max=1e6
+    )
+    robot_cusum: bool = option(
         False, "also discard while the CUSUM of the NIS over all of a robot's links alarms"
     )
-    robot_cusum_k: float = _f(3.0, "per-robot CUSUM reference in NIS units", gt=0.0, max=1e6)
-    robot_cusum_h: float = _f(30.0, "per-robot CUSUM alarm threshold in NIS units", gt=0.0, max=1e6)
-    recovery: bool = _f(
+    robot_cusum_k: float = option(3.0, "per-robot CUSUM reference in NIS units", gt=0.0, max=1e6)
+    robot_cusum_h: float = option(
+        30.0, "per-robot CUSUM alarm threshold in NIS units", gt=0.0, max=1e6
+    )
+    recovery: bool = option(
         False, "re-admit a robot's measurements after recovery_after consecutive rejections"
     )
-    recovery_after: int = _f(
+    recovery_after: int = option(
         10, "consecutive rejections of one robot before recovery", min=1, max=1_000_000
     )
-    recovery_false_alarm: float = _f(
+    recovery_false_alarm: float = option(
         1e-3, "recovery: chi-square gate on the inflated NIS at this probability", gt=0.0, max=0.5
     )
-    recovery_inflation_cap: float = _f(
+    recovery_inflation_cap: float = option(
         100.0, "recovery: largest inflation of the innovation covariance", min=1.0, max=1e12
     )
 
@@ -164,27 +170,29 @@ class DetectorSpec:
 class TriggerSpec:
     """Adaptive event trigger, eq. (11)."""
 
-    enabled: bool = _f(True, "event-triggered communication (off: transmit every step)")
-    alpha: float = _f(0.6, "alpha of eq. (11)", min=0.0, max=1e6)
-    gamma: float = _f(0.5, "gamma of eq. (11)", min=0.0, max=1e6)
-    zeta_s: float = _f(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
-    zeta_c: float = _f(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
-    norm: InnovationNorm = _f(InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis")
-    lambda2: Lambda2Source = _f(
+    enabled: bool = option(True, "event-triggered communication (off: transmit every step)")
+    alpha: float = option(0.6, "alpha of eq. (11)", min=0.0, max=1e6)
+    gamma: float = option(0.5, "gamma of eq. (11)", min=0.0, max=1e6)
+    zeta_s: float = option(1.0, "weight of the sensing risk Ds(i)", min=-100.0, max=100.0)
+    zeta_c: float = option(1.0, "weight of the communication risk Dc(i)", min=-100.0, max=100.0)
+    norm: InnovationNorm = option(
+        InnovationNorm.EUCLIDEAN, "innovation norm: euclidean, scaled, nis"
+    )
+    lambda2: Lambda2Source = option(
         Lambda2Source.COMPONENT,
         "lambda2 of the robot's component, of the global graph, or each robot's distributed "
         "estimate",
     )
-    lambda2_rounds: int = _f(
+    lambda2_rounds: int = option(
         3, "distributed lambda2: neighbour exchanges per step", min=1, max=1000
     )
-    risk_factor_floor: float = _f(
+    risk_factor_floor: float = option(
         0.0, "lower clip of (1 - zeta_s Ds - zeta_c Dc)", min=-100.0, max=100.0
     )
-    threshold_innovation: ThresholdInnovation = _f(
+    threshold_innovation: ThresholdInnovation = option(
         ThresholdInnovation.CURRENT, "innovation inside the threshold: current or last_sent"
     )
-    risk_source: RiskSource = _f(RiskSource.TRUE, "Ds/Dc at the true or estimated position")
+    risk_source: RiskSource = option(RiskSource.TRUE, "Ds/Dc at the true or estimated position")
 
 
 @dataclass(frozen=True)
@@ -206,7 +214,7 @@ class Scenario:
             odometry_std=tuple(w.motion.odometry_std),
             process_floor_std=tuple(w.motion.process_floor_std),
             detector=d.enabled,
-            rho=math.sqrt(chi2_gate(d.false_alarm)) if d.false_alarm > 0.0 else d.rho,
+            rho=NORM_GATE.threshold(d),
             detector_norm=d.norm,
             trigger=t.enabled,
             alpha=t.alpha,
@@ -315,7 +323,7 @@ def build(cls: type, data: Any, path: str) -> Any:
 
 def _convert(path: str, value: Any, hint: Any, meta: Any) -> Any:
     meta = dict(meta or {})
-    if isinstance(hint, type) and issubclass(hint, enum.Enum):
+    if isinstance(hint, type) and issubclass(hint, enum.Enum | FusionMethod):  # names
         choices = [m.value for m in hint]
         if not isinstance(value, str) or value not in choices:
             raise ConfigError(f"{path}: {value!r} is not one of {', '.join(choices)}")
@@ -407,15 +415,13 @@ def _parse(data: dict) -> Scenario:
         )
     trig: TriggerSpec = parts["trigger"]
     det: DetectorSpec = parts["detector"]
-    if det.false_alarm > 0.0 and det.norm is not InnovationNorm.NIS:
-        raise ConfigError(
-            f"detector.false_alarm: {det.false_alarm!r} sets a chi-square gate on the NIS; "
-            f'set detector.norm = "nis" (now {det.norm.value!r}) or false_alarm = 0'
-        )
+    problem = NORM_GATE.problem(det)
+    if problem is not None:
+        raise ConfigError(f"detector.{problem}")
     est: EstimatorSpec = parts["estimator"]
     problem = fusion_strategy(est.fusion).problem(est)
     if problem is not None:
-        raise ConfigError(f"estimator.fusion: {est.fusion.value!r} {problem}")
+        raise ConfigError(f"estimator.fusion: {str(est.fusion)!r} {problem}")
     att: AttackSpec = parts["attack"]
     if not any(abs(v) > 0.0 for v in att.stealth_direction):
         raise ConfigError(
@@ -496,8 +502,6 @@ def _plain(v: Any) -> Any:
         return v.value
     if isinstance(v, tuple | list):
         return [_plain(x) for x in v]
-    if isinstance(v, float) and math.isinf(v):
-        return v
     return v
 
 

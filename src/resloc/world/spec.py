@@ -13,7 +13,7 @@ import enum
 import math
 from dataclasses import dataclass, field
 
-from resloc.schema import spec_field as _f
+from resloc.schema import option
 from resloc.world.adversary import StealthKnowledge
 from resloc.world.attacks import AttackKind, LinkScope
 from resloc.world.zones import RiskProfile
@@ -61,18 +61,18 @@ class ChannelRule(enum.StrEnum):
 class TeamSpec:
     """The team: a leader plus followers on a square lattice behind it."""
 
-    robots: int = _f(17, "number of robots (1 leader + followers)", min=1, max=200000)
-    spacing: float = _f(0.25, "lattice spacing of the followers (m)", gt=0.0, max=LENGTH_MAX)
-    leader_gap: float = _f(
+    robots: int = option(17, "number of robots (1 leader + followers)", min=1, max=200000)
+    spacing: float = option(0.25, "lattice spacing of the followers (m)", gt=0.0, max=LENGTH_MAX)
+    leader_gap: float = option(
         0.25,
         "distance from the leader to the first follower column (m)",
         min=0.0,
         max=LENGTH_MAX,
     )
-    init_pos_std: float = _f(
+    init_pos_std: float = option(
         0.05, "std of the initial position estimate error (m)", min=STD_MIN, max=LENGTH_MAX
     )
-    init_heading_std: float = _f(
+    init_heading_std: float = option(
         0.05, "std of the initial heading estimate error (rad)", min=STD_MIN, max=math.pi
     )
 
@@ -81,24 +81,24 @@ class TeamSpec:
 class MotionSpec:
     """Leader path, follower control and odometry (Robotarium-like unicycles)."""
 
-    dt: float = _f(0.033, "time step (s)", min=1e-4, max=10.0)
-    v_max: float = _f(0.2, "linear speed limit (m/s)", gt=0.0, max=SPEED_MAX)
-    omega_max: float = _f(3.6, "angular speed limit (rad/s)", gt=0.0, max=SPEED_MAX)
-    leader_speed: float = _f(0.12, "leader's speed along its path (m/s)", gt=0.0, max=SPEED_MAX)
-    waypoints: list = _f(
+    dt: float = option(0.033, "time step (s)", min=1e-4, max=10.0)
+    v_max: float = option(0.2, "linear speed limit (m/s)", gt=0.0, max=SPEED_MAX)
+    omega_max: float = option(3.6, "angular speed limit (rad/s)", gt=0.0, max=SPEED_MAX)
+    leader_speed: float = option(0.12, "leader's speed along its path (m/s)", gt=0.0, max=SPEED_MAX)
+    waypoints: list = option(
         [[-0.4, -0.9], [0.4, -0.9], "arc", [0.4, 0.5], [-0.4, 0.5]],
         "leader path: [x, y] points; the string 'arc' between two points makes a "
         "half-circle turn (left) joining them",
     )
-    formation: FormationFrame = _f(FormationFrame.WORLD, "frame of the formation offsets")
-    gain: float = _f(1.5, "proportional gain of position tracking (1/s)", gt=0.0, max=1e3)
-    projection: float = _f(
+    formation: FormationFrame = option(FormationFrame.WORLD, "frame of the formation offsets")
+    gain: float = option(1.5, "proportional gain of position tracking (1/s)", gt=0.0, max=1e3)
+    projection: float = option(
         0.05, "look-ahead distance of the unicycle mapping (m)", gt=0.0, max=LENGTH_MAX
     )
-    odometry_std: list = _f(
+    odometry_std: list = option(
         [0.01, 0.05], "std of measured [v (m/s), omega (rad/s)]", min=0.0, max=SPEED_MAX
     )
-    process_floor_std: list = _f(
+    process_floor_std: list = option(
         [0.001, 0.001, 0.001],
         "additive process-noise floor for [x, y, theta] per sqrt(s)",
         min=STD_MIN,
@@ -110,41 +110,41 @@ class MotionSpec:
 class SensingSpec:
     """Range/bearing sensing and the communication range."""
 
-    radius: float = _f(1.0, "sensing radius R (m)", gt=0.0, max=ARENA_MAX)
-    comm_radius: float = _f(1.0, "communication radius (m)", gt=0.0, max=ARENA_MAX)
-    range_std: float = _f(0.005, "range noise std (m)", min=STD_MIN, max=LENGTH_MAX)
-    bearing_std: float = _f(0.05, "bearing noise std (rad)", min=STD_MIN, max=math.pi)
+    radius: float = option(1.0, "sensing radius R (m)", gt=0.0, max=ARENA_MAX)
+    comm_radius: float = option(1.0, "communication radius (m)", gt=0.0, max=ARENA_MAX)
+    range_std: float = option(0.005, "range noise std (m)", min=STD_MIN, max=LENGTH_MAX)
+    bearing_std: float = option(0.05, "bearing noise std (rad)", min=STD_MIN, max=math.pi)
 
 
 @dataclass(frozen=True)
 class AttackSpec:
     """How SDZs falsify measurements and CDZs jam links."""
 
-    kind: AttackKind = _f(AttackKind.RANDOM, "injected error: fixed bias or random in +-bias")
-    bias: list = _f(
+    kind: AttackKind = option(AttackKind.RANDOM, "injected error: fixed bias or random in +-bias")
+    bias: list = option(
         [0.4, 0.8], "injection magnitude [range (m), bearing (rad)]", min=0.0, max=LENGTH_MAX
     )
-    links: LinkScope = _f(LinkScope.FULL, "which links an SDZ can falsify: full or partial")
-    link_fraction: float = _f(
+    links: LinkScope = option(LinkScope.FULL, "which links an SDZ can falsify: full or partial")
+    link_fraction: float = option(
         0.5, "share of attackable links when links = 'partial'", min=0.0, max=1.0
     )
-    channel: ChannelRule = _f(ChannelRule.RECEIVER, "whose CDZ risk jams a link")
-    stealth_margin: float = _f(
+    channel: ChannelRule = option(ChannelRule.RECEIVER, "whose CDZ risk jams a link")
+    stealth_margin: float = option(
         0.9,
         "stealthy: drive each detector statistic to this fraction of its threshold",
         gt=0.0,
         max=1.0,
     )
-    stealth_direction: list = _f(
+    stealth_direction: list = option(
         [1.0, 0.0],
         "stealthy: injection direction [range, bearing] (range by default)",
         min=-1e3,
         max=1e3,
     )
-    stealth_knowledge: StealthKnowledge = _f(
+    stealth_knowledge: StealthKnowledge = option(
         StealthKnowledge.FULL, "stealthy: evade every test (full) or only the gate (gate)"
     )
-    replay_delay: int = _f(
+    replay_delay: int = option(
         60, "replay: age of the replayed measurement (steps)", min=1, max=1_000_000
     )
 
@@ -153,11 +153,11 @@ class AttackSpec:
 class ZoneSpec:
     """One danger zone (a ``[[sdz]]`` or ``[[cdz]]`` table)."""
 
-    center: list = _f([0.0, 0.0], "zone centre [x, y] (m)", min=-ARENA_MAX, max=ARENA_MAX)
-    radius: float = _f(0.4, "zone radius (m)", gt=0.0, max=ARENA_MAX)
-    peak: float = _f(1.0, "risk at the centre (probability)", min=0.0, max=1.0)
-    profile: RiskProfile = _f(RiskProfile.LINEAR, "risk profile from centre to edge")
-    tau: float = _f(0.0, "zone threshold tau: risk below it counts as 0", min=0.0, max=1.0)
+    center: list = option([0.0, 0.0], "zone centre [x, y] (m)", min=-ARENA_MAX, max=ARENA_MAX)
+    radius: float = option(0.4, "zone radius (m)", gt=0.0, max=ARENA_MAX)
+    peak: float = option(1.0, "risk at the centre (probability)", min=0.0, max=1.0)
+    profile: RiskProfile = option(RiskProfile.LINEAR, "risk profile from centre to edge")
+    tau: float = option(0.0, "zone threshold tau: risk below it counts as 0", min=0.0, max=1.0)
 
 
 @dataclass(frozen=True)

@@ -1,48 +1,14 @@
-"""``resloc compare`` (issue 6): study definitions, a tiny run, the report and the CLI."""
+"""``resloc.experiments.compare.run`` and the command: tiny runs of the studies."""
 
 from __future__ import annotations
 
 import functools
 import json
-from pathlib import Path
 
-import pytest
-from scipy.stats import chi2
 from typer.testing import CliRunner
 
 from resloc.cli.app import app
 from resloc.experiments import compare as cmp
-from resloc.experiments.config import load_scenario, scenario_to_dict
-
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "beyond"
-
-
-@pytest.mark.parametrize("sc", cmp.SCENARIOS + cmp.EXTRA_SCENARIOS, ids=lambda s: s.key)
-def test_example_files_match_the_study(sc):
-    """examples/beyond/<key>.toml is the study's scenario (the paper's method)."""
-    study = cmp.study_scenario(sc, cmp.METHODS[0], 10, 1000)
-    example = load_scenario(EXAMPLES / f"{sc.key}.toml")
-    a, b = scenario_to_dict(study), scenario_to_dict(example)
-    for section in ("attack", "detector", "estimator", "trigger", "team", "sensing"):
-        assert a[section] == b[section], section
-    assert a.get("sdz", []) == b.get("sdz", []) and a.get("cdz", []) == b.get("cdz", [])
-
-
-def test_resilient_example_is_the_best_combination():
-    sc = load_scenario(EXAMPLES / "resilient.toml")
-    best = next(m for m in cmp.METHODS if m.key == cmp.BEST)
-    d = scenario_to_dict(sc)
-    for dotted, value in best.changes.items():
-        section, key = dotted.split(".")
-        assert d[section][key] == value
-    assert d["trigger"]["lambda2"] == "distributed"
-
-
-def test_nees_band():
-    lo, hi = cmp.nees_band(3, 170)
-    assert lo == pytest.approx(chi2.ppf(0.025, 510) / 170) and 2.6 < lo < 3.0 < hi < 3.4
-    lo1, hi1 = cmp.nees_band(3, 1)
-    assert lo1 == pytest.approx(0.216, abs=1e-3) and hi1 == pytest.approx(9.348, abs=1e-3)
 
 
 def _tiny(**kw):
