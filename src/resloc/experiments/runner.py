@@ -9,20 +9,26 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from resloc.cl.connectivity import DistributedLambda2
-from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.gauge import GaugeSums
 from resloc.cl.graph import Lambda2Source
-from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
-from resloc.cl.step import LinkBatch, correct, predict
-from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
+from resloc.experiments.lockstep import (
+    DEAD_RECKONING,
+    Estimation,
+    EstimatorState,
+    LinkGroup,
+    Step,
+    divergence,
+    run_lockstep,
+)
 from resloc.experiments.metrics import (
     NEES_EXCEED_3DOF,
     communication,
@@ -37,7 +43,6 @@ from resloc.experiments.metrics import (
 )
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
-from resloc.linalg import symmetrize
 from resloc.validation import check_memory
 from resloc.world.adversary import stealthy_tamper
 from resloc.world.attackers import AttackStep
@@ -67,9 +72,6 @@ STEP_OBJECTS = 600
 #: Safety factor and fixed overhead (numpy temporaries, per-step Python lists) on top.
 RUN_MARGIN = 1.2
 RUN_OVERHEAD = 64e6
-
-#: Name of the odometry-only baseline in results.
-DEAD_RECKONING = "dr"
 
 #: Per-step series recorded for every estimator, each of shape (steps, T).
 SERIES = (
@@ -242,15 +244,23 @@ class RunResult:
         return {name: est.summary() for name, est in self.estimators.items()}
 
 
-class EstimatorTrack:
-    """Mutable state of one estimator during a run."""
+class EstimatorTrack(EstimatorState):
+    """One estimator of a simulated run: its state and everything recorded of trial 0 and
+    per trial (``tr.diverged`` set: stopped, its series, track and covariances stay ``nan``
+    from that step on)."""
 
-    def __init__(self, name: str, filt: GaussianFilter, x0, P0, steps: int, T: int, N: int):
-        self.name = name
-        self.filt = filt
-        self.x = x0.copy()
-        self.P = P0.copy()
-        self.memory = LinkMemory(T * N)
+    def __init__(
+        self,
+        name: str,
+        filt: GaussianFilter,
+        x0,
+        P0,
+        steps: int,
+        T: int,
+        N: int,
+        fusion: FusionStrategy | None = None,
+    ):
+        super().__init__(name, filt, x0, P0, T * N, fusion)
         self.series = {k: np.full((steps, T), np.nan) for k in SERIES}
         self.totals = {k: np.zeros(T, dtype=np.int64) for k in TOTALS}
         self.raster = np.zeros((steps, N), dtype=np.int8)
@@ -259,18 +269,6 @@ class EstimatorTrack:
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
-        self.wall = 0.0
-        self.diverged: dict | None = None
-        self.out = None
-        self.pending_P: np.ndarray | None = None
-
-    def stop(self, k: int, dt: float, N: int, P: np.ndarray, reason: str) -> None:
-        """Mark the estimator diverged at step index ``k`` (0-based) and blank its future."""
-        self.diverged = divergence(k, dt, N, P, reason)
-        self.track[k + 1 :] = np.nan
-        self.cov[k + 1 :] = np.nan
-        for arr in self.series.values():
-            arr[k:] = np.nan
 
 
 def expected_links(scenario: Scenario) -> float:
@@ -373,74 +371,30 @@ def run_scenario(
     x0, P0 = world.initial_estimates()
     hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
-    tracks = [
-        EstimatorTrack(
-            name,
-            make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa),
-            x0,
-            P0,
-            steps,
-            T,
-            N,
-        )
-        for name in run.filters
-    ]
     fusion = fusion_strategy(params.fusion)
     rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
-    for tr in tracks:
-        fusion.init(tr.memory, x0, P0, N, rounds=rounds)
+    tracks = []
+    for name in run.filters:
+        filt = make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa)
+        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion))
+        fusion.init(tracks[-1].memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
         dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
-    truth = np.zeros((steps + 1, N, 3))
-    truth[0] = world.pose[:N]
-    team = world.team
-    trial0_links: list[tuple] = []  # the world's links of trial 0, shared by the estimators
-    for k in range(steps):
-        ws = world.step()
-        attack_step = None
-        if adversary is not None:
-            attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
-            ws.attacked = attack_step.attacked = adversary.mark(ws.attacked, attack_step)
-        truth[k + 1] = ws.pose[:N]
-        own = ws.i < N
-        trial0_links.append(
-            (
-                np.full(int(own.sum()), k + 1, np.int32),
-                ws.i[own].astype(np.int32),
-                ws.j[own].astype(np.int32),
-                ws.attacked[own],
-            )
-        )
-        team_i = team[ws.i]
-        candidates = np.bincount(team_i, minlength=T)
-        attacked_n = np.bincount(team_i, weights=ws.attacked, minlength=T)
-        record = (k + 1) % metric_stride == 0 or k == steps - 1
-        lambda2 = hooks.lambda2(ws)
-        comm_edges = hooks.comm_edges(ws)
-        step_inputs = _StepInputs(
-            params, fusion, hooks, world, scenario, lambda2, comm_edges, dt, adversary, attack_step
-        )
-        for tr in tracks:
-            if tr.diverged is None:
-                _isolated_step(tr, k, ws, step_inputs, N)
-            if tr.diverged is not None:  # stopped: no link outcomes from here on
-                tr.link_flags.append(np.zeros(int(own.sum()), np.uint8))
-                continue
-            record_step(tr, fusion, k, ws, tr.out, team_i, candidates, attacked_n, T, N, record)
-        if dr is not None:
-            t0 = time.perf_counter()
-            dr.x, dr.P = predict(dr.filt, dr.x, dr.P, ws.u_meas, dt, params)
-            dr.wall += time.perf_counter() - t0
-            record_step(dr, None, k, ws, None, team_i, candidates, attacked_n, T, N, record)
-        if progress is not None:
-            progress(k + 1, steps)
+    estimated = scenario.trigger.risk_source is RiskSource.ESTIMATED
+    setup = Estimation(
+        params, dt, N, (world.sdz, world.cdz) if estimated else None, adversary=adversary
+    )
+    source = _WorldSteps(world, hooks, adversary, steps, metric_stride)
+    everyone = [*tracks, *([dr] if dr is not None else [])]
+    tick = None if progress is None else (lambda k: progress(k, steps))
+    run_lockstep(source, everyone, setup, tick)
     for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
         exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
-    shared = link_columns(trial0_links)
+    shared = link_columns(source.trial0_links)
     results = {}
-    for tr in [*tracks, *([dr] if dr is not None else [])]:
+    for tr in everyone:
         log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
         results[tr.name] = EstimatorResult(
             tr.name,
@@ -456,109 +410,73 @@ def run_scenario(
     return RunResult(
         scenario,
         results,
-        truth,
+        source.truth,
         dt * np.arange(1, steps + 1),
         time.perf_counter() - t_start,
         {"robots": N, "trials": T, **hooks.meta()},
     )
 
 
-@dataclass
-class _StepInputs:
-    """What every estimator's step shares within one world step."""
+class _WorldSteps:
+    """The simulated world as a :class:`~resloc.experiments.lockstep.StepSource`: one link
+    group per step (every sensed link, neighbours at their predicted estimates), and the
+    run's records (truth and links of trial 0, per-step series, per-trial totals)."""
 
-    params: CLParams
-    fusion: object
-    hooks: _Hooks
-    world: World
-    scenario: Scenario
-    lambda2: np.ndarray
-    comm_edges: tuple[np.ndarray, np.ndarray]
-    dt: float
-    adversary: object = None  # a strategy of resloc.world.attackers, with its AttackStep
-    attack_step: object = None
+    def __init__(self, world: World, hooks: _Hooks, adversary, steps: int, metric_stride: int):
+        self.world, self.hooks, self.adversary = world, hooks, adversary
+        self.n_steps, self.metric_stride = steps, metric_stride
+        N = world.n
+        self.truth = np.zeros((steps + 1, N, 3))
+        self.truth[0] = world.pose[:N]
+        self.trial0_links: list[tuple] = []  # the world's links of trial 0, shared
 
+    def steps(self) -> Iterator[Step]:
+        world, N, T, dt = self.world, self.world.n, self.world.trials, self.world.dt
+        for k in range(self.n_steps):
+            ws = world.step()
+            attack_step = None
+            if self.adversary is not None:
+                attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
+                ws.attacked = attack_step.attacked = self.adversary.mark(ws.attacked, attack_step)
+            self.truth[k + 1] = ws.pose[:N]
+            own = ws.i < N
+            self.trial0_links.append(
+                (
+                    np.full(int(own.sum()), k + 1, np.int32),
+                    ws.i[own].astype(np.int32),
+                    ws.j[own].astype(np.int32),
+                    ws.attacked[own],
+                )
+            )
+            # Shared by every estimator's record of this step.
+            self.ws, self.own_links = ws, int(own.sum())
+            self.team_i = world.team[ws.i]
+            self.candidates = np.bincount(self.team_i, minlength=T)
+            self.attacked_n = np.bincount(self.team_i, weights=ws.attacked, minlength=T)
+            self.record_metrics = (k + 1) % self.metric_stride == 0 or k == self.n_steps - 1
+            links = LinkGroup(ws.i, ws.j, ws.z, ws.channel_ok, extras=self.hooks.link_extras(ws))
+            lambda2 = self.hooks.lambda2(ws)
+            yield Step(
+                k,
+                ws.u_meas,
+                [links],
+                ws.risk_s,
+                ws.risk_c,
+                lambda2,
+                self.hooks.comm_edges(ws),
+                attack_step,
+            )
 
-def _isolated_step(tr: EstimatorTrack, k: int, ws, inputs: _StepInputs, N: int) -> None:
-    """:func:`_step_estimator`, timed; a numerical failure or a non-finite estimate stops
-    this estimator (``tr.diverged``) instead of the run: the others' results must not be
-    lost to one filter's divergence."""
-    t0 = time.perf_counter()
-    tr.pending_P = None
-    try:
-        _step_estimator(tr, ws, inputs)
-    except (NumericalError, np.linalg.LinAlgError, FloatingPointError) as exc:
-        last = tr.pending_P if tr.pending_P is not None else tr.P
-        tr.stop(k, inputs.dt, N, last, str(exc))
-        return
-    finally:
-        tr.wall += time.perf_counter() - t0
-    if not (np.all(np.isfinite(tr.x)) and np.all(np.isfinite(tr.P))):
-        tr.stop(k, inputs.dt, N, tr.P, "the estimate became NaN or infinite")
-
-
-def _step_estimator(tr: EstimatorTrack, ws, inputs: _StepInputs) -> None:
-    """One step (predict, links, correct, exchange) of one estimator; sets ``tr.x``,
-    ``tr.P``, ``tr.out`` (and ``tr.pending_P``, the predicted covariance, for divergence
-    reports)."""
-    params, fusion, world, dt = inputs.params, inputs.fusion, inputs.world, inputs.dt
-    xp, Pp = predict(tr.filt, tr.x, tr.P, ws.u_meas, dt, params)
-    tr.pending_P = Pp
-    Pp = fusion.predict(tr.memory, tr.x, ws.u_meas, dt, params, Pp)
-    if inputs.scenario.trigger.risk_source is RiskSource.ESTIMATED:
-        risk_s = world.sdz.risk(xp[:, :2]) if world.sdz else ws.risk_s
-        risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
-    else:
-        risk_s, risk_c = ws.risk_s, ws.risk_c
-    links = LinkBatch(
-        ws.i,
-        ws.j,
-        ws.z,
-        xp[ws.j],
-        Pp[ws.j],
-        ws.channel_ok,
-        risk_s,
-        risk_c,
-        inputs.lambda2,
-        **fusion.link_fields(tr.memory, ws.j),
-        **inputs.hooks.link_extras(ws),
-    )
-    if inputs.adversary is not None:
-        links = inputs.adversary.attack(links, inputs.attack_step, params, tr.memory)
-    tr.x, tr.P, tr.out = correct(tr.filt, xp, Pp, links, params, tr.memory)
-    fusion.exchange(tr.memory, *inputs.comm_edges)
-
-
-def divergence(k: int, dt: float, N: int, P: np.ndarray, reason: str) -> dict:
-    """Describe a divergence at step index ``k``: when, and which robot.
-
-    The failing computation may be inside a link update, so the robot is the one whose
-    covariance among ``P`` (shape ``(T * N, 3, 3)``, the last one computed) is non-finite
-    or closest to singular (smallest eigenvalue relative to its trace).
-
-    Returns
-    -------
-    dict
-        ``step`` (1-based), ``time_s``, ``trial``, ``robot``, ``min_eigenvalue``, ``reason``.
-    """
-    P = np.asarray(P, dtype=float)
-    finite = np.all(np.isfinite(P), axis=(-1, -2))
-    score = np.full(len(P), -np.inf)
-    if finite.any():
-        Pf = symmetrize(P[finite])
-        eig = np.linalg.eigvalsh(Pf)[:, 0]
-        trace = np.maximum(np.trace(Pf, axis1=-2, axis2=-1), 1e-300)
-        score[finite] = eig / trace
-    b = int(np.argmin(score)) if len(P) else 0
-    min_eig = float(np.linalg.eigvalsh(symmetrize(P[b]))[0]) if finite[b] else float("nan")
-    return {
-        "step": k + 1,
-        "time_s": round((k + 1) * dt, 9),
-        "trial": b // N,
-        "robot": b % N,
-        "min_eigenvalue": min_eig,
-        "reason": reason.splitlines()[0] if reason else "",
-    }
+    def record(self, tr: EstimatorTrack, step: Step) -> None:
+        k = step.k
+        if tr.diverged is not None:  # stopped: no estimate, no link outcomes from here on
+            tr.track[k + 1], tr.cov[k + 1] = np.nan, np.nan
+            tr.link_flags.append(np.zeros(self.own_links, np.uint8))
+            return
+        out = tr.outcomes[0] if tr.outcomes else None
+        T, N = self.world.trials, self.world.n
+        args = (self.team_i, self.candidates, self.attacked_n, T, N, self.record_metrics)
+        record_step(tr, tr.fusion, k, self.ws, out, *args)
 
 
 class _Hooks:
