@@ -17,7 +17,6 @@ from resloc.errors import ConfigError
 from resloc.experiments.mrclam import (
     DEAD_RECKONING,
     MRCLAMConfig,
-    _step_commands,
     default_zones,
     estimate_noise,
     ground_truth_at,
@@ -25,6 +24,7 @@ from resloc.experiments.mrclam import (
     range_noise_std,
     run_mrclam,
     save_mrclam,
+    step_commands,
 )
 from resloc.models.motion import unicycle_step
 
@@ -53,14 +53,14 @@ def with_zones(data):
 
 
 # ---------------------------------------------------------------------------- building blocks
-def test_step_commands_integrate_the_zero_order_hold_exactly():
+def teststep_commands_integrate_the_zero_order_hold_exactly():
     odo = np.array([[0.05, 1.0, 0.5], [0.13, 2.0, -1.0], [0.30, 0.0, 0.0]])
     times = np.array([0.0, 0.1, 0.2, 0.3, 0.4])
-    u = _step_commands(odo, times)
+    u = step_commands(odo, times)
     # Step 1 (0, 0.1]: 0 until 0.05, then (1, 0.5) -> mean (0.5, 0.25).
     # Step 2 (0.1, 0.2]: (1, .5) until 0.13, then (2, -1) -> mean (1.7, -0.55).
     np.testing.assert_allclose(u, [[0.5, 0.25], [1.7, -0.55], [2.0, -1.0], [0.0, 0.0]])
-    np.testing.assert_allclose(_step_commands(np.zeros((0, 3)), times), np.zeros((4, 2)))
+    np.testing.assert_allclose(step_commands(np.zeros((0, 3)), times), np.zeros((4, 2)))
 
 
 def test_ground_truth_interpolation_wraps_heading_and_flags_gaps():
