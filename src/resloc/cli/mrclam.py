@@ -13,6 +13,7 @@ import typer
 from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
+from resloc.cli.run import warn_diverged
 from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
@@ -63,7 +64,9 @@ def print_mrclam_summary(result, console=None) -> None:
     for name, s in result.summary().items():
         table.add_row(
             "DR" if name == "dr" else name.upper(),
-            _fmt(s["position_rmse"], ".3f"),
+            f"diverged (step {s['diverged_step']})"
+            if s.get("diverged_step")
+            else _fmt(s["position_rmse"], ".3f"),
             _fmt(s["heading_rmse_deg"], ".2f"),
             _fmt(s["msle_mean"], ".4f"),
             _fmt(s["nees_mean"], ".3g"),
@@ -83,6 +86,7 @@ def print_mrclam_summary(result, console=None) -> None:
         )
     console.print(per)
     console.print(data_rows_line(info["rows_skipped"]), highlight=False)
+    warn_diverged(result.estimators)
     if cfg.zones:
         console.print(
             f"attack layer: {info['attacked']} robot-robot measurements falsified in the SDZ, "

@@ -68,6 +68,7 @@ def run_mrclam(
     run_lockstep(source, estimators, Estimation(params, config.dt, data.n_robots), tick)
     scored = {}
     for est in estimators:
+        source.stop_at_invalid_covariance(est, config.dt)
         log = source.logs.pop(est.name)  # its float64 covariances go once scored
         scored[est.name] = score_estimate(
             est.name, rp, log.track, log.cov, log.links, est.wall, est.diverged

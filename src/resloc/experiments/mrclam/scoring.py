@@ -183,8 +183,11 @@ def score_estimate(
     d = track[..., :2] - rp.truth[..., :2]
     pos_err = np.where(valid, np.hypot(d[..., 0], d[..., 1]), np.nan)
     heading_err = np.where(valid, wrap_angle(track[..., 2] - rp.truth[..., 2]), np.nan)
-    nees_all = nees(rp.truth.reshape(-1, 3), track.reshape(-1, 3), cov.reshape(-1, 3, 3))
-    nees_v = np.where(valid, nees_all.reshape(valid.shape), np.nan)
+    # A stopped estimator's track and covariances are nan from where it stopped.
+    estimated = np.isfinite(cov).all(axis=(-2, -1))
+    nees_v = np.full(valid.shape, np.nan)
+    nees_v[estimated] = nees(rp.truth[estimated], track[estimated], cov[estimated])
+    nees_v[~valid] = np.nan
     all_valid = valid.all(axis=1)
     msle_v = np.full(len(rp.time), np.nan)
     if all_valid.any():

@@ -18,11 +18,12 @@ from collections.abc import Iterator
 import numpy as np
 
 from resloc.datasets.mrclam import MRCLAMDataset
-from resloc.experiments.lockstep import EstimatorState, LinkGroup, Step
+from resloc.experiments.lockstep import EstimatorState, LinkGroup, Step, divergence
 from resloc.experiments.mrclam.config import MRCLAMConfig
 from resloc.experiments.mrclam.noise import level_groups, range_noise_level
 from resloc.experiments.mrclam.replay import Replay
 from resloc.experiments.mrclam.scoring import LINK_OUTCOMES, empty_link_log
+from resloc.filters.update import covariance_is_pd
 
 __all__ = ["ReplayLog", "ReplaySteps", "landmark_states"]
 
@@ -123,3 +124,25 @@ class ReplaySteps:
         for group, out in zip(step.groups, est.outcomes, strict=False):
             for name in LINK_OUTCOMES:
                 log.links[name][group.rows] = getattr(out, name)
+
+    def stop_at_invalid_covariance(self, est: EstimatorState, dt: float) -> None:
+        """Stop ``est`` where one of its logged covariances is not positive definite.
+
+        A sigma-point prediction with a negative weight can leave a covariance indefinite
+        without any computation failing; its NEES is then undefined. The estimator is
+        reported diverged from that step on, as a failure inside its step would be
+        (checked once over the whole log: a per-step test would cost more than the step).
+        """
+        log = self.logs[est.name]
+        with np.errstate(invalid="ignore"):  # a stopped estimator's covariances are nan
+            pd = covariance_is_pd(log.cov.reshape(-1, 3, 3))
+        ok = pd.reshape(log.cov.shape[:2]).all(axis=1)
+        k = int(np.argmin(ok))  # the estimate after step k (1-based) is the first invalid one
+        if ok[k] or (est.diverged is not None and est.diverged["step"] <= k):
+            return  # valid, or blank from where the estimator stopped
+        reason = "a covariance is no longer positive definite"
+        est.diverged = divergence(k - 1, dt, self.robots, log.cov[k], reason)
+        log.track[k:], log.cov[k:] = np.nan, np.nan
+        later = self.rp.step >= k
+        for name, blank in zip(LINK_OUTCOMES, empty_link_log(1).values(), strict=True):
+            log.links[name][later] = blank[0]
