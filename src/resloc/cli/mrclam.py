@@ -13,7 +13,7 @@ import typer
 from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
-from resloc.cli.run import warn_diverged
+from resloc.cli.run import FilterChoice, warn_diverged
 from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
@@ -25,15 +25,6 @@ class NoiseChoice(enum.StrEnum):
 
     DEFAULT = "default"
     AUTO = "auto"
-
-
-class FilterChoice(enum.StrEnum):
-    """Filter selection on the command line."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-    ALL = "all"
 
 
 def _fmt(v, spec: str = ".4g") -> str:
@@ -108,19 +99,8 @@ def data_rows_line(skipped: dict[str, int]) -> str:
     )
 
 
-#: Command-line flag of each MRCLAMConfig field (for messages).
-_FLAGS = {
-    "dt": "--dt",
-    "duration": "--duration",
-    "seed": "--seed",
-    "rho": "--rho",
-    "range_std": "--range-std",
-    "range_std_rel": "--range-std-rel",
-    "bearing_std": "--bearing-std",
-    "attack_bias": "--attack-bias",
-    "sdz": "--sdz",
-    "cdz": "--cdz",
-}
+#: MRCLAMConfig fields set by a command-line flag of the same name (``--range-std``).
+_FLAGS = "dt duration seed rho range_std range_std_rel bearing_std attack_bias sdz cdz".split()
 
 
 def make_config(**kw):
@@ -134,7 +114,7 @@ def make_config(**kw):
         text = str(exc)
         field = text.split(":", 1)[0].split("[", 1)[0].split(" ", 1)[0]
         if field in _FLAGS:
-            text = _FLAGS[field] + text[len(field) :]
+            text = "--" + field.replace("_", "-") + text[len(field) :]
         raise ConfigError(text) from None
 
 

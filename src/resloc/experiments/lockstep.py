@@ -45,26 +45,12 @@ _NO_EDGES = (np.empty(0, np.int64), np.empty(0, np.int64))
 
 @dataclass
 class LinkGroup:
-    """Links of one step fused by one :func:`~resloc.cl.step.correct` call.
-
-    Attributes
-    ----------
-    i, j : ndarray of int, shape (E,)
-        Observer (batch index) and observed node (a robot's batch index, or an id beyond the
-        robots for a fixed neighbour); sorted by ``i``.
-    z : ndarray, shape (E, 2)
-    channel_ok : ndarray of bool, shape (E,)
-    params : CLParams, optional
-        This group's parameters (a replay's range noise level); None: the run's.
-    fixed : tuple of ndarray, shapes (E, 3), (E, 3, 3), optional
-        States of neighbours that are not estimated (MRCLAM landmarks). None: the
-        estimator's current estimates of robots ``j``.
-    extras : dict
-        Further :class:`~resloc.cl.links.LinkBatch` fields (the stealthy attacker's
-        ``tamper``).
-    rows : ndarray of int, shape (E,), optional
-        Where the group's links sit in the source's own link log.
-    """
+    """Links of one step fused by one :func:`~resloc.cl.step.correct` call: observers ``i``,
+    observed nodes ``j``, ``z`` and ``channel_ok`` (shapes (E,), (E,), (E, 2), (E,), sorted
+    by ``i``); ``params`` (None: the run's); ``fixed`` neighbour states ``(E, 3)``,
+    ``(E, 3, 3)`` of nodes that are not estimated (MRCLAM landmarks; None: the estimator's
+    current estimates of robots ``j``); further ``LinkBatch`` fields ``extras`` (the stealthy
+    attacker's ``tamper``); ``rows``, where the links sit in the source's own log."""
 
     i: np.ndarray
     j: np.ndarray
@@ -78,24 +64,11 @@ class LinkGroup:
 
 @dataclass
 class Step:
-    """What every estimator's step shares within one step of the data.
-
-    Attributes
-    ----------
-    k : int
-        Step index (0-based; the estimates after it are those of time ``(k + 1) dt``).
-    u : ndarray, shape (B, 2)
-        Measured odometry ``(v, omega)`` over the step.
-    groups : list of LinkGroup
-        Corrected in order, each from the estimates the previous ones left.
-    risk_s, risk_c : ndarray, shape (B,)
-        ``Ds(i)``, ``Dc(i)`` at the true positions.
-    lambda2 : ndarray, shape (B,)
-    comm_edges : tuple of ndarray
-        The step's links that carry a message (a fusion method's end-of-step exchanges).
-    attack_step : AttackStep, optional
-        For :attr:`Estimation.adversary`.
-    """
+    """What every estimator's step ``k`` (0-based) shares: odometry ``u: (B, 2)``, the link
+    ``groups`` corrected in order (each from the estimates the previous ones left), the
+    true-position risks ``risk_s``, ``risk_c`` and ``lambda2`` (each (B,)), the links that
+    carry a message (``comm_edges``, for a fusion method's exchanges) and the adversary's
+    ``attack_step``."""
 
     k: int
     u: np.ndarray
@@ -109,23 +82,11 @@ class Step:
 
 @dataclass(frozen=True)
 class Estimation:
-    """What every estimator's step shares over a run.
-
-    Attributes
-    ----------
-    params : CLParams
-        Prediction, and the links of groups without their own.
-    dt : float
-    robots : int
-        Robots per trial (the batch is ``trials x robots``; names a divergence's robot).
-    risk_zones : tuple of ZoneField or None, optional
-        The SDZ and CDZ whose risk the trigger takes at the *predicted* estimates
-        (``trigger.risk_source = "estimated"``; a None zone keeps the true-position risk).
-        None: the step's true-position risks.
-    adversary : Attacker, optional
-        A strategy of :mod:`resloc.world.attackers`: what each estimator receives on the
-        links it falsifies.
-    """
+    """What every estimator's step shares over a run: ``params`` (prediction, and groups
+    without their own), ``dt``, ``robots`` per trial (names a divergence's robot),
+    ``risk_zones`` (SDZ, CDZ) whose risk the trigger takes at the predicted estimates
+    (``trigger.risk_source = "estimated"``; None: the true-position risks) and the
+    ``adversary`` (a strategy of :mod:`resloc.world.attackers`)."""
 
     params: CLParams
     dt: float
@@ -135,18 +96,9 @@ class Estimation:
 
 
 class EstimatorState:
-    """Mutable state of one estimator during a run.
-
-    Parameters
-    ----------
-    name : str
-    filt : GaussianFilter
-    x0, P0 : ndarray, shapes (B, 3), (B, 3, 3)
-    nodes : int
-        Id space of the link memory (robots, plus fixed neighbours).
-    fusion : FusionStrategy, optional
-        None: dead reckoning (prediction only).
-    """
+    """One estimator during a run: filter, estimates ``x: (B, 3)``, ``P: (B, 3, 3)``, link
+    memory over ``nodes`` ids (robots and fixed neighbours), wall time, ``diverged`` and
+    the last step's outcomes (one per link group). ``fusion`` None: dead reckoning."""
 
     def __init__(
         self,
@@ -157,26 +109,21 @@ class EstimatorState:
         nodes: int,
         fusion: FusionStrategy | None = None,
     ):
-        self.name = name
-        self.filt = filt
-        self.fusion = fusion
-        self.x = x0.copy()
-        self.P = P0.copy()
+        self.name, self.filt, self.fusion = name, filt, fusion
+        self.x, self.P = x0.copy(), P0.copy()
         self.memory = LinkMemory(nodes)
         self.wall = 0.0
         self.diverged: dict | None = None
-        self.outcomes: list[LinkOutcome] = []  # one per link group of the last step
+        self.outcomes: list[LinkOutcome] = []
         self.pending_P: np.ndarray | None = None
 
 
 class StepSource(Protocol):
-    """Simulated or replayed data, as the lockstep loop consumes it."""
+    """Simulated or replayed data, as :func:`run_lockstep` consumes it."""
 
-    def steps(self) -> Iterable[Step]:
-        """The steps, in order (a source may do its shared per-step work here)."""
+    def steps(self) -> Iterable[Step]: ...
 
-    def record(self, est: EstimatorState, step: Step) -> None:
-        """Keep what ``est`` made of ``step`` (``est.diverged`` set: it has stopped)."""
+    def record(self, est: EstimatorState, step: Step) -> None: ...
 
 
 def run_lockstep(
@@ -187,7 +134,9 @@ def run_lockstep(
 ) -> None:
     """Every estimator through every step of ``source``, in lockstep.
 
-    A stopped estimator is still recorded (as stopped) at every later step.
+    ``source`` is simulated or replayed data: ``source.steps()`` yields its :class:`Step`
+    objects in order, ``source.record(est, step)`` keeps what ``est`` made of ``step``
+    (``est.diverged`` set: it has stopped; it is still recorded at every later step).
     ``progress(k)`` is called after step ``k`` (1-based).
     """
     for step in source.steps():

@@ -183,7 +183,6 @@ def run_scenario(
         scenario = scenario.replace(**changes)
     check_run_size(scenario)
     run = scenario.run
-    distributed = scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED
     # With distributed estimates the world still computes the true (component) lambda2,
     # which is only recorded, to measure the estimates' error.
     world = World(
@@ -196,7 +195,6 @@ def run_scenario(
     params = scenario.cl_params() if params is None else params
     T, N, steps, dt = run.trials, world.n, run.steps, world.dt
     x0, P0 = world.initial_estimates()
-    hooks = _Hooks(scenario, params, world, distributed, first_trial)
     est = scenario.estimator
     fusion = fusion_strategy(params.fusion)
     rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
@@ -212,7 +210,7 @@ def run_scenario(
     setup = Estimation(
         params, dt, N, (world.sdz, world.cdz) if estimated else None, adversary=adversary
     )
-    source = _WorldSteps(world, hooks, adversary, steps, metric_stride)
+    source = _WorldSteps(scenario, params, world, first_trial, adversary, metric_stride)
     everyone = [*tracks, *([dr] if dr is not None else [])]
     tick = None if progress is None else (lambda k: progress(k, steps))
     run_lockstep(source, everyone, setup, tick)
@@ -223,43 +221,59 @@ def run_scenario(
     results = {}
     for tr in everyone:
         log = LinkLog(shared, np.concatenate(tr.link_flags)) if tr.link_flags else None
-        results[tr.name] = EstimatorResult(
-            tr.name,
-            tr.series,
-            tr.totals,
-            tr.raster,
-            tr.track,
-            tr.wall,
-            tr.cov,
-            log,
-            tr.diverged,
-        )
+        records = (tr.series, tr.totals, tr.raster, tr.track, tr.wall, tr.cov)
+        results[tr.name] = EstimatorResult(tr.name, *records, log, tr.diverged)
     return RunResult(
         scenario,
         results,
         source.truth,
         dt * np.arange(1, steps + 1),
         time.perf_counter() - t_start,
-        {"robots": N, "trials": T, **hooks.meta()},
+        {"robots": N, "trials": T, **source.meta()},
     )
 
 
 class _WorldSteps:
     """The simulated world as a :class:`~resloc.experiments.lockstep.StepSource`: one link
     group per step (every sensed link, neighbours at their predicted estimates), and the
-    run's records (truth and links of trial 0, per-step series, per-trial totals)."""
+    run's records (truth and links of trial 0, per-step series, per-trial totals).
 
-    def __init__(self, world: World, hooks: _Hooks, adversary, steps: int, metric_stride: int):
-        self.world, self.hooks, self.adversary = world, hooks, adversary
-        self.n_steps, self.metric_stride = steps, metric_stride
+    Per-run extensions (``docs/beyond.md``): with ``trigger.lambda2 = "distributed"`` every
+    robot's own ``lambda2`` from a :class:`~resloc.cl.connectivity.DistributedLambda2` on
+    the communication graph (the world's true component value is kept to measure the
+    error); with ``attack.kind = "stealthy"`` a ``LinkBatch.tamper`` that injects the
+    largest bias the estimator's detector accepts on the links the world marked attacked.
+    """
+
+    def __init__(self, scenario, params, world, first_trial, adversary, metric_stride):
+        self.world, self.params, self.steps_total = world, params, scenario.run.steps
+        self.adversary, self.metric_stride = adversary, metric_stride
+        self.attack = scenario.world.attack
+        self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
+        self.comm_radius = scenario.world.sensing.comm_radius
+        self.dl2: DistributedLambda2 | None = None
+        self.l2_true: list[float] = []
+        self.l2_est: list[float] = []
+        self.l2_abs_rel: list[float] = []
+        if scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED:
+            # Initial Fiedler-vector guesses drawn per trial (independent of the batching).
+            y0 = np.concatenate(
+                [
+                    np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
+                    for t in range(first_trial, first_trial + world.trials)
+                ]
+            )
+            self.dl2 = DistributedLambda2(
+                world.B, float(world.n), scenario.trigger.lambda2_rounds, y0=y0
+            )
         N = world.n
-        self.truth = np.zeros((steps + 1, N, 3))
+        self.truth = np.zeros((self.steps_total + 1, N, 3))
         self.truth[0] = world.pose[:N]
         self.trial0_links: list[tuple] = []  # the world's links of trial 0, shared
 
     def steps(self) -> Iterator[Step]:
         world, N, T, dt = self.world, self.world.n, self.world.trials, self.world.dt
-        for k in range(self.n_steps):
+        for k in range(self.steps_total):
             ws = world.step()
             attack_step = None
             if self.adversary is not None:
@@ -267,32 +281,18 @@ class _WorldSteps:
                 ws.attacked = attack_step.attacked = self.adversary.mark(ws.attacked, attack_step)
             self.truth[k + 1] = ws.pose[:N]
             own = ws.i < N
-            self.trial0_links.append(
-                (
-                    np.full(int(own.sum()), k + 1, np.int32),
-                    ws.i[own].astype(np.int32),
-                    ws.j[own].astype(np.int32),
-                    ws.attacked[own],
-                )
-            )
+            i, j = ws.i[own].astype(np.int32), ws.j[own].astype(np.int32)
+            self.trial0_links.append((np.full(len(i), k + 1, np.int32), i, j, ws.attacked[own]))
             # Shared by every estimator's record of this step.
-            self.ws, self.own_links = ws, int(own.sum())
+            self.ws, self.own_links = ws, len(i)
             self.team_i = world.team[ws.i]
             self.candidates = np.bincount(self.team_i, minlength=T)
             self.attacked_n = np.bincount(self.team_i, weights=ws.attacked, minlength=T)
-            self.record_metrics = (k + 1) % self.metric_stride == 0 or k == self.n_steps - 1
-            links = LinkGroup(ws.i, ws.j, ws.z, ws.channel_ok, extras=self.hooks.link_extras(ws))
-            lambda2 = self.hooks.lambda2(ws)
-            yield Step(
-                k,
-                ws.u_meas,
-                [links],
-                ws.risk_s,
-                ws.risk_c,
-                lambda2,
-                self.hooks.comm_edges(ws),
-                attack_step,
-            )
+            self.record_metrics = (k + 1) % self.metric_stride == 0 or k == self.steps_total - 1
+            lambda2 = self.lambda2(ws)
+            links = LinkGroup(ws.i, ws.j, ws.z, ws.channel_ok, extras=self.link_extras(ws))
+            edges = self.comm_edges(ws)
+            yield Step(k, ws.u_meas, [links], ws.risk_s, ws.risk_c, lambda2, edges, attack_step)
 
     def record(self, tr: EstimatorTrack, step: Step) -> None:
         k = step.k
@@ -305,48 +305,6 @@ class _WorldSteps:
         args = (self.team_i, self.candidates, self.attacked_n, T, N, self.record_metrics)
         record_step(tr, tr.fusion, k, self.ws, out, *args)
 
-
-class _Hooks:
-    """Per-run extensions of the lockstep loop (issue 6, ``docs/beyond.md``).
-
-    * ``trigger.lambda2 = "distributed"``: every robot's own estimate of ``lambda2`` from a
-      :class:`~resloc.cl.connectivity.DistributedLambda2` run on the communication graph
-      (the world's true component value is kept to measure the error);
-    * ``attack.kind = "stealthy"``: a ``LinkBatch.tamper`` per estimator that injects the
-      largest bias that estimator's detector accepts, on the links the world marked attacked.
-
-    The cl layer never imports the world: it only calls the hooks it is given.
-    """
-
-    def __init__(
-        self,
-        scenario: Scenario,
-        params: CLParams,
-        world: World,
-        distributed: bool,
-        first_trial: int = 0,
-    ):
-        self.params = params
-        self.world = world
-        self.attack = scenario.world.attack
-        self.stealthy = bool(world.sdz) and self.attack.kind is AttackKind.STEALTHY
-        self.comm_radius = scenario.world.sensing.comm_radius
-        self.dl2: DistributedLambda2 | None = None
-        self.l2_true: list[float] = []
-        self.l2_est: list[float] = []
-        self.l2_abs_rel: list[float] = []
-        if distributed:
-            # Initial Fiedler-vector guesses drawn per trial (independent of the batching).
-            y0 = np.concatenate(
-                [
-                    np.random.default_rng([scenario.run.seed, t, 0x1A2]).uniform(-1, 1, world.n)
-                    for t in range(first_trial, first_trial + world.trials)
-                ]
-            )
-            self.dl2 = DistributedLambda2(
-                world.B, float(world.n), scenario.trigger.lambda2_rounds, y0=y0
-            )
-
     def comm_edges(self, ws) -> tuple[np.ndarray, np.ndarray]:
         """This step's links that can carry a message (in radio range, not jammed)."""
         p = ws.pose[:, :2]
@@ -355,14 +313,13 @@ class _Hooks:
 
     def lambda2(self, ws) -> np.ndarray:
         """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
+        ok = ws.lambda2 > 0
         if self.dl2 is None:
-            ok = ws.lambda2 > 0
             self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else 0.0)
             return ws.lambda2
         p = ws.pose[:, :2]
         in_comm = np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
         est = self.dl2.step(ws.i[in_comm], ws.j[in_comm])
-        ok = ws.lambda2 > 0
         self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else float("nan"))
         self.l2_est.append(float(est[ok].mean()) if ok.any() else float("nan"))
         rel = np.abs(est[ok] - ws.lambda2[ok]) / ws.lambda2[ok]
@@ -370,39 +327,41 @@ class _Hooks:
         return est
 
     def link_extras(self, ws) -> dict:
-        """Optional ``LinkBatch`` fields for this step and estimator."""
-        extra: dict = {}
-        if self.stealthy:
-            p, a = self.params, self.attack
-            extra["tamper"] = stealthy_tamper(
-                ws.z,
-                ws.attacked,
-                ws.i,
-                np.asarray(a.stealth_direction, float),
-                a.stealth_margin,
-                np.asarray(a.bias, float),
-                p.detector,
-                p.detector_norm,
-                p.rho,
-                p.noise_std,
-                p.cusum_k if p.cusum else None,
-                a.stealth_knowledge,
-                p.mean_cusum_k if p.mean_cusum else None,
-            )
-        return extra
+        """Optional ``LinkBatch`` fields for this step (the same for every estimator)."""
+        if not self.stealthy:
+            return {}
+        p, a = self.params, self.attack
+        tamper = stealthy_tamper(
+            ws.z,
+            ws.attacked,
+            ws.i,
+            np.asarray(a.stealth_direction, float),
+            a.stealth_margin,
+            np.asarray(a.bias, float),
+            p.detector,
+            p.detector_norm,
+            p.rho,
+            p.noise_std,
+            p.cusum_k if p.cusum else None,
+            a.stealth_knowledge,
+            p.mean_cusum_k if p.mean_cusum else None,
+        )
+        return {"tamper": tamper}
 
     def meta(self) -> dict:
         """Run-level records: ``lambda2`` (true mean over connected robots; with the
         distributed mode also the estimates and their error)."""
         if self.dl2 is None:
             return {"lambda2": {"true_mean": float(np.mean(self.l2_true))}}
+
+        def mean(values: list[float]) -> float:
+            return float(np.nanmean(values)) if values else float("nan")
+
         return {
             "lambda2": {
-                "true_mean": float(np.nanmean(self.l2_true)) if self.l2_true else float("nan"),
-                "estimate_mean": float(np.nanmean(self.l2_est)) if self.l2_est else float("nan"),
-                "abs_rel_error_mean": float(np.nanmean(self.l2_abs_rel))
-                if self.l2_abs_rel
-                else float("nan"),
+                "true_mean": mean(self.l2_true),
+                "estimate_mean": mean(self.l2_est),
+                "abs_rel_error_mean": mean(self.l2_abs_rel),
                 "abs_rel_error_series": np.asarray(self.l2_abs_rel),
                 "messages": self.dl2.messages,
             }

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.runtime.options import SwarmOptions
 from resloc.runtime.team import TeamSetup
 from resloc.world.world import WorldStep
 
-__all__ = ["ReplaySource", "load_replay", "replay_link_params", "replay_steps", "score_replay"]
+__all__ = ["ReplaySource", "load_replay", "replay_link_params", "score_replay"]
 
 
 @functools.lru_cache(maxsize=2)
@@ -35,11 +34,6 @@ def load_replay(path: str | Path, team: TeamSetup):
     """The :class:`~resloc.experiments.mrclam.Replay` of ``path`` under the team's config."""
     cfg = team.mrclam
     return _load(str(path), cfg.duration, cfg)
-
-
-def replay_steps(options: SwarmOptions, team: TeamSetup) -> int:
-    """Number of steps of the replay (the supervisor shows progress against it)."""
-    return load_replay(options.replay, team).steps
 
 
 def replay_link_params(team: TeamSetup, z: np.ndarray) -> list[tuple[np.ndarray, object]]:
@@ -106,12 +100,14 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
         Steps completed (the result covers steps ``0 .. steps``).
     """
     from resloc.experiments.mrclam import empty_link_log, replay_result, score_estimate
-    from resloc.runtime.messages import (
-        FLAG_DELIVERED,
-        FLAG_DETECTED,
-        FLAG_FUSED,
-        FLAG_TRIGGERED,
-    )
+    from resloc.runtime.messages import FLAG_DELIVERED, FLAG_DETECTED, FLAG_FUSED, FLAG_TRIGGERED
+
+    flags = {
+        "detected": FLAG_DETECTED,
+        "triggered": FLAG_TRIGGERED,
+        "delivered": FLAG_DELIVERED,
+        "fused": FLAG_FUSED,
+    }
 
     K = steps
     rp = load_replay(path, team).head(K)
@@ -124,12 +120,9 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
             mine = rows[rp.obs[rows] == r]
             if len(mine) != len(rep["flags"]):
                 continue
-            f = rep["flags"]
             links["norm"][mine] = rep["norm"]
-            links["detected"][mine] = (f & FLAG_DETECTED) > 0
-            links["triggered"][mine] = (f & FLAG_TRIGGERED) > 0
-            links["delivered"][mine] = (f & FLAG_DELIVERED) > 0
-            links["fused"][mine] = (f & FLAG_FUSED) > 0
+            for name, bit in flags.items():
+                links[name][mine] = (rep["flags"] & bit) > 0
     name = team.filter_name
     est = score_estimate(name, rp, X, P, links, wall)
     info = {"runtime": "resloc swarm --replay (robot processes over Zenoh)"}

@@ -1,31 +1,12 @@
 """Replay an MRCLAM dataset through the CL estimators (the same per-robot code and the same
-estimator loop as in simulation) and score them against the motion-capture ground truth.
+estimator loop as the simulator) and score them against the motion-capture ground truth.
 
-Method (``docs/mrclam.md`` gives the reasons):
-
-* Time is cut into steps of ``dt`` from the dataset start ``t = 0``
-  (:mod:`~resloc.experiments.mrclam.replay`). Over step ``(t_{k-1}, t_k]`` every robot
-  predicts with the time average of its zero-order-held odometry command over the step
-  (exact for the heading change; a robot is at rest before its first odometry row).
-* The measurements time-stamped in the step are then fused, sorted by observer and time:
-  landmark sightings as fixed neighbours, then robot-to-robot measurements through
-  detector, event trigger and channel, in groups of one range-noise level
-  (:mod:`~resloc.experiments.mrclam.steps`, :mod:`~resloc.experiments.mrclam.noise`).
-  Every estimator runs in :func:`~resloc.experiments.lockstep.run_lockstep`, the loop of
-  :func:`~resloc.experiments.runner.run_scenario`: each step timed, a diverging estimator
-  stopped and reported while the others finish.
-* Adversarial zones (optional): an SDZ falsifies a robot-to-robot measurement with
-  probability ``Ds(i)`` at the observer's true position (eq. 5), a CDZ drops the
-  transmission with probability ``Dc(i)``, drawn once from seeded streams before the
-  estimators run.
-* Dead reckoning is the same ``predict`` with no update (EKF moments), the floor.
-* Scoring (:mod:`~resloc.experiments.mrclam.scoring`): position RMSE, heading RMSE, NEES
-  where the robot's ground truth is valid; MSLE where every robot's is; communication rate.
-
-Modules: ``config`` (:class:`MRCLAMConfig`), ``replay`` (steps, ground truth, zones, attack
-draws), ``noise`` (noise fit, range-noise levels), ``steps`` (the replay as a step source),
-``scoring`` (metrics, result types), ``run`` (:func:`run_mrclam`), ``output``
-(:func:`save_mrclam`).
+One job per module: ``config`` (:class:`MRCLAMConfig`), ``replay`` (steps of ``dt``, ground
+truth at the step times, sightings assigned to steps, zones and the seeded attack draws),
+``noise`` (noise fit against ground truth, range-noise levels), ``scoring`` (metrics and
+result types), ``run`` (:func:`run_mrclam`: the replay as a step source of
+:func:`~resloc.experiments.lockstep.run_lockstep`), ``output`` (:func:`save_mrclam`).
+``docs/mrclam.md`` gives the method and the reasons.
 """
 
 from __future__ import annotations

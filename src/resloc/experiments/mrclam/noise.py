@@ -195,23 +195,9 @@ def range_noise_level(z_range: np.ndarray, config: MRCLAMConfig) -> np.ndarray:
 def level_groups(
     level: np.ndarray, base: CLParams, cache: dict[int, CLParams]
 ) -> list[tuple[np.ndarray, CLParams]]:
-    """Rows grouped by range-noise level, each group with its parameters: one
-    :func:`~resloc.cl.step.correct` call per level (``CLParams`` has one scalar range std).
-
-    Parameters
-    ----------
-    level : ndarray of int, shape (M,)
-        :func:`range_noise_level` of each row.
-    base : CLParams
-    cache : dict
-        ``{level: base with range_std at that level}``, filled as levels appear (one per
-        ``base``).
-
-    Returns
-    -------
-    list of (rows, CLParams)
-        Levels ascending; ``rows`` (positions into ``level``) keep their order.
-    """
+    """Rows ``level: (M,)`` (:func:`range_noise_level`) grouped by level, ascending, each
+    with ``base`` at the level's ``range_std`` (memoized in ``cache``): one ``correct`` call
+    per level, as ``CLParams`` has one scalar range std. Rows keep their order."""
     groups = []
     for lv in np.unique(level).tolist():
         params = cache.get(lv)

@@ -261,15 +261,12 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
     subj_to_target = subj_to_robot | {
         int(s): N + k for k, s in enumerate(data.landmark_subjects.tolist())
     }
-    rows = []
+    columns = []
     for r, log in enumerate(data.robots):
         m = log.measurements
         target = np.array([subj_to_target[int(s)] for s in m[:, 1]], dtype=np.int64)
-        rows.append((m[:, 0], np.full(len(m), r, np.int64), target, m[:, 2:4]))
-    t_m = np.concatenate([a[0] for a in rows])
-    obs = np.concatenate([a[1] for a in rows])
-    target = np.concatenate([a[2] for a in rows])
-    z = np.concatenate([a[3] for a in rows]).reshape(-1, 2)
+        columns.append((m[:, 0], np.full(len(m), r, np.int64), target, m[:, 2:4].reshape(-1, 2)))
+    t_m, obs, target, z = (np.concatenate(c) for c in zip(*columns, strict=True))
     is_robot = target < N
     keep = (t_m > 0.0) & (t_m <= times[-1])
     if not config.landmarks:
@@ -318,24 +315,5 @@ def prepare_replay(data: MRCLAMDataset, config: MRCLAMConfig) -> Replay:
         draw_c = channel_rng.random(len(robot_rows))
         channel_ok[robot_rows] = draw_c >= dc[robot_rows]
     bounds = np.searchsorted(step, np.arange(K + 2), side="left")
-    return Replay(
-        data,
-        times,
-        u,
-        truth,
-        valid,
-        x0,
-        step,
-        obs,
-        target,
-        is_robot,
-        z,
-        z_clean,
-        attacked,
-        channel_ok,
-        risk_s,
-        risk_c,
-        sdz,
-        cdz,
-        bounds,
-    )
+    rows = (step, obs, target, is_robot, z, z_clean, attacked, channel_ok)
+    return Replay(data, times, u, truth, valid, x0, *rows, risk_s, risk_c, sdz, cdz, bounds)

@@ -159,25 +159,9 @@ def score_estimate(
     wall: float,
     diverged: dict | None = None,
 ) -> MRCLAMEstimate:
-    """One estimator's replay scored against the ground truth of ``rp``.
-
-    Parameters
-    ----------
-    name : str
-    rp : Replay
-    track : ndarray, shape (K + 1, N, 3)
-    cov : ndarray, shape (K + 1, N, 3, 3)
-    links : dict of str to ndarray, each shape (M,)
-        Per-sighting outcomes (:func:`empty_link_log`).
-    wall : float
-        Seconds spent in the estimator's steps.
-    diverged : dict, optional
-        Where the estimator stopped (its error statistics are then ``nan``).
-
-    Returns
-    -------
-    MRCLAMEstimate
-    """
+    """One estimator's replay scored against the ground truth of ``rp``: ``track: (K + 1,
+    N, 3)``, ``cov: (K + 1, N, 3, 3)``, per-sighting ``links`` (:func:`empty_link_log`),
+    ``wall`` seconds; error statistics ``nan`` if ``diverged``."""
     N = rp.dataset.n_robots
     valid = rp.valid
     d = track[..., :2] - rp.truth[..., :2]
@@ -249,20 +233,9 @@ def score_estimate(
     if diverged:
         overall.update(dict.fromkeys(ERROR_STATISTICS, float("nan")))
         overall["diverged_step"] = diverged["step"]
-    return MRCLAMEstimate(
-        name,
-        track,
-        pos_err,
-        heading_err,
-        nees_v,
-        msle_v,
-        links,
-        per_robot,
-        overall,
-        wall,
-        cov.astype(np.float32),
-        diverged,
-    )
+    errors = (pos_err, heading_err, nees_v, msle_v)
+    cov32 = cov.astype(np.float32)
+    return MRCLAMEstimate(name, track, *errors, links, per_robot, overall, wall, cov32, diverged)
 
 
 @contextlib.contextmanager
