@@ -162,7 +162,7 @@ def _isolated_step(est: EstimatorState, step: Step, setup: Estimation) -> None:
         return
     finally:
         est.wall += time.perf_counter() - t0
-    if not (np.all(np.isfinite(est.x)) and np.all(np.isfinite(est.P))):
+    if not (np.isfinite(est.x).all() and np.isfinite(est.P).all()):
         reason = "the estimate became NaN or infinite"
         est.diverged = divergence(step.k, setup.dt, setup.robots, est.P, reason)
 
