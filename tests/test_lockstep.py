@@ -122,3 +122,20 @@ def test_a_replay_stops_a_filter_whose_covariance_turns_indefinite(data):
     assert np.isnan(ukf.cov[k:]).all() and np.isfinite(ukf.nees[:k][result.valid[:k]]).all()
     assert ckf.diverged is None and np.isfinite(ckf.overall["position_rmse"])
     assert np.isnan(ukf.overall["position_rmse"]) and np.isnan(ukf.overall["nees_mean"])
+
+
+def test_resloc_mrclam_reports_a_diverged_filter_and_writes_the_others(monkeypatch, tmp_path):
+    from typer.testing import CliRunner
+
+    from resloc.cli.app import app
+
+    _fail_from(monkeypatch, "ExtendedFilter", 10)
+    out = tmp_path / "out"
+    args = ["mrclam", str(FIXTURE), "-f", "ekf", "--duration", "20", "--no-plots", "-o", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    err = res.stderr if hasattr(res, "stderr") else res.output
+    assert "warning: EKF diverged at step" in err and "diverged" in res.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["diverged"]) == {"ekf"}
+    assert summary["overall"]["dr"]["position_rmse"] is not None
