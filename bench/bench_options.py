@@ -73,7 +73,7 @@ class _CompiledShare:
         self._correct = cl_step.correct
 
     def __enter__(self):
-        import resloc.experiments.runner as runner
+        import resloc.experiments.lockstep as lockstep
 
         def counted(*args, **kwargs):
             out = self._correct(*args, **kwargs)
@@ -81,13 +81,13 @@ class _CompiledShare:
             self.compiled += bool(out[2].compiled)
             return out
 
-        self._runner = runner
-        self._saved = runner.correct
-        runner.correct = counted
+        self._lockstep = lockstep
+        self._saved = lockstep.correct
+        lockstep.correct = counted
         return self
 
     def __exit__(self, *exc) -> None:
-        self._runner.correct = self._saved
+        self._lockstep.correct = self._saved
 
 
 def _scenario(option: dict | str, steps: int):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.experiments import runner
+from resloc.experiments import lockstep, runner
 from resloc.experiments.config import default_scenario
 from resloc.experiments.metrics import detector_scores
 
@@ -22,7 +22,7 @@ def test_covariance_repairs_are_booked_into_their_trial(monkeypatch) -> None:
     scenario = default_scenario().replace(**SMALL)
     N = scenario.world.team.robots
     flagged = np.zeros(scenario.run.trials, dtype=np.int64)
-    real_correct = runner.correct
+    real_correct = lockstep.correct
 
     def correct_marking_trial_one(filt, x, P, links, params, memory=None):
         x, P, out = real_correct(filt, x, P, links, params, memory)
@@ -31,7 +31,7 @@ def test_covariance_repairs_are_booked_into_their_trial(monkeypatch) -> None:
         flagged[1] += int(mark.sum())
         return x, P, out
 
-    monkeypatch.setattr(runner, "correct", correct_marking_trial_one)
+    monkeypatch.setattr(lockstep, "correct", correct_marking_trial_one)
     result = runner.run_scenario(scenario)
     assert flagged[1] > 0
     np.testing.assert_array_equal(result.estimators["ekf"].totals["repairs"], flagged)
@@ -43,14 +43,14 @@ def test_per_trial_confusion_counts_are_the_detector_scores_of_each_trial(monkey
     scenario = default_scenario().replace(**SMALL, **{"detector.rho": 0.05, "sdz": [zone]})
     N = scenario.world.team.robots
     seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    real_correct = runner.correct
+    real_correct = lockstep.correct
 
     def correct_recording(filt, x, P, links, params, memory=None):
         x, P, out = real_correct(filt, x, P, links, params, memory)
         seen.append((links.i // N, out.detected.copy()))
         return x, P, out
 
-    monkeypatch.setattr(runner, "correct", correct_recording)
+    monkeypatch.setattr(lockstep, "correct", correct_recording)
     world_attacked: list[np.ndarray] = []
     real_step = runner.World.step
 

@@ -13,6 +13,7 @@ import typer
 from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
+from resloc.cli.run import FilterChoice, warn_diverged
 from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]
@@ -24,15 +25,6 @@ class NoiseChoice(enum.StrEnum):
 
     DEFAULT = "default"
     AUTO = "auto"
-
-
-class FilterChoice(enum.StrEnum):
-    """Filter selection on the command line."""
-
-    CKF = "ckf"
-    UKF = "ukf"
-    EKF = "ekf"
-    ALL = "all"
 
 
 def _fmt(v, spec: str = ".4g") -> str:
@@ -63,7 +55,9 @@ def print_mrclam_summary(result, console=None) -> None:
     for name, s in result.summary().items():
         table.add_row(
             "DR" if name == "dr" else name.upper(),
-            _fmt(s["position_rmse"], ".3f"),
+            f"diverged (step {s['diverged_step']})"
+            if s.get("diverged_step")
+            else _fmt(s["position_rmse"], ".3f"),
             _fmt(s["heading_rmse_deg"], ".2f"),
             _fmt(s["msle_mean"], ".4f"),
             _fmt(s["nees_mean"], ".3g"),
@@ -83,6 +77,7 @@ def print_mrclam_summary(result, console=None) -> None:
         )
     console.print(per)
     console.print(data_rows_line(info["rows_skipped"]), highlight=False)
+    warn_diverged(result.estimators)
     if cfg.zones:
         console.print(
             f"attack layer: {info['attacked']} robot-robot measurements falsified in the SDZ, "
@@ -104,19 +99,8 @@ def data_rows_line(skipped: dict[str, int]) -> str:
     )
 
 
-#: Command-line flag of each MRCLAMConfig field (for messages).
-_FLAGS = {
-    "dt": "--dt",
-    "duration": "--duration",
-    "seed": "--seed",
-    "rho": "--rho",
-    "range_std": "--range-std",
-    "range_std_rel": "--range-std-rel",
-    "bearing_std": "--bearing-std",
-    "attack_bias": "--attack-bias",
-    "sdz": "--sdz",
-    "cdz": "--cdz",
-}
+#: MRCLAMConfig fields set by a command-line flag of the same name (``--range-std``).
+_FLAGS = "dt duration seed rho range_std range_std_rel bearing_std attack_bias sdz cdz".split()
 
 
 def make_config(**kw):
@@ -130,7 +114,7 @@ def make_config(**kw):
         text = str(exc)
         field = text.split(":", 1)[0].split("[", 1)[0].split(" ", 1)[0]
         if field in _FLAGS:
-            text = _FLAGS[field] + text[len(field) :]
+            text = "--" + field.replace("_", "-") + text[len(field) :]
         raise ConfigError(text) from None
 
 

@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.runtime.options import SwarmOptions
 from resloc.runtime.team import TeamSetup
 from resloc.world.world import WorldStep
 
-__all__ = ["ReplaySource", "load_replay", "replay_link_params", "replay_steps", "score_replay"]
+__all__ = ["ReplaySource", "load_replay", "replay_link_params", "score_replay"]
 
 
 @functools.lru_cache(maxsize=2)
@@ -37,22 +36,12 @@ def load_replay(path: str | Path, team: TeamSetup):
     return _load(str(path), cfg.duration, cfg)
 
 
-def replay_steps(options: SwarmOptions, team: TeamSetup) -> int:
-    """Number of steps of the replay (the supervisor shows progress against it)."""
-    return load_replay(options.replay, team).steps
-
-
 def replay_link_params(team: TeamSetup, z: np.ndarray) -> list[tuple[np.ndarray, object]]:
     """Rows of ``z: (E, 2)`` grouped by range-noise level with each level's parameters,
     as ``resloc mrclam`` fuses them (the range noise grows with the range)."""
-    from resloc.experiments.mrclam import level_params, range_noise_level
+    from resloc.experiments.mrclam import level_groups, range_noise_level
 
-    level = range_noise_level(z[:, 0], team.mrclam)
-    cache: dict = {}
-    return [
-        (np.flatnonzero(level == lv), level_params(cache, team.params, lv, team.mrclam))
-        for lv in np.unique(level)
-    ]
+    return level_groups(range_noise_level(z[:, 0], team.mrclam), team.params, {})
 
 
 class ReplaySource:
@@ -69,9 +58,7 @@ class ReplaySource:
 
     def initial_estimates(self) -> tuple[np.ndarray, np.ndarray]:
         """Ground truth at t = 0 with ``init_std`` (as ``resloc mrclam``)."""
-        p_std, h_std = self.cfg.init_std
-        var = np.maximum([p_std**2, p_std**2, h_std**2], 1e-10)
-        return self.rp.x0.copy(), np.broadcast_to(np.diag(var), (self.n, 3, 3)).copy()
+        return self.rp.initial_estimates(self.cfg.init_std)
 
     def initial_pose(self) -> np.ndarray:
         return self.rp.truth[0].copy()
@@ -112,30 +99,18 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
     steps : int
         Steps completed (the result covers steps ``0 .. steps``).
     """
-    import dataclasses
+    from resloc.experiments.mrclam import empty_link_log, replay_result, score_estimate
+    from resloc.runtime.messages import FLAG_DELIVERED, FLAG_DETECTED, FLAG_FUSED, FLAG_TRIGGERED
 
-    from resloc.experiments.mrclam import MRCLAMResult, empty_link_log, score_estimate
-    from resloc.runtime.messages import (
-        FLAG_DELIVERED,
-        FLAG_DETECTED,
-        FLAG_FUSED,
-        FLAG_TRIGGERED,
-    )
+    flags = {
+        "detected": FLAG_DETECTED,
+        "triggered": FLAG_TRIGGERED,
+        "delivered": FLAG_DELIVERED,
+        "fused": FLAG_FUSED,
+    }
 
-    rp = load_replay(path, team)
     K = steps
-    cut = rp.bounds[K + 1]
-    rp = dataclasses.replace(
-        rp,
-        time=rp.time[: K + 1],
-        u=rp.u[:K],
-        truth=rp.truth[: K + 1],
-        valid=rp.valid[: K + 1],
-        **{
-            f: getattr(rp, f)[:cut]
-            for f in ("step", "obs", "target", "is_robot", "z", "z_clean", "attacked", "channel_ok")
-        },
-    )
+    rp = load_replay(path, team).head(K)
     M = len(rp.step)
     links = empty_link_log(M)
     for k in range(1, K + 1):
@@ -145,35 +120,10 @@ def score_replay(team: TeamSetup, path: str, X, P, reports: dict, steps: int, wa
             mine = rows[rp.obs[rows] == r]
             if len(mine) != len(rep["flags"]):
                 continue
-            f = rep["flags"]
             links["norm"][mine] = rep["norm"]
-            links["detected"][mine] = (f & FLAG_DETECTED) > 0
-            links["triggered"][mine] = (f & FLAG_TRIGGERED) > 0
-            links["delivered"][mine] = (f & FLAG_DELIVERED) > 0
-            links["fused"][mine] = (f & FLAG_FUSED) > 0
+            for name, bit in flags.items():
+                links[name][mine] = (rep["flags"] & bit) > 0
     name = team.filter_name
     est = score_estimate(name, rp, X, P, links, wall)
-    data = rp.dataset
-    info = {
-        "dataset": data.name,
-        "path": str(data.path),
-        "replayed_s": float(rp.time[-1]),
-        "steps": K,
-        "robots": data.robot_subjects.tolist(),
-        "landmarks": len(data.landmark_subjects),
-        "measurements_replayed": {"robot": int(rp.is_robot.sum()), "landmark": 0},
-        "runtime": "resloc swarm --replay (robot processes over Zenoh)",
-    }
-    zones = {"sdz": list(rp.sdz.zones), "cdz": list(rp.cdz.zones)}
-    return MRCLAMResult(
-        team.mrclam,
-        info,
-        rp.time,
-        rp.truth,
-        rp.valid,
-        data.robot_subjects,
-        data.landmark_xy.copy(),
-        zones,
-        {name: est},
-        wall,
-    )
+    info = {"runtime": "resloc swarm --replay (robot processes over Zenoh)"}
+    return replay_result(rp, team.mrclam, {name: est}, wall, info)
