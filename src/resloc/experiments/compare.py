@@ -32,9 +32,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from resloc.cl.cusum import chi2_gate
+from resloc.distributions import chi2
 from resloc.experiments.config import Scenario, default_scenario, scenario_to_dict
 from resloc.experiments.executor import Study, StudyFailedError, Task
 from resloc.experiments.stats import mean_ci, ratio

@@ -4,9 +4,9 @@ consistency test, communication (messages and bytes) and detector rates."""
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from resloc.angles import wrap_angle
+from resloc.distributions import binomtest_pvalue, chi2_ppf
 from resloc.linalg import solve_spd
 
 __all__ = [
@@ -265,7 +265,7 @@ def nees_consistency(samples: np.ndarray, dof: int = 3, level: float = 0.95) -> 
     """
     x = np.asarray(samples, float).ravel()
     x = x[np.isfinite(x)]
-    above = int((x > stats.chi2.ppf(level, dof)).sum())
+    above = int((x > chi2_ppf(level, dof)).sum())
     return nees_consistency_counts(float(x.sum()), x.size, above, dof, level)
 
 
@@ -305,8 +305,8 @@ def nees_consistency_counts(
         nan = float("nan")
         keys = ("anees", "band_lo", "band_hi", "in_band", "exceed_share", "exceed_pvalue")
         return {**dict.fromkeys(keys, nan), "samples": 0, "exceed_expected": alpha}
-    lo = float(stats.chi2.ppf(alpha / 2, dof * m) / m)
-    hi = float(stats.chi2.ppf(1 - alpha / 2, dof * m) / m)
+    lo = float(chi2_ppf(alpha / 2, dof * m) / m)
+    hi = float(chi2_ppf(1 - alpha / 2, dof * m) / m)
     anees = float(total) / m
     return {
         "anees": anees,
@@ -316,7 +316,7 @@ def nees_consistency_counts(
         "samples": m,
         "exceed_share": exceed / m,
         "exceed_expected": alpha,
-        "exceed_pvalue": float(stats.binomtest(int(exceed), m, alpha).pvalue),
+        "exceed_pvalue": binomtest_pvalue(int(exceed), m, alpha),
     }
 
 
