@@ -24,16 +24,12 @@ from resloc.cl.step import LinkBatch, correct, predict
 from resloc.errors import NumericalError
 from resloc.experiments.config import RiskSource, Scenario
 from resloc.experiments.metrics import (
-    NEES_EXCEED_3DOF,
+    AccuracyRecorder,
     communication,
     confusion_counts,
     detector_rates,
-    msle,
-    nees,
     nees_consistency_counts,
-    position_rmse,
     rate,
-    relative_nees,
 )
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
@@ -259,6 +255,7 @@ class EstimatorTrack:
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
+        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N)
         self.wall = 0.0
         self.diverged: dict | None = None
         self.out = None
@@ -266,6 +263,7 @@ class EstimatorTrack:
 
     def stop(self, k: int, dt: float, N: int, P: np.ndarray, reason: str) -> None:
         """Mark the estimator diverged at step index ``k`` (0-based) and blank its future."""
+        self.accuracy.flush()  # the steps before ``k`` keep their metrics
         self.diverged = divergence(k, dt, N, P, reason)
         self.track[k + 1 :] = np.nan
         self.cov[k + 1 :] = np.nan
@@ -701,15 +699,5 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
     tr.track[k + 1] = tr.x[:N]
     P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]
-    if record:
-        pos_t = ws.pose[:, :2].reshape(T, N, 2)
-        pos_e = tr.x[:, :2].reshape(T, N, 2)
-        s["msle"][k] = msle(pos_t, pos_e)
-        s["rmse"][k] = position_rmse(pos_t, pos_e)
-        per_robot = nees(ws.pose, tr.x, P).reshape(T, N)
-        rel = relative_nees(ws.pose.reshape(T, N, 3), tr.x.reshape(T, N, 3), P.reshape(T, N, 3, 3))
-        s["nees"][k] = per_robot.mean(axis=1)
-        s["nees_rel"][k] = rel.mean(axis=1)
-        tot["nees_samples"] += N
-        tot["nees_exceed"] += (per_robot > NEES_EXCEED_3DOF).sum(axis=1)
-        tot["nees_rel_exceed"] += (rel > NEES_EXCEED_3DOF).sum(axis=1)
+    if record:  # computed in bulk (complete once the last step is recorded)
+        tr.accuracy.add(k, ws.pose, tr.x, P)
