@@ -6,7 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.experiments.plots.core import estimator_label, estimator_style, figure, pyplot, save
+from resloc.experiments.plots.core import (
+    estimator_label,
+    estimator_style,
+    fixed_figure,
+    pyplot,
+    save,
+)
 
 __all__ = [
     "draw_zones",
@@ -45,7 +51,7 @@ def _limits(points: np.ndarray, margin: float = 0.08) -> tuple[np.ndarray, np.nd
 def plot_trajectories(result, path: Path, estimator: str | None = None) -> Path:
     """True paths of trial 0 over the danger zones, and one estimator's (dashed); the axes
     hold the truth, the estimates and the zones (a diverging estimate stays in view)."""
-    plt, fig, ax = figure(figsize=(6, 6))
+    plt, fig, ax = fixed_figure(figsize=(6, 6), margins=(0.7, 0.15, 0.55, 0.35))
     draw_zones(ax, result.scenario)
     truth = result.truth
     for r in range(truth.shape[1]):
@@ -88,7 +94,7 @@ def plot_msle(result, path: Path) -> Path:
     """MSLE over time per estimator (mean over trials, band = min..max when T > 1), and below
     it each filter's MSLE relative to the first filter's, so coinciding curves can be told
     apart."""
-    plt, fig, (ax, diff) = figure(
+    plt, fig, (ax, diff) = fixed_figure(
         2, 1, figsize=(7, 5.2), sharex=True, gridspec_kw={"height_ratios": [3, 1.4]}
     )
     t = result.time
@@ -171,8 +177,13 @@ def plot_transmissions(
     n_robots : int
     """
     per_robot, team = link_rates(links, len(time), n_robots)
-    plt, fig, (ax, rate_ax) = figure(
-        2, 1, figsize=(7.5, 4.8), sharex=True, gridspec_kw={"height_ratios": [3, 1.2]}
+    plt, fig, (ax, rate_ax) = fixed_figure(
+        2,
+        1,
+        figsize=(7.5, 4.8),
+        sharex=True,
+        gridspec_kw={"height_ratios": [3, 1.2]},
+        margins=(0.85, 1.05, 0.55, 0.35),
     )
     t = np.asarray(time, float)
     dt = t[1] - t[0] if t.size > 1 else 1.0
@@ -187,7 +198,9 @@ def plot_transmissions(
         vmax=1.0,
         extent=(t[0] - dt, t[-1], 0.5, n_robots + 0.5),
     )
-    cb = fig.colorbar(im, ax=ax, pad=0.01)
+    # The colour bar gets its own axes in the right margin, so both rows keep one x-axis.
+    box = ax.get_position()
+    cb = fig.colorbar(im, cax=fig.add_axes((box.x1 + 0.012, box.y0, 0.018, box.height)))
     cb.set_label("share of its links\ntransmitted", fontsize=8)
     ax.set_ylabel("robot")
     ax.yaxis.get_major_locator().set_params(integer=True)
