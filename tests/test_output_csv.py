@@ -12,10 +12,10 @@ import pytest
 
 from resloc.experiments.config import default_scenario
 from resloc.experiments.output import (
-    _write_timeseries,
-    _write_trajectories,
     csv_field,
     csv_rows,
+    write_timeseries,
+    write_trajectories,
 )
 from resloc.experiments.runner import run_scenario
 
@@ -85,8 +85,8 @@ def _odd(result):
 def test_csv_files_are_byte_identical_to_the_row_writer(tmp_path, run_result, odd):
     result = _odd(run_result) if odd else run_result
     for write, reference in [
-        (_write_timeseries, reference_timeseries),
-        (_write_trajectories, reference_trajectories),
+        (write_timeseries, reference_timeseries),
+        (write_trajectories, reference_trajectories),
     ]:
         new, old = tmp_path / f"new_{write.__name__}.csv", tmp_path / f"old_{write.__name__}.csv"
         write(new, result)

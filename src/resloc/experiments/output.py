@@ -52,6 +52,8 @@ __all__ = [
     "save_run",
     "signals_as_exceptions",
     "write_json",
+    "write_timeseries",
+    "write_trajectories",
 ]
 
 #: Signals that end a command cleanly (temporaries removed) instead of killing it outright.
@@ -412,7 +414,7 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
     )
     written.append(p)
     p = out / "timeseries.csv"
-    _write_timeseries(p, result)
+    write_timeseries(p, result)
     written.append(p)
     for name, est in result.estimators.items():
         if name == "dr":
@@ -421,7 +423,7 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
         np.savetxt(p, est.raster.T, fmt="%d", delimiter=",", header="rows: robots, cols: steps")
         written.append(p)
     p = out / "trajectories.csv"
-    _write_trajectories(p, result)
+    write_trajectories(p, result)
     written.append(p)
     from resloc.experiments.recording import RECORDING_FILE, recording_from_run
 
@@ -485,7 +487,7 @@ TIMESERIES_COLUMNS = (
 TRAJECTORY_COLUMNS = ("step", "robot", "source", "x", "y", "theta")
 
 
-def _write_timeseries(path: Path, result) -> None:
+def write_timeseries(path: Path, result) -> None:
     """``timeseries.csv``: per step and estimator, the means over trials."""
     steps = len(result.time)
     step_numbers = list(range(1, steps + 1))
@@ -503,7 +505,7 @@ def _write_timeseries(path: Path, result) -> None:
     path.write_text("".join(parts), encoding="utf-8", newline="")
 
 
-def _write_trajectories(path: Path, result) -> None:
+def write_trajectories(path: Path, result) -> None:
     """``trajectories.csv``: trial 0's true and estimated poses, step by step."""
     sources = {"truth": result.truth} | {n: e.track for n, e in result.estimators.items()}
     parts = [",".join(TRAJECTORY_COLUMNS) + CSV_LINE_END]
