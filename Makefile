@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP_RUN := $(VENV)/.installed-run
 STAMP_TEST := $(VENV)/.installed-test
 
-.PHONY: run test lint format bench reproduce clean
+.PHONY: run test lint format bench bench-quick bench-reference reproduce clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -37,8 +37,16 @@ format: $(STAMP_TEST)
 	$(BIN)/ruff format src tests
 	$(BIN)/ruff check --fix src tests
 
+# Every benchmark (resloc run's phases, every option, the scale rows) -> runs/bench/.
 bench: $(STAMP_TEST)
-	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python bench/run_bench.py
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python bench/bench_all.py
+
+bench-quick: $(STAMP_TEST)
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python bench/bench_all.py --quick
+
+# Deliberately replace the committed reference (bench/reference/) by the last runs/bench/.
+bench-reference:
+	$(BIN)/python bench/bench_all.py --save-reference
 
 reproduce: $(STAMP_RUN)
 	$(BIN)/resloc reproduce

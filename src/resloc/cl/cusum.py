@@ -41,8 +41,8 @@ biased the filter into a lock-out).
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import chi2
 
+from resloc.distributions import chi2
 from resloc.linalg import cholesky_jitter, solve_spd
 
 __all__ = [

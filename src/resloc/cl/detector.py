@@ -2,26 +2,12 @@
 
 from __future__ import annotations
 
-import enum
-
 import numpy as np
 
+from resloc.innovation_norm import InnovationNorm
 from resloc.linalg import solve_spd
 
 __all__ = ["InnovationNorm", "attack_detected", "innovation_norm"]
-
-
-class InnovationNorm(enum.StrEnum):
-    """How the 2-vector ``Lambda = [range error (m), bearing error (rad)]`` becomes a scalar.
-
-    ``euclidean``: the paper's ``||Lambda||`` (adds metres to radians).
-    ``scaled``: ``||Lambda / sigma||`` with the measurement noise standard deviations.
-    ``nis``: ``sqrt(Lambda^T S^{-1} Lambda)``, the normalized innovation (uses ``P^zz``).
-    """
-
-    EUCLIDEAN = "euclidean"
-    SCALED = "scaled"
-    NIS = "nis"
 
 
 def innovation_norm(

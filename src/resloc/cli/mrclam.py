@@ -10,10 +10,10 @@ from pathlib import Path
 
 import typer
 
-from resloc.cl.detector import InnovationNorm
 from resloc.cli.common import handle_errors, step_progress
 from resloc.cli.export import export_option
 from resloc.cli.run import FilterChoice, warn_diverged
+from resloc.innovation_norm import InnovationNorm
 from resloc.validation import INT64_MAX
 
 __all__ = ["mrclam_command", "noise_command", "print_mrclam_summary", "register"]

@@ -4,14 +4,15 @@ consistency test, communication (messages and bytes) and detector rates."""
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from resloc.angles import wrap_angle
+from resloc.distributions import binomtest_pvalue, chi2_ppf
 from resloc.linalg import solve_spd
 
 __all__ = [
     "NEES_EXCEED_3DOF",
     "WIRE_BYTES",
+    "AccuracyRecorder",
     "align_se2",
     "communication",
     "confusion_counts",
@@ -265,7 +266,7 @@ def nees_consistency(samples: np.ndarray, dof: int = 3, level: float = 0.95) -> 
     """
     x = np.asarray(samples, float).ravel()
     x = x[np.isfinite(x)]
-    above = int((x > stats.chi2.ppf(level, dof)).sum())
+    above = int((x > chi2_ppf(level, dof)).sum())
     return nees_consistency_counts(float(x.sum()), x.size, above, dof, level)
 
 
@@ -305,8 +306,8 @@ def nees_consistency_counts(
         nan = float("nan")
         keys = ("anees", "band_lo", "band_hi", "in_band", "exceed_share", "exceed_pvalue")
         return {**dict.fromkeys(keys, nan), "samples": 0, "exceed_expected": alpha}
-    lo = float(stats.chi2.ppf(alpha / 2, dof * m) / m)
-    hi = float(stats.chi2.ppf(1 - alpha / 2, dof * m) / m)
+    lo = float(chi2_ppf(alpha / 2, dof * m) / m)
+    hi = float(chi2_ppf(1 - alpha / 2, dof * m) / m)
     anees = float(total) / m
     return {
         "anees": anees,
@@ -316,7 +317,7 @@ def nees_consistency_counts(
         "samples": m,
         "exceed_share": exceed / m,
         "exceed_expected": alpha,
-        "exceed_pvalue": float(stats.binomtest(int(exceed), m, alpha).pvalue),
+        "exceed_pvalue": binomtest_pvalue(int(exceed), m, alpha),
     }
 
 
@@ -351,3 +352,86 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         out["estimate"][1] + out["ack"][1] + out["consensus"][1],
     )
     return out
+
+
+class AccuracyRecorder:
+    """The per-step accuracy of one estimator (MSLE, RMSE, NEES, relative NEES), computed in
+    bulk over many steps.
+
+    At 17 robots one step's metrics are a few dozen small numpy calls whose fixed cost
+    exceeds their arithmetic; :meth:`add` only copies the step's truth, estimate and
+    covariance into a buffer, and the metric functions above run once per buffer of steps,
+    on the steps stacked into the batch dimension they already have. The buffer holds at
+    most :data:`BUFFER_BYTES` (one step at a time when a single step needs more, as with
+    the ``O(N^2)`` MSLE of a large team), and is emptied when full, when the series' last
+    row is added, and on :meth:`flush`. The values equal the per-step computation exactly.
+
+    Parameters
+    ----------
+    series : dict of str to ndarray, each shape (steps, T)
+        Receives rows ``msle``, ``rmse``, ``nees`` (mean over robots) and ``nees_rel``.
+    totals : dict of str to ndarray, each shape (T,)
+        Accumulates ``nees_samples``, ``nees_exceed`` and ``nees_rel_exceed`` (samples
+        above :data:`NEES_EXCEED_3DOF`).
+    trials, robots : int
+        ``T`` and ``N``; states arrive as ``(T * N, 3)``, trial-major.
+    """
+
+    #: Most bytes the buffered steps and their metric temporaries may take.
+    BUFFER_BYTES = 16_000_000
+    #: Most steps per bulk evaluation (beyond it the fixed costs are already amortized).
+    MAX_ROWS = 256
+
+    def __init__(self, series: dict, totals: dict, trials: int, robots: int) -> None:
+        self.series, self.totals = series, totals
+        self.trials, self.robots = trials, robots
+        self.last_row = len(series["msle"]) - 1
+        robots_total = trials * robots
+        # x, pose (3 each) and P (9) per robot, and the (N, N, 2) pair temporaries of msle.
+        per_step = 8 * robots_total * (15 + 8 * robots)
+        self.capacity = int(max(1, min(self.MAX_ROWS, self.BUFFER_BYTES // per_step)))
+        self.rows = np.zeros(self.capacity, np.int64)
+        self.pose = np.zeros((self.capacity, robots_total, 3))
+        self.x = np.zeros((self.capacity, robots_total, 3))
+        self.P = np.zeros((self.capacity, robots_total, 3, 3))
+        self.filled = 0
+
+    def add(self, row: int, pose: np.ndarray, x: np.ndarray, P: np.ndarray) -> None:
+        """Record step ``row`` (0-based row of ``series``).
+
+        Parameters
+        ----------
+        row : int
+        pose, x : ndarray, shape (T * N, 3)
+            True and estimated poses.
+        P : ndarray, shape (T * N, 3, 3)
+            The covariances the estimator reports.
+        """
+        n = self.filled
+        self.rows[n] = row
+        self.pose[n], self.x[n], self.P[n] = pose, x, P
+        self.filled = n + 1
+        if self.filled == self.capacity or row == self.last_row:
+            self.flush()
+
+    def flush(self) -> None:
+        """Compute the metrics of the buffered steps and write them into the series."""
+        C, T, N = self.filled, self.trials, self.robots
+        if C == 0:
+            return
+        self.filled = 0
+        rows = self.rows[:C]
+        pose = self.pose[:C].reshape(C * T, N, 3)
+        x = self.x[:C].reshape(C * T, N, 3)
+        P = self.P[:C].reshape(C * T, N, 3, 3)
+        s, tot = self.series, self.totals
+        s["msle"][rows] = msle(pose[..., :2], x[..., :2]).reshape(C, T)
+        s["rmse"][rows] = position_rmse(pose[..., :2], x[..., :2]).reshape(C, T)
+        per_robot = nees(pose.reshape(-1, 3), x.reshape(-1, 3), P.reshape(-1, 3, 3))
+        per_robot = per_robot.reshape(C, T, N)
+        rel = relative_nees(pose, x, P).reshape(C, T, N)
+        s["nees"][rows] = per_robot.mean(axis=2)
+        s["nees_rel"][rows] = rel.mean(axis=2)
+        tot["nees_samples"] += N * C
+        tot["nees_exceed"] += (per_robot > NEES_EXCEED_3DOF).sum(axis=(0, 2))
+        tot["nees_rel_exceed"] += (rel > NEES_EXCEED_3DOF).sum(axis=(0, 2))

@@ -23,6 +23,8 @@ import csv
 import ctypes
 import ctypes.util
 import errno
+import io
+import itertools
 import json
 import math
 import os
@@ -44,10 +46,14 @@ __all__ = [
     "Terminated",
     "atomic_output_dir",
     "check_output_dir",
+    "csv_field",
+    "csv_rows",
     "recover_leftovers",
     "save_run",
     "signals_as_exceptions",
     "write_json",
+    "write_timeseries",
+    "write_trajectories",
 ]
 
 #: Signals that end a command cleanly (temporaries removed) instead of killing it outright.
@@ -408,30 +414,7 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
     )
     written.append(p)
     p = out / "timeseries.csv"
-    with p.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["step", "time_s", "estimator", "msle", "rmse", "nees", "comm_rate", "detected"])
-        for name, est in result.estimators.items():
-            s = est.series
-            with np.errstate(invalid="ignore", divide="ignore"):
-                cr = s["triggered"].sum(axis=1) / s["candidates"].sum(axis=1)
-            for k in range(len(result.time)):
-                with np.errstate(invalid="ignore"), _quiet_empty_means():
-                    row = [
-                        f"{np.nanmean(s['msle'][k]):.6g}",
-                        f"{np.nanmean(s['rmse'][k]):.6g}",
-                        f"{np.nanmean(s['nees'][k]):.6g}",
-                    ]
-                w.writerow(
-                    [
-                        k + 1,
-                        f"{result.time[k]:.4f}",
-                        name,
-                        *row,
-                        f"{cr[k]:.6g}",
-                        int(np.nansum(s["detected"][k])),
-                    ]
-                )
+    write_timeseries(p, result)
     written.append(p)
     for name, est in result.estimators.items():
         if name == "dr":
@@ -440,15 +423,7 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
         np.savetxt(p, est.raster.T, fmt="%d", delimiter=",", header="rows: robots, cols: steps")
         written.append(p)
     p = out / "trajectories.csv"
-    with p.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["step", "robot", "source", "x", "y", "theta"])
-        sources = {"truth": result.truth} | {n: e.track for n, e in result.estimators.items()}
-        for src, arr in sources.items():
-            for k in range(arr.shape[0]):
-                for r in range(arr.shape[1]):
-                    x, y, th = arr[k, r]
-                    w.writerow([k, r, src, f"{x:.5f}", f"{y:.5f}", f"{th:.5f}"])
+    write_trajectories(p, result)
     written.append(p)
     from resloc.experiments.recording import RECORDING_FILE, recording_from_run
 
@@ -458,6 +433,94 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
 
         written += draw_plots(plotting.plot_run, result, out)
     return written
+
+
+#: The line ending of Python's ``csv`` module, which the files have always used.
+CSV_LINE_END = "\r\n"
+
+
+def csv_field(text: str) -> str:
+    """One CSV field as :mod:`csv` writes it (quoted when it holds a comma, a quote or a
+    line break)."""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator=CSV_LINE_END).writerow([text])
+    return buf.getvalue().removesuffix(CSV_LINE_END)
+
+
+def csv_rows(row_format: str, columns: Sequence[Sequence]) -> str:
+    """Rows of CSV text from whole columns, formatted by one ``%`` operation.
+
+    The same bytes as ``csv.writer`` writing one row at a time with each value formatted
+    by the matching ``%`` code (Python's float formatting is the same under ``%`` and
+    ``format``), at a fraction of the cost: no Python call per row or field.
+
+    Parameters
+    ----------
+    row_format : str
+        One row's ``%`` format without the line ending, e.g. ``"%d,%s,%.5f"``; string
+        fields must already be CSV fields (:func:`csv_field`).
+    columns : sequence of sequences, each of length ``n``
+        The fields, column by column (lists of Python numbers format fastest).
+
+    Returns
+    -------
+    str
+        ``n`` rows, each ending in ``\\r\\n``.
+    """
+    n = len(columns[0]) if columns else 0
+    if n == 0:
+        return ""
+    values = tuple(itertools.chain.from_iterable(zip(*columns, strict=True)))
+    return ((row_format + CSV_LINE_END) * n) % values
+
+
+TIMESERIES_COLUMNS = (
+    "step",
+    "time_s",
+    "estimator",
+    "msle",
+    "rmse",
+    "nees",
+    "comm_rate",
+    "detected",
+)
+TRAJECTORY_COLUMNS = ("step", "robot", "source", "x", "y", "theta")
+
+
+def write_timeseries(path: Path, result) -> None:
+    """``timeseries.csv``: per step and estimator, the means over trials."""
+    steps = len(result.time)
+    step_numbers = list(range(1, steps + 1))
+    times = np.asarray(result.time, float).tolist()
+    parts = [",".join(TIMESERIES_COLUMNS) + CSV_LINE_END]
+    for name, est in result.estimators.items():
+        s = est.series
+        with np.errstate(invalid="ignore", divide="ignore"), _quiet_empty_means():
+            comm_rate = s["triggered"].sum(axis=1) / s["candidates"].sum(axis=1)
+            means = [np.nanmean(s[key], axis=1).tolist() for key in ("msle", "rmse", "nees")]
+        detected = np.nansum(s["detected"], axis=1).astype(np.int64).tolist()
+        columns = [step_numbers, times, [csv_field(name)] * steps, *means]
+        columns += [comm_rate.tolist(), detected]
+        parts.append(csv_rows("%d,%.4f,%s,%.6g,%.6g,%.6g,%.6g,%d", columns))
+    path.write_text("".join(parts), encoding="utf-8", newline="")
+
+
+def write_trajectories(path: Path, result) -> None:
+    """``trajectories.csv``: trial 0's true and estimated poses, step by step."""
+    sources = {"truth": result.truth} | {n: e.track for n, e in result.estimators.items()}
+    parts = [",".join(TRAJECTORY_COLUMNS) + CSV_LINE_END]
+    for source, poses in sources.items():
+        steps, robots = poses.shape[:2]
+        rows = steps * robots
+        flat = np.asarray(poses, float).reshape(rows, 3)
+        columns = [
+            np.repeat(np.arange(steps), robots).tolist(),
+            np.tile(np.arange(robots), steps).tolist(),
+            [csv_field(source)] * rows,
+            *(flat[:, c].tolist() for c in range(3)),
+        ]
+        parts.append(csv_rows("%d,%d,%s,%.5f,%.5f,%.5f", columns))
+    path.write_text("".join(parts), encoding="utf-8", newline="")
 
 
 @contextlib.contextmanager

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from resloc.distributions import chi2
 from resloc.experiments.compare.methods import BEST, NAIVE_REFERENCE, PAPER
 from resloc.experiments.stats import mean_ci, ratio
 
@@ -26,8 +27,6 @@ def nees_band(dof: int, samples: int, level: float = 0.95) -> tuple[float, float
     so all robots of a trial share one common error and their NEES are not independent;
     the trials are (``docs/beyond.md``).
     """
-    from scipy.stats import chi2  # a report-time quantile: kept off the import path
-
     m = int(samples)
     lo = chi2.ppf((1.0 - level) / 2.0, dof * m) / m
     hi = chi2.ppf((1.0 + level) / 2.0, dof * m) / m

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.cl.cusum import chi2_gate
-from resloc.cl.detector import InnovationNorm
 from resloc.cl.params import CLParams
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
+from resloc.innovation_norm import InnovationNorm
 from resloc.validation import check_finite, check_seed
 from resloc.world.attacks import AttackKind, LinkScope
 

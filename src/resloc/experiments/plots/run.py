@@ -6,7 +6,17 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.experiments.plots.core import estimator_label, estimator_style, figure, pyplot, save
+from resloc.experiments.plots.core import (
+    estimator_label,
+    estimator_style,
+    fixed_figure,
+    pyplot,
+    save,
+)
+
+#: Title height in axes units, given explicitly: matplotlib otherwise measures the x-axis at
+#: every save to lift the title over top tick labels, which these figures do not have.
+TITLE_Y = 1.0
 
 __all__ = [
     "draw_zones",
@@ -45,7 +55,7 @@ def _limits(points: np.ndarray, margin: float = 0.08) -> tuple[np.ndarray, np.nd
 def plot_trajectories(result, path: Path, estimator: str | None = None) -> Path:
     """True paths of trial 0 over the danger zones, and one estimator's (dashed); the axes
     hold the truth, the estimates and the zones (a diverging estimate stays in view)."""
-    plt, fig, ax = figure(figsize=(6, 6))
+    plt, fig, ax = fixed_figure(figsize=(6, 6), margins=(0.7, 0.15, 0.55, 0.35))
     draw_zones(ax, result.scenario)
     truth = result.truth
     for r in range(truth.shape[1]):
@@ -79,7 +89,7 @@ def plot_trajectories(result, path: Path, estimator: str | None = None) -> Path:
     ax.set_ylabel("y (m)")
     # A user's name is text, not mathtext: "$" would start a formula (and may not parse).
     name = result.scenario.run.name.replace("$", r"\$")
-    ax.set_title(f"{name}: trajectories (trial 0)")
+    ax.set_title(f"{name}: trajectories (trial 0)", y=TITLE_Y)
     ax.legend(loc="upper right", fontsize=8)
     return save(plt, fig, path)
 
@@ -88,7 +98,7 @@ def plot_msle(result, path: Path) -> Path:
     """MSLE over time per estimator (mean over trials, band = min..max when T > 1), and below
     it each filter's MSLE relative to the first filter's, so coinciding curves can be told
     apart."""
-    plt, fig, (ax, diff) = figure(
+    plt, fig, (ax, diff) = fixed_figure(
         2, 1, figsize=(7, 5.2), sharex=True, gridspec_kw={"height_ratios": [3, 1.4]}
     )
     t = result.time
@@ -105,7 +115,7 @@ def plot_msle(result, path: Path) -> Path:
             )
     ax.set_yscale("log")
     ax.set_ylabel("MSLE (m$^2$)")
-    ax.set_title("Mean square localization error")
+    ax.set_title("Mean square localization error", y=TITLE_Y)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     filters = [n for n in means if n != "dr"]
@@ -171,8 +181,13 @@ def plot_transmissions(
     n_robots : int
     """
     per_robot, team = link_rates(links, len(time), n_robots)
-    plt, fig, (ax, rate_ax) = figure(
-        2, 1, figsize=(7.5, 4.8), sharex=True, gridspec_kw={"height_ratios": [3, 1.2]}
+    plt, fig, (ax, rate_ax) = fixed_figure(
+        2,
+        1,
+        figsize=(7.5, 4.8),
+        sharex=True,
+        gridspec_kw={"height_ratios": [3, 1.2]},
+        margins=(0.85, 1.05, 0.55, 0.35),
     )
     t = np.asarray(time, float)
     dt = t[1] - t[0] if t.size > 1 else 1.0
@@ -187,11 +202,13 @@ def plot_transmissions(
         vmax=1.0,
         extent=(t[0] - dt, t[-1], 0.5, n_robots + 0.5),
     )
-    cb = fig.colorbar(im, ax=ax, pad=0.01)
+    # The colour bar gets its own axes in the right margin, so both rows keep one x-axis.
+    box = ax.get_position()
+    cb = fig.colorbar(im, cax=fig.add_axes((box.x1 + 0.012, box.y0, 0.018, box.height)))
     cb.set_label("share of its links\ntransmitted", fontsize=8)
     ax.set_ylabel("robot")
     ax.yaxis.get_major_locator().set_params(integer=True)
-    ax.set_title(title, fontsize=10)
+    ax.set_title(title, fontsize=10, y=TITLE_Y)
     rate_ax.plot(t, team, color="k", lw=0.6)
     mean = float(np.nanmean(team)) if np.isfinite(team).any() else float("nan")
     rate_ax.axhline(mean, color="tab:red", lw=1.0, ls="--", label=f"mean {mean:.3f}")
