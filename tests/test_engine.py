@@ -172,18 +172,25 @@ def lockstep_both_backends(world, filt, params, steps: int):
     each path carrying its own estimates and link memory; after each step checks that the
     two agree (and which path ran), then yields ``(results, memories)`` keyed by backend."""
     x0, P0 = world.initial_estimates()
-    state = {b: (x0.copy(), P0.copy(), LinkMemory(world.B)) for b in ("numba", "numpy")}
+    fusion = fusion_strategy(params.fusion)  # its bookkeeping runs as in the runner
+    state = {}
+    for backend in ("numba", "numpy"):
+        memory = LinkMemory(world.B)
+        fusion.init(memory, x0, P0, world.n)
+        state[backend] = (x0.copy(), P0.copy(), memory)
     for _ in range(steps):
         ws = world.step()
         res = {}
         for backend, (x, P, memory) in state.items():
             with kernels.use_backend(backend):
                 xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
                 links = LinkBatch(
                     ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
                     ws.risk_s, ws.risk_c, ws.lambda2,
                 )  # fmt: skip
                 res[backend] = correct(filt, xp, Pp, links, params, memory)
+                fusion.exchange(memory, ws.i, ws.j)
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
         yield res, {backend: s[2] for backend, s in state.items()}

@@ -47,6 +47,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
 )
 from resloc.cl.fusion import FusionMethod
 from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
 from resloc.cl.kernels_links import OK, _correct_links
@@ -252,6 +253,10 @@ def fast_correct(
     detection = detector_state(params, memory, li, lj)
     if detection is None:
         return None  # the reference path raises the explanatory error
+    defence = defence_state(params, memory, li)
+    if defence is None:
+        detection.undo()
+        return None  # the reference path raises the explanatory error
     last = np.zeros(E if last_sent else 0)
     if last_sent and len(memory):
         known, pos = memory.lookup(li, lj)
@@ -276,9 +281,20 @@ def fast_correct(
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
     status = _correct_links(
-        x_out, P_out, kernel_links, robots, spec, options, detect, gauge, tamper, out
+        x_out,
+        P_out,
+        kernel_links,
+        robots,
+        spec,
+        options,
+        detect,
+        defence.kernel,
+        gauge,
+        tamper,
+        out,
     )
     if status != OK:
+        defence.undo()
         detection.undo()
         return None
     detected, triggered, delivered, fused, repaired = out.flags

@@ -43,7 +43,7 @@ else:  # pragma: no cover - exercised only where numba is absent
         return func
 
 
-__all__ = ["DetectorState", "KernelDetection", "detector_state"]
+__all__ = ["DetectorState", "KernelDetection", "detector_state", "store_slots"]
 
 
 class KernelDetection(NamedTuple):
@@ -67,7 +67,8 @@ class KernelDetection(NamedTuple):
 
 
 class DetectorState(NamedTuple):
-    """A :class:`KernelDetection` with what :meth:`undo` needs."""
+    """The kernel form of stateful stages (a :class:`KernelDetection`, or a
+    :class:`~resloc.cl.kernels_defence.KernelDefence`) with what :meth:`undo` needs."""
 
     kernel: KernelDetection
     saved: tuple  # per store: (store, keys before, values before or None, slots, old values)
@@ -89,7 +90,10 @@ _NO_GAIN = np.zeros(1)
 _NO_SLOTS = np.zeros(0, np.int64)
 
 
-def _slots(store, i, j, saved: list) -> np.ndarray:
+def store_slots(store, i, j, saved: list) -> np.ndarray:
+    """Slots of links ``(i, j)`` in ``store``'s values (:meth:`LinkStatistic.slots
+    <resloc.cl.memory.LinkStatistic.slots>`), recording in ``saved`` what
+    :meth:`DetectorState.undo` needs to put the store back."""
     keys, values = store.keys, store.values
     slots = store.slots(i, j)
     if store.values is values:
@@ -126,14 +130,14 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
         h = _gain(params.cusum_h)
         cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
         k = _gain(params.cusum_k)
-        slot = _slots(memory.cusum, i, j, saved)
+        slot = store_slots(memory.cusum, i, j, saved)
         g = memory.cusum.values
     else:
         k = h = cap = _NO_GAIN
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
         mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
-        mslot = _slots(memory.mean_cusum, i, j, saved)
+        mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values
     else:
         mk = mh = _NO_GAIN

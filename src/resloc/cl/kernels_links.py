@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_math import (
@@ -132,7 +134,7 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper, out):
+def _correct_links(x, P, links, robots, filt, options, detection, defence, gauge, tamper, out):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -161,6 +163,8 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
     T3 = np.zeros((3, 3))
     A3 = np.zeros((3, 3))
     G3 = np.zeros((3, 3))
+    Pinf = np.zeros((3, 3))
+    defending = defence[0] or defence[5]
     std0 = noise_std[0]
     std1 = noise_std[1]
     record_gauge = gauge[0]
@@ -179,130 +183,152 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
         xi2 = x[i, 2]
         xj0 = x_nb[e, 0]
         xj1 = x_nb[e, 1]
-        re00 = 0.0
-        re01 = 0.0
-        re11 = 0.0
-        if linearized:
-            zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
-                xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz
-            )
-        else:
-            # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
-            # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
-            if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
-                return NOT_PD
-            for k in range(m):
-                for a in range(6):
-                    off[k, a] = 0.0
-                for t in range(nz_cnt[k]):
-                    b = nz_idx[k, t]
-                    u = nz_val[k, t]
-                    if b < 3:
-                        for a in range(3):
-                            off[k, a] += Li[a, b] * u
-                    else:
-                        for a in range(3):
-                            off[k, 3 + a] += Lj[a, b - 3] * u
-            zr = 0.0
-            ssin = 0.0
-            scos = 0.0
-            zb = 0.0
-            sin_i = 0.0
-            cos_i = 0.0
-            if circular:
-                sin_i = math.sin(xi2)
-                cos_i = math.cos(xi2)
-            for k in range(m):
-                dx = (xj0 + off[k, 3]) - (xi0 + off[k, 0])
-                dy = (xj1 + off[k, 4]) - (xi1 + off[k, 1])
-                r = math.sqrt(dx * dx + dy * dy)
-                th = xi2 + off[k, 2]
-                Z0[k] = r
-                Z1[k] = _wrap(math.atan2(dy, dx) - th)
-                zr += r * Wm[k]
-                if circular:
-                    # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
-                    if r > 0.0:
-                        if off[k, 2] == 0.0:
-                            sn = sin_i
-                            cs = cos_i
+        zu0 = z[e, 0]
+        zu1 = z[e, 1]
+        inflation = 1.0
+        # A second pass only for a measurement the recovery re-admits with robot i's covariance
+        # inflated: the update uses the moments of the inflated covariance (twin: _decide).
+        for attempt in range(2):
+            re00 = 0.0
+            re01 = 0.0
+            re11 = 0.0
+            if linearized:
+                zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
+                    xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz
+                )
+            else:
+                # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
+                # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
+                if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
+                    return NOT_PD
+                for k in range(m):
+                    for a in range(6):
+                        off[k, a] = 0.0
+                    for t in range(nz_cnt[k]):
+                        b = nz_idx[k, t]
+                        u = nz_val[k, t]
+                        if b < 3:
+                            for a in range(3):
+                                off[k, a] += Li[a, b] * u
                         else:
-                            sn = math.sin(th)
-                            cs = math.cos(th)
-                        ssin += ((dy * cs - dx * sn) / r) * Wm[k]
-                        scos += ((dx * cs + dy * sn) / r) * Wm[k]
+                            for a in range(3):
+                                off[k, 3 + a] += Lj[a, b - 3] * u
+                zr = 0.0
+                ssin = 0.0
+                scos = 0.0
+                zb = 0.0
+                sin_i = 0.0
+                cos_i = 0.0
+                if circular:
+                    sin_i = math.sin(xi2)
+                    cos_i = math.cos(xi2)
+                for k in range(m):
+                    dx = (xj0 + off[k, 3]) - (xi0 + off[k, 0])
+                    dy = (xj1 + off[k, 4]) - (xi1 + off[k, 1])
+                    r = math.sqrt(dx * dx + dy * dy)
+                    th = xi2 + off[k, 2]
+                    Z0[k] = r
+                    Z1[k] = _wrap(math.atan2(dy, dx) - th)
+                    zr += r * Wm[k]
+                    if circular:
+                        # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
+                        if r > 0.0:
+                            if off[k, 2] == 0.0:
+                                sn = sin_i
+                                cs = cos_i
+                            else:
+                                sn = math.sin(th)
+                                cs = math.cos(th)
+                            ssin += ((dy * cs - dx * sn) / r) * Wm[k]
+                            scos += ((dx * cs + dy * sn) / r) * Wm[k]
+                        else:
+                            ssin += math.sin(Z1[k]) * Wm[k]
+                            scos += math.cos(Z1[k]) * Wm[k]
                     else:
-                        ssin += math.sin(Z1[k]) * Wm[k]
-                        scos += math.cos(Z1[k]) * Wm[k]
-                else:
-                    zb += Z1[k] * Wm[k]
-            zh0 = zr
-            zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
-            mx0 = 0.0
-            mx1 = 0.0
-            mx2 = 0.0
-            for k in range(m):
-                mx0 += off[k, 0] * Wm[k]
-                mx1 += off[k, 1] * Wm[k]
-                mx2 += off[k, 2] * Wm[k]
-            s00 = 0.0
-            s01 = 0.0
-            s11 = 0.0
+                        zb += Z1[k] * Wm[k]
+                zh0 = zr
+                zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
+                mx0 = 0.0
+                mx1 = 0.0
+                mx2 = 0.0
+                for k in range(m):
+                    mx0 += off[k, 0] * Wm[k]
+                    mx1 += off[k, 1] * Wm[k]
+                    mx2 += off[k, 2] * Wm[k]
+                s00 = 0.0
+                s01 = 0.0
+                s11 = 0.0
+                for a in range(3):
+                    Pxz[a, 0] = 0.0
+                    Pxz[a, 1] = 0.0
+                for k in range(m):
+                    d0 = Z0[k] - zh0
+                    d1 = _wrap(Z1[k] - zh1)
+                    w = Wc[k]
+                    s00 += d0 * w * d0
+                    s01 += d0 * w * d1
+                    s11 += d1 * w * d1
+                    g0 = off[k, 0] - mx0
+                    g1 = off[k, 1] - mx1
+                    g2 = off[k, 2] - mx2
+                    Pxz[0, 0] += g0 * w * d0
+                    Pxz[0, 1] += g0 * w * d1
+                    Pxz[1, 0] += g1 * w * d0
+                    Pxz[1, 1] += g1 * w * d1
+                    Pxz[2, 0] += g2 * w * d0
+                    Pxz[2, 1] += g2 * w * d1
+                S00 = s00 + R[0, 0]
+                S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
+                S11 = s11 + R[1, 1]
+            # innovation, eq. (9)
+            nu0 = zu0 - zh0
+            nu1 = _wrap(zu1 - zh1)
+            l00, l10, l11 = _chol2(S00, S01, S11, jitter)
+            if l00 == 0.0:
+                return NOT_PD
+            if attempt == 1:
+                break
+            if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
+                zt0, zt1 = stealthy_measurement(
+                    tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11
+                )
+                zu0 = zt0
+                zu1 = _wrap(zt1)
+                nu0 = zu0 - zh0
+                nu1 = _wrap(zu1 - zh1)
+            n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
+            if det_norm == trig_norm:
+                n_det = n_trig
+            else:
+                n_det = _innovation_norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
+            a_i = alpha[i] if alpha.shape[0] > 1 else alpha[0]
+            g_i = gamma[i] if gamma.shape[0] > 1 else gamma[0]
+            zs_i = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
+            zc_i = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
+            rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
+            delta = _event_threshold(
+                a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
+                zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
+            )  # fmt: skip
+            gated = _gate_link(n_det, detector, rho_i)
+            detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
+            if defending:  # the per-robot stages (robot CUSUM, recovery: kernels_defence)
+                detected, inflation = defend_link(
+                    defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11
+                )
+            triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
+            out_norm[e] = n_trig
+            out_threshold[e] = math.nan if detected else delta
+            flags[0, e] = detected
+            flags[1, e] = triggered
+            flags[2, e] = delivered
+            flags[3, e] = delivered
+            if not (delivered and inflation > 1.0):
+                break
             for a in range(3):
-                Pxz[a, 0] = 0.0
-                Pxz[a, 1] = 0.0
-            for k in range(m):
-                d0 = Z0[k] - zh0
-                d1 = _wrap(Z1[k] - zh1)
-                w = Wc[k]
-                s00 += d0 * w * d0
-                s01 += d0 * w * d1
-                s11 += d1 * w * d1
-                g0 = off[k, 0] - mx0
-                g1 = off[k, 1] - mx1
-                g2 = off[k, 2] - mx2
-                Pxz[0, 0] += g0 * w * d0
-                Pxz[0, 1] += g0 * w * d1
-                Pxz[1, 0] += g1 * w * d0
-                Pxz[1, 1] += g1 * w * d1
-                Pxz[2, 0] += g2 * w * d0
-                Pxz[2, 1] += g2 * w * d1
-            S00 = s00 + R[0, 0]
-            S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
-            S11 = s11 + R[1, 1]
-        # innovation, eq. (9)
-        nu0 = z[e, 0] - zh0
-        nu1 = _wrap(z[e, 1] - zh1)
-        l00, l10, l11 = _chol2(S00, S01, S11, jitter)
-        if l00 == 0.0:
-            return NOT_PD
-        if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
-            zt0, zt1 = stealthy_measurement(tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11)
-            nu0 = zt0 - zh0
-            nu1 = _wrap(_wrap(zt1) - zh1)
-        n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
-        if det_norm == trig_norm:
-            n_det = n_trig
-        else:
-            n_det = _innovation_norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
-        a_i = alpha[i] if alpha.shape[0] > 1 else alpha[0]
-        g_i = gamma[i] if gamma.shape[0] > 1 else gamma[0]
-        zs_i = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
-        zc_i = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
-        rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
-        delta = _event_threshold(
-            a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
-            zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
-        )  # fmt: skip
-        gated = _gate_link(n_det, detector, rho_i)
-        detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
-        triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
-        out_norm[e] = n_trig
-        out_threshold[e] = math.nan if detected else delta
-        flags[0, e] = detected
-        flags[1, e] = triggered
-        flags[2, e] = delivered
-        flags[3, e] = delivered
+                for c in range(3):
+                    Pinf[a, c] = Pi[a, c] * inflation
+            Pi = Pinf
         if not delivered:
             continue
         # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
@@ -363,5 +389,10 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
 
 
 _stamp_with_pieces(
-    _correct_links, _kernels_math, _kernels_detection, _kernels_gauge, _kernels_tamper
+    _correct_links,
+    _kernels_math,
+    _kernels_detection,
+    _kernels_defence,
+    _kernels_gauge,
+    _kernels_tamper,
 )
