@@ -70,6 +70,9 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
         fused += int(res["numpy"][2].fused.sum())
     assert fused > 0
     assert np.abs(state["numpy"][2].joint.robot_G()).max() > 0
+    # The once-per-step parts: compiled (prediction and finish of every step) with exact sums.
+    assert state["numpy"][2].joint.compiled_steps == 0
+    assert state["numba"][2].joint.compiled_steps == (2 * steps if rounds is None else 0)
 
 
 @pytest.mark.parametrize("name", list(FILTERS))

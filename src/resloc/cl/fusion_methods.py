@@ -309,6 +309,27 @@ class GaugeFusion(_Bookkept):
             x0, P0, _team_size(self.method, team_size), rounds, local=local
         )
 
+    def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
+        # The compiled twin (resloc.cl.kernels_gauge) when the backend and the bookkeeping
+        # allow it; imported here: the kernels import this module's registry.
+        from resloc.cl.kernels_gauge import compiled_gauge_predict
+
+        joint = self._joint(memory)
+        Q = process_noise(
+            x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
+        )
+        if compiled_gauge_predict(joint, x, Q, P_pred):
+            return P_pred
+        return joint.predict(x, u, dt, Q, P_pred)
+
+    def finish(self, memory, P, j, delivered) -> np.ndarray:
+        from resloc.cl.kernels_gauge import compiled_gauge_finish
+
+        joint = self._joint(memory)
+        if compiled_gauge_finish(joint):
+            return P
+        return joint.finish(P)
+
     def exchange(self, memory, i, j) -> None:
         self._joint(memory).exchange(i, j)
 

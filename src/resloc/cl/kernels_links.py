@@ -13,9 +13,7 @@ the stealthy attacker: :mod:`resloc.cl.kernels_tamper`).
 
 from __future__ import annotations
 
-import hashlib
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -36,6 +34,7 @@ from resloc.cl.kernels_math import (
     _repair3,
     _sandwich,
     _solve2,
+    _stamp_with_pieces,
     _wrap,
 )
 from resloc.cl.kernels_tamper import stealthy_measurement
@@ -372,20 +371,6 @@ def _correct_links(x, P, links, robots, filt, options, detection, defence, gauge
         if record_gauge:
             gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK
-
-
-def _stamp_with_pieces(dispatcher, *modules) -> None:
-    """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
-    changes: numba stamps a cached kernel with its own source file only, so an edited
-    :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
-    cache = getattr(dispatcher, "_cache", None)
-    cache_file = getattr(cache, "_cache_file", None)
-    if getattr(cache_file, "_source_stamp", None) is None:
-        return  # numba absent, or a numba whose cache we do not know: nothing to extend
-    digest = hashlib.sha256()
-    for module in modules:
-        digest.update(Path(module.__file__).read_bytes())
-    cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
 
 
 _stamp_with_pieces(

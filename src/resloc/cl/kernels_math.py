@@ -9,7 +9,9 @@ calls them; the jit decorators the kernel modules share are defined here.
 
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -170,3 +172,17 @@ def _sandwich(H, P, T):
         q10 += T[1, c] * H[0, c]
         q11 += T[1, c] * H[1, c]
     return q00, q01, q10, q11
+
+
+def _stamp_with_pieces(dispatcher, *modules) -> None:
+    """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
+    changes: numba stamps a cached kernel with its own source file only, so an edited
+    :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if getattr(cache_file, "_source_stamp", None) is None:
+        return  # numba absent, or a numba whose cache we do not know: nothing to extend
+    digest = hashlib.sha256()
+    for module in modules:
+        digest.update(Path(module.__file__).read_bytes())
+    cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
