@@ -38,7 +38,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.kernels_detection import DetectorState, _at, _nis, store_slots
-from resloc.cl.kernels_math import _jit_inline
+from resloc.cl.kernels_math import _jit_inline, per_params
 from resloc.cl.params import CLParams
 
 __all__ = ["KernelDefence", "defence_state", "defend_link"]
@@ -75,6 +75,18 @@ _NO_SLOTS = np.zeros(0, np.int64)
 _NO_VALUES = np.zeros(0)
 
 
+@per_params
+def _defence_gains(params: CLParams) -> tuple[tuple, tuple]:
+    """The robot CUSUM's ``(k, h)`` and the recovery's ``(after, gate, cap)`` as the kernel
+    takes them; empty for a stage that is off."""
+    robot = (_gain(params.robot_cusum_k), _gain(params.robot_cusum_h))
+    recovery = tuple(
+        _gain(g)
+        for g in (params.recovery_after, params.recovery_gate, params.recovery_inflation_cap)
+    )
+    return (robot if params.robot_cusum else ()), (recovery if params.recovery else ())
+
+
 def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | None:
     """The per-robot stages of ``params`` for the links of observers ``i`` of one step.
 
@@ -91,26 +103,23 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
         Its ``kernel`` is a :class:`KernelDefence`. None when a stage is on and there is no
         memory (the reference path raises the explanatory error).
     """
-    robot, recovery = bool(params.robot_cusum), bool(params.recovery)
-    if (robot or recovery) and memory is None:
+    robot_gains, recovery_gains = _defence_gains(params)
+    if (robot_gains or recovery_gains) and memory is None:
         return None
     saved: list = []
-    if robot:
+    if robot_gains:
         store = memory.stage_statistic("robot_cusum")
         slot = store_slots(store, i, i, saved)
-        robot_part = (True, _gain(params.robot_cusum_k), _gain(params.robot_cusum_h))
-        robot_part += (store.values, slot)
+        robot_part = (True, *robot_gains, store.values, slot)
     else:
         robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
-    if recovery:
+    if recovery_gains:
         # the stores of RejectionRecovery (detection_recovery._runs and its spread)
         runs = memory.stage_statistic("recovery", width=None)
         spread = memory.stage_statistic("recovery_spread")
         runs_slot = store_slots(runs, i, i, saved)
         spread_slot = store_slots(spread, i, i, saved)
-        gains = (params.recovery_after, params.recovery_gate, params.recovery_inflation_cap)
-        recovery_part = (True, *(_gain(g) for g in gains))
-        recovery_part += (runs.values, runs_slot, spread.values, spread_slot)
+        recovery_part = (True, *recovery_gains, runs.values, runs_slot, spread.values, spread_slot)
     else:
         recovery_part = (False, _NO_GAIN, _NO_GAIN, _NO_GAIN)
         recovery_part += (_NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS)

@@ -29,19 +29,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.detector import InnovationNorm
+from resloc.cl.kernels_math import _jit_inline, per_params
 from resloc.cl.params import CLParams
-
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit_inline(func):
-        return func
-
 
 __all__ = ["DetectorState", "KernelDetection", "detector_state", "store_slots"]
 
@@ -105,6 +95,31 @@ def store_slots(store, i, j, saved: list) -> np.ndarray:
     return slots
 
 
+@per_params
+def _detection_gains(params: CLParams) -> tuple:
+    """``(cusum, k, h, cap, mean_cusum, mean_k, mean_h)`` as the kernel takes them."""
+    cusum, mean = bool(params.cusum), bool(params.mean_cusum)
+    k = h = cap = mk = mh = _NO_GAIN
+    if cusum:
+        h = _gain(params.cusum_h)
+        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
+        k = _gain(params.cusum_k)
+    if mean:
+        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
+    return cusum, k, h, cap, mean, mk, mh
+
+
+def _same_keys(store, other) -> bool:
+    return store.keys.shape == other.keys.shape and np.array_equal(store.keys, other.keys)
+
+
+def _saved(store, slots: np.ndarray) -> tuple:
+    """What :meth:`DetectorState.undo` needs to restore ``store`` at ``slots`` (in place)."""
+    if not store.values.flags.c_contiguous:
+        store.values = np.ascontiguousarray(store.values)
+    return (store, store.keys, None, slots, store.values[slots].copy())
+
+
 def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> DetectorState | None:
     """The stateful stages of ``params`` for the links ``(i, j)`` of one step.
 
@@ -122,25 +137,22 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
         explanatory error).
     """
     saved: list = []
-    cusum = bool(params.cusum)
-    mean = bool(params.mean_cusum)
+    cusum, k, h, cap, mean, mk, mh = _detection_gains(params)
     if (cusum or mean) and memory is None:
         return None
     if cusum:
-        h = _gain(params.cusum_h)
-        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
-        k = _gain(params.cusum_k)
         slot = store_slots(memory.cusum, i, j, saved)
         g = memory.cusum.values
     else:
-        k = h = cap = _NO_GAIN
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
-        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
-        mslot = store_slots(memory.mean_cusum, i, j, saved)
+        if cusum and _same_keys(memory.mean_cusum, memory.cusum):
+            mslot = slot  # both stores hold every link of every step: same slots
+            saved.append(_saved(memory.mean_cusum, slot))
+        else:
+            mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values
     else:
-        mk = mh = _NO_GAIN
         mg, mslot = np.zeros((0, 4)), _NO_SLOTS
     kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot)
     return DetectorState(kernel, tuple(saved))

@@ -9,8 +9,11 @@ calls them; the jit decorators the kernel modules share are defined here.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
+import weakref
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -186,3 +189,24 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
     for module in modules:
         digest.update(Path(module.__file__).read_bytes())
     cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
+
+
+def per_params(func: Callable) -> Callable:
+    """Keep ``func(params)`` for the last ``params`` object: a run passes the same frozen
+    :class:`~resloc.cl.params.CLParams` every step, and the kernels' inputs derived from it
+    (contiguous gain arrays, codes) would otherwise be rebuilt per step."""
+    last: list = [None, None]
+
+    @functools.wraps(func)
+    def cached(params):
+        ref, value = last
+        if ref is not None and ref() is params:
+            return value
+        value = func(params)
+        try:
+            last[:] = [weakref.ref(params), value]
+        except TypeError:  # not weakly referenceable: no cache
+            last[:] = [None, None]
+        return value
+
+    return cached
