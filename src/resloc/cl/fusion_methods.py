@@ -48,6 +48,8 @@ class FusionStrategy(Protocol):
     method : FusionMethod
     compiled : bool
         The compiled CL kernel (:mod:`resloc.cl.kernels`) implements the method.
+    kernel_update, kernel_bookkeeping : str
+        How the kernel runs it (read only when ``compiled``).
     node_refusal : str or None
         None when a :class:`~resloc.cl.node.RobotNode` (one robot's process) runs the
         method; otherwise why it does not.
@@ -59,6 +61,11 @@ class FusionStrategy(Protocol):
 
     method: ClassVar[FusionMethod]
     compiled: ClassVar[bool] = False
+    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"``,
+    #: :mod:`resloc.cl.kernels_fusion`) and the per-link bookkeeping (``"none"``;
+    #: ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
+    kernel_update: ClassVar[str] = "kalman"
+    kernel_bookkeeping: ClassVar[str] = "none"
     node_refusal: ClassVar[str | None] = None
     node_exchanges: ClassVar[tuple[str, ...]] = ()
 
@@ -175,6 +182,8 @@ class CIFusion(_TransmittedOnly):
     """``ci``: covariance intersection of the joint (:func:`~resloc.cl.fusion.fused_update`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.CI
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "ci"
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
         criterion = params.ci_criterion
@@ -302,6 +311,7 @@ class GaugeFusion(_Bookkept):
 
     method: ClassVar[FusionMethod] = FusionMethod.GAUGE
     compiled: ClassVar[bool] = True
+    kernel_bookkeeping: ClassVar[str] = "gauge"
     node_exchanges: ClassVar[tuple[str, ...]] = ("acks", "consensus")
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:

@@ -45,10 +45,10 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
-from resloc.cl.fusion import FusionMethod
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
+from resloc.cl.kernels_fusion import KERNEL_UPDATES, kernel_fusion
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
 from resloc.cl.kernels_links import OK, _correct_links
 from resloc.cl.kernels_tamper import no_tamper
@@ -142,10 +142,12 @@ def _gauge_commit(memory, state, i, j, fused) -> None:
     gauge_commit(memory.joint, state, i, j, fused)
 
 
-#: Per fusion method with ``compiled = True``: its bookkeeping in the compiled path.
-COMPILED_BOOKKEEPING: dict[FusionMethod, CompiledBookkeeping] = {
-    FusionMethod.NAIVE: CompiledBookkeeping(lambda memory, E: no_gauge(E), _nothing_to_commit),
-    FusionMethod.GAUGE: CompiledBookkeeping(
+#: The per-link bookkeeping of a fusion method in the compiled path, by the name its strategy
+#: declares (:attr:`FusionStrategy.kernel_bookkeeping
+#: <resloc.cl.fusion_methods.FusionStrategy.kernel_bookkeeping>`).
+COMPILED_BOOKKEEPING: dict[str, CompiledBookkeeping] = {
+    "none": CompiledBookkeeping(lambda memory, E: no_gauge(E), _nothing_to_commit),
+    "gauge": CompiledBookkeeping(
         lambda memory, E: None if memory is None else gauge_state(memory.joint, E),
         _gauge_commit,
     ),
@@ -246,7 +248,8 @@ def fast_correct(
     strategy = fusion_strategy(params.fusion)
     if strategy.problem(params) is not None:
         return None  # the reference path raises the explanatory error
-    bookkeeping = COMPILED_BOOKKEEPING[strategy.method]
+    bookkeeping = COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping]
+    fusion = kernel_fusion(KERNEL_UPDATES[strategy.kernel_update], params.ci_criterion)
     gauge = bookkeeping.state(memory, E)
     if gauge is None:
         return None  # the reference path raises the explanatory error, or records exactly
@@ -287,6 +290,7 @@ def fast_correct(
         robots,
         spec,
         options,
+        fusion,
         detect,
         defence.kernel,
         gauge,

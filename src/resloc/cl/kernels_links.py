@@ -19,11 +19,13 @@ import numpy as np
 
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
+from resloc.cl.kernels_fusion import CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_math import (
     _chol2,
@@ -133,7 +135,9 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 
 @_jit
-def _correct_links(x, P, links, robots, filt, options, detection, defence, gauge, tamper, out):
+def _correct_links(
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+):
     """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
@@ -164,6 +168,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, defence, gauge
     G3 = np.zeros((3, 3))
     Pinf = np.zeros((3, 3))
     defending = defence[0] or defence[5]
+    fusion_code = fusion[0]
     std0 = noise_std[0]
     std1 = noise_std[1]
     record_gauge = gauge[0]
@@ -330,35 +335,44 @@ def _correct_links(x, P, links, robots, filt, options, detection, defence, gauge
             Pi = Pinf
         if not delivered:
             continue
-        # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
-        for a in range(3):
-            k0, k1 = _solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
-            K[a, 0] = k0
-            K[a, 1] = k1
-        x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
-        x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
-        x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-        if linearized:
-            # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
-            for a in range(3):
-                for b in range(3):
-                    A3[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
-            for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += A3[a, c] * Pi[c, b]
-                    T3[a, b] = s
-            for a in range(3):
-                t0 = K[a, 0] * re00 + K[a, 1] * re01
-                t1 = K[a, 0] * re01 + K[a, 1] * re11
-                for b in range(3):
-                    s = 0.0
-                    for c in range(3):
-                        s += T3[a, c] * A3[b, c]
-                    Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+        if fusion_code == CI:  # covariance intersection (kernels_fusion)
+            range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
+            if not ci_update(
+                x, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
+                re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
+            ):  # fmt: skip
+                return NOT_PD
         else:
-            _schur_update(Pi, K, S00, S01, S11, Pn)
+            # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
+            for a in range(3):
+                k0, k1 = _solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
+                K[a, 0] = k0
+                K[a, 1] = k1
+            x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
+            x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
+            x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
+            if linearized:
+                # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
+                for a in range(3):
+                    for b in range(3):
+                        KH = K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b]
+                        A3[a, b] = (1.0 if a == b else 0.0) - KH
+                for a in range(3):
+                    for b in range(3):
+                        s = 0.0
+                        for c in range(3):
+                            s += A3[a, c] * Pi[c, b]
+                        T3[a, b] = s
+                for a in range(3):
+                    t0 = K[a, 0] * re00 + K[a, 1] * re01
+                    t1 = K[a, 0] * re01 + K[a, 1] * re11
+                    for b in range(3):
+                        s = 0.0
+                        for c in range(3):
+                            s += T3[a, c] * A3[b, c]
+                        Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+            else:
+                _schur_update(Pi, K, S00, S01, S11, Pn)
         for a in range(3):
             for b in range(3):
                 T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
@@ -378,6 +392,7 @@ _stamp_with_pieces(
     _kernels_math,
     _kernels_detection,
     _kernels_defence,
+    _kernels_fusion,
     _kernels_gauge,
     _kernels_tamper,
 )
