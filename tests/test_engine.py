@@ -15,7 +15,6 @@ from resloc.cl import (
     CLParams,
     LinkBatch,
     LinkMemory,
-    NeighbourEstimate,
     ThresholdInnovation,
     UpdateMode,
     correct,
@@ -259,11 +258,8 @@ def test_uncovered_options_fall_back_to_the_reference() -> None:
     base = PARAM_CASES["paper"]
     with kernels.use_backend("numba"):
         assert kernels.fast_correct(FILTERS["ckf"], x, P, links, base) is not None
-        for params in (
-            replace(base, update_mode=UpdateMode.SUMMED),
-            replace(base, neighbour_estimate=NeighbourEstimate.CACHED),
-        ):
-            assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40)) is None
+        summed = replace(base, update_mode=UpdateMode.SUMMED)
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, summed, LinkMemory(40)) is None
 
         # A filter class the kernel does not know.
         class Custom(SigmaPointFilter):

@@ -67,3 +67,33 @@ def test_compiled_ci_with_the_full_defence_and_recovery():
     world = World(sc.world, 2, 12, sc.trigger.lambda2)
     for _ in lockstep_both_backends(world, FILTERS["ekf"], params, 60):
         pass
+
+
+@pytest.mark.parametrize(
+    ("name", "changes"),
+    [
+        ("ckf", {}),
+        ("ekf", {"update_without_transmission": True}),
+        ("ukf", {"update_without_transmission": True, "threshold_innovation": "last_sent"}),
+        ("ckf", {"fusion": "ci"}),
+        ("ckf", {"cusum": True, "detector_norm": "nis", "rho": 1.5, "recovery": True,
+                 "recovery_after": 2.0, "recovery_gate": 3.0, "update_without_transmission": True}),
+    ],
+)  # fmt: skip
+def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
+    """``cached``: moments from j's last received estimate, the trigger firing at the first
+    reception, fusion without transmission, a delivered link fused with the fresh estimate
+    (the kernel's second pass), with the link memory the same after every step."""
+    params = replace(default_scenario().cl_params(), neighbour_estimate="cached", **changes)
+    assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
+    sc = default_scenario()
+    world = World(sc.world, 2, 13, sc.trigger.lambda2)
+    untransmitted = 0
+    for res, memories in lockstep_both_backends(world, FILTERS[name], params, 80):
+        out = res["numpy"][2]
+        untransmitted += int((out.fused & ~out.delivered).sum())
+        fast, ref = memories["numba"], memories["numpy"]
+        np.testing.assert_array_equal(fast.keys, ref.keys)
+        np.testing.assert_allclose(fast.x, ref.x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(fast.last_norm, ref.last_norm, rtol=1e-12, atol=1e-12)
+    assert (untransmitted > 0) == bool(params.update_without_transmission)

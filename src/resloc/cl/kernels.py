@@ -53,7 +53,7 @@ from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
 from resloc.cl.kernels_links import OK, _correct_links
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
-from resloc.cl.params import CLParams, ThresholdInnovation
+from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
 
 __all__ = [
@@ -81,6 +81,9 @@ class KernelLinks(NamedTuple):
     P_nb: np.ndarray  # (E, 3, 3)
     channel_ok: np.ndarray  # (E,) bool
     last_norm: np.ndarray  # (E,) last delivered norm (``last_sent``), else (0,)
+    x_ref: np.ndarray  # (E, 3) the estimate of j the moments use (cached or x_nb)
+    P_ref: np.ndarray  # (E, 3, 3)
+    known: np.ndarray  # (E,) bool: j's estimate received before (``cached``)
 
 
 class KernelRobots(NamedTuple):
@@ -108,6 +111,8 @@ class KernelOptions(NamedTuple):
     risk_factor_floor: float
     last_sent: bool
     jitter: np.ndarray  # escalating Cholesky jitter levels
+    cached: bool  # neighbour estimates: the last received (else the transmitted one)
+    update_without_transmission: bool
 
 
 class KernelOutputs(NamedTuple):
@@ -184,6 +189,8 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
         float(params.risk_factor_floor),
         params.threshold_innovation is ThresholdInnovation.LAST_SENT,
         _JITTER,
+        params.neighbour_estimate is NeighbourEstimate.CACHED,
+        bool(params.update_without_transmission),
     )
     prepared = (tuple(_per_robot(g) for g in gains), options)
     try:
@@ -232,7 +239,9 @@ def fast_correct(
     if kernel_refusal(filt, params, links, memory) is not None:
         return None
     last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
-    if last_sent and memory is None:
+    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
+    need_memory = last_sent or cached
+    if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
     li = _contiguous(links.i, np.int64)
     lj = np.asarray(links.j, dtype=np.int64)
@@ -248,6 +257,12 @@ def fast_correct(
     strategy = fusion_strategy(params.fusion)
     if strategy.problem(params) is not None:
         return None  # the reference path raises the explanatory error
+    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
+    z = links.z
+    if tamper.on:  # the attacker's honest measurements and observers must be this batch's
+        if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
+            return None
+        z = tamper.z
     bookkeeping = COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping]
     fusion = kernel_fusion(KERNEL_UPDATES[strategy.kernel_update], params.ci_criterion)
     gauge = bookkeeping.state(memory, E)
@@ -260,23 +275,28 @@ def fast_correct(
     if defence is None:
         detection.undo()
         return None  # the reference path raises the explanatory error
+    x_nb, P_nb = _contiguous(links.x_nb), _contiguous(links.P_nb)
     last = np.zeros(E if last_sent else 0)
-    if last_sent and len(memory):
-        known, pos = memory.lookup(li, lj)
-        last = np.where(known, memory.last_norm[pos], 0.0)
-    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
-    z = links.z
-    if tamper.on:  # the attacker's honest measurements and observers must be this batch's
-        if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
-            return None
-        z = tamper.z
+    known = np.zeros(E, dtype=np.bool_)
+    x_ref, P_ref = x_nb, P_nb
+    if need_memory and len(memory):
+        found, pos = memory.lookup(li, lj)
+        if last_sent:
+            last = np.where(found, memory.last_norm[pos], 0.0)
+        if cached:  # j's last received estimate where there is one (twin: step._decide)
+            known = found
+            x_ref = np.ascontiguousarray(np.where(found[:, None], memory.x[pos], x_nb))
+            P_ref = np.ascontiguousarray(np.where(found[:, None, None], memory.P[pos], P_nb))
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
-        _contiguous(links.x_nb),
-        _contiguous(links.P_nb),
+        x_nb,
+        P_nb,
         _contiguous(links.channel_ok, np.bool_),
         last,
+        x_ref,
+        P_ref,
+        known,
     )
     out = KernelOutputs(np.empty(E), np.empty(E), np.zeros((5, E), dtype=np.bool_))
     x_out = np.array(x, dtype=float, order="C", copy=True)
@@ -304,7 +324,7 @@ def fast_correct(
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     P_out = strategy.finish(memory, P_out, lj, delivered)
-    if last_sent and delivered.any():
+    if need_memory and delivered.any():
         d = np.flatnonzero(delivered)
         memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
     outcome = LinkOutcome(

@@ -124,6 +124,21 @@ def _decide_link(detected, n_trig, delta, trigger, channel_ok):
 
 
 @_jit_inline
+def _cached_decision(
+    detected, triggered, delivered, known, trigger, channel_ok, update_without_transmission
+):  # fmt: skip
+    """``(triggered, delivered, fused)`` of a link with ``cached`` neighbour estimates: the
+    trigger fires at the first reception (nothing to compare against), and with
+    ``update_without_transmission`` an accepted, untriggered link with a cached estimate is
+    fused with it. Twin: ``resloc.cl.step._decide`` (its ``cached`` branches)."""
+    if trigger and not detected and not known:
+        triggered = True
+        delivered = channel_ok
+    fused = delivered or (update_without_transmission and not detected and not triggered and known)
+    return triggered, delivered, fused
+
+
+@_jit_inline
 def _schur_update(Pi, K, S00, S01, S11, Pn):
     """``P - K S K^T`` into ``Pn`` (sigma-point filters).
     Twin: :func:`resloc.filters.update.kalman_update`."""
@@ -147,10 +162,11 @@ def _correct_links(
     correction. Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
-    li, z, x_nb, P_nb, channel_ok, last_norm = links
+    li, z, x_nb, P_nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
-    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent, jitter = options
+    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
+    jitter, cached, update_without_transmission = options[8], options[9], options[10]
     out_norm, out_threshold, flags = out
     m = Wm.shape[0]
     Li = np.zeros((3, 3))
@@ -187,23 +203,28 @@ def _correct_links(
         xi2 = x[i, 2]
         xj0 = x_nb[e, 0]
         xj1 = x_nb[e, 1]
+        # The estimate of j the moments use: transmitted, or the last one received (cached)
+        xr0 = x_ref[e, 0]
+        xr1 = x_ref[e, 1]
+        Pr = P_ref[e]
         zu0 = z[e, 0]
         zu1 = z[e, 1]
         inflation = 1.0
-        # A second pass only for a measurement the recovery re-admits with robot i's covariance
-        # inflated: the update uses the moments of the inflated covariance (twin: _decide).
+        # A second pass only for a fused measurement whose update uses other moments (twin:
+        # _decide): the recovery re-admitted it with robot i's covariance inflated, or it was
+        # delivered while the first pass used j's cached estimate.
         for attempt in range(2):
             re00 = 0.0
             re01 = 0.0
             re11 = 0.0
             if linearized:
                 zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
-                    xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz
+                    xi0, xi1, xi2, Pi, xr0, xr1, Pr, R, Hi, Hj, T3, Pxz
                 )
             else:
                 # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
                 # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
-                if not _chol3(Pi, Li, jitter) or not _chol3(Pj, Lj, jitter):
+                if not _chol3(Pi, Li, jitter) or not _chol3(Pr, Lj, jitter):
                     return NOT_PD
                 for k in range(m):
                     for a in range(6):
@@ -227,8 +248,8 @@ def _correct_links(
                     sin_i = math.sin(xi2)
                     cos_i = math.cos(xi2)
                 for k in range(m):
-                    dx = (xj0 + off[k, 3]) - (xi0 + off[k, 0])
-                    dy = (xj1 + off[k, 4]) - (xi1 + off[k, 1])
+                    dx = (xr0 + off[k, 3]) - (xi0 + off[k, 0])
+                    dy = (xr1 + off[k, 4]) - (xi1 + off[k, 1])
                     r = math.sqrt(dx * dx + dy * dy)
                     th = xi2 + off[k, 2]
                     Z0[k] = r
@@ -321,19 +342,31 @@ def _correct_links(
                     defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11
                 )
             triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
+            fuse = delivered
+            if cached:
+                triggered, delivered, fuse = _cached_decision(
+                    detected, triggered, delivered, known[e], trigger, channel_ok[e],
+                    update_without_transmission,
+                )  # fmt: skip
             out_norm[e] = n_trig
             out_threshold[e] = math.nan if detected else delta
             flags[0, e] = detected
             flags[1, e] = triggered
             flags[2, e] = delivered
-            flags[3, e] = delivered
-            if not (delivered and inflation > 1.0):
+            flags[3, e] = fuse
+            fresh = delivered and cached and known[e]
+            if not (fuse and (inflation > 1.0 or fresh)):
                 break
-            for a in range(3):
-                for c in range(3):
-                    Pinf[a, c] = Pi[a, c] * inflation
-            Pi = Pinf
-        if not delivered:
+            if inflation > 1.0:
+                for a in range(3):
+                    for c in range(3):
+                        Pinf[a, c] = Pi[a, c] * inflation
+                Pi = Pinf
+            if fresh:  # a delivered message carries j's current estimate: fuse with that
+                xr0 = xj0
+                xr1 = xj1
+                Pr = Pj
+        if not fuse:
             continue
         if fusion_code == CI:  # covariance intersection (kernels_fusion)
             range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
