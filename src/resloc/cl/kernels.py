@@ -10,16 +10,22 @@ maps every equation to both; the scalar primitives are in :mod:`resloc.cl.kernel
 kernel function               paper                   numpy twin
 ============================  ======================  =============================================
 ``_correct_links`` (block)    eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
-:func:`_linearized_moments`   eq. (3), linearized     ``ExtendedFilter.relative_moments``
-:func:`_innovation_norm`      eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
-:func:`_event_threshold`      eq. (11)                :func:`resloc.cl.trigger.event_threshold`
-:func:`_gate_link`            Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
-``detect_link`` (CUSUMs)     beyond the paper        :func:`resloc.cl.detection.detect`
-:func:`_decide_link`          Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
+``_linearized_moments``       eq. (3), linearized     ``ExtendedFilter.relative_moments``
+``_innovation_norm``          eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
+``_event_threshold``          eq. (11)                :func:`resloc.cl.trigger.event_threshold`
+``_gate_link``                Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
+``detect_link`` (CUSUMs)      beyond the paper        :func:`resloc.cl.detection.detect`
+``defend_link``               beyond the paper        robot CUSUM and recovery stages
+``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
+``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
-:func:`_schur_update`         Algorithm 1             :func:`resloc.filters.update.kalman_update`
+``_schur_update``             Algorithm 1             :func:`resloc.filters.update.kalman_update`
 ``_correct_links`` (block)    Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
+``ci_update``                 beyond the paper        :func:`resloc.cl.fusion.fused_update` (``ci``)
 ============================  ======================  =============================================
+
+(in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
+:mod:`resloc.cl.kernels_defence` and :mod:`resloc.cl.kernels_fusion`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,

@@ -153,7 +153,8 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 def _correct_links(
     x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
 ):
-    """Every link of one step in row order; updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place.
+    """Every link of one step in row order (Algorithm 1's correction: eqs. (3), (8)-(11));
+    updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place. Twin: :func:`resloc.cl.step.correct`.
 
     The structures are unpacked once, here: a field read inside the loop would cost a
     reference-count update per field and link. For the same reason the pieces that would
