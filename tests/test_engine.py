@@ -220,11 +220,11 @@ def test_kernel_counts_and_repairs_non_pd_covariances() -> None:
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     ok = covariance_is_pd(P)
     assert 0 < ok.sum() < len(P)
-    assert [kernels_math._is_pd3(p) for p in P] == list(ok)
+    assert [kernels_math.is_pd3(p) for p in P] == list(ok)
     bad = P[~ok]
     fixed = bad.copy()
     for p in fixed:
-        kernels_math._repair3(p)
+        kernels_math.repair3(p)
     np.testing.assert_allclose(fixed, repair_covariance(bad), rtol=0, atol=1e-12)
     assert covariance_is_pd(fixed).all()
 
@@ -328,7 +328,7 @@ def test_wrap_kernel_is_bitwise_numpy() -> None:
     a = np.concatenate(
         [np.linspace(-20, 20, 2001), [np.pi, -np.pi, 0.0, -0.0, 3 * np.pi, 1e-300, 7e5]]
     )
-    np.testing.assert_array_equal([kernels_math._wrap(v) for v in a], wrap_angle(a))
+    np.testing.assert_array_equal([kernels_math.wrap(v) for v in a], wrap_angle(a))
 
 
 # --------------------------------------------------------------------------------------

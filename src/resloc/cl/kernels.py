@@ -1,7 +1,7 @@
 """Compiled twin of the CL correction (:func:`resloc.cl.step.correct`): its dispatch.
 
 :func:`fast_correct` prepares the inputs of one step and makes one call of the compiled link
-loop (:func:`resloc.cl.kernels_links._correct_links`), which processes every link of a
+loop (:func:`resloc.cl.kernels_links.correct_links`), which processes every link of a
 :class:`~resloc.cl.links.LinkBatch` (all robots of all trials) in row order. Each piece of a
 link's work is a named function beside the numpy function it twins (``docs/algorithm.md``
 maps every equation to both; the scalar primitives are in :mod:`resloc.cl.kernels_math`):
@@ -9,7 +9,7 @@ maps every equation to both; the scalar primitives are in :mod:`resloc.cl.kernel
 ============================  ======================  =============================================
 kernel function               paper                   numpy twin
 ============================  ======================  =============================================
-``_correct_links`` (block)    eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
+``correct_links`` (block)    eq. (3), Algorithm 1    ``SigmaPointFilter.relative_moments``
 ``_linearized_moments``       eq. (3), linearized     ``ExtendedFilter.relative_moments``
 ``_innovation_norm``          eq. (9), detector       :func:`resloc.cl.detector.innovation_norm`
 ``_event_threshold``          eq. (11)                :func:`resloc.cl.trigger.event_threshold`
@@ -18,9 +18,9 @@ kernel function               paper                   numpy twin
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
-``_correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
+``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
 ``_schur_update``             Algorithm 1             :func:`resloc.filters.update.kalman_update`
-``_correct_links`` (block)    Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
+``correct_links`` (block)    Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
 ``ci_update``                 beyond the paper        :func:`resloc.cl.fusion.fused_update` (``ci``)
 ============================  ======================  =============================================
 
@@ -56,7 +56,7 @@ from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, kernel_fusion
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
-from resloc.cl.kernels_links import OK, _correct_links
+from resloc.cl.kernels_links import OK, correct_links
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
@@ -309,7 +309,7 @@ def fast_correct(
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
-    status = _correct_links(
+    status = correct_links(
         x_out,
         P_out,
         kernel_links,

@@ -24,7 +24,7 @@ import numpy as np
 
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl.backend import backend
-from resloc.cl.kernels_math import _jit, _stamp_with_pieces
+from resloc.cl.kernels_math import jit, stamp_with_pieces
 
 __all__ = ["compiled_lambda2_step"]
 
@@ -61,7 +61,7 @@ def compiled_lambda2_step(estimator, i: np.ndarray, j: np.ndarray) -> np.ndarray
     return estimate.copy()
 
 
-@_jit
+@jit
 def _metropolis_graph(i, j, n):
     """Distinct directed edges ``a <- b`` (both directions of every edge, sorted by ``a n +
     b``, no self-loops), degrees, Metropolis weights ``1 / (1 + max(deg_a, deg_b))`` and the
@@ -98,7 +98,7 @@ def _metropolis_graph(i, j, n):
     return a, b, deg, w, w_self
 
 
-@_jit
+@jit
 def _lambda2_rounds(a, b, deg, w, w_self, y, s, phi, estimate, n_max, rounds, leak, first):
     """``rounds`` exchange rounds of the distributed ``lambda2`` estimator in place on ``y:
     (n,)``, the trackers ``s: (n, 3)``, the last signals ``phi: (n, 3)``; writes each robot's
@@ -165,4 +165,4 @@ def _lambda2_rounds(a, b, deg, w, w_self, y, s, phi, estimate, n_max, rounds, le
             estimate[v] = est if deg[v] > 0 else 0.0
 
 
-_stamp_with_pieces(_lambda2_rounds, _kernels_math)
+stamp_with_pieces(_lambda2_rounds, _kernels_math)

@@ -37,8 +37,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.kernels_detection import DetectorState, _at, _nis, store_slots
-from resloc.cl.kernels_math import _jit_inline, per_params
+from resloc.cl.kernels_detection import DetectorState, gain_at, nis_of, store_slots
+from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
 __all__ = ["KernelDefence", "defence_state", "defend_link"]
@@ -129,7 +129,7 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
 # ---------------------------------------------------------------------------------------
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels_links.
 # ---------------------------------------------------------------------------------------
-@_jit_inline
+@jit_inline
 def _robot_cusum(g, slot, stat, k, h, passed):
     """One step of the CUSUM of the NIS over all of robot i's links, ``g_i <- min(max(0,
     g_i + (NIS - k)), 2 h)`` stored in place when the gate ``passed`` the measurement; the
@@ -146,7 +146,7 @@ def _robot_cusum(g, slot, stat, k, h, passed):
     return g[slot] > h and stat > k
 
 
-@_jit_inline
+@jit_inline
 def _recovery(runs, run_slot, spread, spread_slot, detected, stat, trace, after, gate, cap):
     """Recovery after a run of rejections on one link of robot i: ``(detected, inflation)``.
 
@@ -183,21 +183,21 @@ def _recovery(runs, run_slot, spread, spread_slot, detected, stat, trace, after,
     return detected, inflation
 
 
-@_jit_inline
+@jit_inline
 def defend_link(defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11):
     """The per-robot stages on link ``e`` of observer ``i`` (``P_i``: its running
     covariance), after the per-link stages' verdict ``detected`` and the gate's ``gated``:
     ``(detected, inflation)``. The robot CUSUM adds discards; the recovery runs last and
     overrides. Twin: the per-robot stages of :func:`resloc.cl.detection.detect`."""
     robot, rk, rh, rg, rslot, recovery, after, gate, cap, runs, runs_slot, spread, sslot = defence
-    stat = _nis(nu0, nu1, l00, l10, l11)
-    if robot and _robot_cusum(rg, rslot[e], stat, _at(rk, i), _at(rh, i), not gated):
+    stat = nis_of(nu0, nu1, l00, l10, l11)
+    if robot and _robot_cusum(rg, rslot[e], stat, gain_at(rk, i), gain_at(rh, i), not gated):
         detected = True
     inflation = 1.0
     if recovery:
         trace = Pi[0, 0] + Pi[1, 1]
         detected, inflation = _recovery(
             runs, runs_slot[e], spread, sslot[e], detected, stat, trace,
-            _at(after, i), _at(gate, i), _at(cap, i),
+            gain_at(after, i), gain_at(gate, i), gain_at(cap, i),
         )  # fmt: skip
     return detected, inflation

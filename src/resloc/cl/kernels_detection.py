@@ -14,7 +14,7 @@ reference path then starts from the same memory.
 =============================  ========================================================
 kernel function                numpy twin
 =============================  ========================================================
-:func:`_nis`                   :func:`resloc.cl.cusum.nis`
+:func:`nis_of`                   :func:`resloc.cl.cusum.nis`
 :func:`_whiten`                :func:`resloc.cl.cusum.whiten`
 :func:`_link_cusum`            :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``
@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.detector import InnovationNorm
-from resloc.cl.kernels_math import _jit_inline, per_params
+from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
 __all__ = ["DetectorState", "KernelDetection", "detector_state", "store_slots"]
@@ -166,14 +166,14 @@ NIS_CODE = NORM_CODE[InnovationNorm.NIS]
 # ---------------------------------------------------------------------------------------
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
 # ---------------------------------------------------------------------------------------
-@_jit_inline
-def _at(gain, i):
+@jit_inline
+def gain_at(gain, i):
     """A gain of observer ``i`` from a ``(1,)`` or ``(B,)`` array (twin: ``at_robots``)."""
     return gain[i] if gain.shape[0] > 1 else gain[0]
 
 
-@_jit_inline
-def _nis(nu0, nu1, l00, l10, l11):
+@jit_inline
+def nis_of(nu0, nu1, l00, l10, l11):
     """``max(Lambda^T S^-1 Lambda, 0)`` with ``S = L L^T`` (twin: :func:`~resloc.cl.cusum.nis`,
     the same solve order as :func:`resloc.linalg.solve_spd`)."""
     y0 = nu0 / l00
@@ -184,14 +184,14 @@ def _nis(nu0, nu1, l00, l10, l11):
     return q if q > 0.0 else 0.0
 
 
-@_jit_inline
+@jit_inline
 def _whiten(nu0, nu1, l00, l10, l11):
     """``w = L^-1 Lambda`` (twin: :func:`~resloc.cl.cusum.whiten`)."""
     w0 = nu0 / l00
     return w0, (nu1 - l10 * w0) / l11
 
 
-@_jit_inline
+@jit_inline
 def _link_cusum(g, slot, stat, k, h, cap):
     """One step of Page's CUSUM of the NIS on one link, ``g <- min(max(0, g + NIS - k),
     cap)`` stored in place; the stage discards while ``g > h`` a measurement with
@@ -205,7 +205,7 @@ def _link_cusum(g, slot, stat, k, h, cap):
     return v > h and stat > k
 
 
-@_jit_inline
+@jit_inline
 def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
     """The four signed CUSUMs of the whitened innovation of one link (updated in place only
     when the gate ``passed`` the measurement); discard while a component alarms a
@@ -225,7 +225,7 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
     return (alarm_r and abs(w0) > k) or (alarm_b and abs(w1) > k)
 
 
-@_jit_inline
+@jit_inline
 def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
@@ -235,11 +235,11 @@ def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
         if det_norm == NIS_CODE:
             stat = n_det * n_det
         else:
-            stat = _nis(nu0, nu1, l00, l10, l11)
-        if _link_cusum(cg, cslot[e], stat, _at(ck, i), _at(ch, i), _at(ccap, i)):
+            stat = nis_of(nu0, nu1, l00, l10, l11)
+        if _link_cusum(cg, cslot[e], stat, gain_at(ck, i), gain_at(ch, i), gain_at(ccap, i)):
             detected = True
     if mean:
         w0, w1 = _whiten(nu0, nu1, l00, l10, l11)
-        if _link_mean_cusum(mg, mslot[e], w0, w1, _at(mk, i), _at(mh, i), not gated):
+        if _link_mean_cusum(mg, mslot[e], w0, w1, gain_at(mk, i), gain_at(mh, i), not gated):
             detected = True
     return detected

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.fusion import CI_GRID, CICriterion
-from resloc.cl.kernels_math import _chol2, _jit_inline, _solve2, _wrap
+from resloc.cl.kernels_math import chol2, jit_inline, solve2, wrap
 
 __all__ = ["CI", "KERNEL_UPDATES", "NAIVE_UPDATE", "KernelFusion", "kernel_fusion"]
 
@@ -54,7 +54,7 @@ def kernel_fusion(code: int, criterion: CICriterion) -> KernelFusion:
     return KernelFusion(int(code), CICriterion(criterion) is CICriterion.DET, _GRID)
 
 
-@_jit_inline
+@jit_inline
 def _ci_cost(w, det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11, g00, g01, g10, g11, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
     weight ``w`` from the link's 2 x 2 reductions: ``a = H_i P_i H_i^T``, ``b = H_j P_j
@@ -81,7 +81,7 @@ def _ci_cost(w, det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11, g00, g
     return tr_i / w - tr_gsinv
 
 
-@_jit_inline
+@jit_inline
 def _ci_weight(Pi, Pj, Hi, Hj, R, det, grid):
     """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior).
     Twin: :func:`resloc.cl.fusion.ci_weights`."""
@@ -155,7 +155,7 @@ def _ci_weight(Pi, Pj, Hi, Hj, R, det, grid):
     return w if best < prior else 1.0
 
 
-@_jit_inline
+@jit_inline
 def ci_update(
     x, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
     re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
@@ -200,7 +200,7 @@ def ci_update(
     s00 = S00 + d00 + e00
     s11 = S11 + d11 + e11
     s01 = 0.5 * ((S01 + d01 + e01) + (S01 + d10 + e10))
-    l00, l10, l11 = _chol2(s00, s01, s11, jitter)
+    l00, l10, l11 = chol2(s00, s01, s11, jitter)
     if l00 == 0.0:
         return False
     for a in range(3):  # P^xz + D_i H_i^T, then K by the Cholesky factor of S
@@ -209,12 +209,12 @@ def ci_update(
         for c in range(3):
             p0 += (Pi[a, c] * fi) * Hi[0, c]
             p1 += (Pi[a, c] * fi) * Hi[1, c]
-        k0, k1 = _solve2(l00, l10, l11, Pxz[a, 0] + p0, Pxz[a, 1] + p1)
+        k0, k1 = solve2(l00, l10, l11, Pxz[a, 0] + p0, Pxz[a, 1] + p1)
         K[a, 0] = k0
         K[a, 1] = k1
     x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
     x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
-    x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
+    x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
     if linearized:
         # Joseph form (I - K H_i) A (I - K H_i)^T + K (R_eff + extra_j) K^T
         r00 = re00 + e00

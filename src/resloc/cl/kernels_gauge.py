@@ -39,7 +39,7 @@ import numpy as np
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl.backend import backend
 from resloc.cl.gauge import GaugeCovariance
-from resloc.cl.kernels_math import _chol3, _jit, _jit_inline, _stamp_with_pieces
+from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 from resloc.linalg import JITTER_LEVELS
 from resloc.models.measurement import MIN_RANGE
 
@@ -102,7 +102,7 @@ def gauge_commit(joint: GaugeCovariance, state: KernelGauge, i, j, fused) -> Non
 # ---------------------------------------------------------------------------------------
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
 # ---------------------------------------------------------------------------------------
-@_jit_inline
+@jit_inline
 def range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj):
     """Jacobians of eq. (3) with respect to ``x_i`` and ``x_j`` into ``Hi``, ``Hj`` (2 x 3).
     Twin: :func:`resloc.models.measurement.range_bearing_jacobians`."""
@@ -124,7 +124,7 @@ def range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj):
     Hi[1, 2] = -1.0
 
 
-@_jit_inline
+@jit_inline
 def gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3):
     """Record link ``e``'s update of robot ``i`` (its links start at row ``first``; ``fused``:
     the flags of the rows so far) linearized at i's estimate before the update and j's
@@ -154,7 +154,7 @@ def gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
 
 
-@_jit_inline
+@jit_inline
 def _left_multiply(G, M, T3):
     """``M <- G M`` of 3 x 3 matrices in place (``T3``: scratch)."""
     for a in range(3):
@@ -222,7 +222,7 @@ def compiled_gauge_finish(joint) -> bool:
     return True
 
 
-@_jit_inline
+@jit_inline
 def _add_sandwich(L, M, S):
     """``S += L M L^T`` of 3 x 3 matrices."""
     for a in range(3):
@@ -236,7 +236,7 @@ def _add_sandwich(L, M, S):
             S[a, b] += s
 
 
-@_jit_inline
+@jit_inline
 def _add_symmetrized(G, S):
     """``G <- sym(G + S)`` (twin: ``GaugeCovariance._add`` with exact sums)."""
     for a in range(3):
@@ -247,7 +247,7 @@ def _add_symmetrized(G, S):
             G[a, b] = 0.5 * (S[a, b] + S[b, a])
 
 
-@_jit
+@jit
 def _fit_and_add(x, Q, N, jitter, L, G):
     """Per team ``t`` of ``N`` robots: ``M = sum_l J_l^T J_l``, ``L_i = M^-1 J_i^T`` into
     ``L`` (B, 3, 3) by a Cholesky solve (twin: ``GaugeCovariance._fit``, :func:`gauge_jacobian
@@ -272,7 +272,7 @@ def _fit_and_add(x, Q, N, jitter, L, G):
             M[1, 2] += px
             M[2, 1] += px
             M[2, 2] += py * py + px * px + 1.0
-        if not _chol3(M, C, jitter):
+        if not chol3(M, C, jitter):
             return False
         for col in range(3):  # M^-1 column by column: C C^T m = e_col
             y0 = (1.0 if col == 0 else 0.0) / C[0, 0]
@@ -299,7 +299,7 @@ def _fit_and_add(x, Q, N, jitter, L, G):
     return True
 
 
-@_jit
+@jit
 def _leak_and_add(L, A, D, noise, obs, nbr, Bij, N, G):
     """Every robot's leak ``Delta_m = L_m (A_m - I) + sum_{links (i, m) fused} L_i B_im`` and
     per team ``G[t] <- sym(G[t] + sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T)``.
@@ -333,5 +333,5 @@ def _leak_and_add(L, A, D, noise, obs, nbr, Bij, N, G):
         _add_symmetrized(G[t], S)
 
 
-_stamp_with_pieces(_fit_and_add, _kernels_math)
-_stamp_with_pieces(_leak_and_add, _kernels_math)
+stamp_with_pieces(_fit_and_add, _kernels_math)
+stamp_with_pieces(_leak_and_add, _kernels_math)

@@ -28,16 +28,16 @@ from resloc.cl.kernels_detection import detect_link
 from resloc.cl.kernels_fusion import CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_math import (
-    _chol2,
-    _chol3,
-    _is_pd3,
-    _jit,
-    _jit_inline,
-    _repair3,
-    _sandwich,
-    _solve2,
-    _stamp_with_pieces,
-    _wrap,
+    chol2,
+    chol3,
+    is_pd3,
+    jit,
+    jit_inline,
+    repair3,
+    sandwich,
+    solve2,
+    stamp_with_pieces,
+    wrap,
 )
 from resloc.cl.kernels_tamper import stealthy_measurement
 
@@ -46,7 +46,7 @@ OK = 0
 NOT_PD = 1  # a Cholesky factorization failed even with the largest jitter, or NaN/inf
 
 
-@_jit_inline
+@jit_inline
 def _innovation_norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
     """Size of the innovation ``Lambda_ij`` of eq. (9) in the norm ``kind`` (a
     :data:`NORM_CODE`). Twin: :func:`resloc.cl.detector.innovation_norm`."""
@@ -54,12 +54,12 @@ def _innovation_norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
         return math.hypot(nu0, nu1)
     if kind == 1:
         return math.hypot(nu0 / std0, nu1 / std1)
-    w0, w1 = _solve2(l00, l10, l11, nu0, nu1)
+    w0, w1 = solve2(l00, l10, l11, nu0, nu1)
     q = nu0 * w0 + nu1 * w1
     return math.sqrt(q if q > 0.0 else 0.0)
 
 
-@_jit_inline
+@jit_inline
 def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     """First-order moments of eq. (3) with the range/bearing Jacobians at the means; fills
     ``work.Pxz`` and ``work.Hi``.
@@ -72,14 +72,14 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     dy = xj1 - xi1
     range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     zh0 = math.hypot(dx, dy)
-    zh1 = _wrap(math.atan2(dy, dx) - xi2)
+    zh1 = wrap(math.atan2(dy, dx) - xi2)
     # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
-    rj00, rj01, rj10, rj11 = _sandwich(Hj, Pj, T3)
+    rj00, rj01, rj10, rj11 = sandwich(Hj, Pj, T3)
     rj00 += R[0, 0]
     rj01 += R[0, 1]
     rj10 += R[1, 0]
     rj11 += R[1, 1]
-    si00, si01, si10, si11 = _sandwich(Hi, Pi, T3)
+    si00, si01, si10, si11 = sandwich(Hi, Pi, T3)
     S00 = si00 + rj00
     S01 = 0.5 * ((si01 + rj01) + (si10 + rj10))
     S11 = si11 + rj11
@@ -92,7 +92,7 @@ def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
     return zh0, zh1, S00, S01, S11, rj00, 0.5 * (rj01 + rj10), rj11
 
 
-@_jit_inline
+@jit_inline
 def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c, floor):
     """Adaptive threshold ``delta_ij`` of eq. (11) of one link (the observer's gains, risks
     and ``lambda2``; ``size``: the innovation size in the threshold).
@@ -107,14 +107,14 @@ def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c
     return delta
 
 
-@_jit_inline
+@jit_inline
 def _gate_link(n_det, detector, rho):
     """Attack detection of Algorithm 1: discard when the detector norm exceeds ``rho``.
     Twin: :func:`resloc.cl.detector.attack_detected` (the ``gate`` stage)."""
     return detector and n_det > rho
 
 
-@_jit_inline
+@jit_inline
 def _decide_link(detected, n_trig, delta, trigger, channel_ok):
     """Event condition (eq. 10) and channel (eq. 8) of one link the detector judged:
     ``(triggered, delivered)``. Twin: ``resloc.cl.step._decide``."""
@@ -123,7 +123,7 @@ def _decide_link(detected, n_trig, delta, trigger, channel_ok):
     return triggered, triggered and channel_ok
 
 
-@_jit_inline
+@jit_inline
 def _cached_decision(
     detected, triggered, delivered, known, trigger, channel_ok, update_without_transmission
 ):  # fmt: skip
@@ -138,7 +138,7 @@ def _cached_decision(
     return triggered, delivered, fused
 
 
-@_jit_inline
+@jit_inline
 def _schur_update(Pi, K, S00, S01, S11, Pn):
     """``P - K S K^T`` into ``Pn`` (sigma-point filters).
     Twin: :func:`resloc.filters.update.kalman_update`."""
@@ -149,8 +149,8 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
             Pn[a, b] = Pi[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
 
 
-@_jit
-def _correct_links(
+@jit
+def correct_links(
     x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
 ):
     """Every link of one step in row order (Algorithm 1's correction: eqs. (3), (8)-(11));
@@ -225,7 +225,7 @@ def _correct_links(
             else:
                 # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
                 # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
-                if not _chol3(Pi, Li, jitter) or not _chol3(Pr, Lj, jitter):
+                if not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
                     return NOT_PD
                 for k in range(m):
                     for a in range(6):
@@ -254,7 +254,7 @@ def _correct_links(
                     r = math.sqrt(dx * dx + dy * dy)
                     th = xi2 + off[k, 2]
                     Z0[k] = r
-                    Z1[k] = _wrap(math.atan2(dy, dx) - th)
+                    Z1[k] = wrap(math.atan2(dy, dx) - th)
                     zr += r * Wm[k]
                     if circular:
                         # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
@@ -273,7 +273,7 @@ def _correct_links(
                     else:
                         zb += Z1[k] * Wm[k]
                 zh0 = zr
-                zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
+                zh1 = wrap(math.atan2(ssin, scos)) if circular else wrap(zb)
                 mx0 = 0.0
                 mx1 = 0.0
                 mx2 = 0.0
@@ -289,7 +289,7 @@ def _correct_links(
                     Pxz[a, 1] = 0.0
                 for k in range(m):
                     d0 = Z0[k] - zh0
-                    d1 = _wrap(Z1[k] - zh1)
+                    d1 = wrap(Z1[k] - zh1)
                     w = Wc[k]
                     s00 += d0 * w * d0
                     s01 += d0 * w * d1
@@ -308,8 +308,8 @@ def _correct_links(
                 S11 = s11 + R[1, 1]
             # innovation, eq. (9)
             nu0 = zu0 - zh0
-            nu1 = _wrap(zu1 - zh1)
-            l00, l10, l11 = _chol2(S00, S01, S11, jitter)
+            nu1 = wrap(zu1 - zh1)
+            l00, l10, l11 = chol2(S00, S01, S11, jitter)
             if l00 == 0.0:
                 return NOT_PD
             if attempt == 1:
@@ -319,9 +319,9 @@ def _correct_links(
                     tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11
                 )
                 zu0 = zt0
-                zu1 = _wrap(zt1)
+                zu1 = wrap(zt1)
                 nu0 = zu0 - zh0
-                nu1 = _wrap(zu1 - zh1)
+                nu1 = wrap(zu1 - zh1)
             n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
             if det_norm == trig_norm:
                 n_det = n_trig
@@ -379,12 +379,12 @@ def _correct_links(
         else:
             # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
             for a in range(3):
-                k0, k1 = _solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
+                k0, k1 = solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
                 K[a, 0] = k0
                 K[a, 1] = k1
             x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
             x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
-            x[i, 2] = _wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
+            x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
             if linearized:
                 # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
                 for a in range(3):
@@ -410,8 +410,8 @@ def _correct_links(
         for a in range(3):
             for b in range(3):
                 T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-        if not _is_pd3(T3):
-            _repair3(T3)
+        if not is_pd3(T3):
+            repair3(T3)
             flags[4, e] = True
         for a in range(3):
             for b in range(3):
@@ -421,8 +421,8 @@ def _correct_links(
     return OK
 
 
-_stamp_with_pieces(
-    _correct_links,
+stamp_with_pieces(
+    correct_links,
     _kernels_math,
     _kernels_detection,
     _kernels_defence,

@@ -23,24 +23,24 @@ from resloc.cl.backend import HAVE_NUMBA
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
 
-    _jit = numba.njit(cache=True, nogil=True)
+    jit = numba.njit(cache=True, nogil=True)
     # The per-link pieces are inlined into the loop: a call that passes arrays (the named
     # structures hold ~20) costs a reference-count update per array, per link.
-    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+    jit_inline = numba.njit(cache=True, nogil=True, inline="always")
 else:  # pragma: no cover - exercised only where numba is absent
 
-    def _jit(func):
+    def jit(func):
         return func
 
-    _jit_inline = _jit
+    jit_inline = jit
 
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 
 
-@_jit
-def _wrap(a):
+@jit
+def wrap(a):
     """``np.mod(a + pi, 2 pi) - pi`` (numpy's floored modulo, bit for bit).
     Twin: :func:`resloc.angles.wrap_angle`."""
     t = a + _PI
@@ -49,8 +49,8 @@ def _wrap(a):
     return t % _TWO_PI - _PI  # Python's float modulo is numpy's npy_divmod
 
 
-@_jit
-def _chol3(A, L, jitter):
+@jit
+def chol3(A, L, jitter):
     """Lower Cholesky factor of a 3 x 3 ``A`` into ``L``, escalating jitter as
     :func:`resloc.linalg.cholesky_jitter` does. Returns False if none succeeds."""
     for r in range(3):
@@ -84,8 +84,8 @@ def _chol3(A, L, jitter):
     return False
 
 
-@_jit
-def _chol2(s00, s10, s11, jitter):
+@jit
+def chol2(s00, s10, s11, jitter):
     """Lower Cholesky factor ``(l00, l10, l11)`` of a 2 x 2 SPD matrix, with jitter.
     ``l00 = 0`` signals failure."""
     if not (math.isfinite(s00) and math.isfinite(s10) and math.isfinite(s11)):
@@ -107,8 +107,8 @@ def _chol2(s00, s10, s11, jitter):
     return 0.0, 0.0, 0.0
 
 
-@_jit
-def _solve2(l00, l10, l11, b0, b1):
+@jit
+def solve2(l00, l10, l11, b0, b1):
     """Solve ``L L^T x = b`` (the order of :func:`resloc.linalg.solve_spd`, its twin)."""
     y0 = b0 / l00
     y1 = (b1 - l10 * y0) / l11
@@ -117,8 +117,8 @@ def _solve2(l00, l10, l11, b0, b1):
     return x0, x1
 
 
-@_jit
-def _is_pd3(P):
+@jit
+def is_pd3(P):
     """Sylvester's criterion, as :func:`resloc.filters.covariance_is_pd`."""
     a = P[0, 0]
     m2 = P[0, 0] * P[1, 1] - P[0, 1] * P[1, 0]
@@ -130,8 +130,8 @@ def _is_pd3(P):
     return a > 0.0 and m2 > 0.0 and det > 0.0 and math.isfinite(det)
 
 
-@_jit
-def _repair3(P):
+@jit
+def repair3(P):
     """Eigenvalue clipping in place, as :func:`resloc.filters.repair_covariance`."""
     S = np.empty((3, 3))
     for r in range(3):
@@ -155,8 +155,8 @@ def _repair3(P):
             P[r, c] = 0.5 * (A[r, c] + A[c, r])
 
 
-@_jit_inline
-def _sandwich(H, P, T):
+@jit_inline
+def sandwich(H, P, T):
     """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
     2 x 3 scratch)."""
     for a in range(2):
@@ -177,7 +177,7 @@ def _sandwich(H, P, T):
     return q00, q01, q10, q11
 
 
-def _stamp_with_pieces(dispatcher, *modules) -> None:
+def stamp_with_pieces(dispatcher, *modules) -> None:
     """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
     changes: numba stamps a cached kernel with its own source file only, so an edited
     :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
