@@ -41,6 +41,7 @@ import resloc  # noqa: E402
 from resloc.cl import kernels  # noqa: E402
 from resloc.cl import step as cl_step  # noqa: E402
 from resloc.experiments.config import default_scenario, load_scenario  # noqa: E402
+from resloc.experiments.defences import DEFENCES  # noqa: E402
 from resloc.experiments.runner import run_scenario  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,7 +60,9 @@ OPTIONS: dict[str, dict | str] = {
     "fusion factorized": {"estimator.fusion": "factorized"},
     "fusion ci": {"estimator.fusion": "ci"},
     "fusion split_ci": {"estimator.fusion": "split_ci"},
+    "neighbour cached": {"estimator.neighbour_estimate": "cached"},
     "attack stealthy": {"attack.kind": "stealthy", "attack.bias": [0.3, 0.6]},
+    "defence full": dict(DEFENCES["full"]),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 

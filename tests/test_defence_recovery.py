@@ -79,7 +79,7 @@ def test_recovery_stage_registered_last_and_declared_once():
     names = [s.name for s in DETECTOR_STAGES]
     assert names[-1] == "recovery" and "robot_cusum" in names
     assert [s.name for s in active_stages(_params(recovery=True))] == ["gate", "recovery"]
-    assert not next(s for s in DETECTOR_STAGES if s.name == "recovery").compiled
+    assert next(s for s in DETECTOR_STAGES if s.name == "recovery").compiled
 
 
 def test_inflation_doubles_every_R_rejections_and_is_capped():

@@ -104,8 +104,8 @@ def test_robot_nodes_reproduce_the_batched_engine_with_recovery_and_robot_cusum(
         batched = run_batched(filt, params, world, x0, P0, ws_list)
         by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
         strict = run_batched(filt, replace(params, recovery=False), world, x0, P0, ws_list)
-    # The compiled kernel refuses the new stages: the numpy path ran.
-    assert assert_same(batched, by_robot, ws_list, compiled=False) > 0
+    # The compiled kernel runs the per-robot stages (tests/test_kernels_defence.py).
+    assert assert_same(batched, by_robot, ws_list, compiled=True) > 0
     detected = sum(int(h[2].detected.sum()) for h in batched)
     assert detected < sum(int(h[2].detected.sum()) for h in strict)  # re-admissions happened
 

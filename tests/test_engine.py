@@ -15,11 +15,11 @@ from resloc.cl import (
     CLParams,
     LinkBatch,
     LinkMemory,
-    NeighbourEstimate,
     ThresholdInnovation,
     UpdateMode,
     correct,
     kernels,
+    kernels_math,
     predict,
 )
 from resloc.cl.backend import kernel_refusal
@@ -171,18 +171,25 @@ def lockstep_both_backends(world, filt, params, steps: int):
     each path carrying its own estimates and link memory; after each step checks that the
     two agree (and which path ran), then yields ``(results, memories)`` keyed by backend."""
     x0, P0 = world.initial_estimates()
-    state = {b: (x0.copy(), P0.copy(), LinkMemory(world.B)) for b in ("numba", "numpy")}
+    fusion = fusion_strategy(params.fusion)  # its bookkeeping runs as in the runner
+    state = {}
+    for backend in ("numba", "numpy"):
+        memory = LinkMemory(world.B)
+        fusion.init(memory, x0, P0, world.n)
+        state[backend] = (x0.copy(), P0.copy(), memory)
     for _ in range(steps):
         ws = world.step()
         res = {}
         for backend, (x, P, memory) in state.items():
             with kernels.use_backend(backend):
                 xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
                 links = LinkBatch(
                     ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
                     ws.risk_s, ws.risk_c, ws.lambda2,
                 )  # fmt: skip
                 res[backend] = correct(filt, xp, Pp, links, params, memory)
+                fusion.exchange(memory, ws.i, ws.j)
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
         yield res, {backend: s[2] for backend, s in state.items()}
@@ -213,11 +220,11 @@ def test_kernel_counts_and_repairs_non_pd_covariances() -> None:
     P = 0.5 * (P + np.swapaxes(P, 1, 2))
     ok = covariance_is_pd(P)
     assert 0 < ok.sum() < len(P)
-    assert [kernels._is_pd3(p) for p in P] == list(ok)
+    assert [kernels_math.is_pd3(p) for p in P] == list(ok)
     bad = P[~ok]
     fixed = bad.copy()
     for p in fixed:
-        kernels._repair3(p)
+        kernels_math.repair3(p)
     np.testing.assert_allclose(fixed, repair_covariance(bad), rtol=0, atol=1e-12)
     assert covariance_is_pd(fixed).all()
 
@@ -251,11 +258,8 @@ def test_uncovered_options_fall_back_to_the_reference() -> None:
     base = PARAM_CASES["paper"]
     with kernels.use_backend("numba"):
         assert kernels.fast_correct(FILTERS["ckf"], x, P, links, base) is not None
-        for params in (
-            replace(base, update_mode=UpdateMode.SUMMED),
-            replace(base, neighbour_estimate=NeighbourEstimate.CACHED),
-        ):
-            assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40)) is None
+        summed = replace(base, update_mode=UpdateMode.SUMMED)
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, summed, LinkMemory(40)) is None
 
         # A filter class the kernel does not know.
         class Custom(SigmaPointFilter):
@@ -326,7 +330,7 @@ def test_wrap_kernel_is_bitwise_numpy() -> None:
     a = np.concatenate(
         [np.linspace(-20, 20, 2001), [np.pi, -np.pi, 0.0, -0.0, 3 * np.pi, 1e-300, 7e5]]
     )
-    np.testing.assert_array_equal([kernels._wrap(v) for v in a], wrap_angle(a))
+    np.testing.assert_array_equal([kernels_math.wrap(v) for v in a], wrap_angle(a))
 
 
 # --------------------------------------------------------------------------------------

@@ -70,6 +70,9 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
         fused += int(res["numpy"][2].fused.sum())
     assert fused > 0
     assert np.abs(state["numpy"][2].joint.robot_G()).max() > 0
+    # The once-per-step parts: compiled (prediction and finish of every step) with exact sums.
+    assert state["numpy"][2].joint.compiled_steps == 0
+    assert state["numba"][2].joint.compiled_steps == (2 * steps if rounds is None else 0)
 
 
 @pytest.mark.parametrize("name", list(FILTERS))
@@ -91,9 +94,11 @@ def test_compiled_gauge_with_consensus_sums_and_cusums(seed: int) -> None:
 
 def test_every_compiled_fusion_method_has_its_bookkeeping() -> None:
     from resloc.cl.fusion_methods import FUSION_STRATEGIES
+    from resloc.cl.kernels_fusion import KERNEL_UPDATES
 
-    compiled = {m for m, s in FUSION_STRATEGIES.items() if s.compiled}
-    assert compiled == set(COMPILED_BOOKKEEPING)
+    compiled = [s for s in FUSION_STRATEGIES.values() if s.compiled]
+    assert {s.kernel_bookkeeping for s in compiled} <= set(COMPILED_BOOKKEEPING)
+    assert {s.kernel_update for s in compiled} <= set(KERNEL_UPDATES)
 
 
 def test_gauge_without_bookkeeping_goes_to_the_reference_which_raises() -> None:

@@ -52,7 +52,7 @@ _backend = "auto"
 #: The compiled twin implements these values of the choices that are not strategies.
 COMPILED_CHOICES = {
     "update_mode": frozenset({UpdateMode.SEQUENTIAL}),
-    "neighbour_estimate": frozenset({NeighbourEstimate.CURRENT}),
+    "neighbour_estimate": frozenset({NeighbourEstimate.CURRENT, NeighbourEstimate.CACHED}),
 }
 
 

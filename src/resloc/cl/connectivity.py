@@ -159,6 +159,8 @@ class DistributedLambda2:
         self.phi: np.ndarray | None = None  # (n, 3) last local signals
         self.estimate = np.zeros(self.n)
         self.messages = 0  # neighbour messages sent so far (one per directed edge per round)
+        #: Steps run by the compiled twin (:mod:`resloc.cl.kernels_consensus`).
+        self.compiled_steps = 0
 
     def step(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Run ``rounds`` exchanges on the graph with edges ``(i, j)``; return the estimates.
@@ -173,6 +175,13 @@ class DistributedLambda2:
         ndarray, shape (n,)
             Each robot's estimate of its component's ``lambda2`` (0 when isolated).
         """
+        # The compiled twin when the backend allows it (imported here: the kernels import
+        # the CL registries, which import this module).
+        from resloc.cl.kernels_consensus import compiled_lambda2_step
+
+        compiled = compiled_lambda2_step(self, i, j)
+        if compiled is not None:
+            return compiled
         graph = MetropolisMixer(i, j, self.n)
         lap, mix, deg = graph.laplacian, graph.mix, graph.deg
 

@@ -132,7 +132,7 @@ class RejectionRecovery:
     """
 
     name: ClassVar[str] = "recovery"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = True
 
     def active(self, params: CLParams) -> bool:

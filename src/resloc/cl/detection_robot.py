@@ -64,7 +64,7 @@ class RobotCusum:
     """Per-robot CUSUM of the NIS (all of a robot's links together)."""
 
     name: ClassVar[str] = "robot_cusum"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:

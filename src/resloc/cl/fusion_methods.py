@@ -51,6 +51,8 @@ class FusionStrategy(Protocol):
         The method's name (its key in :data:`FUSION_STRATEGIES`).
     compiled : bool
         The compiled CL kernel (:mod:`resloc.cl.kernels`) implements the method.
+    kernel_update, kernel_bookkeeping : str
+        How the kernel runs it (read only when ``compiled``).
     node_refusal : str or None
         None when a :class:`~resloc.cl.node.RobotNode` (one robot's process) runs the
         method; otherwise why it does not.
@@ -62,6 +64,11 @@ class FusionStrategy(Protocol):
 
     method: ClassVar[str]
     compiled: ClassVar[bool] = False
+    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"``,
+    #: :mod:`resloc.cl.kernels_fusion`) and the per-link bookkeeping (``"none"``;
+    #: ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
+    kernel_update: ClassVar[str] = "kalman"
+    kernel_bookkeeping: ClassVar[str] = "none"
     node_refusal: ClassVar[str | None] = None
     node_exchanges: ClassVar[tuple[str, ...]] = ()
 
@@ -178,6 +185,8 @@ class CIFusion(_TransmittedOnly):
     """``ci``: covariance intersection of the joint (:func:`~resloc.cl.fusion.fused_update`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.CI
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "ci"
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
         criterion = params.ci_criterion
@@ -305,12 +314,34 @@ class GaugeFusion(_Bookkept):
 
     method: ClassVar[FusionMethod] = FusionMethod.GAUGE
     compiled: ClassVar[bool] = True
+    kernel_bookkeeping: ClassVar[str] = "gauge"
     node_exchanges: ClassVar[tuple[str, ...]] = ("acks", "consensus")
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         memory.joint = GaugeCovariance(
             x0, P0, _team_size(self.method, team_size), rounds, local=local
         )
+
+    def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
+        # The compiled twin (resloc.cl.kernels_gauge) when the backend and the bookkeeping
+        # allow it; imported here: the kernels import this module's registry.
+        from resloc.cl.kernels_gauge import compiled_gauge_predict
+
+        joint = self._joint(memory)
+        Q = process_noise(
+            x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
+        )
+        if compiled_gauge_predict(joint, x, Q, P_pred):
+            return P_pred
+        return joint.predict(x, u, dt, Q, P_pred)
+
+    def finish(self, memory, P, j, delivered) -> np.ndarray:
+        from resloc.cl.kernels_gauge import compiled_gauge_finish
+
+        joint = self._joint(memory)
+        if compiled_gauge_finish(joint):
+            return P
+        return joint.finish(P)
 
     def exchange(self, memory, i, j) -> None:
         self._joint(memory).exchange(i, j)

@@ -134,6 +134,8 @@ class GaugeCovariance:
         self.T = max(self.B // self.N, 1)
         self.rounds = None if rounds is None else int(rounds)
         self.messages = 0
+        #: Prediction and finish steps run by the compiled twins (:mod:`resloc.cl.kernels_gauge`).
+        self.compiled_steps = 0
         if self.rounds is None:
             self.G = np.zeros((self.T, 3, 3))
         else:  # per-robot consensus states: own value until the first exchange

@@ -14,7 +14,7 @@ reference path then starts from the same memory.
 =============================  ========================================================
 kernel function                numpy twin
 =============================  ========================================================
-:func:`_nis`                   :func:`resloc.cl.cusum.nis`
+:func:`nis_of`                   :func:`resloc.cl.cusum.nis`
 :func:`_whiten`                :func:`resloc.cl.cusum.whiten`
 :func:`_link_cusum`            :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``
@@ -29,21 +29,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.detector import InnovationNorm
+from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit_inline(func):
-        return func
-
-
-__all__ = ["DetectorState", "KernelDetection", "detector_state"]
+__all__ = ["DetectorState", "KernelDetection", "detector_state", "store_slots"]
 
 
 class KernelDetection(NamedTuple):
@@ -67,7 +57,8 @@ class KernelDetection(NamedTuple):
 
 
 class DetectorState(NamedTuple):
-    """A :class:`KernelDetection` with what :meth:`undo` needs."""
+    """The kernel form of stateful stages (a :class:`KernelDetection`, or a
+    :class:`~resloc.cl.kernels_defence.KernelDefence`) with what :meth:`undo` needs."""
 
     kernel: KernelDetection
     saved: tuple  # per store: (store, keys before, values before or None, slots, old values)
@@ -89,7 +80,10 @@ _NO_GAIN = np.zeros(1)
 _NO_SLOTS = np.zeros(0, np.int64)
 
 
-def _slots(store, i, j, saved: list) -> np.ndarray:
+def store_slots(store, i, j, saved: list) -> np.ndarray:
+    """Slots of links ``(i, j)`` in ``store``'s values (:meth:`LinkStatistic.slots
+    <resloc.cl.memory.LinkStatistic.slots>`), recording in ``saved`` what
+    :meth:`DetectorState.undo` needs to put the store back."""
     keys, values = store.keys, store.values
     slots = store.slots(i, j)
     if store.values is values:
@@ -99,6 +93,31 @@ def _slots(store, i, j, saved: list) -> np.ndarray:
     if not store.values.flags.c_contiguous:
         store.values = np.ascontiguousarray(store.values)
     return slots
+
+
+@per_params
+def _detection_gains(params: CLParams) -> tuple:
+    """``(cusum, k, h, cap, mean_cusum, mean_k, mean_h)`` as the kernel takes them."""
+    cusum, mean = bool(params.cusum), bool(params.mean_cusum)
+    k = h = cap = mk = mh = _NO_GAIN
+    if cusum:
+        h = _gain(params.cusum_h)
+        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
+        k = _gain(params.cusum_k)
+    if mean:
+        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
+    return cusum, k, h, cap, mean, mk, mh
+
+
+def _same_keys(store, other) -> bool:
+    return store.keys.shape == other.keys.shape and np.array_equal(store.keys, other.keys)
+
+
+def _saved(store, slots: np.ndarray) -> tuple:
+    """What :meth:`DetectorState.undo` needs to restore ``store`` at ``slots`` (in place)."""
+    if not store.values.flags.c_contiguous:
+        store.values = np.ascontiguousarray(store.values)
+    return (store, store.keys, None, slots, store.values[slots].copy())
 
 
 def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> DetectorState | None:
@@ -118,25 +137,22 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
         explanatory error).
     """
     saved: list = []
-    cusum = bool(params.cusum)
-    mean = bool(params.mean_cusum)
+    cusum, k, h, cap, mean, mk, mh = _detection_gains(params)
     if (cusum or mean) and memory is None:
         return None
     if cusum:
-        h = _gain(params.cusum_h)
-        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
-        k = _gain(params.cusum_k)
-        slot = _slots(memory.cusum, i, j, saved)
+        slot = store_slots(memory.cusum, i, j, saved)
         g = memory.cusum.values
     else:
-        k = h = cap = _NO_GAIN
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
-        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
-        mslot = _slots(memory.mean_cusum, i, j, saved)
+        if cusum and _same_keys(memory.mean_cusum, memory.cusum):
+            mslot = slot  # both stores hold every link of every step: same slots
+            saved.append(_saved(memory.mean_cusum, slot))
+        else:
+            mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values
     else:
-        mk = mh = _NO_GAIN
         mg, mslot = np.zeros((0, 4)), _NO_SLOTS
     kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot)
     return DetectorState(kernel, tuple(saved))
@@ -150,14 +166,14 @@ NIS_CODE = NORM_CODE[InnovationNorm.NIS]
 # ---------------------------------------------------------------------------------------
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
 # ---------------------------------------------------------------------------------------
-@_jit_inline
-def _at(gain, i):
+@jit_inline
+def gain_at(gain, i):
     """A gain of observer ``i`` from a ``(1,)`` or ``(B,)`` array (twin: ``at_robots``)."""
     return gain[i] if gain.shape[0] > 1 else gain[0]
 
 
-@_jit_inline
-def _nis(nu0, nu1, l00, l10, l11):
+@jit_inline
+def nis_of(nu0, nu1, l00, l10, l11):
     """``max(Lambda^T S^-1 Lambda, 0)`` with ``S = L L^T`` (twin: :func:`~resloc.cl.cusum.nis`,
     the same solve order as :func:`resloc.linalg.solve_spd`)."""
     y0 = nu0 / l00
@@ -168,14 +184,14 @@ def _nis(nu0, nu1, l00, l10, l11):
     return q if q > 0.0 else 0.0
 
 
-@_jit_inline
+@jit_inline
 def _whiten(nu0, nu1, l00, l10, l11):
     """``w = L^-1 Lambda`` (twin: :func:`~resloc.cl.cusum.whiten`)."""
     w0 = nu0 / l00
     return w0, (nu1 - l10 * w0) / l11
 
 
-@_jit_inline
+@jit_inline
 def _link_cusum(g, slot, stat, k, h, cap):
     """One step of Page's CUSUM of the NIS on one link, ``g <- min(max(0, g + NIS - k),
     cap)`` stored in place; the stage discards while ``g > h`` a measurement with
@@ -189,7 +205,7 @@ def _link_cusum(g, slot, stat, k, h, cap):
     return v > h and stat > k
 
 
-@_jit_inline
+@jit_inline
 def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
     """The four signed CUSUMs of the whitened innovation of one link (updated in place only
     when the gate ``passed`` the measurement); discard while a component alarms a
@@ -209,7 +225,7 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
     return (alarm_r and abs(w0) > k) or (alarm_b and abs(w1) > k)
 
 
-@_jit_inline
+@jit_inline
 def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
@@ -219,11 +235,11 @@ def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
         if det_norm == NIS_CODE:
             stat = n_det * n_det
         else:
-            stat = _nis(nu0, nu1, l00, l10, l11)
-        if _link_cusum(cg, cslot[e], stat, _at(ck, i), _at(ch, i), _at(ccap, i)):
+            stat = nis_of(nu0, nu1, l00, l10, l11)
+        if _link_cusum(cg, cslot[e], stat, gain_at(ck, i), gain_at(ch, i), gain_at(ccap, i)):
             detected = True
     if mean:
         w0, w1 = _whiten(nu0, nu1, l00, l10, l11)
-        if _link_mean_cusum(mg, mslot[e], w0, w1, _at(mk, i), _at(mh, i), not gated):
+        if _link_mean_cusum(mg, mslot[e], w0, w1, gain_at(mk, i), gain_at(mh, i), not gated):
             detected = True
     return detected

@@ -11,12 +11,21 @@ in the reference's order, to the :class:`~resloc.cl.gauge.GaugeCovariance`, whos
 ``finish`` (the leak, the addition to ``G``) runs as in the reference path. The prediction
 and the consensus exchanges are once per step, vectorized, outside the correction.
 
+The once-per-step parts have compiled twins too (exact team sums in a batch, the runner's
+case; a robot process's ``local`` gauge and the ``consensus`` sums stay numpy):
+:func:`compiled_gauge_predict` (the fit ``L_i`` and ``G += sum L Q L^T``) and
+:func:`compiled_gauge_finish` (the leak and ``G += sum Delta D Delta^T + L N L^T``), each
+counted in ``GaugeCovariance.compiled_steps``.
+
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
 :func:`range_bearing_jacobians_into`  :func:`resloc.models.measurement.range_bearing_jacobians`
 :func:`gauge_record`          :meth:`resloc.cl.gauge.GaugeCovariance.update` (with
                                :func:`resloc.cl.tracking.update_map`)
+:func:`_fit_and_add`          ``GaugeCovariance._fit`` and ``_add`` in
+                               :meth:`~resloc.cl.gauge.GaugeCovariance.predict`
+:func:`_leak_and_add`         :meth:`resloc.cl.gauge.GaugeCovariance.finish` (``_close``)
 =============================  ==========================================================
 """
 
@@ -27,21 +36,23 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.backend import HAVE_NUMBA
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl.backend import backend
 from resloc.cl.gauge import GaugeCovariance
+from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
+from resloc.linalg import JITTER_LEVELS
 from resloc.models.measurement import MIN_RANGE
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
+__all__ = [
+    "KernelGauge",
+    "compiled_gauge_finish",
+    "compiled_gauge_predict",
+    "gauge_commit",
+    "gauge_state",
+    "no_gauge",
+]
 
-    _jit_inline = numba.njit(cache=True, nogil=True, inline="always")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit_inline(func):
-        return func
-
-
-__all__ = ["KernelGauge", "gauge_commit", "gauge_state", "no_gauge"]
+_JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 _MIN_R2 = MIN_RANGE**2
 
@@ -91,7 +102,7 @@ def gauge_commit(joint: GaugeCovariance, state: KernelGauge, i, j, fused) -> Non
 # ---------------------------------------------------------------------------------------
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels.
 # ---------------------------------------------------------------------------------------
-@_jit_inline
+@jit_inline
 def range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj):
     """Jacobians of eq. (3) with respect to ``x_i`` and ``x_j`` into ``Hi``, ``Hj`` (2 x 3).
     Twin: :func:`resloc.models.measurement.range_bearing_jacobians`."""
@@ -113,7 +124,7 @@ def range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj):
     Hi[1, 2] = -1.0
 
 
-@_jit_inline
+@jit_inline
 def gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3):
     """Record link ``e``'s update of robot ``i`` (its links start at row ``first``; ``fused``:
     the flags of the rows so far) linearized at i's estimate before the update and j's
@@ -143,7 +154,7 @@ def gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
 
 
-@_jit_inline
+@jit_inline
 def _left_multiply(G, M, T3):
     """``M <- G M`` of 3 x 3 matrices in place (``T3``: scratch)."""
     for a in range(3):
@@ -155,3 +166,172 @@ def _left_multiply(G, M, T3):
     for a in range(3):
         for b in range(3):
             M[a, b] = T3[a, b]
+
+
+# ---------------------------------------------------------------------------------------
+# The once-per-step parts (prediction and end of the correction), compiled.
+# ---------------------------------------------------------------------------------------
+def _runs_compiled(joint) -> bool:
+    """The compiled twins reproduce ``joint``: a batch with exact team sums."""
+    return (
+        backend() == "numba"
+        and isinstance(joint, GaugeCovariance)
+        and joint.rounds is None
+        and not joint.local
+    )
+
+
+def compiled_gauge_predict(joint, x: np.ndarray, Q: np.ndarray, P_pred: np.ndarray) -> bool:
+    """:meth:`GaugeCovariance.predict <resloc.cl.gauge.GaugeCovariance.predict>` compiled:
+    the fit ``L_i`` of every robot, ``G += sum_i L_i Q_i L_i^T``, the step's bookkeeping
+    started. Returns False (nothing changed) when the twin does not apply or a team's
+    ``sum J^T J`` is not positive definite (the reference then raises).
+
+    Shapes: ``x: (B, 3)``, ``Q: (B, 3, 3)``, ``P_pred: (B, 3, 3)``.
+    """
+    if not _runs_compiled(joint):
+        return False
+    L = np.empty((joint.B, 3, 3))
+    G = np.array(joint.G, dtype=float, order="C", copy=True)
+    x = np.ascontiguousarray(x, dtype=float)
+    Q = np.ascontiguousarray(Q, dtype=float)
+    if not _fit_and_add(x, Q, joint.N, _JITTER, L, G):
+        return False
+    joint.G = G
+    joint._start_step(L, P_pred)
+    joint.compiled_steps += 1
+    return True
+
+
+def compiled_gauge_finish(joint) -> bool:
+    """:meth:`GaugeCovariance.finish <resloc.cl.gauge.GaugeCovariance.finish>` compiled:
+    every robot's leak ``Delta_m = L_m (A_m - I) + sum_{i fused m} L_i B_im`` and ``G +=
+    sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T``. False when it does not apply."""
+    if not _runs_compiled(joint):
+        return False
+    G = np.array(joint.G, dtype=float, order="C", copy=True)
+    _leak_and_add(
+        np.ascontiguousarray(joint.L), np.ascontiguousarray(joint.A),
+        np.ascontiguousarray(joint.D_pred), np.ascontiguousarray(joint.noise),
+        np.ascontiguousarray(joint.obs, dtype=np.int64),
+        np.ascontiguousarray(joint.nbr, dtype=np.int64),
+        np.ascontiguousarray(joint.Bij, dtype=float).reshape(-1, 3, 3), joint.N, G,
+    )  # fmt: skip
+    joint.G = G
+    joint.compiled_steps += 1
+    return True
+
+
+@jit_inline
+def _add_sandwich(L, M, S):
+    """``S += L M L^T`` of 3 x 3 matrices."""
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                t = 0.0
+                for d in range(3):
+                    t += L[a, d] * M[d, c]
+                s += t * L[b, c]
+            S[a, b] += s
+
+
+@jit_inline
+def _add_symmetrized(G, S):
+    """``G <- sym(G + S)`` (twin: ``GaugeCovariance._add`` with exact sums)."""
+    for a in range(3):
+        for b in range(3):
+            S[a, b] += G[a, b]
+    for a in range(3):
+        for b in range(3):
+            G[a, b] = 0.5 * (S[a, b] + S[b, a])
+
+
+@jit
+def _fit_and_add(x, Q, N, jitter, L, G):
+    """Per team ``t`` of ``N`` robots: ``M = sum_l J_l^T J_l``, ``L_i = M^-1 J_i^T`` into
+    ``L`` (B, 3, 3) by a Cholesky solve (twin: ``GaugeCovariance._fit``, :func:`gauge_jacobian
+    <resloc.cl.gauge.gauge_jacobian>`), then ``G[t] <- sym(G[t] + sum_i L_i Q_i L_i^T)``.
+    Returns False when a team's ``M`` has no Cholesky factor."""
+    M = np.zeros((3, 3))
+    C = np.zeros((3, 3))
+    Minv = np.zeros((3, 3))
+    S = np.zeros((3, 3))
+    for t in range(G.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                M[a, b] = 0.0
+        for b in range(t * N, (t + 1) * N):
+            px = x[b, 0]
+            py = x[b, 1]
+            # J = [[1, 0, -y], [0, 1, x], [0, 0, 1]]: J^T J
+            M[0, 0] += 1.0
+            M[1, 1] += 1.0
+            M[0, 2] += -py
+            M[2, 0] += -py
+            M[1, 2] += px
+            M[2, 1] += px
+            M[2, 2] += py * py + px * px + 1.0
+        if not chol3(M, C, jitter):
+            return False
+        for col in range(3):  # M^-1 column by column: C C^T m = e_col
+            y0 = (1.0 if col == 0 else 0.0) / C[0, 0]
+            y1 = ((1.0 if col == 1 else 0.0) - C[1, 0] * y0) / C[1, 1]
+            y2 = ((1.0 if col == 2 else 0.0) - C[2, 0] * y0 - C[2, 1] * y1) / C[2, 2]
+            m2 = y2 / C[2, 2]
+            m1 = (y1 - C[2, 1] * m2) / C[1, 1]
+            m0 = (y0 - C[1, 0] * m1 - C[2, 0] * m2) / C[0, 0]
+            Minv[0, col] = m0
+            Minv[1, col] = m1
+            Minv[2, col] = m2
+        for a in range(3):
+            for b in range(3):
+                S[a, b] = 0.0
+        for b in range(t * N, (t + 1) * N):
+            px = x[b, 0]
+            py = x[b, 1]
+            for a in range(3):  # L_b = M^-1 J_b^T, J^T = [[1, 0, 0], [0, 1, 0], [-y, x, 1]]
+                L[b, a, 0] = Minv[a, 0] - Minv[a, 2] * py
+                L[b, a, 1] = Minv[a, 1] + Minv[a, 2] * px
+                L[b, a, 2] = Minv[a, 2]
+            _add_sandwich(L[b], Q[b], S)
+        _add_symmetrized(G[t], S)
+    return True
+
+
+@jit
+def _leak_and_add(L, A, D, noise, obs, nbr, Bij, N, G):
+    """Every robot's leak ``Delta_m = L_m (A_m - I) + sum_{links (i, m) fused} L_i B_im`` and
+    per team ``G[t] <- sym(G[t] + sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T)``.
+    Twin: :meth:`resloc.cl.gauge.GaugeCovariance.finish` and ``_close``."""
+    B = L.shape[0]
+    leak = np.zeros((B, 3, 3))
+    for b in range(B):
+        for a in range(3):
+            for c in range(3):
+                s = 0.0
+                for d in range(3):
+                    s += L[b, a, d] * (A[b, d, c] - (1.0 if d == c else 0.0))
+                leak[b, a, c] = s
+    for r in range(obs.shape[0]):
+        i = obs[r]
+        m = nbr[r]
+        for a in range(3):
+            for c in range(3):
+                s = 0.0
+                for d in range(3):
+                    s += L[i, a, d] * Bij[r, d, c]
+                leak[m, a, c] += s
+    S = np.zeros((3, 3))
+    for t in range(G.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                S[a, b] = 0.0
+        for b in range(t * N, (t + 1) * N):
+            _add_sandwich(leak[b], D[b], S)
+            _add_sandwich(L[b], noise[b], S)
+        _add_symmetrized(G[t], S)
+
+
+stamp_with_pieces(_fit_and_add, _kernels_math)
+stamp_with_pieces(_leak_and_add, _kernels_math)

@@ -1,0 +1,203 @@
+"""Compiled twins of the per-robot detector stages: the robot CUSUM and the recovery.
+
+:class:`~resloc.cl.detection_robot.RobotCusum` and
+:class:`~resloc.cl.detection_recovery.RejectionRecovery` keep one statistic per *robot*
+(keyed ``(i, i)`` in :class:`~resloc.cl.memory.LinkStatistic` stores of the run's
+:class:`~resloc.cl.memory.LinkMemory`). In the sequential update each round holds at most
+one link of a robot, and robot ``i``'s links are its rows in ascending ``j``: the compiled
+loop (:mod:`resloc.cl.kernels_links`), which walks the rows in that order, updates the
+statistics link after link exactly as the reference's rounds do. :func:`defence_state`
+gives the loop the stores' value arrays and each link's slot in them (a robot never seen is
+inserted at 0, the value the reference reads for it); :meth:`DetectorState.undo
+<resloc.cl.kernels_detection.DetectorState.undo>` puts them back when the kernel gives up
+on a step. The stores then hold the reference's values; they may also hold keys at 0 the
+reference has not inserted yet (a robot whose measurements the gate all discarded), which
+:meth:`LinkStatistic.get <resloc.cl.memory.LinkStatistic.get>` reads as the same 0.
+
+When the recovery re-admits a measurement with robot ``i``'s covariance inflated by
+``f > 1``, the loop computes that link's moments a second time from ``f P_i`` and updates
+with them, as :func:`resloc.cl.step.correct` does.
+
+=============================  ==========================================================
+kernel function                numpy twin
+=============================  ==========================================================
+:func:`_robot_cusum`           :func:`resloc.cl.detection_robot.robot_cusum` and
+                               ``RobotCusum.discard``
+:func:`_recovery`              ``RejectionRecovery.discard`` (with
+                               :func:`~resloc.cl.detection_recovery.recovery_inflation`,
+                               :func:`~resloc.cl.detection_recovery.update_rejection_runs`)
+:func:`defend_link`            the per-robot stages of :func:`resloc.cl.detection.detect`
+=============================  ==========================================================
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl.kernels_detection import DetectorState, gain_at, nis_of, store_slots
+from resloc.cl.kernels_math import jit_inline, per_params
+from resloc.cl.params import CLParams
+
+__all__ = ["KernelDefence", "defence_state", "defend_link"]
+
+
+class KernelDefence(NamedTuple):
+    """The per-robot stages as the kernel takes them.
+
+    Gains are ``(1,)`` (one value) or ``(B,)`` (per observer); a stage that is off gets
+    empty arrays, never read.
+    """
+
+    robot_cusum: bool
+    robot_k: np.ndarray  # (1,) or (B,)
+    robot_h: np.ndarray
+    robot_g: np.ndarray  # (n,) the store's values, written in place
+    robot_slot: np.ndarray  # (E,) int64, the slot of each link's observer
+    recovery: bool
+    after: np.ndarray  # R, consecutive rejections before recovery
+    gate: np.ndarray  # the inflated NIS gate
+    cap: np.ndarray  # f_max
+    runs: np.ndarray  # (n,) consecutive discarded measurements per robot
+    runs_slot: np.ndarray  # (E,) int64
+    spread: np.ndarray  # (n,) tr P_pos at the robot's last ordinary acceptance
+    spread_slot: np.ndarray  # (E,) int64
+
+
+def _gain(v) -> np.ndarray:
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
+
+
+_NO_GAIN = np.zeros(1)
+_NO_SLOTS = np.zeros(0, np.int64)
+_NO_VALUES = np.zeros(0)
+
+
+@per_params
+def _defence_gains(params: CLParams) -> tuple[tuple, tuple]:
+    """The robot CUSUM's ``(k, h)`` and the recovery's ``(after, gate, cap)`` as the kernel
+    takes them; empty for a stage that is off."""
+    robot = (_gain(params.robot_cusum_k), _gain(params.robot_cusum_h))
+    recovery = tuple(
+        _gain(g)
+        for g in (params.recovery_after, params.recovery_gate, params.recovery_inflation_cap)
+    )
+    return (robot if params.robot_cusum else ()), (recovery if params.recovery else ())
+
+
+def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | None:
+    """The per-robot stages of ``params`` for the links of observers ``i`` of one step.
+
+    Parameters
+    ----------
+    params : CLParams
+    memory : LinkMemory or None
+    i : ndarray of int, shape (E,)
+        Observers (sorted; a robot repeats on its links' rows).
+
+    Returns
+    -------
+    DetectorState or None
+        Its ``kernel`` is a :class:`KernelDefence`. None when a stage is on and there is no
+        memory (the reference path raises the explanatory error).
+    """
+    robot_gains, recovery_gains = _defence_gains(params)
+    if (robot_gains or recovery_gains) and memory is None:
+        return None
+    saved: list = []
+    if robot_gains:
+        store = memory.stage_statistic("robot_cusum")
+        slot = store_slots(store, i, i, saved)
+        robot_part = (True, *robot_gains, store.values, slot)
+    else:
+        robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
+    if recovery_gains:
+        # the stores of RejectionRecovery (detection_recovery._runs and its spread)
+        runs = memory.stage_statistic("recovery", width=None)
+        spread = memory.stage_statistic("recovery_spread")
+        runs_slot = store_slots(runs, i, i, saved)
+        spread_slot = store_slots(spread, i, i, saved)
+        recovery_part = (True, *recovery_gains, runs.values, runs_slot, spread.values, spread_slot)
+    else:
+        recovery_part = (False, _NO_GAIN, _NO_GAIN, _NO_GAIN)
+        recovery_part += (_NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS)
+    return DetectorState(KernelDefence(*robot_part, *recovery_part), tuple(saved))
+
+
+# ---------------------------------------------------------------------------------------
+# Per-link pieces, inlined into the CL loop of resloc.cl.kernels_links.
+# ---------------------------------------------------------------------------------------
+@jit_inline
+def _robot_cusum(g, slot, stat, k, h, passed):
+    """One step of the CUSUM of the NIS over all of robot i's links, ``g_i <- min(max(0,
+    g_i + (NIS - k)), 2 h)`` stored in place when the gate ``passed`` the measurement; the
+    stage discards while ``g_i > h`` a measurement with ``NIS > k``.
+    Twin: :func:`resloc.cl.detection_robot.robot_cusum` and ``RobotCusum.discard``."""
+    if passed:
+        v = g[slot] + (stat - k)
+        if v < 0.0:
+            v = 0.0
+        cap = 2.0 * h
+        if v > cap:
+            v = cap
+        g[slot] = v
+    return g[slot] > h and stat > k
+
+
+@jit_inline
+def _recovery(runs, run_slot, spread, spread_slot, detected, stat, trace, after, gate, cap):
+    """Recovery after a run of rejections on one link of robot i: ``(detected, inflation)``.
+
+    ``f = min(2^((n - R) / R), f_max, max(G_i, 1))`` while ``n >= R`` (``G_i``: growth of
+    ``tr P_i,pos`` since the last ordinary acceptance); a discarded measurement with ``NIS
+    / f <= gate`` is re-admitted with inflation ``f``. Updates the run count ``n`` and the
+    spread in place. Twin: ``RejectionRecovery.discard`` (with ``recovery_inflation`` and
+    ``update_rejection_runs``).
+    """
+    start = runs[run_slot]
+    f = math.nan
+    if start >= after:
+        f = np.exp2((start - after) / after)
+        if f > cap:
+            f = cap
+    before = spread[spread_slot]
+    growth = trace / before if before > 0.0 else math.inf
+    if growth < 1.0:
+        growth = 1.0
+    if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
+        f = growth
+    if not detected:
+        spread[spread_slot] = trace
+    inflation = 1.0
+    readmitted = False
+    if detected and math.isfinite(f) and stat / f <= gate:
+        detected = False
+        readmitted = True
+        inflation = f
+    if not detected and not readmitted:
+        runs[run_slot] = 0.0
+    elif not readmitted:
+        runs[run_slot] = start + 1.0
+    return detected, inflation
+
+
+@jit_inline
+def defend_link(defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11):
+    """The per-robot stages on link ``e`` of observer ``i`` (``P_i``: its running
+    covariance), after the per-link stages' verdict ``detected`` and the gate's ``gated``:
+    ``(detected, inflation)``. The robot CUSUM adds discards; the recovery runs last and
+    overrides. Twin: the per-robot stages of :func:`resloc.cl.detection.detect`."""
+    robot, rk, rh, rg, rslot, recovery, after, gate, cap, runs, runs_slot, spread, sslot = defence
+    stat = nis_of(nu0, nu1, l00, l10, l11)
+    if robot and _robot_cusum(rg, rslot[e], stat, gain_at(rk, i), gain_at(rh, i), not gated):
+        detected = True
+    inflation = 1.0
+    if recovery:
+        trace = Pi[0, 0] + Pi[1, 1]
+        detected, inflation = _recovery(
+            runs, runs_slot[e], spread, sslot[e], detected, stat, trace,
+            gain_at(after, i), gain_at(gate, i), gain_at(cap, i),
+        )  # fmt: skip
+    return detected, inflation

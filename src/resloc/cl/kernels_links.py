@@ -1,0 +1,432 @@
+"""The compiled CL link loop: every link of one step in one call (twin of
+:func:`resloc.cl.step.correct`; the dispatch and its inputs are in :mod:`resloc.cl.kernels`).
+
+The loop walks the links in row order (robot ``i``'s links in ascending ``j``). Robots are
+independent within a step (a link reads only robot ``i``'s running estimate and ``j``'s
+transmitted estimate), so the row-order loop gives exactly the rounds of the reference
+path. Each piece of a link's work is a named function beside the numpy function it twins
+(``docs/algorithm.md`` maps every equation to both); the scalar primitives are in
+:mod:`resloc.cl.kernels_math`, the options' pieces in their own modules (detector stages:
+:mod:`resloc.cl.kernels_detection`, gauge bookkeeping: :mod:`resloc.cl.kernels_gauge`,
+the stealthy attacker: :mod:`resloc.cl.kernels_tamper`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from resloc.cl import kernels_defence as _kernels_defence
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_fusion as _kernels_fusion
+from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl.kernels_defence import defend_link
+from resloc.cl.kernels_detection import detect_link
+from resloc.cl.kernels_fusion import CI, ci_update
+from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
+from resloc.cl.kernels_math import (
+    chol2,
+    chol3,
+    is_pd3,
+    jit,
+    jit_inline,
+    repair3,
+    sandwich,
+    solve2,
+    stamp_with_pieces,
+    wrap,
+)
+from resloc.cl.kernels_tamper import stealthy_measurement
+
+#: Kernel status codes.
+OK = 0
+NOT_PD = 1  # a Cholesky factorization failed even with the largest jitter, or NaN/inf
+
+
+@jit_inline
+def _innovation_norm(kind, nu0, nu1, std0, std1, l00, l10, l11):
+    """Size of the innovation ``Lambda_ij`` of eq. (9) in the norm ``kind`` (a
+    :data:`NORM_CODE`). Twin: :func:`resloc.cl.detector.innovation_norm`."""
+    if kind == 0:
+        return math.hypot(nu0, nu1)
+    if kind == 1:
+        return math.hypot(nu0 / std0, nu1 / std1)
+    w0, w1 = solve2(l00, l10, l11, nu0, nu1)
+    q = nu0 * w0 + nu1 * w1
+    return math.sqrt(q if q > 0.0 else 0.0)
+
+
+@jit_inline
+def _linearized_moments(xi0, xi1, xi2, Pi, xj0, xj1, Pj, R, Hi, Hj, T3, Pxz):
+    """First-order moments of eq. (3) with the range/bearing Jacobians at the means; fills
+    ``work.Pxz`` and ``work.Hi``.
+
+    Twin: :meth:`resloc.filters.ekf.ExtendedFilter.relative_moments`.
+    Returns ``(zh0, zh1, S00, S01, S11, re00, re01, re11)`` with ``R_eff = H_j P_j H_j^T + R``
+    (``T3``: scratch).
+    """
+    dx = xj0 - xi0
+    dy = xj1 - xi1
+    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
+    zh0 = math.hypot(dx, dy)
+    zh1 = wrap(math.atan2(dy, dx) - xi2)
+    # R_eff = Hj Pj Hj^T + R ; S = Hi Pi Hi^T + R_eff (then both symmetrized)
+    rj00, rj01, rj10, rj11 = sandwich(Hj, Pj, T3)
+    rj00 += R[0, 0]
+    rj01 += R[0, 1]
+    rj10 += R[1, 0]
+    rj11 += R[1, 1]
+    si00, si01, si10, si11 = sandwich(Hi, Pi, T3)
+    S00 = si00 + rj00
+    S01 = 0.5 * ((si01 + rj01) + (si10 + rj10))
+    S11 = si11 + rj11
+    for a in range(3):
+        for b in range(2):
+            s = 0.0
+            for c in range(3):
+                s += Pi[a, c] * Hi[b, c]
+            Pxz[a, b] = s
+    return zh0, zh1, S00, S01, S11, rj00, 0.5 * (rj01 + rj10), rj11
+
+
+@jit_inline
+def _event_threshold(alpha, lambda2, gamma, size, zeta_s, risk_s, zeta_c, risk_c, floor):
+    """Adaptive threshold ``delta_ij`` of eq. (11) of one link (the observer's gains, risks
+    and ``lambda2``; ``size``: the innovation size in the threshold).
+    Twin: :func:`resloc.cl.trigger.event_threshold`."""
+    risk = 1.0 - zeta_s * risk_s - zeta_c * risk_c
+    if risk < floor:
+        risk = floor
+    scale = alpha / lambda2 if lambda2 > 0.0 else math.inf
+    delta = scale * (1.0 + gamma * size) * risk
+    if math.isnan(delta):
+        delta = math.inf
+    return delta
+
+
+@jit_inline
+def _gate_link(n_det, detector, rho):
+    """Attack detection of Algorithm 1: discard when the detector norm exceeds ``rho``.
+    Twin: :func:`resloc.cl.detector.attack_detected` (the ``gate`` stage)."""
+    return detector and n_det > rho
+
+
+@jit_inline
+def _decide_link(detected, n_trig, delta, trigger, channel_ok):
+    """Event condition (eq. 10) and channel (eq. 8) of one link the detector judged:
+    ``(triggered, delivered)``. Twin: ``resloc.cl.step._decide``."""
+    fire = (n_trig > delta) if trigger else True
+    triggered = (not detected) and fire
+    return triggered, triggered and channel_ok
+
+
+@jit_inline
+def _cached_decision(
+    detected, triggered, delivered, known, trigger, channel_ok, update_without_transmission
+):  # fmt: skip
+    """``(triggered, delivered, fused)`` of a link with ``cached`` neighbour estimates: the
+    trigger fires at the first reception (nothing to compare against), and with
+    ``update_without_transmission`` an accepted, untriggered link with a cached estimate is
+    fused with it. Twin: ``resloc.cl.step._decide`` (its ``cached`` branches)."""
+    if trigger and not detected and not known:
+        triggered = True
+        delivered = channel_ok
+    fused = delivered or (update_without_transmission and not detected and not triggered and known)
+    return triggered, delivered, fused
+
+
+@jit_inline
+def _schur_update(Pi, K, S00, S01, S11, Pn):
+    """``P - K S K^T`` into ``Pn`` (sigma-point filters).
+    Twin: :func:`resloc.filters.update.kalman_update`."""
+    for a in range(3):
+        t0 = K[a, 0] * S00 + K[a, 1] * S01
+        t1 = K[a, 0] * S01 + K[a, 1] * S11
+        for b in range(3):
+            Pn[a, b] = Pi[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
+
+
+@jit
+def correct_links(
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+):
+    """Every link of one step in row order (Algorithm 1's correction: eqs. (3), (8)-(11));
+    updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place. Twin: :func:`resloc.cl.step.correct`.
+
+    The structures are unpacked once, here: a field read inside the loop would cost a
+    reference-count update per field and link. For the same reason the pieces that would
+    take many arrays (the sigma-point moments, the gain, the Joseph update) are blocks of
+    this loop, each citing its twin; measured, as functions they cost 15-20% of the
+    correction. Returns the status; on a non-OK status the outputs are partial and must be
+    discarded.
+    """
+    li, z, x_nb, P_nb, channel_ok, last_norm, x_ref, P_ref, known = links
+    risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
+    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
+    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
+    jitter, cached, update_without_transmission = options[8], options[9], options[10]
+    out_norm, out_threshold, flags = out
+    m = Wm.shape[0]
+    Li = np.zeros((3, 3))
+    Lj = np.zeros((3, 3))
+    off = np.zeros((m, 6))
+    Z0 = np.zeros(m)
+    Z1 = np.zeros(m)
+    Pxz = np.zeros((3, 2))
+    K = np.zeros((3, 2))
+    Hi = np.zeros((2, 3))
+    Hj = np.zeros((2, 3))
+    Pn = np.zeros((3, 3))
+    T3 = np.zeros((3, 3))
+    A3 = np.zeros((3, 3))
+    G3 = np.zeros((3, 3))
+    Pinf = np.zeros((3, 3))
+    defending = defence[0] or defence[5]
+    fusion_code = fusion[0]
+    std0 = noise_std[0]
+    std1 = noise_std[1]
+    record_gauge = gauge[0]
+    tampered = tamper[0]
+    attacked = tamper[3]
+    fused = flags[3]
+    first = 0  # robot i's first row
+    for e in range(li.shape[0]):
+        i = li[e]
+        if e > 0 and li[e - 1] != i:
+            first = e
+        Pi = P[i]
+        Pj = P_nb[e]
+        xi0 = x[i, 0]
+        xi1 = x[i, 1]
+        xi2 = x[i, 2]
+        xj0 = x_nb[e, 0]
+        xj1 = x_nb[e, 1]
+        # The estimate of j the moments use: transmitted, or the last one received (cached)
+        xr0 = x_ref[e, 0]
+        xr1 = x_ref[e, 1]
+        Pr = P_ref[e]
+        zu0 = z[e, 0]
+        zu1 = z[e, 1]
+        inflation = 1.0
+        # A second pass only for a fused measurement whose update uses other moments (twin:
+        # _decide): the recovery re-admitted it with robot i's covariance inflated, or it was
+        # delivered while the first pass used j's cached estimate.
+        for attempt in range(2):
+            re00 = 0.0
+            re01 = 0.0
+            re11 = 0.0
+            if linearized:
+                zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
+                    xi0, xi1, xi2, Pi, xr0, xr1, Pr, R, Hi, Hj, T3, Pxz
+                )
+            else:
+                # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
+                # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
+                if not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
+                    return NOT_PD
+                for k in range(m):
+                    for a in range(6):
+                        off[k, a] = 0.0
+                    for t in range(nz_cnt[k]):
+                        b = nz_idx[k, t]
+                        u = nz_val[k, t]
+                        if b < 3:
+                            for a in range(3):
+                                off[k, a] += Li[a, b] * u
+                        else:
+                            for a in range(3):
+                                off[k, 3 + a] += Lj[a, b - 3] * u
+                zr = 0.0
+                ssin = 0.0
+                scos = 0.0
+                zb = 0.0
+                sin_i = 0.0
+                cos_i = 0.0
+                if circular:
+                    sin_i = math.sin(xi2)
+                    cos_i = math.cos(xi2)
+                for k in range(m):
+                    dx = (xr0 + off[k, 3]) - (xi0 + off[k, 0])
+                    dy = (xr1 + off[k, 4]) - (xi1 + off[k, 1])
+                    r = math.sqrt(dx * dx + dy * dy)
+                    th = xi2 + off[k, 2]
+                    Z0[k] = r
+                    Z1[k] = wrap(math.atan2(dy, dx) - th)
+                    zr += r * Wm[k]
+                    if circular:
+                        # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
+                        if r > 0.0:
+                            if off[k, 2] == 0.0:
+                                sn = sin_i
+                                cs = cos_i
+                            else:
+                                sn = math.sin(th)
+                                cs = math.cos(th)
+                            ssin += ((dy * cs - dx * sn) / r) * Wm[k]
+                            scos += ((dx * cs + dy * sn) / r) * Wm[k]
+                        else:
+                            ssin += math.sin(Z1[k]) * Wm[k]
+                            scos += math.cos(Z1[k]) * Wm[k]
+                    else:
+                        zb += Z1[k] * Wm[k]
+                zh0 = zr
+                zh1 = wrap(math.atan2(ssin, scos)) if circular else wrap(zb)
+                mx0 = 0.0
+                mx1 = 0.0
+                mx2 = 0.0
+                for k in range(m):
+                    mx0 += off[k, 0] * Wm[k]
+                    mx1 += off[k, 1] * Wm[k]
+                    mx2 += off[k, 2] * Wm[k]
+                s00 = 0.0
+                s01 = 0.0
+                s11 = 0.0
+                for a in range(3):
+                    Pxz[a, 0] = 0.0
+                    Pxz[a, 1] = 0.0
+                for k in range(m):
+                    d0 = Z0[k] - zh0
+                    d1 = wrap(Z1[k] - zh1)
+                    w = Wc[k]
+                    s00 += d0 * w * d0
+                    s01 += d0 * w * d1
+                    s11 += d1 * w * d1
+                    g0 = off[k, 0] - mx0
+                    g1 = off[k, 1] - mx1
+                    g2 = off[k, 2] - mx2
+                    Pxz[0, 0] += g0 * w * d0
+                    Pxz[0, 1] += g0 * w * d1
+                    Pxz[1, 0] += g1 * w * d0
+                    Pxz[1, 1] += g1 * w * d1
+                    Pxz[2, 0] += g2 * w * d0
+                    Pxz[2, 1] += g2 * w * d1
+                S00 = s00 + R[0, 0]
+                S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
+                S11 = s11 + R[1, 1]
+            # innovation, eq. (9)
+            nu0 = zu0 - zh0
+            nu1 = wrap(zu1 - zh1)
+            l00, l10, l11 = chol2(S00, S01, S11, jitter)
+            if l00 == 0.0:
+                return NOT_PD
+            if attempt == 1:
+                break
+            if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
+                zt0, zt1 = stealthy_measurement(
+                    tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11
+                )
+                zu0 = zt0
+                zu1 = wrap(zt1)
+                nu0 = zu0 - zh0
+                nu1 = wrap(zu1 - zh1)
+            n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
+            if det_norm == trig_norm:
+                n_det = n_trig
+            else:
+                n_det = _innovation_norm(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
+            a_i = alpha[i] if alpha.shape[0] > 1 else alpha[0]
+            g_i = gamma[i] if gamma.shape[0] > 1 else gamma[0]
+            zs_i = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
+            zc_i = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
+            rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
+            delta = _event_threshold(
+                a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
+                zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
+            )  # fmt: skip
+            gated = _gate_link(n_det, detector, rho_i)
+            detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
+            if defending:  # the per-robot stages (robot CUSUM, recovery: kernels_defence)
+                detected, inflation = defend_link(
+                    defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11
+                )
+            triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
+            fuse = delivered
+            if cached:
+                triggered, delivered, fuse = _cached_decision(
+                    detected, triggered, delivered, known[e], trigger, channel_ok[e],
+                    update_without_transmission,
+                )  # fmt: skip
+            out_norm[e] = n_trig
+            out_threshold[e] = math.nan if detected else delta
+            flags[0, e] = detected
+            flags[1, e] = triggered
+            flags[2, e] = delivered
+            flags[3, e] = fuse
+            fresh = delivered and cached and known[e]
+            if not (fuse and (inflation > 1.0 or fresh)):
+                break
+            if inflation > 1.0:
+                for a in range(3):
+                    for c in range(3):
+                        Pinf[a, c] = Pi[a, c] * inflation
+                Pi = Pinf
+            if fresh:  # a delivered message carries j's current estimate: fuse with that
+                xr0 = xj0
+                xr1 = xj1
+                Pr = Pj
+        if not fuse:
+            continue
+        if fusion_code == CI:  # covariance intersection (kernels_fusion)
+            range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
+            if not ci_update(
+                x, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
+                re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
+            ):  # fmt: skip
+                return NOT_PD
+        else:
+            # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
+            for a in range(3):
+                k0, k1 = solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
+                K[a, 0] = k0
+                K[a, 1] = k1
+            x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
+            x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
+            x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
+            if linearized:
+                # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
+                for a in range(3):
+                    for b in range(3):
+                        KH = K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b]
+                        A3[a, b] = (1.0 if a == b else 0.0) - KH
+                for a in range(3):
+                    for b in range(3):
+                        s = 0.0
+                        for c in range(3):
+                            s += A3[a, c] * Pi[c, b]
+                        T3[a, b] = s
+                for a in range(3):
+                    t0 = K[a, 0] * re00 + K[a, 1] * re01
+                    t1 = K[a, 0] * re01 + K[a, 1] * re11
+                    for b in range(3):
+                        s = 0.0
+                        for c in range(3):
+                            s += T3[a, c] * A3[b, c]
+                        Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+            else:
+                _schur_update(Pi, K, S00, S01, S11, Pn)
+        for a in range(3):
+            for b in range(3):
+                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+        if not is_pd3(T3):
+            repair3(T3)
+            flags[4, e] = True
+        for a in range(3):
+            for b in range(3):
+                P[i, a, b] = T3[a, b]
+        if record_gauge:
+            gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
+    return OK
+
+
+stamp_with_pieces(
+    correct_links,
+    _kernels_math,
+    _kernels_detection,
+    _kernels_defence,
+    _kernels_fusion,
+    _kernels_gauge,
+    _kernels_tamper,
+)
