@@ -83,7 +83,6 @@ def _tests_an_innovation_norm(node: ast.Compare) -> bool:
 #: (``resloc.cl.detection.CHI_SQUARE_NORMS``); each is to move there, and no other may join them.
 NORM_BRANCHES_TO_MOVE = {
     "resloc/world/adversary.py",  # the stealthy attacker's own copy of each norm's metric
-    "resloc/experiments/mrclam.py",  # the default gate of a chi-square norm
 }
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.cl.cusum import chi2_gate
+from resloc.cl.detection import CHI_SQUARE_NORMS
 from resloc.cl.params import CLParams
 from resloc.errors import ConfigError
 from resloc.filters.base import FilterKind
@@ -218,6 +219,6 @@ DEFAULT_FALSE_ALARM = 1e-3
 
 def default_rho(norm: InnovationNorm) -> float:
     """The default detection threshold of a replay for detector norm ``norm``."""
-    if InnovationNorm(norm) is InnovationNorm.NIS:
+    if InnovationNorm(norm) in CHI_SQUARE_NORMS:
         return math.sqrt(chi2_gate(DEFAULT_FALSE_ALARM))
     return 1.0
