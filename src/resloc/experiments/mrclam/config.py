@@ -219,6 +219,7 @@ DEFAULT_FALSE_ALARM = 1e-3
 
 def default_rho(norm: InnovationNorm) -> float:
     """The default detection threshold of a replay for detector norm ``norm``."""
-    if InnovationNorm(norm) in CHI_SQUARE_NORMS:
+    norm = InnovationNorm(norm)
+    if norm in CHI_SQUARE_NORMS:
         return math.sqrt(chi2_gate(DEFAULT_FALSE_ALARM))
     return 1.0
