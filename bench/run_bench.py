@@ -266,7 +266,9 @@ def engine_step(filt, params, x, P, s: StepData, memory, phases: list | None = N
     t0 = time.perf_counter()
     xp, Pp = predict(filt, x, P, s.u_meas, DT, params)
     t1 = time.perf_counter()
-    links = LinkBatch(s.i, s.j, s.z, xp[s.j], Pp[s.j], s.channel_ok, s.risk_s, s.risk_c, s.lambda2)
+    links = LinkBatch.from_predicted(
+        s.i, s.j, s.z, xp, Pp, s.channel_ok, s.risk_s, s.risk_c, s.lambda2
+    )
     t2 = time.perf_counter()
     x, P, out = correct(filt, xp, Pp, links, params, memory)
     if phases is not None:

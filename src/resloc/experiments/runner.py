@@ -510,12 +510,12 @@ def _step_estimator(tr: EstimatorTrack, ws, inputs: _StepInputs) -> None:
         risk_c = world.cdz.risk(xp[:, :2]) if world.cdz else ws.risk_c
     else:
         risk_s, risk_c = ws.risk_s, ws.risk_c
-    links = LinkBatch(
+    links = LinkBatch.from_predicted(
         ws.i,
         ws.j,
         ws.z,
-        xp[ws.j],
-        Pp[ws.j],
+        xp,
+        Pp,
         ws.channel_ok,
         risk_s,
         risk_c,
