@@ -107,8 +107,9 @@ class KernelLinks(NamedTuple):
 
     i: np.ndarray  # (E,) int64 observers
     z: np.ndarray  # (E, 2) measured range, bearing
-    x_nb: np.ndarray  # (E, 3) transmitted estimates
-    P_nb: np.ndarray  # (E, 3, 3)
+    x_nb: np.ndarray  # (S, 3) transmitted estimates: link e's is row nb[e]
+    P_nb: np.ndarray  # (S, 3, 3)
+    nb: np.ndarray  # (E,) int64 row of x_nb / P_nb (LinkBatch.neighbour_rows)
     channel_ok: np.ndarray  # (E,) bool
     last_norm: np.ndarray  # (E,) last delivered norm (``last_sent``), else (0,)
 
@@ -221,7 +222,7 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
     return prepared
 
 
-def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
+def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots, neighbours) -> bool:
     """Every index the kernel will use is in range (the compiled loop does not check)."""
     li = np.asarray(links.i)
     E = len(li)
@@ -230,10 +231,15 @@ def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
         return False
     if np.shape(x)[1:] != (3,) or np.shape(P)[1:] != (3, 3):
         return False
+    nb, x_nb, P_nb = neighbours
+    S = len(x_nb)
+    if np.shape(x_nb) != (S, 3) or np.shape(P_nb) != (S, 3, 3):
+        return False
+    if nb is not None and (np.shape(nb) != (E,) or nb.min() < 0 or nb.max() >= S):
+        return False
     per_link = (
         (links.z, (E, 2)),
-        (links.x_nb, (E, 3)),
-        (links.P_nb, (E, 3, 3)),
+        (x_nb, (E, 3) if nb is None else (S, 3)),
         (links.channel_ok, (E,)),
         (links.j, (E,)),
     )
@@ -269,7 +275,8 @@ def fast_correct(
     robots = KernelRobots(
         _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
     )
-    if E == 0 or not _shapes_ok(x, P, links, robots):
+    neighbours = links.neighbour_rows()
+    if E == 0 or not _shapes_ok(x, P, links, robots, neighbours):
         return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
@@ -293,11 +300,13 @@ def fast_correct(
         if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
             return None
         z = tamper.z
+    nb, x_nb, P_nb = neighbours
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
-        _contiguous(links.x_nb),
-        _contiguous(links.P_nb),
+        _contiguous(x_nb),
+        _contiguous(P_nb),
+        np.arange(E, dtype=np.int64) if nb is None else _contiguous(nb, np.int64),
         _contiguous(links.channel_ok, np.bool_),
         last,
     )
@@ -317,7 +326,8 @@ def fast_correct(
     P_out = strategy.finish(memory, P_out, lj, delivered)
     if last_sent and delivered.any():
         d = np.flatnonzero(delivered)
-        memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
+        rows = d if nb is None else nb[d]
+        memory.store(links.i[d], links.j[d], x_nb[rows], P_nb[rows], out.norm[d])
     outcome = LinkOutcome(
         out.norm, out.threshold, detected, triggered, delivered, fused, repaired, compiled=True
     )
@@ -591,7 +601,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
     correction. Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
-    li, z, x_nb, P_nb, channel_ok, last_norm = links
+    li, z, x_nb, P_nb, nb, channel_ok, last_norm = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
     R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent, jitter = options
@@ -622,12 +632,13 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
         if e > 0 and li[e - 1] != i:
             first = e
         Pi = P[i]
-        Pj = P_nb[e]
+        n = nb[e]  # j's transmitted estimate, read by index: no per-link copy
+        Pj = P_nb[n]
         xi0 = x[i, 0]
         xi1 = x[i, 1]
         xi2 = x[i, 2]
-        xj0 = x_nb[e, 0]
-        xj1 = x_nb[e, 1]
+        xj0 = x_nb[n, 0]
+        xj1 = x_nb[n, 1]
         re00 = 0.0
         re01 = 0.0
         re11 = 0.0
