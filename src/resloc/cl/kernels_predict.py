@@ -35,8 +35,10 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl import kernels as _kernels
+from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA, backend
 from resloc.cl.kernels import _JITTER, _chol3, _wrap
+from resloc.cl.kernels_trig import fast_atan2
 from resloc.filters.ekf import ExtendedFilter
 from resloc.filters.sigma_points import SigmaPointFilter
 
@@ -272,7 +274,7 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
                     scos += (cs * cw - sn * sw) * Wm[k]
                 else:
                     mean2 += Xf[k, 2] * Wm[k]
-            mean2 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(mean2)
+            mean2 = _wrap(fast_atan2(ssin, scos)) if circular else _wrap(mean2)
             x_out[b, 0] = mean0
             x_out[b, 1] = mean1
             x_out[b, 2] = mean2
@@ -296,4 +298,4 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
     return OK
 
 
-_kernels._stamp_with_pieces(_predict_robots, _kernels)
+_kernels._stamp_with_pieces(_predict_robots, _kernels, _kernels_trig)
