@@ -43,6 +43,7 @@ import numpy as np
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
@@ -63,6 +64,7 @@ from resloc.cl.kernels_gauge import (
     range_bearing_jacobians_into,
 )
 from resloc.cl.kernels_tamper import no_tamper, stealthy_measurement
+from resloc.cl.kernels_trig import fast_atan2
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
@@ -678,7 +680,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
                 r = math.sqrt(dx * dx + dy * dy)
                 th = xi2 + off[k, 2]
                 Z0[k] = r
-                Z1[k] = _wrap(math.atan2(dy, dx) - th)
+                Z1[k] = _wrap(fast_atan2(dy, dx) - th)
                 zr += r * Wm[k]
                 if circular:
                     # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
@@ -697,7 +699,7 @@ def _correct_links(x, P, links, robots, filt, options, detection, gauge, tamper,
                 else:
                     zb += Z1[k] * Wm[k]
             zh0 = zr
-            zh1 = _wrap(math.atan2(ssin, scos)) if circular else _wrap(zb)
+            zh1 = _wrap(fast_atan2(ssin, scos)) if circular else _wrap(zb)
             mx0 = 0.0
             mx1 = 0.0
             mx2 = 0.0
@@ -822,4 +824,6 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
     cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
 
 
-_stamp_with_pieces(_correct_links, _kernels_detection, _kernels_gauge, _kernels_tamper)
+_stamp_with_pieces(
+    _correct_links, _kernels_detection, _kernels_gauge, _kernels_tamper, _kernels_trig
+)
