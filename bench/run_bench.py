@@ -232,9 +232,10 @@ class SpreadSwarm:
         u = np.column_stack([self.v, w_cmd])
         pose = self.pose = unicycle_step(pose, u, DT)
         u_meas = u + rng.normal(size=(N, 2)) * [0.01, 0.05]
-        t1 = time.perf_counter()
+        t1, cpu = time.perf_counter(), time.thread_time()
         i, j = radius_links(pose[:, :2], self.team, RADIUS)
         t2 = time.perf_counter()
+        self.neighbours_cpu_s = time.thread_time() - cpu
         E = len(i)
         z = range_bearing(pose[i], pose[j]) + rng.normal(size=(E, 2)) * [0.005, 0.05]
         attacked = rng.random(E) < self.risk_s[i]
@@ -389,7 +390,7 @@ def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
     peak = base = 0
     for k in range(steps):
         data, world = swarm.step()
-        world_phases.append(world)
+        world_phases.append({**world, "neighbours_cpu": swarm.neighbours_cpu_s})
         if k == steps - 1:
             tracemalloc.start()
             base = tracemalloc.get_traced_memory()[0]
