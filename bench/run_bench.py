@@ -386,11 +386,12 @@ def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
     filt = make_filter(kind)
     x, P = swarm.x0, swarm.P0
     memory = LinkMemory(N)
-    times, cpu_times, cl_phases, world_phases, links = [], [], [], [], 0
+    times, cpu_times, cl_phases, world_phases, neighbours_cpu, links = [], [], [], [], [], 0
     peak = base = 0
     for k in range(steps):
         data, world = swarm.step()
-        world_phases.append({**world, "neighbours_cpu": swarm.neighbours_cpu_s})
+        world_phases.append(world)
+        neighbours_cpu.append(swarm.neighbours_cpu_s)
         if k == steps - 1:
             tracemalloc.start()
             base = tracemalloc.get_traced_memory()[0]
@@ -414,6 +415,7 @@ def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
     world_median = {
         name: float(np.median([w[name] for w in world_phases])) for name in world_phases[0]
     }
+    world_median["neighbours_cpu"] = float(np.median(neighbours_cpu))
     if not solve:
         world_median["lambda2"] = None
     return {
