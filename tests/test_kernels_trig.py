@@ -68,3 +68,25 @@ def test_fast_atan2_in_plain_python():
     python = getattr(fast_atan2, "py_func", fast_atan2)
     for y, x in [(1.0, 1.0), (-2.0, -3.0), (0.3, -5.0), (-7.0, 0.1), (0.0, -2.0)]:
         assert python(y, x) == pytest.approx(math.atan2(y, x), abs=4.5e-16)
+
+
+@needs_numba
+def test_small_angle_sincos_equals_libm():
+    import numba
+
+    from resloc.cl.kernels_trig import SMALL_ANGLE, small_angle_sincos
+
+    @numba.njit(cache=False)
+    def loop(a, s, c):
+        for k in range(a.shape[0]):
+            s[k], c[k] = small_angle_sincos(a[k])
+
+    rng = np.random.default_rng(1)
+    a = np.concatenate(
+        [rng.uniform(-1.5, 1.5, 100_000), [0.0, SMALL_ANGLE, -SMALL_ANGLE, 1e-300, 3.0, 1e5]]
+    )
+    a = np.concatenate([a, np.nextafter(a, np.inf)])
+    s, c = np.empty_like(a), np.empty_like(a)
+    loop(a, s, c)
+    np.testing.assert_allclose(s, np.sin(a), rtol=0, atol=2.5e-16)
+    np.testing.assert_allclose(c, np.cos(a), rtol=0, atol=2.5e-16)
