@@ -17,8 +17,12 @@ single BLAS thread:
 * a soak of about 1,000,000 robot-steps (default scenario, 59 trials x 17 robots x 1000
   steps, the three filters in lockstep): every covariance positive definite, no NaN.
 
-Writes ``bench/results.json`` and prints a table. ``--quick`` runs a reduced version
-(seconds) for smoke tests.
+* the scale rows: one CL step of 10,000, 100,000 and 1,000,000 robots of the spread swarm
+  (median and best wall time, CPU time, phases, transient memory per robot, the world step's
+  phases, labelled scaling exponents).
+
+Writes ``runs/bench/engine.json`` (``--out PATH``) and prints the tables. ``--quick`` runs a
+reduced version (under a minute) for smoke tests.
 """
 
 from __future__ import annotations
