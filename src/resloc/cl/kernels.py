@@ -833,3 +833,8 @@ def _stamp_with_pieces(dispatcher, *modules) -> None:
 _stamp_with_pieces(
     _correct_links, _kernels_detection, _kernels_gauge, _kernels_tamper, _kernels_trig
 )
+
+#: Public names of the scalar primitives the compiled prediction
+#: (:mod:`resloc.cl.kernels_predict`) builds on.
+wrap_scalar = _wrap
+cholesky3 = _chol3
