@@ -39,10 +39,11 @@ import numpy as np
 from resloc.cl import kernels as _kernels
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA, backend
-from resloc.cl.kernels import _JITTER, _chol3, _wrap
+from resloc.cl.kernels import NOT_PD, OK, cholesky3, wrap_scalar
 from resloc.cl.kernels_trig import fast_atan2, small_angle_sincos
 from resloc.filters.ekf import ExtendedFilter
 from resloc.filters.sigma_points import SigmaPointFilter
+from resloc.linalg import JITTER_LEVELS
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -56,9 +57,7 @@ else:  # pragma: no cover - exercised only where numba is absent
 
 __all__ = ["PredictKernelSpec", "fast_predict", "predict_kernel_spec"]
 
-#: Kernel status codes (as :mod:`resloc.cl.kernels`).
-OK = 0
-NOT_PD = 1
+_JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 
 class PredictKernelSpec(NamedTuple):
@@ -217,7 +216,7 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
             # x = f(x, u), P = F P F^T + Q (twin: ExtendedFilter.predict)
             x_out[b, 0] = x0 + v * c2 * dt
             x_out[b, 1] = x1 + v * s2 * dt
-            x_out[b, 2] = _wrap(x2 + w * dt)
+            x_out[b, 2] = wrap_scalar(x2 + w * dt)
             for a in range(3):
                 for c in range(3):
                     F[a, c] = 1.0 if a == c else 0.0
@@ -241,7 +240,7 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
             for a in range(3):  # a scratch copy: a view would update reference counts
                 for c in range(3):
                     Pb[a, c] = P[b, a, c]
-            if not _chol3(Pb, L, jitter):
+            if not cholesky3(Pb, L, jitter):
                 return NOT_PD
             sw, cw = small_angle_sincos(w * dt)
             mean0 = 0.0
@@ -269,7 +268,7 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
                 cs = c2 * co - s2 * so
                 Xf[k, 0] = (x0 + o0) + v * cs * dt
                 Xf[k, 1] = (x1 + o1) + v * sn * dt
-                Xf[k, 2] = _wrap(th + w * dt)
+                Xf[k, 2] = wrap_scalar(th + w * dt)
                 mean0 += Xf[k, 0] * Wm[k]
                 mean1 += Xf[k, 1] * Wm[k]
                 if circular:
@@ -278,14 +277,14 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
                     scos += (cs * cw - sn * sw) * Wm[k]
                 else:
                     mean2 += Xf[k, 2] * Wm[k]
-            mean2 = _wrap(fast_atan2(ssin, scos)) if circular else _wrap(mean2)
+            mean2 = wrap_scalar(fast_atan2(ssin, scos)) if circular else wrap_scalar(mean2)
             x_out[b, 0] = mean0
             x_out[b, 1] = mean1
             x_out[b, 2] = mean2
             for k in range(m):
                 d0 = Xf[k, 0] - mean0
                 d1 = Xf[k, 1] - mean1
-                d2 = _wrap(Xf[k, 2] - mean2)
+                d2 = wrap_scalar(Xf[k, 2] - mean2)
                 wc = Wc[k]
                 Q[0, 0] += d0 * wc * d0
                 Q[0, 1] += d0 * wc * d1
