@@ -876,11 +876,11 @@ def main(argv: list[str] | None = None) -> int:
     has_filterpy = info["filterpy"] is not None
     scale = None
     if not args.no_scale:
-        sizes = SCALE_SIZES_QUICK if quick else SCALE_SIZES
+        scale_sizes = SCALE_SIZES_QUICK if quick else SCALE_SIZES
         if args.scale_max is not None:
-            sizes = (*(n for n in sizes if n < args.scale_max), args.scale_max)
-        print(f"scale rows ({', '.join(f'{n:,}' for n in sizes)} robots):", flush=True)
-        scale = run_scale(sizes, scale_kinds, 3 if quick else 4, params)
+            scale_sizes = (*(n for n in scale_sizes if n < args.scale_max), args.scale_max)
+        print(f"scale rows ({', '.join(f'{n:,}' for n in scale_sizes)} robots):", flush=True)
+        scale = run_scale(scale_sizes, scale_kinds, 3 if quick else 4, params)
     if args.scale_only:
         results = {
             "machine": info,
