@@ -17,8 +17,12 @@ single BLAS thread:
 * a soak of about 1,000,000 robot-steps (default scenario, 59 trials x 17 robots x 1000
   steps, the three filters in lockstep): every covariance positive definite, no NaN.
 
-Writes ``bench/results.json`` and prints a table. ``--quick`` runs a reduced version
-(seconds) for smoke tests.
+* the scale rows: one CL step of 10,000, 100,000 and 1,000,000 robots of the spread swarm
+  (median and best wall time, CPU time, phases, transient memory per robot, the world step's
+  phases, labelled scaling exponents).
+
+Writes ``runs/bench/engine.json`` (``--out PATH``) and prints the tables. ``--quick`` runs a
+reduced version (under a minute) for smoke tests.
 """
 
 from __future__ import annotations
@@ -183,53 +187,87 @@ class Scenario:
         return float(np.mean([len(s.i) for s in self.steps])) / self.B
 
 
-def spread_swarm(N: int, steps: int, seed: int = 0) -> Scenario:
+def square_order(p: np.ndarray, side: float) -> np.ndarray:
+    """The permutation that puts robots at ``p: (N, 2)`` in row-major order of squares of
+    side ``side``: neighbours then sit close in the state arrays (the kernel's reads of
+    ``x[j]``, ``P[j]`` stay in cache)."""
+    cell = np.floor((p - p.min(axis=0)) / side).astype(np.int64)
+    return np.argsort(cell[:, 1] * (int(cell[:, 0].max()) + 1) + cell[:, 0], kind="stable")
+
+
+class SpreadSwarm:
     """``N`` robots uniformly spread on a square at the paper's arena density, driving
-    random unicycle commands (turning back when they leave the square). Every robot is in a
-    sensing danger zone with probability 0.2 (risk ``U(0.3, 0.8)``) and in a communication
-    danger zone with probability 0.2; a link is falsified with probability ``Ds(i)``
-    (a range bias of 0.3 m and a bearing bias of 0.3 rad: caught by the detector) and its
-    channel fails with probability ``1 - (1 - Dc(i)) (1 - Dc(j))``."""
-    rng = np.random.default_rng(seed)
-    side = math.sqrt(N / DENSITY)
-    pose = np.column_stack([rng.uniform(0, side, (N, 2)), rng.uniform(-np.pi, np.pi, N)])
-    v = rng.uniform(0.05, 0.2, N)
-    w = rng.uniform(-0.5, 0.5, N)
-    risk_s = np.where(rng.random(N) < 0.2, rng.uniform(0.3, 0.8, N), 0.0)
-    risk_c = np.where(rng.random(N) < 0.2, rng.uniform(0.3, 0.8, N), 0.0)
-    std0 = np.array([0.05, 0.05, 0.05])
-    x0 = pose + rng.normal(size=(N, 3)) * std0
-    x0[:, 2] = wrap_angle(x0[:, 2])
-    P0 = np.broadcast_to(np.diag(std0**2), (N, 3, 3)).copy()
-    team = np.zeros(N, dtype=np.int64)
-    memo = Lambda2Memo()
-    out, t_nb, t_l2, t_world = [], [], [], []
-    for _ in range(steps):
+    random unicycle commands (turning back when they leave the square), numbered in square
+    order (:func:`square_order`). Every robot is in a sensing danger zone with probability
+    0.2 (risk ``U(0.3, 0.8)``) and in a communication danger zone with probability 0.2; a
+    link is falsified with probability ``Ds(i)`` (a range bias of 0.3 m and a bearing bias of
+    0.3 rad: caught by the detector) and its channel fails with probability
+    ``1 - (1 - Dc(i)) (1 - Dc(j))``. ``lambda2``: of each robot's component, solved at every
+    step where ``solve_lambda2`` (else the first step's value is kept)."""
+
+    def __init__(self, N: int, seed: int = 0, solve_lambda2: bool = True) -> None:
+        rng = np.random.default_rng(seed)
+        self.N = N
+        self.rng = rng
+        self.side = math.sqrt(N / DENSITY)
+        pose = np.column_stack([rng.uniform(0, self.side, (N, 2)), rng.uniform(-np.pi, np.pi, N)])
+        self.pose = pose[square_order(pose[:, :2], RADIUS)]
+        self.v = rng.uniform(0.05, 0.2, N)
+        self.w = rng.uniform(-0.5, 0.5, N)
+        self.risk_s = np.where(rng.random(N) < 0.2, rng.uniform(0.3, 0.8, N), 0.0)
+        self.risk_c = np.where(rng.random(N) < 0.2, rng.uniform(0.3, 0.8, N), 0.0)
+        std0 = np.array([0.05, 0.05, 0.05])
+        self.x0 = self.pose + rng.normal(size=(N, 3)) * std0
+        self.x0[:, 2] = wrap_angle(self.x0[:, 2])
+        self.P0 = np.broadcast_to(np.diag(std0**2), (N, 3, 3)).copy()
+        self.team = np.zeros(N, dtype=np.int64)
+        self.memo = Lambda2Memo()
+        self.solve_lambda2 = solve_lambda2
+        self.lambda2: np.ndarray | None = None
+
+    def step(self) -> tuple[StepData, dict]:
+        """Move, sense, and the world's phase times (s): ``move``, ``neighbours`` (the pair
+        search), ``measurements``, ``lambda2``."""
+        rng, pose, side, N = self.rng, self.pose, self.side, self.N
         t0 = time.perf_counter()
         outside = (pose[:, :2] < 0).any(axis=1) | (pose[:, :2] > side).any(axis=1)
         home = np.arctan2(side / 2 - pose[:, 1], side / 2 - pose[:, 0])
-        w_cmd = np.where(outside, np.clip(wrap_angle(home - pose[:, 2]) / DT, -3, 3), w)
-        u = np.column_stack([v, w_cmd])
-        pose = unicycle_step(pose, u, DT)
+        w_cmd = np.where(outside, np.clip(wrap_angle(home - pose[:, 2]) / DT, -3, 3), self.w)
+        u = np.column_stack([self.v, w_cmd])
+        pose = self.pose = unicycle_step(pose, u, DT)
         u_meas = u + rng.normal(size=(N, 2)) * [0.01, 0.05]
-        t1 = time.perf_counter()
-        i, j = radius_links(pose[:, :2], team, RADIUS)
+        t1, cpu = time.perf_counter(), time.thread_time()
+        i, j = radius_links(pose[:, :2], self.team, RADIUS)
         t2 = time.perf_counter()
+        self.neighbours_cpu_s = time.thread_time() - cpu
         E = len(i)
         z = range_bearing(pose[i], pose[j]) + rng.normal(size=(E, 2)) * [0.005, 0.05]
-        attacked = rng.random(E) < risk_s[i]
+        attacked = rng.random(E) < self.risk_s[i]
         z[attacked] += [0.3, 0.3]
         z[:, 0] = np.abs(z[:, 0])
         z[:, 1] = wrap_angle(z[:, 1])
-        channel_ok = rng.random(E) >= 1.0 - (1.0 - risk_c[i]) * (1.0 - risk_c[j])
+        channel_ok = rng.random(E) >= 1.0 - (1.0 - self.risk_c[i]) * (1.0 - self.risk_c[j])
         t3 = time.perf_counter()
-        lambda2 = component_lambda2(i, j, N, "component", memo=memo)
+        if self.solve_lambda2 or self.lambda2 is None:
+            self.lambda2 = component_lambda2(i, j, N, "component", memo=self.memo)
         t4 = time.perf_counter()
-        t_nb.append(t2 - t1)
-        t_l2.append(t4 - t3)
-        t_world.append(t4 - t0)
-        out.append(StepData(u_meas, i, j, z, channel_ok, risk_s, risk_c, lambda2))
-    return Scenario(f"spread-{N}", N, 1, x0, P0, out, t_nb, t_l2, t_world)
+        data = StepData(u_meas, i, j, z, channel_ok, self.risk_s, self.risk_c, self.lambda2)
+        phases = {"move": t1 - t0, "neighbours": t2 - t1, "measurements": t3 - t2}
+        phases["lambda2"] = t4 - t3
+        return data, phases
+
+
+def spread_swarm(N: int, steps: int, seed: int = 0) -> Scenario:
+    """``steps`` steps of a :class:`SpreadSwarm` of ``N`` robots, kept in memory."""
+    swarm = SpreadSwarm(N, seed)
+    out, t_nb, t_l2, t_world = [], [], [], []
+    for _ in range(steps):
+        data, phases = swarm.step()
+        out.append(data)
+        t_nb.append(phases["neighbours"])
+        t_l2.append(phases["lambda2"])
+        t_world.append(sum(phases.values()))
+    return Scenario(f"spread-{N}", N, 1, swarm.x0, swarm.P0, out, t_nb, t_l2, t_world)
 
 
 def default_batch(trials: int, steps: int, skip: int, seed: int = 0) -> Scenario:
@@ -266,7 +304,9 @@ def engine_step(filt, params, x, P, s: StepData, memory, phases: list | None = N
     t0 = time.perf_counter()
     xp, Pp = predict(filt, x, P, s.u_meas, DT, params)
     t1 = time.perf_counter()
-    links = LinkBatch(s.i, s.j, s.z, xp[s.j], Pp[s.j], s.channel_ok, s.risk_s, s.risk_c, s.lambda2)
+    links = LinkBatch.from_predicted(
+        s.i, s.j, s.z, xp, Pp, s.channel_ok, s.risk_s, s.risk_c, s.lambda2
+    )
     t2 = time.perf_counter()
     x, P, out = correct(filt, xp, Pp, links, params, memory)
     if phases is not None:
@@ -297,7 +337,7 @@ def time_engine(kind: str, sc: Scenario, params: CLParams, warm: int = 2) -> dic
     t_step = float(np.min(times))
     fastest = phases[warm + int(np.argmin(times))]
     return {
-        "phases_s": dict(zip(("predict", "gather", "correct"), fastest, strict=True)),
+        "phases_s": dict(zip(("predict", "links", "correct"), fastest, strict=True)),
         "step_s": t_step,
         "step_s_median": float(np.median(times)),
         "robot_steps_per_s": sc.B / t_step,
@@ -324,6 +364,133 @@ def step_memory(kind: str, sc: Scenario, params: CLParams) -> dict:
     tracemalloc.stop()
     state = x.nbytes + P.nbytes
     return {"peak_step_bytes_per_robot": peak / sc.B, "state_bytes_per_robot": state / sc.B}
+
+
+# ---------------------------------------------------------------------------------------
+# Scale: up to a million robots, streamed (the steps are not kept in memory)
+# ---------------------------------------------------------------------------------------
+#: Sizes of the scale rows: full run and --quick.
+SCALE_SIZES = (10_000, 100_000, 1_000_000)
+SCALE_SIZES_QUICK = (2_000, 20_000)
+#: The communication graph's lambda2 is solved every step up to this size (above it, the
+#: sparse shift-invert solve of a giant component of ~N nodes is the world's cost, not the
+#: CL step's; the CL step takes lambda2 as an input and its timing does not depend on it).
+SCALE_LAMBDA2_MAX = 100_000
+
+
+def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
+    """``steps`` CL steps of ``N`` robots of a :class:`SpreadSwarm`, each after its world
+    step; the last step runs under tracemalloc (not timed) for the transient memory."""
+    solve = N <= SCALE_LAMBDA2_MAX
+    t = time.perf_counter()
+    swarm = SpreadSwarm(N, seed=0, solve_lambda2=solve)
+    if not solve:
+        swarm.lambda2 = np.full(N, 1.0)  # see SCALE_LAMBDA2_MAX
+    setup = time.perf_counter() - t
+    filt = make_filter(kind)
+    x, P = swarm.x0, swarm.P0
+    memory = LinkMemory(N)
+    times, cpu_times, cl_phases, world_phases, neighbours_cpu, links = [], [], [], [], [], 0
+    peak = base = 0
+    for k in range(steps):
+        data, world = swarm.step()
+        world_phases.append(world)
+        neighbours_cpu.append(swarm.neighbours_cpu_s)
+        if k == steps - 1:
+            tracemalloc.start()
+            base = tracemalloc.get_traced_memory()[0]
+            x, P, *_ = engine_step(filt, params, x, P, data, memory)
+            peak = tracemalloc.get_traced_memory()[1] - base
+            tracemalloc.stop()
+            break
+        phases: list = []
+        t, cpu = time.perf_counter(), time.thread_time()
+        x, P, out, _, _ = engine_step(filt, params, x, P, data, memory, phases)
+        times.append(time.perf_counter() - t)
+        cpu_times.append(time.thread_time() - cpu)
+        cl_phases.append(phases[0])
+        links += len(out.norm)
+        del out, data
+    best = int(np.argmin(times))
+    median_phase = {
+        name: float(np.median([ph[n] for ph in cl_phases]))
+        for n, name in enumerate(("predict", "links", "correct"))
+    }
+    world_median = {
+        name: float(np.median([w[name] for w in world_phases])) for name in world_phases[0]
+    }
+    world_median["neighbours_cpu"] = float(np.median(neighbours_cpu))
+    if not solve:
+        world_median["lambda2"] = None
+    return {
+        "filter": kind,
+        "robots": N,
+        "steps_timed": len(times),
+        "links_per_step": links / len(times),
+        "step_s_median": float(np.median(times)),
+        "step_s_best": float(times[best]),
+        # CPU time of this thread: what the step costs when the core is not shared (the
+        # wall time above includes waiting for the core on a loaded machine).
+        "step_cpu_s_median": float(np.median(cpu_times)),
+        "step_cpu_s_best": float(np.min(cpu_times)),
+        "phases_s_median": median_phase,
+        "phases_s_best": dict(zip(("predict", "links", "correct"), cl_phases[best], strict=True)),
+        "ns_per_link_median": float(np.median(times)) / max(links / len(times), 1) * 1e9,
+        "transient_bytes_per_robot": peak / N,
+        "state_bytes_per_robot": (x.nbytes + P.nbytes) / N,
+        "world_s_median": world_median,
+        "world_step_s_median": float(np.median([sum(v for v in w.values()) for w in world_phases])),
+        "lambda2_solved_every_step": solve,
+        "setup_s": setup,
+        "final_pd_finite": bool(covariance_is_pd(P).all() and np.isfinite(x).all()),
+    }
+
+
+def run_scale(sizes, kinds, steps: int, params: CLParams) -> dict:
+    """The scale rows and the fitted exponents (each labelled with what it includes)."""
+    rows = []
+    for kind in kinds:
+        for N in sizes:
+            print(f"  scale {kind} N={N:,} ...", flush=True)
+            row = scale_row(kind, N, steps, params)
+            rows.append(row)
+            print(
+                f"    CL step median {row['step_s_median']:.3f} s, best {row['step_s_best']:.3f}"
+                f" s, CPU median {row['step_cpu_s_median']:.3f} s (predict "
+                f"{row['phases_s_median']['predict']:.3f}, links "
+                f"{row['phases_s_median']['links']:.4f}, correct "
+                f"{row['phases_s_median']['correct']:.3f}); world step (median) "
+                f"{row['world_step_s_median']:.3f} s; "
+                f"{row['transient_bytes_per_robot']:.0f} B/robot transient; load "
+                f"{os.getloadavg()[0]:.1f}",
+                flush=True,
+            )
+    exponents = {}
+    for kind in kinds:
+        pts = [r for r in rows if r["filter"] == kind]
+        if len(pts) < 2:
+            continue
+        n = [r["robots"] for r in pts]
+        exponents[kind] = {
+            "cl_step_median": fit_exponent(n, [r["step_s_median"] for r in pts]),
+            "world_without_lambda2_median": fit_exponent(
+                n,
+                [r["world_step_s_median"] - (r["world_s_median"]["lambda2"] or 0.0) for r in pts],
+            ),
+        }
+    return {
+        "rows": rows,
+        "exponents": exponents,
+        "exponent_labels": {
+            "cl_step_median": "median time of one CL step (predict + link construction + "
+            "correct: every neighbour update, detector, trigger, channel) against N, spread "
+            f"swarm in square order, N = {sizes[0]:,} .. {sizes[-1]:,}; world excluded",
+            "world_without_lambda2_median": "median world step without lambda2 (move, "
+            "cell-list neighbour search, measurements, attacks, channel) against N",
+        },
+        "steps_per_size": steps,
+        "lambda2_max": SCALE_LAMBDA2_MAX,
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -649,18 +816,48 @@ def fit_exponent(n: list[float], t: list[float]) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="reduced sizes (smoke test)")
-    ap.add_argument("--out", type=Path, default=HERE / "results.json")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=HERE.parent / "runs" / "bench" / "engine.json",
+        help="results file (default: runs/bench/engine.json)",
+    )
     ap.add_argument("--no-soak", action="store_true")
+    ap.add_argument("--no-scale", action="store_true", help="skip the scale rows")
+    ap.add_argument(
+        "--scale-only", action="store_true", help="only the scale rows (and the machine)"
+    )
+    ap.add_argument(
+        "--scale-max",
+        type=int,
+        default=None,
+        metavar="N",
+        help="largest scale row (default 1,000,000; --quick 20,000)",
+    )
+    ap.add_argument(
+        "--scale-filters", default="ckf", help="filters of the scale rows (default: ckf)"
+    )
     ap.add_argument("--repeat", type=int, default=2, help="rounds of timing (fastest kept)")
     ap.add_argument(
         "--markdown", type=Path, metavar="RESULTS", help="print RESULTS (json) as Markdown, exit"
     )
     args = ap.parse_args(argv)
     if args.markdown:
-        print(markdown_table(json.loads(args.markdown.read_text())))
+        res = json.loads(args.markdown.read_text())
+        if res.get("rows"):
+            print(markdown_table(res))
+        if res.get("scale"):
+            print("\n" + scale_markdown(res))
         return 0
 
     quick = args.quick
+    if args.scale_max is not None and args.scale_max < 100:
+        ap.error("--scale-max must be at least 100")
+    scale_kinds = tuple(k.strip() for k in args.scale_filters.split(",") if k.strip())
+    if not scale_kinds or any(k not in FILTERS for k in scale_kinds):
+        ap.error(f"--scale-filters: a comma-separated subset of {','.join(FILTERS)}")
+    if args.out.exists() and args.out.is_dir():
+        ap.error(f"--out {args.out} is a directory; give a file path")
     sizes = [17, 100, 1000] if quick else [17, 100, 1000, 10_000]
     steps_for = {17: 60, 100: 40, 1000: 20, 10_000: 12}
     fp_robots = 40 if quick else 100  # robots of the FilterPy loop per step
@@ -677,6 +874,26 @@ def main(argv: list[str] | None = None) -> int:
     libm = libm_costs()
     params = bench_params()
     has_filterpy = info["filterpy"] is not None
+    scale = None
+    if not args.no_scale:
+        scale_sizes = SCALE_SIZES_QUICK if quick else SCALE_SIZES
+        if args.scale_max is not None:
+            scale_sizes = (*(n for n in scale_sizes if n < args.scale_max), args.scale_max)
+        print(f"scale rows ({', '.join(f'{n:,}' for n in scale_sizes)} robots):", flush=True)
+        scale = run_scale(scale_sizes, scale_kinds, 3 if quick else 4, params)
+    if args.scale_only:
+        results = {
+            "machine": info,
+            "scale": scale,
+            "quick": quick,
+            "seconds": time.perf_counter() - t_start,
+            "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "load_average_at_end": os.getloadavg()[0],
+        }
+        write_results(args.out, results)
+        print(scale_markdown(results) if scale else "no scale rows (--no-scale)")
+        print(f"\nwritten {args.out} in {results['seconds']:.0f} s")
+        return 0
 
     rows = []
     scen = {}
@@ -775,19 +992,64 @@ def main(argv: list[str] | None = None) -> int:
         "numpy_reference_ckf_robot_steps_per_s": reference,
         "scaling": scaling,
         "soak": soak_result,
+        "scale": scale,
         "quick": quick,
         "seconds": time.perf_counter() - t_start,
         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "load_average_at_end": os.getloadavg()[0],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2) + "\n")
+    write_results(args.out, results)
     print_table(results)
+    if scale:
+        print("\n" + scale_markdown(results))
     load = max(info["load_average_at_start"], results["load_average_at_end"])
     if load > (os.cpu_count() or 1):  # this process counts for 1
         print(f"warning: load average {load:.1f}: other processes shared the cores; rerun idle")
     print(f"\nwritten {args.out} in {results['seconds']:.0f} s")
     return 0
+
+
+def write_results(path: Path, results: dict) -> None:
+    """Write ``results`` as JSON atomically (a temporary file renamed over ``path``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def scale_markdown(res: dict) -> str:
+    """The scale rows as the Markdown table of ``docs/performance.md``."""
+    scale = res.get("scale")
+    if not scale:
+        return ""
+    lines = [
+        "| filter | N | links/step | CL step median (s) | best (s) | CPU median (s) "
+        "| predict (s) | links (s) "
+        "| correct (s) | ns/link | transient B/robot | world step (s) | neighbour search (s) "
+        "| lambda2 (s) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+        "| ---: | ---: |",
+    ]
+    for r in scale["rows"]:
+        ph, w = r["phases_s_median"], r["world_s_median"]
+        l2 = "not solved" if w["lambda2"] is None else f"{w['lambda2']:.3g}"
+        lines.append(
+            f"| {r['filter'].upper()} | {r['robots']:,} | {r['links_per_step']:,.0f} "
+            f"| {r['step_s_median']:.3g} | {r['step_s_best']:.3g} "
+            f"| {r['step_cpu_s_median']:.3g} | {ph['predict']:.3g} "
+            f"| {ph['links']:.2g} | {ph['correct']:.3g} | {r['ns_per_link_median']:.0f} "
+            f"| {r['transient_bytes_per_robot']:.0f} | {r['world_step_s_median']:.3g} "
+            f"| {w['neighbours']:.3g} | {l2} |"
+        )
+    for kind, e in scale["exponents"].items():
+        lines.append("")
+        lines.append(
+            f"{kind.upper()}: CL step ~ N^{e['cl_step_median']:.2f}; world step without "
+            f"lambda2 ~ N^{e['world_without_lambda2_median']:.2f}"
+        )
+    lines.append("")
+    lines.extend(f"* {k}: {v}" for k, v in scale["exponent_labels"].items())
+    return "\n".join(lines)
 
 
 def markdown_table(res: dict) -> str:

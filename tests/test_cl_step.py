@@ -20,6 +20,7 @@ from resloc.cl import (
     event_threshold,
     predict,
 )
+from resloc.cl.backend import use_backend
 from resloc.errors import ConfigError
 from resloc.filters import ExtendedFilter, innovation, kalman_update, make_filter
 from resloc.models import process_noise, range_bearing
@@ -98,7 +99,8 @@ def test_predict_uses_process_noise(name: str) -> None:
     x, P, _, _ = make_world(0)
     u = np.column_stack([np.linspace(-0.5, 1.0, 5), np.linspace(-1.0, 1.0, 5)])
     filt = FILTERS[name]
-    xp, Pp = predict(filt, x, P, u, 0.1, PARAMS)
+    with use_backend("numpy"):  # the specification; tests/test_kernels_predict.py: its twin
+        xp, Pp = predict(filt, x, P, u, 0.1, PARAMS)
     Q = process_noise(x, 0.1, np.asarray(PARAMS.odometry_std), np.asarray(PARAMS.process_floor_std))
     x_ref, P_ref = filt.predict(x, P, u, 0.1, Q)
     np.testing.assert_array_equal(xp, x_ref)

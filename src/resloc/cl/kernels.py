@@ -83,8 +83,9 @@ class KernelLinks(NamedTuple):
 
     i: np.ndarray  # (E,) int64 observers
     z: np.ndarray  # (E, 2) measured range, bearing
-    x_nb: np.ndarray  # (E, 3) transmitted estimates
-    P_nb: np.ndarray  # (E, 3, 3)
+    x_nb: np.ndarray  # (S, 3) transmitted estimates: link e's is row nb[e]
+    P_nb: np.ndarray  # (S, 3, 3)
+    nb: np.ndarray  # (E,) int64 row of x_nb / P_nb (LinkBatch.neighbour_rows)
     channel_ok: np.ndarray  # (E,) bool
     last_norm: np.ndarray  # (E,) last delivered norm (``last_sent``), else (0,)
     x_ref: np.ndarray  # (E, 3) the estimate of j the moments use (cached or x_nb)
@@ -206,7 +207,7 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
     return prepared
 
 
-def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
+def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots, neighbours) -> bool:
     """Every index the kernel will use is in range (the compiled loop does not check)."""
     li = np.asarray(links.i)
     E = len(li)
@@ -215,10 +216,15 @@ def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots) -> bool:
         return False
     if np.shape(x)[1:] != (3,) or np.shape(P)[1:] != (3, 3):
         return False
+    nb, x_nb, P_nb = neighbours
+    S = len(x_nb)
+    if np.shape(x_nb) != (S, 3) or np.shape(P_nb) != (S, 3, 3):
+        return False
+    if nb is not None and (np.shape(nb) != (E,) or nb.min() < 0 or nb.max() >= S):
+        return False
     per_link = (
         (links.z, (E, 2)),
-        (links.x_nb, (E, 3)),
-        (links.P_nb, (E, 3, 3)),
+        (x_nb, (E, 3) if nb is None else (S, 3)),
         (links.channel_ok, (E,)),
         (links.j, (E,)),
     )
@@ -256,7 +262,8 @@ def fast_correct(
     robots = KernelRobots(
         _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
     )
-    if E == 0 or not _shapes_ok(x, P, links, robots):
+    neighbours = links.neighbour_rows()
+    if E == 0 or not _shapes_ok(x, P, links, robots, neighbours):
         return None
     if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
         return None  # a duplicated link would read its own store within one call
@@ -281,7 +288,12 @@ def fast_correct(
     if defence is None:
         detection.undo()
         return None  # the reference path raises the explanatory error
-    x_nb, P_nb = _contiguous(links.x_nb), _contiguous(links.P_nb)
+    nb, x_nb, P_nb = neighbours
+    if nb is None or cached:  # per-link rows (cached estimates replace some of them below)
+        if nb is not None:
+            x_nb, P_nb = x_nb[nb], P_nb[nb]
+        nb = np.arange(E, dtype=np.int64)
+    x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
     last = np.zeros(E if last_sent else 0)
     known = np.zeros(E, dtype=np.bool_)
     x_ref, P_ref = x_nb, P_nb
@@ -298,6 +310,7 @@ def fast_correct(
         _contiguous(z),
         x_nb,
         P_nb,
+        nb,
         _contiguous(links.channel_ok, np.bool_),
         last,
         x_ref,
@@ -332,7 +345,8 @@ def fast_correct(
     P_out = strategy.finish(memory, P_out, lj, delivered)
     if need_memory and delivered.any():
         d = np.flatnonzero(delivered)
-        memory.store(links.i[d], links.j[d], links.x_nb[d], links.P_nb[d], out.norm[d])
+        rows = nb[d]
+        memory.store(links.i[d], links.j[d], x_nb[rows], P_nb[rows], out.norm[d])
     outcome = LinkOutcome(
         out.norm, out.threshold, detected, triggered, delivered, fused, repaired, compiled=True
     )

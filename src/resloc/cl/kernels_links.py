@@ -163,7 +163,7 @@ def correct_links(
     correction. Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
-    li, z, x_nb, P_nb, channel_ok, last_norm, x_ref, P_ref, known = links
+    li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
     R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
@@ -197,17 +197,19 @@ def correct_links(
         i = li[e]
         if e > 0 and li[e - 1] != i:
             first = e
+        n = nb[e]  # j's transmitted estimate, read by index: no per-link copy
         Pi = P[i]
-        Pj = P_nb[e]
+        Pj = P_nb[n]
         xi0 = x[i, 0]
         xi1 = x[i, 1]
         xi2 = x[i, 2]
-        xj0 = x_nb[e, 0]
-        xj1 = x_nb[e, 1]
-        # The estimate of j the moments use: transmitted, or the last one received (cached)
-        xr0 = x_ref[e, 0]
-        xr1 = x_ref[e, 1]
-        Pr = P_ref[e]
+        xj0 = x_nb[n, 0]
+        xj1 = x_nb[n, 1]
+        # The estimate of j the moments use: transmitted, or the last one received (cached;
+        # then the rows are per link and n = e)
+        xr0 = x_ref[n, 0]
+        xr1 = x_ref[n, 1]
+        Pr = P_ref[n]
         zu0 = z[e, 0]
         zu1 = z[e, 1]
         inflation = 1.0

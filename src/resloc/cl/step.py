@@ -13,6 +13,7 @@ from resloc.cl.detection import Evidence, detect
 from resloc.cl.detector import innovation_norm
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.kernels import fast_correct
+from resloc.cl.kernels_predict import fast_predict
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import (
@@ -53,7 +54,15 @@ def predict(
     Returns
     -------
     x, P : ndarray, shapes (B, 3), (B, 3, 3)
+
+    Notes
+    -----
+    With the numba backend, the CKF, UKF and EKF predict in one compiled pass
+    (:func:`resloc.cl.kernels_predict.fast_predict`, equal to this function to ~1e-15).
     """
+    fast = fast_predict(filt, x, P, u, dt, params)
+    if fast is not None:
+        return fast
     Q = process_noise(x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std))
     return filt.predict(x, P, u, dt, Q)
 

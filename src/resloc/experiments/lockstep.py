@@ -186,20 +186,12 @@ def _step_estimator(est: EstimatorState, step: Step, setup: Estimation) -> None:
     x, P = xp, Pp
     outcomes = []
     for group in step.groups:
-        x_nb, P_nb = group.fixed if group.fixed is not None else (x[group.j], P[group.j])
-        links = LinkBatch(
-            group.i,
-            group.j,
-            group.z,
-            x_nb,
-            P_nb,
-            group.channel_ok,
-            risk_s,
-            risk_c,
-            step.lambda2,
-            **fusion.link_fields(est.memory, group.j),
-            **group.extras,
-        )
+        fields = {**fusion.link_fields(est.memory, group.j), **group.extras}
+        common = (group.channel_ok, risk_s, risk_c, step.lambda2)
+        if group.fixed is None:  # neighbours are batch members: read by index, no copy
+            links = LinkBatch.from_predicted(group.i, group.j, group.z, x, P, *common, **fields)
+        else:
+            links = LinkBatch(group.i, group.j, group.z, *group.fixed, *common, **fields)
         if setup.adversary is not None:
             links = setup.adversary.attack(links, step.attack_step, params, est.memory)
         group_params = params if group.params is None else group.params
