@@ -12,20 +12,29 @@ test and none is limited to a margin of a threshold: it uses the whole acceptanc
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import numpy as np
 
-from resloc.cl.detection import DETECTOR_STAGES, Evidence, detect
+from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
 from resloc.cl.detector import innovation_norm
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.filters.update import innovation
 
-__all__ = ["accepted", "largest_accepted", "scratch_memory"]
+__all__ = ["accepted", "largest_accepted", "largest_accepted_along", "scratch_memory"]
 
-#: Grid points of each pass; two passes resolve the accepted fraction to ``1 / 32^2``.
+#: Grid points of each pass; three passes resolve the accepted fraction to ``1 / 32^3`` of
+#: the lie (a lie of metres is placed to a tenth of a millimetre).
 GRID = 33
-PASSES = 2
+PASSES = 3
+#: The same for stages that couple the rows of a round (one detector call per point).
+COUPLED_GRID = 17
+COUPLED_PASSES = 3
+#: Halvings of a coupled round's rejected rows before giving up on them (then 0).
+COUPLED_BACKOFF = 12
+#: Stages that judge every link on its own state only: grid points may be stacked.
+PER_LINK_STAGES = frozenset({"gate", "cusum", "mean_cusum"})
 
 
 def _scratch(value):
@@ -109,10 +118,7 @@ def largest_accepted(
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with ``z + a lie`` accepted by the victim.
 
-    A grid over ``[0, 1]`` (one stacked detector call) finds the largest accepted grid
-    point; a second grid between it and the next point refines it. Where no point is
-    accepted (the honest measurement itself fails and so does every lie along ``lie``) the
-    result is 0: the measurement is discarded whatever is sent.
+    :func:`largest_accepted_along` on the straight path ``z + a lie``.
 
     Parameters
     ----------
@@ -127,28 +133,97 @@ def largest_accepted(
     -------
     ndarray, shape (E,)
     """
-    E = len(z)
+    z, lie = np.asarray(z, float), np.asarray(lie, float)
+    return largest_accepted_along(
+        lambda frac: z[None] + frac[..., None] * lie[None],
+        z_hat,
+        S,
+        i,
+        j,
+        params,
+        memory,
+        gate_only,
+    )
+
+
+def largest_accepted_along(
+    path: Callable[[np.ndarray], np.ndarray],
+    z_hat: np.ndarray,
+    S: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    params: CLParams,
+    memory: LinkMemory | None,
+    gate_only: bool = False,
+) -> np.ndarray:
+    """Largest ``a`` in ``[0, 1]`` per row with the measurement ``path(a)`` accepted.
+
+    A grid over ``[0, 1]`` finds the largest accepted grid point (the acceptance region
+    need not be an interval along the path: honest noise near the limit puts the start
+    near one edge); further grids between it and the next point refine it (resolution
+    ``1 / (GRID - 1)^PASSES`` of the path). Where no point is accepted (the honest
+    measurement itself fails and so does every lie along the path) the result is 0: the
+    measurement is discarded whatever is sent.
+
+    Stages that judge each link alone (:data:`PER_LINK_STAGES`) see every grid point of
+    every row in one stacked call. A stage that couples the rows of a round (a per-robot
+    sequence test, recovery after rejection runs, any stage added later) is judged
+    exactly: one call per grid point with all rows at that point, and the final choice
+    checked as one round (rows it rejects are scaled back until the round passes), so the
+    attacker neither over-counts its own copies (holding back) nor sends a rejected lie.
+
+    Parameters
+    ----------
+    path : callable
+        ``path(frac)`` with ``frac`` of shape (G, E) returns the candidate measurements,
+        shape (G, E, 2); ``path(0)`` is the measurement sent without a lie.
+    z_hat, S, i, j, params, memory, gate_only
+        As :func:`accepted`.
+
+    Returns
+    -------
+    ndarray, shape (E,)
+    """
+    E = len(z_hat)
     if E == 0:
         return np.zeros(0)
+    stacked = gate_only or all(s.name in PER_LINK_STAGES for s in active_stages(params))
+    grid, passes = (GRID, PASSES) if stacked else (COUPLED_GRID, COUPLED_PASSES)
+
+    def judge(frac: np.ndarray) -> np.ndarray:  # (G, E) -> (G, E) accepted
+        cand = np.asarray(path(frac), float)
+        G = len(frac)
+        if stacked:
+            return accepted(
+                cand.reshape(-1, 2),
+                np.tile(z_hat, (G, 1)),
+                np.tile(S, (G, 1, 1)),
+                np.tile(i, G),
+                np.tile(j, G),
+                params,
+                memory,
+                gate_only,
+            ).reshape(G, E)
+        return np.stack([accepted(c, z_hat, S, i, j, params, memory) for c in cand])
+
     lo = np.zeros(E)
     width = np.ones(E)
     any_ok = np.zeros(E, bool)
-    for _ in range(PASSES):
-        frac = lo[None] + np.linspace(0.0, 1.0, GRID)[:, None] * width[None]  # (GRID, E)
-        cand = z[None] + frac[..., None] * lie[None]
-        ok = accepted(
-            cand.reshape(-1, 2),
-            np.tile(z_hat, (GRID, 1)),
-            np.tile(S, (GRID, 1, 1)),
-            np.tile(i, GRID),
-            np.tile(j, GRID),
-            params,
-            memory,
-            gate_only,
-        ).reshape(GRID, E)
+    rows = np.arange(E)
+    for _ in range(passes):
+        frac = np.minimum(lo[None] + np.linspace(0.0, 1.0, grid)[:, None] * width[None], 1.0)
+        ok = judge(frac)
         found = ok.any(axis=0)
-        best = GRID - 1 - np.argmax(ok[::-1], axis=0)
-        lo = np.where(found, frac[best, np.arange(E)], lo)
+        best = grid - 1 - np.argmax(ok[::-1], axis=0)
+        lo = np.where(found, frac[best, rows], lo)
         any_ok |= found
-        width = width / (GRID - 1)
-    return np.where(any_ok, np.minimum(lo, 1.0), 0.0)
+        width = width / (grid - 1)
+    a = np.where(any_ok, np.minimum(lo, 1.0), 0.0)
+    if not stacked:
+        # The rows' own choices together, as the victim judges them (one round).
+        for attempt in range(COUPLED_BACKOFF + 1):
+            bad = ~judge(a[None])[0] & (a > 0.0)
+            if not bad.any():
+                break
+            a = np.where(bad, 0.5 * a if attempt < COUPLED_BACKOFF else 0.0, a)
+    return a
