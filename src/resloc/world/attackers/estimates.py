@@ -8,8 +8,10 @@ from typing import ClassVar
 import numpy as np
 
 from resloc.angles import wrap_angle
-from resloc.world.attackers.base import Strategy
+from resloc.world.adversary import ReplayBuffer
+from resloc.world.attackers.base import SensingLie, Strategy
 from resloc.world.attackers.oracle import largest_accepted_along
+from resloc.world.attackers.sensing import measurement_difference
 
 __all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
 
@@ -119,21 +121,50 @@ class CompromisedRobot(Strategy):
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
 
-class Replay(Strategy):
-    """Replay: each SDZ link's honest measurement from ``delay`` steps earlier (the
-    world's ``attack.kind = "replay"``)."""
+class Replay(SensingLie):
+    """Replay: each SDZ link's honest measurement from ``delay`` steps earlier.
+
+    Detector-aware (``raw = 0``): the replayed value is sent as far as the victim's
+    detector accepts it (the largest accepted step from the live measurement toward the
+    recorded one; all of it when accepted, which is the common case). ``raw = 1`` is the
+    world's plain replay (``attack.kind = "replay"``): the recording as is, rejected or not.
+    Links without a recording ``delay`` steps back are left honest.
+    """
 
     name: ClassVar[str] = "replay"
-    template: ClassVar[str] = "each SDZ link's honest measurement from {delay:g} steps earlier"
-    defaults: ClassVar[dict] = {"delay": 30}
-    grid: ClassVar[tuple] = ({"delay": 5}, {"delay": 30}, {"delay": 150})
+    template: ClassVar[str] = (
+        "each SDZ link's honest measurement from {delay:g} steps earlier, as far toward it "
+        "as the victim's detector accepts (raw = {raw:g}: the recording as is)"
+    )
+    defaults: ClassVar[dict] = {"delay": 30, "raw": 0}
+    grid: ClassVar[tuple] = ({"delay": 5}, {"delay": 30}, {"delay": 150}, {"raw": 1})
+
+    def __init__(self, **params) -> None:
+        super().__init__(**params)
+        self._buffer: ReplayBuffer | None = None
+        self._recorded: tuple[np.ndarray, np.ndarray] | None = None
+        self._step = 0
 
     @property
     def overrides(self) -> dict:
-        return {"attack.kind": "replay", "attack.replay_delay": int(self.delay)}
+        if self.raw:
+            return {"attack.kind": "replay", "attack.replay_delay": int(self.delay)}
+        return {"attack.kind": "stealthy"}
 
     def mark(self, sdz_attacked, step):
-        return sdz_attacked
+        if self.raw:
+            return sdz_attacked
+        if self._buffer is None or step.k <= self._step:  # a new run
+            self._buffer = ReplayBuffer(int(self.delay), len(step.pose))
+        self._step = step.k
+        self._recorded = self._buffer.replayed(step.i, step.j)
+        self._buffer.record(step.i, step.j, step.z)
+        return sdz_attacked & self._recorded[0]
+
+    def lie(self, rows, z, z_hat, step):
+        return measurement_difference(self._recorded[1][rows], z)
 
     def attack(self, links, step, params, memory):
-        return dataclasses.replace(links, tamper=None)
+        if self.raw:
+            return dataclasses.replace(links, tamper=None)
+        return super().attack(links, step, params, memory)

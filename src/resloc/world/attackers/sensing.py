@@ -28,6 +28,7 @@ __all__ = [
     "RangeBias",
     "ReviewerGateOnly",
     "StarveTrigger",
+    "measurement_difference",
 ]
 
 #: Largest injection searched: range (m), bearing (rad). The detector is what limits each
@@ -76,7 +77,7 @@ class CommonTranslation(SensingLie):
         xi, xj = step.pose[step.i[rows]], step.pose[step.j[rows]].copy()
         moved = xj.copy()
         moved[:, 0] += self.size
-        return _difference(range_bearing(xi, moved), range_bearing(xi, xj))
+        return measurement_difference(range_bearing(xi, moved), range_bearing(xi, xj))
 
 
 class OnOffBias(RangeBias):
@@ -113,7 +114,7 @@ class StarveTrigger(SensingLie):
     )
 
     def lie(self, rows, z, z_hat, step):
-        return _difference(z_hat, z)
+        return measurement_difference(z_hat, z)
 
 
 class ForceTrigger(SensingLie):
@@ -162,10 +163,10 @@ class CoordinatedDisplacement(SensingLie):
             # sideways: to the target's left, so its neighbours' ranges change little
             x[me, 0] -= offset * np.sin(x[me, 2])
             x[me, 1] += offset * np.cos(x[me, 2])
-        return _difference(range_bearing(xi, xj), true)
+        return measurement_difference(range_bearing(xi, xj), true)
 
 
-def _difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def measurement_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a - b`` for range/bearing rows, bearing wrapped, shape (n, 2)."""
     d = np.asarray(a, float) - np.asarray(b, float)
     d[:, 1] = wrap_angle(d[:, 1])
