@@ -55,6 +55,7 @@ def attack_command(
     scheduler: str | None = None,
     store: Path | None = None,
     fresh: bool = False,
+    search: bool = True,
 ):
     """Run the study, print the worst cases, write ``attack.md``/``.csv``/``.json``."""
     from resloc.experiments.attack import markdown, run_attack_study, save_attack_study
@@ -86,7 +87,9 @@ def attack_command(
     check_output_dir(out, overwrite)
     try:
         with study_session("attacking", jobs, scheduler, store, fresh, progress) as study:
-            result = run_attack_study(scenario, chosen, attackers or None, seeds=seeds, study=study)
+            result = run_attack_study(
+                scenario, chosen, attackers or None, seeds=seeds, study=study, search=search
+            )
     except StudyFailedError as exc:
         raise write_failures(exc, out, overwrite) from None
     print(markdown(result))
@@ -116,6 +119,12 @@ def register(app: typer.Typer) -> None:
             None, "--attacker", "-a", help="An attacker of the suite (repeat; default: all)."
         ),
         seeds: int = typer.Option(10, "--seeds", min=2, help="Paired seeds per cell."),
+        search: bool = typer.Option(
+            True,
+            "--search/--no-search",
+            help="Run every attacker at every point of its parameter grid and report the "
+            "worst (--no-search: default parameters only).",
+        ),
         steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
         jobs: int | None = JOBS,
         scheduler: str | None = SCHEDULER,
@@ -144,4 +153,5 @@ def register(app: typer.Typer) -> None:
             scheduler,
             store,
             fresh,
+            search,
         )
