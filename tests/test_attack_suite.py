@@ -314,3 +314,17 @@ def test_attacker_parameters_are_checked():
     for name in ATTACKERS:
         labels = [v.label for v in variants(name)]
         assert len(set(labels)) == len(labels), name
+
+
+def test_cli_pins_an_attackers_parameters():
+    from resloc.cli.attack import parse_attacker
+
+    assert parse_attacker("on_off") == "on_off"
+    assert parse_attacker("on_off:period=10") == ("on_off", {"period": 10})
+    for bad in ("nope", "on_off:nope=1", "on_off:period"):
+        with pytest.raises(ValueError, match="--attacker"):
+            parse_attacker(bad)
+    base = _tiny(10)
+    res = run_attack_study(base, {"paper": {}}, [("on_off", {"period": 3})], seeds=2)
+    assert [r["attacker"] for r in res.table] == [CLEAN, "on_off[period=3]"]
+    assert res.config["grids"] == {"on_off": ["on_off[period=3]"]}

@@ -158,8 +158,9 @@ def run_attack_study(
         The base scenario (its sensing danger zones are where sensing attackers act).
     defences : mapping of str to mapping, optional
         ``{name: {dotted key: value}}`` (default :data:`DEFENCES`).
-    attackers : sequence of str, optional
-        Names in :data:`resloc.world.attackers.ATTACKERS` (default: all).
+    attackers : sequence of str or (str, dict), optional
+        Names in :data:`resloc.world.attackers.ATTACKERS` (searched over their grids), or
+        ``(name, params)`` for one parameter point (default: every name).
     seeds : int
     filt : str
     study : Study, optional
@@ -177,14 +178,21 @@ def run_attack_study(
         An unknown attacker name.
     """
     from resloc.experiments.cells import MAX_BATCH, contiguous_runs, group_data
-    from resloc.world.attackers import ATTACKERS, attacker, variants
+    from resloc.world.attackers import ATTACKERS, attacker, make_attacker, variants
 
     defences = dict(DEFENCES if defences is None else defences)
-    names = list(ATTACKERS if attackers is None else attackers)
     points: list[tuple[str, str, dict]] = [(CLEAN, CLEAN, {})]  # (family, label, params)
-    for name in names:
-        for adv in variants(name) if search else [attacker(name)]:
-            points.append((name, adv.label, dict(adv.params)))
+    grids: dict[str, list[str]] = {}
+    for entry in ATTACKERS if attackers is None else attackers:
+        if isinstance(entry, str):
+            chosen = variants(entry) if search else [attacker(entry)]
+        else:
+            chosen = [make_attacker(entry[0], **dict(entry[1]))]
+        for adv in chosen:
+            if adv.label not in {label for _, label, _ in points}:
+                points.append((adv.name, adv.label, dict(adv.params)))
+                grids.setdefault(adv.name, []).append(adv.label)
+    names = list(grids)
     seeds = int(seeds)
     base = scenario.replace(**{"run.trials": seeds})
     digest = hashlib.sha256(canonical_json(group_data(base)).encode("utf-8")).hexdigest()
@@ -238,7 +246,8 @@ def run_attack_study(
         rows = [r for r in table if r["defence"] == dname and r["attacker"] != CLEAN]
         for name in names:
             mine = [r for r in rows if r["family"] == name]
-            searched.append(max(mine, key=lambda r: _finite(r["msle_ratio"]["mean"])))
+            if mine:
+                searched.append(max(mine, key=lambda r: _finite(r["msle_ratio"]["mean"])))
         if rows:
             worst.append(max(rows, key=lambda r: _finite(r["msle_ratio"]["mean"])))
     config = {
@@ -248,9 +257,7 @@ def run_attack_study(
         "scenario": base.run.name,
         "defences": {k: dict(v) for k, v in defences.items()},
         "attackers": {n: ATTACKERS[n].summary for n in names},
-        "grids": {
-            n: [v.label for v in variants(n)] if search else [attacker(n).label] for n in names
-        },
+        "grids": grids,
         "stats": study.stats.to_dict(),
     }
     return AttackStudyResult(cells, table, worst, config, searched)

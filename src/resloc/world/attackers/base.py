@@ -112,8 +112,13 @@ class Strategy:
 
     @property
     def label(self) -> str:
-        """``name`` and the parameters its grid searches: ``on_off[period=10]``."""
-        searched = [k for k in self.params if len({str(p.get(k)) for p in self.grid}) > 1]
+        """``name`` and the parameters its grid searches or that differ from the defaults:
+        ``on_off[period=10]``."""
+        searched = [
+            k
+            for k in self.params
+            if len({str(p.get(k)) for p in self.grid}) > 1 or self.params[k] != self.defaults[k]
+        ]
         inner = ",".join(f"{k}={self.params[k]:g}" for k in searched)
         return f"{self.name}[{inner}]" if inner else self.name
 
