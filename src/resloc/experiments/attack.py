@@ -363,8 +363,9 @@ def markdown(result: AttackStudyResult) -> str:
         "seed (same world), mean ± 95% CI over seeds; 'min': the smallest per-seed ratio. "
         "NEES rel.: NEES of the relative error (the team's least-squares rigid-body error "
         "removed). TPR / FPR: the detector on the links the attacker falsified / did not. "
-        "Every attacker is run at every point of its parameter grid against every defence; "
-        "an attacker's entry is its worst point (largest mean MSLE ratio) for that defence.",
+        "Every attacker is run at each of its parameter points listed under 'Searched' "
+        "below (its whole grid unless pinned) against every defence; an attacker's entry is "
+        "its worst point (largest mean MSLE ratio) for that defence.",
         "",
         "### Worst case per defence",
         "",
