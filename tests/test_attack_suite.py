@@ -311,6 +311,10 @@ def test_attacker_parameters_are_checked():
     with pytest.raises(ValueError, match="unknown parameter"):
         make_attacker("on_off", nope=1)
     assert make_attacker("on_off", period=10).label == "on_off[period=10]"
+    # 2 and 2.0 are one attacker: one label, one stored cell
+    assert make_attacker("range_bias", size=2).params == make_attacker("range_bias").params
+    with pytest.raises(ValueError, match="period: expected an integer"):
+        make_attacker("on_off", period=2.5)
     for name in ATTACKERS:
         labels = [v.label for v in variants(name)]
         assert len(set(labels)) == len(labels), name
@@ -321,7 +325,7 @@ def test_cli_pins_an_attackers_parameters():
 
     assert parse_attacker("on_off") == "on_off"
     assert parse_attacker("on_off:period=10") == ("on_off", {"period": 10})
-    for bad in ("nope", "on_off:nope=1", "on_off:period"):
+    for bad in ("nope", "on_off:nope=1", "on_off:period", "on_off:period=x"):
         with pytest.raises(ValueError, match="--attacker"):
             parse_attacker(bad)
     base = _tiny(10)

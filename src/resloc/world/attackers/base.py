@@ -102,7 +102,13 @@ class Strategy:
                 f"attacker {self.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
                 f"known: {', '.join(self.defaults) or 'none'}"
             )
-        self.params = {**self.defaults, **params}
+        # One spelling per value (2 and 2.0 are the same bias, hence the same stored cell).
+        self.params = {}
+        for key, value in {**self.defaults, **params}.items():
+            try:
+                self.params[key] = _like(self.defaults[key], value)
+            except ValueError as exc:
+                raise ValueError(f"attacker {self.name!r}, parameter {key}: {exc}") from None
         for key, value in self.params.items():
             setattr(self, key, value)
 
@@ -126,6 +132,20 @@ class Strategy:
     def variants(cls) -> list[Strategy]:
         """One instance per point of :attr:`grid` (the study's search)."""
         return [cls(**point) for point in cls.grid]
+
+
+def _like(default, value):
+    """``value`` as the type of ``default`` (int or float); a non-integral value for an
+    integer parameter is a ``ValueError``."""
+    if isinstance(default, bool) or not isinstance(default, int | float):
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"expected a number, got {value!r}")
+    if isinstance(default, int):
+        if float(value) != int(value):
+            raise ValueError(f"expected an integer, got {value!r}")
+        return int(value)
+    return float(value)
 
 
 class SensingLie(Strategy):
