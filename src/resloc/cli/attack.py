@@ -11,14 +11,12 @@ import typer
 from resloc.cli.common import fail, handle_errors
 from resloc.cli.study import FRESH, JOBS, SCHEDULER, STORE, study_session, write_failures
 
-__all__ = ["attack_command", "parse_defence", "register"]
+__all__ = ["attack_command", "parse_attacker", "parse_defence", "register"]
 
 
 def parse_defence(text: str) -> tuple[str, dict]:
     """``NAME`` (a built-in defence) or ``NAME:key=value,key=value`` (dotted overrides;
     values parsed as TOML scalars). Raises ``ValueError`` with a one-line reason."""
-    import tomllib
-
     from resloc.experiments.defences import DEFENCES
 
     name, _, spec = text.partition(":")
@@ -30,16 +28,42 @@ def parse_defence(text: str) -> tuple[str, dict]:
                 "NAME:key=value,..."
             )
         return name, dict(DEFENCES[name])
-    overrides = {}
+    return name, _key_values(text, spec, "--defence")
+
+
+def _key_values(text: str, spec: str, option: str) -> dict:
+    """``key=value,...`` with values parsed as TOML scalars (else kept as strings)."""
+    import tomllib
+
+    out = {}
     for item in spec.split(","):
         key, eq, value = item.partition("=")
         if not eq or not key.strip():
-            raise ValueError(f"--defence {text!r}: {item!r} is not key=value")
+            raise ValueError(f"{option} {text!r}: {item!r} is not key=value")
         try:
-            overrides[key.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
+            out[key.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:
-            overrides[key.strip()] = value.strip()
-    return name, overrides
+            out[key.strip()] = value.strip()
+    return out
+
+
+def parse_attacker(text: str) -> str | tuple[str, dict]:
+    """``NAME`` (searched over its grid) or ``NAME:key=value,...`` (those parameters only).
+    Raises ``ValueError`` with a one-line reason."""
+    from resloc.world.attackers import ATTACKERS, make_attacker
+
+    name, _, spec = text.partition(":")
+    name = name.strip()
+    if name not in ATTACKERS:
+        raise ValueError(f"--attacker {name!r}: unknown; use one of {', '.join(ATTACKERS)}")
+    if not spec:
+        return name
+    params = _key_values(text, spec, "--attacker")
+    try:
+        make_attacker(name, **params)
+    except ValueError as exc:
+        raise ValueError(f"--attacker {text!r}: {exc}") from None
+    return name, params
 
 
 def attack_command(
@@ -55,13 +79,13 @@ def attack_command(
     scheduler: str | None = None,
     store: Path | None = None,
     fresh: bool = False,
+    search: bool = True,
 ):
     """Run the study, print the worst cases, write ``attack.md``/``.csv``/``.json``."""
     from resloc.experiments.attack import markdown, run_attack_study, save_attack_study
     from resloc.experiments.config import default_scenario, load_scenario
     from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
-    from resloc.world.attackers import ATTACKERS
 
     chosen = None
     if defences:
@@ -69,9 +93,10 @@ def attack_command(
             chosen = dict(parse_defence(d) for d in defences)
         except ValueError as exc:
             raise fail(str(exc)) from None
-    for name in attackers or ():
-        if name not in ATTACKERS:
-            raise fail(f"--attacker {name!r}: unknown; use one of {', '.join(ATTACKERS)}")
+    try:
+        chosen_attackers = [parse_attacker(a) for a in attackers or ()]
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     scenario = default_scenario() if scenario_path is None else load_scenario(scenario_path)
     if steps is not None:
         scenario = scenario.replace(**{"run.steps": int(steps)})
@@ -86,7 +111,9 @@ def attack_command(
     check_output_dir(out, overwrite)
     try:
         with study_session("attacking", jobs, scheduler, store, fresh, progress) as study:
-            result = run_attack_study(scenario, chosen, attackers or None, seeds=seeds, study=study)
+            result = run_attack_study(
+                scenario, chosen, chosen_attackers or None, seeds=seeds, study=study, search=search
+            )
     except StudyFailedError as exc:
         raise write_failures(exc, out, overwrite) from None
     print(markdown(result))
@@ -113,9 +140,19 @@ def register(app: typer.Typer) -> None:
             "built-in).",
         ),
         attacker: list[str] | None = typer.Option(
-            None, "--attacker", "-a", help="An attacker of the suite (repeat; default: all)."
+            None,
+            "--attacker",
+            "-a",
+            help="An attacker of the suite, searched over its grid, or NAME:key=value,... "
+            "for those parameters only (repeat; default: all).",
         ),
         seeds: int = typer.Option(10, "--seeds", min=2, help="Paired seeds per cell."),
+        search: bool = typer.Option(
+            True,
+            "--search/--no-search",
+            help="Run every attacker at every point of its parameter grid and report the "
+            "worst (--no-search: default parameters only).",
+        ),
         steps: int | None = typer.Option(None, "--steps", min=1, help="Override run.steps."),
         jobs: int | None = JOBS,
         scheduler: str | None = SCHEDULER,
@@ -144,4 +181,5 @@ def register(app: typer.Typer) -> None:
             scheduler,
             store,
             fresh,
+            search,
         )

@@ -14,6 +14,7 @@ over seeds with its 95% confidence interval, and the worst attacker per defence.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 from collections.abc import Mapping, Sequence
@@ -23,16 +24,17 @@ from typing import Any
 
 import numpy as np
 
-from resloc.experiments.config import Scenario, scenario_to_dict
+from resloc.experiments.config import Scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.experiments.executor import Study, StudyFailedError, Task
 from resloc.experiments.stats import mean_ci, ratio
-from resloc.experiments.store import cell_key
+from resloc.experiments.store import canonical_json, cell_key
 
 __all__ = [
     "CLEAN",
     "AttackStudyResult",
     "attack_cells",
+    "attack_key",
     "run_attack_study",
     "save_attack_study",
 ]
@@ -45,22 +47,27 @@ CELL_METRICS = ("msle", "nees", "nees_rel", "tpr", "fpr", "comm_rate", "bytes_pe
 
 
 def attack_cells(
-    scenario: Scenario, defence: Mapping[str, Any], attacker_name: str, filt: str
+    scenario: Scenario,
+    defence: Mapping[str, Any],
+    attacker_name: str,
+    params: Mapping[str, Any],
+    filt: str,
+    first_trial: int = 0,
 ) -> list[dict]:
-    """Run ``scenario`` (its ``run.trials`` seeds batched) under ``defence`` against one
-    attacker (or :data:`CLEAN`); one metrics mapping per seed (picklable; runs on a worker).
-    """
+    """Run ``scenario`` (its ``run.trials`` seeds from ``first_trial``, batched) under
+    ``defence`` against one attacker with ``params`` (or :data:`CLEAN`); one metrics
+    mapping per seed (picklable; runs on a worker)."""
     from resloc.experiments.runner import run_scenario
-    from resloc.world.attackers import attacker
+    from resloc.world.attackers import make_attacker
 
     changes = {**dict(defence), "run.filters": [filt], "run.dead_reckoning": False}
     adversary = None
     if attacker_name == CLEAN:
         changes["sdz"] = []
     else:
-        adversary = attacker(attacker_name)
+        adversary = make_attacker(attacker_name, **dict(params))
         changes.update(adversary.overrides)
-    result = run_scenario(scenario.replace(**changes), adversary=adversary)
+    result = run_scenario(scenario.replace(**changes), adversary=adversary, first_trial=first_trial)
     est = result.estimators[filt]
     t = est.totals
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -78,6 +85,29 @@ def attack_cells(
     return [{k: float(v[s]) for k, v in per_seed.items()} for s in range(scenario.run.trials)]
 
 
+def attack_key(
+    scenario_digest: str,
+    defence: Mapping[str, Any],
+    attacker_name: str,
+    params: Mapping[str, Any],
+    filt: str,
+    trial: int,
+) -> str:
+    """Store key of one seed of one cell: the scenario (without ``run.trials``, so more
+    seeds reuse the stored ones; ``scenario_digest`` of
+    :func:`~resloc.experiments.cells.group_data`), the defence, the attacker and its
+    parameters, the filter and the seed."""
+    return cell_key(
+        "attack",
+        scenario=scenario_digest,
+        defence=dict(defence),
+        attacker=attacker_name,
+        params=dict(params),
+        filter=filt,
+        trial=int(trial),
+    )
+
+
 @dataclass
 class AttackStudyResult:
     """The defence x attacker study (plain, JSON-ready data).
@@ -85,20 +115,27 @@ class AttackStudyResult:
     Attributes
     ----------
     cells : dict
-        ``{defence: {attacker: {metric: [per seed]}}}`` (attacker :data:`CLEAN` included).
+        ``{defence: {attacker label: {metric: [per seed]}}}`` (one label per point of
+        every attacker's parameter grid, :data:`CLEAN` included).
     table : list of dict
-        One row per defence and attacker: MSLE ratio to the clean run (mean, CI), relative
-        NEES, NEES, TPR, FPR, communication rate and bytes per step.
+        One row per defence and attacker point (``attacker``: its label, ``family``: the
+        strategy, ``params``): MSLE ratio to the clean run (mean, CI), relative NEES,
+        NEES, TPR, FPR, communication rate and bytes per step.
     worst : list of dict
-        The row of the worst attacker (largest mean MSLE ratio) of every defence.
+        The row of the worst attacker point (largest mean MSLE ratio) of every defence.
     config : dict
-        Seeds, steps, filter, defences (their overrides), attackers and their summaries.
+        Seeds, steps, filter, defences (their overrides), attackers, their summaries and
+        searched grids.
+    searched : list of dict
+        Per defence and strategy, the row of its worst grid point (the defence x attacker
+        table).
     """
 
     cells: dict
     table: list[dict]
     worst: list[dict]
     config: dict = field(default_factory=dict)
+    searched: list[dict] = field(default_factory=list)
 
 
 def run_attack_study(
@@ -108,8 +145,12 @@ def run_attack_study(
     seeds: int = 10,
     filt: str = "ckf",
     study: Study | None = None,
+    search: bool = True,
 ) -> AttackStudyResult:
     """Every defence against its clean run and every attacker, on ``seeds`` paired seeds.
+
+    Each attacker is run at every point of its parameter grid (``search``) and the worst
+    point per defence is its entry in the defence x attacker table.
 
     Parameters
     ----------
@@ -117,12 +158,15 @@ def run_attack_study(
         The base scenario (its sensing danger zones are where sensing attackers act).
     defences : mapping of str to mapping, optional
         ``{name: {dotted key: value}}`` (default :data:`DEFENCES`).
-    attackers : sequence of str, optional
-        Names in :data:`resloc.world.attackers.ATTACKERS` (default: all).
+    attackers : sequence of str or (str, dict), optional
+        Names in :data:`resloc.world.attackers.ATTACKERS` (searched over their grids), or
+        ``(name, params)`` for one parameter point (default: every name).
     seeds : int
     filt : str
     study : Study, optional
         The executor and store (default: in this process, no store).
+    search : bool
+        Search every attacker's parameter grid (``False``: its defaults only).
 
     Returns
     -------
@@ -133,89 +177,108 @@ def run_attack_study(
     KeyError
         An unknown attacker name.
     """
-    from resloc.world.attackers import ATTACKERS, attacker
+    from resloc.experiments.cells import MAX_BATCH, contiguous_runs, group_data
+    from resloc.world.attackers import ATTACKERS, attacker, make_attacker, variants
 
     defences = dict(DEFENCES if defences is None else defences)
-    names = list(ATTACKERS if attackers is None else attackers)
-    for name in names:
-        attacker(name)
-    base = scenario.replace(**{"run.trials": int(seeds)})
-    group = scenario_to_dict(base)
+    points: list[tuple[str, str, dict]] = [(CLEAN, CLEAN, {})]  # (family, label, params)
+    grids: dict[str, list[str]] = {}
+    for entry in ATTACKERS if attackers is None else attackers:
+        if isinstance(entry, str):
+            chosen = variants(entry) if search else [attacker(entry)]
+        else:
+            chosen = [make_attacker(entry[0], **dict(entry[1]))]
+        for adv in chosen:
+            if adv.label not in {label for _, label, _ in points}:
+                points.append((adv.name, adv.label, dict(adv.params)))
+                grids.setdefault(adv.name, []).append(adv.label)
+    names = list(grids)
+    seeds = int(seeds)
+    base = scenario.replace(**{"run.trials": seeds})
+    digest = hashlib.sha256(canonical_json(group_data(base)).encode("utf-8")).hexdigest()
     study = Study(jobs=1) if study is None else study
-    cell_keys = {
-        (dname, aname): tuple(
-            cell_key(
-                "attack",
-                scenario=group,
-                defence=dict(overrides),
-                attacker=aname,
-                filter=filt,
-                trial=s,
-            )
-            for s in range(seeds)
-        )
-        for dname, overrides in defences.items()
-        for aname in [CLEAN, *names]
-    }
     tasks, found = [], {}
+    keys: dict[tuple[str, str], list[str]] = {}
     for dname, overrides in defences.items():
-        for aname in [CLEAN, *names]:
-            keys = cell_keys[dname, aname]
-            hits = [study.lookup(k) for k in keys]
-            if all(h for h, _ in hits):
-                found.update({k: v for k, (_, v) in zip(keys, hits, strict=True)})
-                continue
-            tasks.append(
-                Task(
-                    attack_cells,
-                    (base, dict(overrides), aname, filt),
-                    keys,
-                    f"{dname} vs {aname}",
-                    {"defence": dname, "overrides": dict(overrides), "attacker": aname},
-                    float(seeds * base.run.steps),
+        for family, label, params in points:
+            keys[dname, label] = [
+                attack_key(digest, overrides, family, params, filt, s) for s in range(seeds)
+            ]
+            missing = []
+            for s, key in enumerate(keys[dname, label]):
+                hit, value = study.lookup(key)
+                if hit:
+                    found[key] = value
+                else:
+                    missing.append(s)
+            for chunk in contiguous_runs(missing, MAX_BATCH):
+                tasks.append(
+                    Task(
+                        attack_cells,
+                        (
+                            base.replace(**{"run.trials": len(chunk)}),
+                            dict(overrides),
+                            family,
+                            params,
+                            filt,
+                            chunk[0],
+                        ),
+                        tuple(keys[dname, label][s] for s in chunk),
+                        f"{dname} vs {label} seeds {chunk[0]}..{chunk[-1]}",
+                        {"defence": dname, "overrides": dict(overrides), "attacker": label},
+                        float(len(chunk) * base.run.steps),
+                    )
                 )
-            )
-    cells_total = len(defences) * (len(names) + 1) * seeds
+    cells_total = len(defences) * len(points) * seeds
     found.update(study.run(tasks, cells=cells_total, from_store=len(found)))
     if study.failures:
         raise StudyFailedError(study.failures, study.stats)
     cells: dict = {}
     for dname in defences:
         cells[dname] = {}
-        for aname in [CLEAN, *names]:
-            per = [found[key] for key in cell_keys[dname, aname]]
-            cells[dname][aname] = {m: [p[m] for p in per] for m in CELL_METRICS}
-    table = _table(cells)
-    worst = []
+        for _, label, _ in points:
+            per = [found[key] for key in keys[dname, label]]
+            cells[dname][label] = {m: [p[m] for p in per] for m in CELL_METRICS}
+    family_of = {label: (family, params) for family, label, params in points}
+    table = _table(cells, family_of)
+    searched, worst = [], []
     for dname in defences:
         rows = [r for r in table if r["defence"] == dname and r["attacker"] != CLEAN]
+        for name in names:
+            mine = [r for r in rows if r["family"] == name]
+            if mine:
+                searched.append(max(mine, key=lambda r: _finite(r["msle_ratio"]["mean"])))
         if rows:
             worst.append(max(rows, key=lambda r: _finite(r["msle_ratio"]["mean"])))
     config = {
-        "seeds": int(seeds),
+        "seeds": seeds,
         "steps": base.run.steps,
         "filter": filt,
         "scenario": base.run.name,
         "defences": {k: dict(v) for k, v in defences.items()},
         "attackers": {n: ATTACKERS[n].summary for n in names},
+        "grids": grids,
         "stats": study.stats.to_dict(),
     }
-    return AttackStudyResult(cells, table, worst, config)
+    return AttackStudyResult(cells, table, worst, config, searched)
 
 
 def _finite(v: float) -> float:
     return v if np.isfinite(v) else -np.inf
 
 
-def _table(cells: dict) -> list[dict]:
+def _table(cells: dict, family_of: dict) -> list[dict]:
     rows = []
     for dname, per in cells.items():
         clean = per[CLEAN]
         for aname, m in per.items():
+            family, params = family_of[aname]
             rows.append(
                 {
                     "defence": dname,
                     "attacker": aname,
+                    "family": family,
+                    "params": dict(params),
                     "msle": mean_ci(m["msle"]).to_dict(),
                     "msle_ratio": ratio(m["msle"], clean["msle"]).to_dict(),
                     "msle_ratio_min": float(np.nanmin(np.divide(m["msle"], clean["msle"]))),
@@ -228,6 +291,8 @@ def _table(cells: dict) -> list[dict]:
 CSV_COLUMNS = (
     "defence",
     "attacker",
+    "family",
+    "params",
     "msle_ratio",
     "msle_ratio_ci",
     "msle_ratio_min",
@@ -250,10 +315,12 @@ def _csv(result: AttackStudyResult) -> str:
             [
                 r["defence"],
                 r["attacker"],
+                r["family"],
+                json.dumps(r["params"], sort_keys=True),
                 f"{r['msle_ratio']['mean']:.6g}",
                 f"{r['msle_ratio']['ci_half']:.6g}",
                 f"{r['msle_ratio_min']:.6g}",
-                *(f"{r[k]['mean']:.6g}" for k in CSV_COLUMNS[5:]),
+                *(f"{r[k]['mean']:.6g}" for k in CSV_COLUMNS[7:]),
             ]
         )
     return buf.getvalue()
@@ -267,8 +334,26 @@ def _cell(e: dict, spec: str = ".3g") -> str:
     return f"{e['mean']:{spec}} ± {e['ci_half']:{spec}}"
 
 
+def _matrix(result: AttackStudyResult) -> list[str]:
+    """Defence x attacker: the worst point of each attacker's search per defence."""
+    families = list(result.config["attackers"])
+    by = {(r["defence"], r["family"]): r for r in result.searched}
+    lines = [
+        "| defence | " + " | ".join(families) + " |",
+        "|---|" + "---|" * len(families),
+    ]
+    for dname in result.config["defences"]:
+        cells = []
+        for f in families:
+            r = by.get((dname, f))
+            cells.append("-" if r is None else f"{r['msle_ratio']['mean']:.3g}")
+        lines.append(f"| {dname} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown(result: AttackStudyResult) -> str:
-    """The study as a markdown section: worst cases first, then the full table."""
+    """The study as a markdown section: worst cases first, the defence x attacker matrix
+    (worst point of each attacker's search), then every point."""
     c = result.config
     lines = [
         "## Defence x attacker",
@@ -277,7 +362,10 @@ def markdown(result: AttackStudyResult) -> str:
         f"{c['filter'].upper()}. MSLE ratio: attacked / the same defence's clean run, per "
         "seed (same world), mean ± 95% CI over seeds; 'min': the smallest per-seed ratio. "
         "NEES rel.: NEES of the relative error (the team's least-squares rigid-body error "
-        "removed). TPR / FPR: the detector on the links the attacker falsified / did not.",
+        "removed). TPR / FPR: the detector on the links the attacker falsified / did not. "
+        "Every attacker is run at each of its parameter points listed under 'Searched' "
+        "below (its whole grid unless pinned) against every defence; an attacker's entry is "
+        "its worst point (largest mean MSLE ratio) for that defence.",
         "",
         "### Worst case per defence",
         "",
@@ -292,7 +380,11 @@ def markdown(result: AttackStudyResult) -> str:
         )
     lines += [
         "",
-        "### Every defence and attacker",
+        "### Defence x attacker (mean MSLE ratio at the attacker's worst grid point)",
+        "",
+        *_matrix(result),
+        "",
+        "### Every defence and attacker point",
         "",
         "| defence | attacker | MSLE ratio | MSLE | NEES | NEES rel. | TPR | FPR | comm. "
         "rate | bytes/step |",
@@ -308,9 +400,10 @@ def markdown(result: AttackStudyResult) -> str:
     lines += ["", "Defences (dotted overrides):", ""]
     for name, ov in c["defences"].items():
         lines.append(f"* `{name}`: `{json.dumps(ov)}`")
-    lines += ["", "Attackers:", ""]
+    lines += ["", "Attackers (default parameters) and the grid searched per defence:", ""]
     for name, text in c["attackers"].items():
-        lines.append(f"* `{name}`: {text}")
+        grid = ", ".join(f"`{g}`" for g in c.get("grids", {}).get(name, []))
+        lines.append(f"* `{name}`: {text}. Searched: {grid}")
     return "\n".join(lines) + "\n"
 
 
@@ -325,6 +418,7 @@ def save_attack_study(result: AttackStudyResult, out: Path) -> list[Path]:
             {
                 "config": result.config,
                 "worst": result.worst,
+                "searched": result.searched,
                 "table": result.table,
                 "cells": result.cells,
             },

@@ -36,6 +36,7 @@ from resloc.experiments.store import canonical_json, cell_key
 __all__ = [
     "SimCell",
     "StudyFailedError",
+    "contiguous_runs",
     "group_data",
     "run_scenarios",
     "sim_key",
@@ -172,7 +173,7 @@ def _cost(scenario: Scenario, trials: int, estimators: int) -> float:
     return float(scenario.world.team.robots * trials * scenario.run.steps * (estimators + 0.2))
 
 
-def _chunks(trials: list[int], size: int) -> list[list[int]]:
+def contiguous_runs(trials: list[int], size: int) -> list[list[int]]:
     """Contiguous runs of ``trials`` (sorted), each at most ``size`` long."""
     out: list[list[int]] = []
     for t in trials:
@@ -273,7 +274,7 @@ def run_scenarios(
     index: dict[str, tuple[str, int, str]] = {}
     for gid, per in missing.items():
         base, data, digest = groups[gid]
-        for chunk in _chunks(sorted(per), batch):
+        for chunk in contiguous_runs(sorted(per), batch):
             wanted = set().union(*(per[t] for t in chunk))
             names = tuple(e for e in _ESTIMATOR_ORDER if e in wanted)
             # Only the missing cells are returned (a stored cell is never rewritten).

@@ -6,6 +6,10 @@ victim's detector (:mod:`resloc.world.attackers.oracle`), except the outside rev
 attacker, which by design knows only the gate. ``docs/beyond.md`` ("The adversary suite")
 describes each strategy and the threat model.
 
+Each strategy has parameters (bias size, on/off period, ramp time, replay delay, number of
+compromised robots...) and a small grid of them (``grid``) that the study searches against
+every defence, reporting the worst point (:func:`variants`).
+
 Adding an attacker is one class (the :class:`~resloc.world.attackers.base.Attacker`
 protocol) and one line in :data:`ATTACKERS`.
 """
@@ -14,7 +18,7 @@ from __future__ import annotations
 
 from resloc.world.attackers.base import Attacker, AttackStep, SensingLie
 from resloc.world.attackers.estimates import CompromisedRobot, Replay
-from resloc.world.attackers.oracle import accepted, largest_accepted
+from resloc.world.attackers.oracle import accepted, largest_accepted, largest_accepted_along
 from resloc.world.attackers.sensing import (
     BearingBias,
     CommonTranslation,
@@ -35,9 +39,12 @@ __all__ = [
     "accepted",
     "attacker",
     "largest_accepted",
+    "largest_accepted_along",
+    "make_attacker",
+    "variants",
 ]
 
-#: Every strategy of the suite, by name.
+#: Every strategy of the suite, by name, with its default parameters.
 ATTACKERS: dict[str, Attacker] = {
     a.name: a
     for a in (
@@ -62,3 +69,14 @@ def attacker(name: str) -> Attacker:
         return ATTACKERS[name]
     except KeyError:
         raise KeyError(f"unknown attacker {name!r}; known: {', '.join(ATTACKERS)}") from None
+
+
+def make_attacker(name: str, **params) -> Attacker:
+    """Strategy ``name`` with ``params`` (the rest at their defaults); ``KeyError`` for an
+    unknown name, ``ValueError`` for an unknown parameter."""
+    return type(attacker(name))(**params)
+
+
+def variants(name: str) -> list[Attacker]:
+    """Every point of strategy ``name``'s parameter grid (what the study searches)."""
+    return type(attacker(name)).variants()

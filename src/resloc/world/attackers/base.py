@@ -14,7 +14,7 @@ from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.world.attackers.oracle import largest_accepted
 
-__all__ = ["AttackStep", "Attacker", "SensingLie"]
+__all__ = ["AttackStep", "Attacker", "SensingLie", "Strategy"]
 
 
 @dataclass
@@ -49,19 +49,26 @@ class AttackStep:
 
 
 class Attacker(Protocol):
-    """One strategy of the adversary suite.
+    """One strategy of the adversary suite, with its parameters set.
 
     Attributes
     ----------
     name : str
+        The strategy (family) name.
     summary : str
-        One line: what it does and what it knows.
+        One line: what it does and what it knows, with these parameters.
+    params : dict of str to float
+        Its parameters (the values of one point of :attr:`grid`).
+    grid : tuple of dict
+        The parameter values the study searches per defence (the worst is reported).
     overrides : dict of str to object
         Dotted scenario overrides the strategy needs (e.g. ``attack.kind``).
     """
 
     name: str
     summary: str
+    params: dict
+    grid: tuple
     overrides: dict
 
     def mark(self, sdz_attacked: np.ndarray, step: AttackStep) -> np.ndarray:
@@ -74,7 +81,74 @@ class Attacker(Protocol):
         """The link batch the victim estimator (``params``, ``memory``) receives."""
 
 
-class SensingLie:
+class Strategy:
+    """Parameters of a strategy: defaults, the searched grid, a label.
+
+    A subclass declares ``defaults`` (every parameter and its default value) and ``grid``
+    (the parameter points the study tries against every defence; each point overrides
+    some defaults). ``template`` (the one-line summary) may name parameters as ``{name}``.
+    """
+
+    name: ClassVar[str] = ""
+    template: ClassVar[str] = ""
+    overrides: ClassVar[dict] = {"attack.kind": "stealthy"}
+    defaults: ClassVar[dict] = {}
+    grid: ClassVar[tuple] = ({},)
+
+    def __init__(self, **params) -> None:
+        unknown = set(params) - set(self.defaults)
+        if unknown:
+            raise ValueError(
+                f"attacker {self.name!r}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+                f"known: {', '.join(self.defaults) or 'none'}"
+            )
+        # One spelling per value (2 and 2.0 are the same bias, hence the same stored cell).
+        self.params = {}
+        for key, value in {**self.defaults, **params}.items():
+            try:
+                self.params[key] = _like(self.defaults[key], value)
+            except ValueError as exc:
+                raise ValueError(f"attacker {self.name!r}, parameter {key}: {exc}") from None
+        for key, value in self.params.items():
+            setattr(self, key, value)
+
+    @property
+    def summary(self) -> str:
+        return self.template.format(**self.params)
+
+    @property
+    def label(self) -> str:
+        """``name`` and the parameters its grid searches or that differ from the defaults:
+        ``on_off[period=10]``."""
+        searched = [
+            k
+            for k in self.params
+            if len({str(p.get(k)) for p in self.grid}) > 1 or self.params[k] != self.defaults[k]
+        ]
+        inner = ",".join(f"{k}={self.params[k]:g}" for k in searched)
+        return f"{self.name}[{inner}]" if inner else self.name
+
+    @classmethod
+    def variants(cls) -> list[Strategy]:
+        """One instance per point of :attr:`grid` (the study's search)."""
+        return [cls(**point) for point in cls.grid]
+
+
+def _like(default, value):
+    """``value`` as the type of ``default`` (int or float); a non-integral value for an
+    integer parameter is a ``ValueError``."""
+    if isinstance(default, bool) or not isinstance(default, int | float):
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"expected a number, got {value!r}")
+    if isinstance(default, int):
+        if float(value) != int(value):
+            raise ValueError(f"expected an integer, got {value!r}")
+        return int(value)
+    return float(value)
+
+
+class SensingLie(Strategy):
     """Template of a measurement attacker: a full lie per link, scaled by the victim's
     acceptance.
 
@@ -85,9 +159,6 @@ class SensingLie:
     that is sent.
     """
 
-    name: ClassVar[str] = ""
-    summary: ClassVar[str] = ""
-    overrides: ClassVar[dict] = {"attack.kind": "stealthy"}
     #: Knows only the per-measurement gate (the outside reviewer's attacker).
     gate_only: ClassVar[bool] = False
 

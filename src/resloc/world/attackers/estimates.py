@@ -1,4 +1,4 @@
-"""Attackers that are not measurement lies: a compromised robot's estimates, and replay."""
+"""Attackers that are not measurement lies: compromised robots' estimates, and replay."""
 
 from __future__ import annotations
 
@@ -7,55 +7,164 @@ from typing import ClassVar
 
 import numpy as np
 
-__all__ = ["CompromisedRobot", "Replay"]
+from resloc.angles import wrap_angle
+from resloc.world.adversary import ReplayBuffer
+from resloc.world.attackers.base import SensingLie, Strategy
+from resloc.world.attackers.oracle import largest_accepted_along
+from resloc.world.attackers.sensing import measurement_difference
+
+__all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
+
+#: Robots compromised first, second, ... (spread over the default 17-robot lattice).
+COMPROMISED_ORDER = (5, 10, 15, 2, 8, 13)
 
 
-class CompromisedRobot:
-    """A compromised robot that broadcasts false estimates of itself.
+def shifted_prediction(z_hat: np.ndarray, shift_body: np.ndarray) -> np.ndarray:
+    """The victim's predicted range and bearing of a neighbour whose broadcast position is
+    moved by ``shift_body`` (the victim's own frame).
 
-    Robot ``target`` (in every team) keeps localizing honestly but every estimate it sends
-    is moved sideways by an offset ramping at ``speed`` m/s up to ``max_offset`` m, in its
-    own heading's left direction; its neighbours' measurements of it stay honest. This is
-    the threat the paper's sensing model leaves out: the lie arrives through the radio.
-    Not tuned to the detector: a slow ramp is what a neighbour's innovation cannot tell
-    from the robot's own drift (the victims' filters follow it).
+    Parameters
+    ----------
+    z_hat : ndarray, shape (E, 2)
+        Predicted ``[range, bearing]`` from the honest broadcast.
+    shift_body : ndarray, shape (..., E, 2)
+
+    Returns
+    -------
+    ndarray, shape (..., E, 2)
+        Exact (no linearization): the relative position ``r (cos b, sin b)`` plus the
+        shift, back to range and bearing.
+    """
+    rel = z_hat[:, 0:1] * np.column_stack([np.cos(z_hat[:, 1]), np.sin(z_hat[:, 1])])
+    q = rel + shift_body
+    return np.stack([np.hypot(q[..., 0], q[..., 1]), np.arctan2(q[..., 1], q[..., 0])], -1)
+
+
+class CompromisedRobot(Strategy):
+    """Compromised robots that broadcast false estimates of themselves.
+
+    Robots ``COMPROMISED_ORDER[:robots]`` (in every team) keep localizing honestly and
+    their sensors, like every other sensor, stay honest; what they *send* is false. To each
+    neighbour i the estimate is moved by the largest shift along world ``+x`` (``reach`` m
+    at most per step) that i's detector accepts in its current state (gate and sequence
+    tests: the acceptance oracle, :func:`largest_accepted_along`; estimate messages are
+    per link, so each neighbour gets its own lie). The shift is taken on top of the honest
+    estimate, so it compounds: a victim that follows the lie is next asked to accept a
+    further shift from where it now is, and the robots it is fused with follow it. ``+x``
+    is a gauge direction: a common translation that relative measurements between the
+    other robots cannot see. With ``claimed_cov < 1`` the covariance sent is scaled down
+    too (the victims give the false estimate more weight; they cannot check it).
+
+    The victim's innovation is computed exactly for the false position (the relative
+    position ``r (cos b, sin b)`` plus the shift in the victim's frame, back to range and
+    bearing) and injected through the link batch's ``tamper`` hook, which is where the
+    victim's own prediction and innovation covariance are available to the oracle; the
+    gain's linearization point stays at the honest estimate (a second-order difference).
+    This is the threat the paper's sensing model leaves out: the lie arrives through the
+    radio, outside every sensing danger zone.
     """
 
     name: ClassVar[str] = "compromised"
-    summary: ClassVar[str] = (
-        "robot 5 broadcasts its estimate moved sideways by an offset ramping at 0.05 m/s "
-        "to 0.5 m (its sensors and its neighbours' sensors stay honest)"
+    template: ClassVar[str] = (
+        "{robots:g} compromised robot(s) broadcast false estimates of themselves: to each "
+        "neighbour the largest shift along world +x (at most {reach:g} m a step, "
+        "compounding) its detector accepts, claimed covariance x{claimed_cov:g}; every "
+        "sensor honest"
     )
-    overrides: ClassVar[dict] = {"attack.kind": "stealthy"}
-    target: ClassVar[int] = 5
-    speed: ClassVar[float] = 0.05
-    max_offset: ClassVar[float] = 0.5
+    defaults: ClassVar[dict] = {"robots": 1, "reach": 2.0, "claimed_cov": 1.0}
+    grid: ClassVar[tuple] = (
+        {"robots": 1},
+        {"robots": 1, "claimed_cov": 0.01},
+        {"robots": 3, "claimed_cov": 0.01},
+    )
+
+    def targets(self, robots: int) -> np.ndarray:
+        """The compromised robots' ids in a team of ``robots``."""
+        ids = [t for t in COMPROMISED_ORDER if t < robots][: int(self.robots)]
+        return np.array(ids, dtype=int)
 
     def mark(self, sdz_attacked, step):
-        return step.j % step.robots == self.target
+        return np.isin(step.j % step.robots, self.targets(step.robots))
 
     def attack(self, links, step, params, memory):
-        rows = np.flatnonzero(links.j % step.robots == self.target)
-        if not rows.size:
-            return links
-        offset = min(self.max_offset, self.speed * step.k * step.dt)
-        x_nb = links.x_nb.copy()
-        heading = x_nb[rows, 2]
-        x_nb[rows, 0] -= offset * np.sin(heading)
-        x_nb[rows, 1] += offset * np.cos(heading)
-        return dataclasses.replace(links, x_nb=x_nb, tamper=None)
+        from_liar = np.isin(links.j % step.robots, self.targets(step.robots))
+        if not from_liar.any():
+            return dataclasses.replace(links, tamper=None)
+        P_nb = links.P_nb
+        if self.claimed_cov != 1.0:
+            P_nb = P_nb.copy()
+            P_nb[from_liar] *= float(self.claimed_cov)
+        # The shift in each victim's frame (the attacker knows the victims' headings).
+        heading = step.pose[links.i, 2]
+        cos, sin = np.cos(heading), np.sin(heading)
+        shift_body = float(self.reach) * np.column_stack([cos, -sin])  # R(-theta) (1, 0)
+        z_all = links.z
+
+        def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
+            out = z_all[rows].copy()
+            hit = np.flatnonzero(from_liar[rows])
+            if not hit.size:
+                return out
+            r = rows[hit]
+            zh, z = z_hat[hit], out[hit]
+
+            def path(frac: np.ndarray) -> np.ndarray:
+                lied = shifted_prediction(zh, frac[..., None] * shift_body[r][None])
+                cand = z[None] - (lied - zh[None])  # innovation z - h(x_i, x_j + shift)
+                cand[..., 1] = wrap_angle(cand[..., 1])
+                return cand
+
+            a = largest_accepted_along(path, zh, S[hit], links.i[r], links.j[r], params, memory)
+            out[hit] = path(a[None])[0]
+            return out
+
+        return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
 
-class Replay:
-    """Replay: each SDZ link's honest measurement from 1 s earlier (the world's
-    ``attack.kind = "replay"``, ``replay_delay = 30`` steps)."""
+class Replay(SensingLie):
+    """Replay: each SDZ link's honest measurement from ``delay`` steps earlier.
+
+    Detector-aware (``raw = 0``): the replayed value is sent as far as the victim's
+    detector accepts it (the largest accepted step from the live measurement toward the
+    recorded one; all of it when accepted, which is the common case). ``raw = 1`` is the
+    world's plain replay (``attack.kind = "replay"``): the recording as is, rejected or not.
+    Links without a recording ``delay`` steps back are left honest.
+    """
 
     name: ClassVar[str] = "replay"
-    summary: ClassVar[str] = "each SDZ link's honest measurement from 1 s (30 steps) earlier"
-    overrides: ClassVar[dict] = {"attack.kind": "replay", "attack.replay_delay": 30}
+    template: ClassVar[str] = (
+        "each SDZ link's honest measurement from {delay:g} steps earlier, as far toward it "
+        "as the victim's detector accepts (raw = {raw:g}: the recording as is)"
+    )
+    defaults: ClassVar[dict] = {"delay": 30, "raw": 0}
+    grid: ClassVar[tuple] = ({"delay": 5}, {"delay": 30}, {"delay": 150}, {"raw": 1})
+
+    def __init__(self, **params) -> None:
+        super().__init__(**params)
+        self._buffer: ReplayBuffer | None = None
+        self._recorded: tuple[np.ndarray, np.ndarray] | None = None
+        self._step = 0
+
+    @property
+    def overrides(self) -> dict:
+        if self.raw:
+            return {"attack.kind": "replay", "attack.replay_delay": int(self.delay)}
+        return {"attack.kind": "stealthy"}
 
     def mark(self, sdz_attacked, step):
-        return sdz_attacked
+        if self.raw:
+            return sdz_attacked
+        if self._buffer is None or step.k <= self._step:  # a new run
+            self._buffer = ReplayBuffer(int(self.delay), len(step.pose))
+        self._step = step.k
+        self._recorded = self._buffer.replayed(step.i, step.j)
+        self._buffer.record(step.i, step.j, step.z)
+        return sdz_attacked & self._recorded[0]
+
+    def lie(self, rows, z, z_hat, step):
+        return measurement_difference(self._recorded[1][rows], z)
 
     def attack(self, links, step, params, memory):
-        return dataclasses.replace(links, tamper=None)
+        if self.raw:
+            return dataclasses.replace(links, tamper=None)
+        return super().attack(links, step, params, memory)

@@ -12,25 +12,41 @@ test and none is limited to a margin of a threshold: it uses the whole acceptanc
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 
 import numpy as np
 
-from resloc.cl.detection import DETECTOR_STAGES, Evidence, detect
+from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
 from resloc.cl.detector import innovation_norm
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.filters.update import innovation
 
-__all__ = ["accepted", "largest_accepted", "scratch_memory"]
+__all__ = [
+    "ROW_WISE_STAGES",
+    "accepted",
+    "largest_accepted",
+    "largest_accepted_along",
+    "scratch_memory",
+]
 
-#: Grid points of each pass; two passes resolve the accepted fraction to ``1 / 32^2``.
+#: Grid points of each pass; three passes resolve the accepted fraction to ``1 / 32^3`` of
+#: the lie (a lie of metres is placed to a tenth of a millimetre).
 GRID = 33
-PASSES = 2
+PASSES = 3
+#: Joint bisection steps of the rows a coupled stage rejects (resolution ``2^-6`` of the
+#: row-wise bound).
+BISECTIONS = 6
+#: Stages whose verdict on a row depends only on that row and the state before the round
+#: (the gate, the per-link CUSUMs, recovery's re-admission test): candidates may be stacked.
+ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 
 
 def _scratch(value):
     if isinstance(value, np.ndarray):
         return value.copy()
+    if isinstance(value, dict):  # e.g. the stages' own statistics, by stage name
+        return {k: _scratch(v) for k, v in value.items()}
     try:
         fields = vars(value)
     except TypeError:  # no attributes: a scalar, a tuple, None
@@ -64,6 +80,7 @@ def accepted(
     params: CLParams,
     memory: LinkMemory | None,
     gate_only: bool = False,
+    row_wise_only: bool = False,
 ) -> np.ndarray:
     """Whether the victim's detector, in its current state, accepts measurements ``z``.
 
@@ -82,6 +99,9 @@ def accepted(
         The victim's memory (not modified).
     gate_only : bool
         Judge by the per-measurement gate alone (an attacker that knows nothing else).
+    row_wise_only : bool
+        Run only the stages that judge each row alone (:data:`ROW_WISE_STAGES`): then
+        rows may be any stack of candidates.
 
     Returns
     -------
@@ -93,7 +113,20 @@ def accepted(
     if gate_only:
         gate = DETECTOR_STAGES[0]
         return ~gate.discard(evidence, params, None) if gate.active(params) else ~evidence.gated
-    return ~detect(evidence, params, scratch_memory(memory))
+    if not row_wise_only:
+        return ~detect(evidence, params, scratch_memory(memory))
+    # detect()'s loop, restricted to the row-wise stages.
+    memory = scratch_memory(memory)
+    detected = np.zeros(len(z), dtype=bool)
+    for stage in active_stages(params):
+        if stage.name not in ROW_WISE_STAGES:
+            continue
+        if stage.overrides:
+            evidence.detected = detected
+            detected = stage.discard(evidence, params, memory)
+        else:
+            detected = detected | stage.discard(evidence, params, memory)
+    return ~detected
 
 
 def largest_accepted(
@@ -109,10 +142,7 @@ def largest_accepted(
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with ``z + a lie`` accepted by the victim.
 
-    A grid over ``[0, 1]`` (one stacked detector call) finds the largest accepted grid
-    point; a second grid between it and the next point refines it. Where no point is
-    accepted (the honest measurement itself fails and so does every lie along ``lie``) the
-    result is 0: the measurement is discarded whatever is sent.
+    :func:`largest_accepted_along` on the straight path ``z + a lie``.
 
     Parameters
     ----------
@@ -127,28 +157,114 @@ def largest_accepted(
     -------
     ndarray, shape (E,)
     """
-    E = len(z)
+    z, lie = np.asarray(z, float), np.asarray(lie, float)
+    return largest_accepted_along(
+        lambda frac: z[None] + frac[..., None] * lie[None],
+        z_hat,
+        S,
+        i,
+        j,
+        params,
+        memory,
+        gate_only,
+    )
+
+
+def largest_accepted_along(
+    path: Callable[[np.ndarray], np.ndarray],
+    z_hat: np.ndarray,
+    S: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    params: CLParams,
+    memory: LinkMemory | None,
+    gate_only: bool = False,
+) -> np.ndarray:
+    """Largest ``a`` in ``[0, 1]`` per row with the measurement ``path(a)`` accepted.
+
+    A grid over ``[0, 1]`` finds the largest accepted grid point (the acceptance region
+    need not be an interval along the path: honest noise near the limit puts the start
+    near one edge); further grids between it and the next point refine it (resolution
+    ``1 / (GRID - 1)^PASSES`` of the path). Where no point is accepted (the honest
+    measurement itself fails and so does every lie along the path) the result is 0: the
+    measurement is discarded whatever is sent.
+
+    Stages that judge each row alone given the state before the round
+    (:data:`ROW_WISE_STAGES`) see every grid point of every row in one stacked call. A stage
+    that couples the rows of a round (a per-robot sequence test, any stage added later)
+    cannot see stacked copies (it would add them up and the attacker would hold back): the
+    grids then use the row-wise stages, and the rows' choices are judged together by the
+    whole detector as the victim will judge them, each rejected row bisected down
+    (``BISECTIONS`` joint calls) to the largest fraction the round accepts.
+
+    Parameters
+    ----------
+    path : callable
+        ``path(frac)`` with ``frac`` of shape (G, E) returns the candidate measurements,
+        shape (G, E, 2); ``path(0)`` is the measurement sent without a lie.
+    z_hat, S, i, j, params, memory, gate_only
+        As :func:`accepted`.
+
+    Returns
+    -------
+    ndarray, shape (E,)
+    """
+    E = len(z_hat)
     if E == 0:
         return np.zeros(0)
-    lo = np.zeros(E)
-    width = np.ones(E)
-    any_ok = np.zeros(E, bool)
-    for _ in range(PASSES):
-        frac = lo[None] + np.linspace(0.0, 1.0, GRID)[:, None] * width[None]  # (GRID, E)
-        cand = z[None] + frac[..., None] * lie[None]
-        ok = accepted(
+    coupled = not gate_only and any(s.name not in ROW_WISE_STAGES for s in active_stages(params))
+
+    def judge(frac: np.ndarray) -> np.ndarray:  # (G, E) -> (G, E) accepted, stacked
+        cand = np.asarray(path(frac), float)
+        G = len(frac)
+        return accepted(
             cand.reshape(-1, 2),
-            np.tile(z_hat, (GRID, 1)),
-            np.tile(S, (GRID, 1, 1)),
-            np.tile(i, GRID),
-            np.tile(j, GRID),
+            np.tile(z_hat, (G, 1)),
+            np.tile(S, (G, 1, 1)),
+            np.tile(i, G),
+            np.tile(j, G),
             params,
             memory,
             gate_only,
-        ).reshape(GRID, E)
+            row_wise_only=coupled,
+        ).reshape(G, E)
+
+    lo = np.zeros(E)
+    width = np.ones(E)
+    any_ok = np.zeros(E, bool)
+    rows = np.arange(E)
+    for _ in range(PASSES):
+        frac = np.minimum(lo[None] + np.linspace(0.0, 1.0, GRID)[:, None] * width[None], 1.0)
+        ok = judge(frac)
         found = ok.any(axis=0)
         best = GRID - 1 - np.argmax(ok[::-1], axis=0)
-        lo = np.where(found, frac[best, np.arange(E)], lo)
+        lo = np.where(found, frac[best, rows], lo)
         any_ok |= found
         width = width / (GRID - 1)
-    return np.where(any_ok, np.minimum(lo, 1.0), 0.0)
+    a = np.where(any_ok, np.minimum(lo, 1.0), 0.0)
+    if coupled:
+        a = _joint(a, path, z_hat, S, i, j, params, memory)
+    return a
+
+
+def _joint(a, path, z_hat, S, i, j, params, memory) -> np.ndarray:
+    """The rows' fractions ``a`` (each accepted by the row-wise stages) judged together by
+    the whole detector; each rejected row bisected between 0 and its ``a`` (the others at
+    their current choice) until the round passes. Rows still rejected send no lie."""
+
+    def round_ok(frac: np.ndarray) -> np.ndarray:
+        return accepted(path(frac[None])[0], z_hat, S, i, j, params, memory)
+
+    ok = round_ok(a)
+    bad = ~ok & (a > 0.0)
+    if not bad.any():
+        return a
+    lo, hi = np.where(bad, 0.0, a), a.copy()
+    for _ in range(BISECTIONS):
+        trial = np.where(bad, 0.5 * (lo + hi), a)
+        ok = round_ok(trial)
+        lo = np.where(bad & ok, trial, lo)
+        hi = np.where(bad & ~ok, trial, hi)
+    a = np.where(bad, lo, a)
+    ok = round_ok(a)
+    return np.where(~ok & (a > 0.0), 0.0, a)
