@@ -14,8 +14,11 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
 ``robot_cusum``
     While the CUSUM of the NIS over *all* of a robot's links alarms, its measurements whose
     NIS exceeds ``robot_cusum_k`` (:mod:`resloc.cl.detection_robot`).
+``zone_trust``
+    Measurements whose observer's estimate lies inside a mapped sensing danger zone
+    (:mod:`resloc.cl.detection_zone`); runs after the recovery, which does not override it.
 ``recovery``
-    Runs last and overrides the others: re-admits the measurements of a robot locked out by
+    Overrides the stages before it: re-admits the measurements of a robot locked out by
     ``recovery_after`` consecutive rejections that pass an inflated NIS gate
     (:mod:`resloc.cl.detection_recovery`, which states the bound an attacker faces).
 
@@ -34,6 +37,7 @@ import numpy as np
 from resloc.cl.cusum import link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_robot import RobotCusum
+from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
@@ -65,6 +69,11 @@ class Evidence:
         covariance the update of each row uses (the CL step recomputes its moments).
     P_obs : ndarray, shape (E, 3, 3), optional
         The observers' covariances (the recovery bounds its inflation by their growth).
+    x_obs : ndarray, shape (E, 3), optional
+        The observers' estimates (zone-aware trust reads their positions).
+    zone_substituted : ndarray of bool, shape (E,), optional
+        Rows whose observer is inside a mapped zone and whose measurement was replaced by
+        the partner's range (zone-aware trust keeps them).
     """
 
     nu: np.ndarray
@@ -76,6 +85,8 @@ class Evidence:
     detected: np.ndarray | None = None
     inflation: np.ndarray | None = None
     P_obs: np.ndarray | None = None
+    x_obs: np.ndarray | None = None
+    zone_substituted: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -175,13 +186,15 @@ class MeanShiftCusum:
 
 
 #: The stages, in the order they run (the gate first: the others read its verdict; the
-#: recovery last: it overrides every verdict).
+#: recovery overrides every verdict before it; zone-aware trust after it: a policy on the
+#: sensor the recovery must not override).
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     NormGate(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),
     RejectionRecovery(),
+    ZoneTrust(),
 )
 
 

@@ -40,6 +40,10 @@ class LinkBatch:
         :mod:`resloc.world.adversary`, supplied by the simulator). None: ``z`` as is.
     P_nb_ind : ndarray, shape (E, 3, 3), optional
         Independent part of ``P_nb`` (split covariance intersection, transmitted with it).
+    z_reciprocal : ndarray, shape (E,), optional
+        The range neighbour j reported of the same pair this step (``nan``: none): what
+        zone-aware trust (:mod:`resloc.cl.detection_zone`) substitutes for a reading taken
+        inside a danger zone. None: the correction takes it from the batch's reverse links.
     """
 
     i: np.ndarray
@@ -53,6 +57,7 @@ class LinkBatch:
     lambda2: np.ndarray
     tamper: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
     P_nb_ind: np.ndarray | None = None
+    z_reciprocal: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.i)

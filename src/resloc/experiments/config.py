@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from resloc.cl.cusum import chi2_gate
+from resloc.cl.detection_zone import zone_map
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.cl.fusion_methods import fusion_strategy
@@ -158,6 +159,28 @@ class DetectorSpec:
     recovery_inflation_cap: float = _f(
         100.0, "recovery: largest inflation of the innovation covariance", min=1.0, max=1e12
     )
+    # Defences that use what a team knows (docs/beyond.md, "Defences that hold").
+    zone_trust: bool = _f(
+        False, "discard measurements a robot takes while its estimate is inside a mapped SDZ"
+    )
+    zone_trust_margin: float = _f(
+        0.05, "zone trust: grow every mapped SDZ radius by this (m)", min=0.0, max=ARENA_MAX
+    )
+    zone_trust_shift: list = _f(
+        [0.0, 0.0],
+        "zone trust: the map's error for evaluation, centres moved by [dx, dy] (m)",
+        min=-ARENA_MAX,
+        max=ARENA_MAX,
+    )
+    zone_trust_scale: float = _f(
+        1.0, "zone trust: the map's error for evaluation, radii times this", min=0.0, max=1e3
+    )
+    reciprocal: bool = _f(
+        False, "discard a range whose reciprocal (z_ji of the same pair) disagrees"
+    )
+    reciprocal_false_alarm: float = _f(
+        1e-3, "reciprocal check: chi-square (1 dof) false-alarm probability", gt=0.0, max=0.5
+    )
 
 
 @dataclass(frozen=True)
@@ -234,6 +257,15 @@ class Scenario:
             recovery_after=float(d.recovery_after),
             recovery_gate=chi2_gate(d.recovery_false_alarm),
             recovery_inflation_cap=d.recovery_inflation_cap,
+            zone_trust=d.zone_trust,
+            zone_trust_map=zone_map(
+                [(z.center, z.radius) for z in w.sdz] if d.zone_trust else [],
+                d.zone_trust_margin,
+                tuple(d.zone_trust_shift),
+                d.zone_trust_scale,
+            ),
+            reciprocal=d.reciprocal,
+            reciprocal_gate=chi2_gate(d.reciprocal_false_alarm, dof=1),
         )
 
     def replace(self, **changes: Any) -> Scenario:
@@ -261,6 +293,7 @@ _LIST_LENGTHS = {
     "motion.process_floor_std": 3,
     "attack.bias": 2,
     "attack.stealth_direction": 2,
+    "detector.zone_trust_shift": 2,
     "center": 2,
 }
 
