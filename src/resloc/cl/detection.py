@@ -15,10 +15,11 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     While the CUSUM of the NIS over *all* of a robot's links alarms, its measurements whose
     NIS exceeds ``robot_cusum_k`` (:mod:`resloc.cl.detection_robot`).
 ``zone_trust``
-    Measurements whose observer's estimate lies inside a mapped sensing danger zone
-    (:mod:`resloc.cl.detection_zone`); runs after the recovery, which does not override it.
+    Withholds the measurements whose observer's estimate lies inside a mapped sensing
+    danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
+    the recovery included, never see them.
 ``recovery``
-    Overrides the stages before it: re-admits the measurements of a robot locked out by
+    Runs last and overrides the others: re-admits the measurements of a robot locked out by
     ``recovery_after`` consecutive rejections that pass an inflated NIS gate
     (:mod:`resloc.cl.detection_recovery`, which states the bound an attacker faces).
 
@@ -29,7 +30,7 @@ The CL step runs :func:`detect`; the compiled kernel's coverage is read from
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import ClassVar, Protocol
 
 import numpy as np
@@ -185,16 +186,16 @@ class MeanShiftCusum:
         )
 
 
-#: The stages, in the order they run (the gate first: the others read its verdict; the
-#: recovery overrides every verdict before it; zone-aware trust after it: a policy on the
-#: sensor the recovery must not override).
+#: The stages, in the order they run (zone-aware trust withholds its rows from all others:
+#: a policy on the sensor, not a test; the gate first among the tests: the others read its
+#: verdict; the recovery last: it overrides every verdict).
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
+    ZoneTrust(),
     NormGate(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),
     RejectionRecovery(),
-    ZoneTrust(),
 )
 
 
@@ -204,9 +205,49 @@ def active_stages(params: CLParams) -> tuple[DetectorStage, ...]:
 
 
 def detect(evidence: Evidence, params: CLParams, memory: LinkMemory | None) -> np.ndarray:
-    """Run every active stage; returns the discarded measurements, shape (E,)."""
+    """Run every active stage; returns the discarded measurements, shape (E,).
+
+    A stage that *withholds* (``withholds = True``: a policy, not a test, e.g. zone-aware
+    trust) runs first; the rows it discards are discarded, and the other stages judge the
+    remaining rows only (their statistics and the recovery never see the withheld rows).
+    """
+    stages = active_stages(params)
+    withheld = np.zeros(len(evidence.nu), dtype=bool)
+    for stage in stages:
+        if getattr(stage, "withholds", False):
+            withheld |= stage.discard(evidence, params, memory)
+    if withheld.any():
+        keep = np.flatnonzero(~withheld)
+        part = replace(
+            evidence,
+            **{
+                f.name: value[keep]
+                for f in fields(Evidence)
+                if isinstance(value := getattr(evidence, f.name), np.ndarray)
+            },
+        )
+        detected = withheld.copy()
+        detected[keep] = _run_stages(part, params, memory, stages)
+        evidence.gated = np.zeros(len(withheld), bool)
+        evidence.gated[keep] = part.gated
+        evidence.detected = detected
+        if part.inflation is not None:
+            evidence.inflation = np.ones(len(withheld))
+            evidence.inflation[keep] = part.inflation
+        return detected
+    return _run_stages(evidence, params, memory, stages)
+
+
+def _run_stages(
+    evidence: Evidence,
+    params: CLParams,
+    memory: LinkMemory | None,
+    stages: tuple[DetectorStage, ...],
+) -> np.ndarray:
     detected = np.zeros(len(evidence.nu), dtype=bool)
-    for stage in active_stages(params):
+    for stage in stages:
+        if getattr(stage, "withholds", False):
+            continue
         if stage.overrides:
             evidence.detected = detected
             detected = stage.discard(evidence, params, memory)

@@ -22,10 +22,11 @@ What it assumes, and where it fails (``docs/beyond.md``, "Defences that hold"):
   ``detector.zone_trust_scale``) and reports that as its honest worst case.
 * A robot inside a zone does not fuse its own measurements: it dead-reckons until its
   estimate leaves the zone (its odometry bounds the error). This is a policy on the
-  sensor, not an inconsistency verdict, so it runs *after* the recovery stage
-  (:mod:`resloc.cl.detection_recovery`): the recovery neither counts these rows as a
-  rejection run nor re-admits them, and the recovery of a robot that left the zone works
-  as before. A robot parked in a zone for good is blind for good: no statistic run by
+  sensor, not an inconsistency verdict, so the rows are withheld from the other stages
+  (:func:`resloc.cl.detection.detect`): the sequence tests do not accumulate the lies told
+  there, and the recovery (:mod:`resloc.cl.detection_recovery`) neither counts them as a
+  rejection run nor re-admits them; the recovery of a robot that left the zone works as
+  before. A robot parked in a zone for good is blind for good: no statistic run by
   that robot alone can separate a lie from the truth there.
 * Reciprocal position fix: a robot inside a zone is not left dead-reckoning while a
   neighbour outside measures it. When the partner ``j`` of a link ``(i, j)`` has its
@@ -124,14 +125,17 @@ def inside_zone_map(p: np.ndarray, discs: tuple[tuple[float, float, float], ...]
 class ZoneTrust:
     """Discard measurements whose observer's estimate lies inside the mapped SDZs.
 
-    Runs after the recovery stage (it is a policy on the sensor, not a verdict the recovery
-    may override) and needs the observers' estimates (``Evidence.x_obs``); without them
-    (an attacker's scratch copy of the detector) it discards nothing.
+    It withholds its rows from every other stage (a policy on the sensor, not a verdict:
+    the per-link statistics and the recovery never see them) and needs the observers'
+    estimates (``Evidence.x_obs``); without them (an attacker's scratch copy of the
+    detector) it discards nothing.
     """
 
     name: ClassVar[str] = "zone_trust"
     compiled: ClassVar[bool] = False
     overrides: ClassVar[bool] = False
+    #: Its rows are withheld from every other stage (:func:`resloc.cl.detection.detect`).
+    withholds: ClassVar[bool] = True
 
     def active(self, params: CLParams) -> bool:
         return bool(params.zone_trust)
