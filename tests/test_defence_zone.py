@@ -272,3 +272,12 @@ def test_robot_nodes_reproduce_the_batched_engine_with_zone_trust():
             Pn = np.concatenate([node.P for node in nodes])
             assert np.abs(xn - x).max() <= TOL and np.abs(Pn - P).max() <= TOL
     assert fixes > 10
+
+
+def test_the_runtime_refuses_zone_trust_with_one_line():
+    from resloc.runtime.team import check_supported
+
+    scenario = default_scenario().replace(**{**DEFENCES["zone+full"], "run.trials": 1})
+    with pytest.raises(ConfigError, match="detector.zone_trust: the runtime") as err:
+        check_supported(scenario)
+    assert "\n" not in str(err.value)

@@ -130,11 +130,6 @@ class CLParams:
         sensing danger zone (:mod:`resloc.cl.detection_zone`).
     zone_trust_map : tuple of (cx, cy, r)
         The discs distrusted (the SDZ map, grown by the margin).
-    reciprocal : bool
-        Discard a range whose reciprocal (the partner's range of the same pair, same step)
-        disagrees beyond a chi-square bound (:mod:`resloc.cl.detection_reciprocal`).
-    reciprocal_gate : float or ndarray (B,)
-        The bound on ``(r_ij - r_ji)^2 / (2 range_std^2)`` (chi-square, 1 dof).
     """
 
     range_std: float = 0.005
@@ -173,8 +168,6 @@ class CLParams:
     recovery_inflation_cap: float | np.ndarray = 100.0
     zone_trust: bool = False
     zone_trust_map: tuple = ()
-    reciprocal: bool = False
-    reciprocal_gate: float | np.ndarray = 10.827566170662733
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

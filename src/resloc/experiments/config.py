@@ -161,7 +161,9 @@ class DetectorSpec:
     )
     # Defences that use what a team knows (docs/beyond.md, "Defences that hold").
     zone_trust: bool = _f(
-        False, "discard measurements a robot takes while its estimate is inside a mapped SDZ"
+        False,
+        "inside a mapped SDZ (estimated position) a robot ignores its own readings and fuses "
+        "its outside neighbours' readings of it",
     )
     zone_trust_margin: float = _f(
         0.05, "zone trust: grow every mapped SDZ radius by this (m)", min=0.0, max=ARENA_MAX
@@ -174,12 +176,6 @@ class DetectorSpec:
     )
     zone_trust_scale: float = _f(
         1.0, "zone trust: the map's error for evaluation, radii times this", min=0.0, max=1e3
-    )
-    reciprocal: bool = _f(
-        False, "discard a range whose reciprocal (z_ji of the same pair) disagrees"
-    )
-    reciprocal_false_alarm: float = _f(
-        1e-3, "reciprocal check: chi-square (1 dof) false-alarm probability", gt=0.0, max=0.5
     )
 
 
@@ -264,8 +260,6 @@ class Scenario:
                 tuple(d.zone_trust_shift),
                 d.zone_trust_scale,
             ),
-            reciprocal=d.reciprocal,
-            reciprocal_gate=chi2_gate(d.reciprocal_false_alarm, dof=1),
         )
 
     def replace(self, **changes: Any) -> Scenario:
