@@ -278,6 +278,6 @@ def test_the_runtime_refuses_zone_trust_with_one_line():
     from resloc.runtime.team import check_supported
 
     scenario = default_scenario().replace(**{**DEFENCES["zone+full"], "run.trials": 1})
-    with pytest.raises(ConfigError, match="detector.zone_trust: the runtime") as err:
+    with pytest.raises(ConfigError, match=r"detector\.zone_trust: the runtime") as err:
         check_supported(scenario)
     assert "\n" not in str(err.value)
