@@ -14,6 +14,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
 ``robot_cusum``
     While the CUSUM of the NIS over *all* of a robot's links alarms, its measurements whose
     NIS exceeds ``robot_cusum_k`` (:mod:`resloc.cl.detection_robot`).
+``zone_trust``
+    Withholds the measurements whose observer's estimate lies inside a mapped sensing
+    danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
+    the recovery included, never see them.
 ``recovery``
     Runs last and overrides the others: re-admits the measurements of a robot locked out by
     ``recovery_after`` consecutive rejections that pass an inflated NIS gate
@@ -27,7 +31,7 @@ The CL step runs :func:`detect`; the compiled kernel's coverage is read from
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -35,6 +39,7 @@ import numpy as np
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_robot import RobotCusum
+from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
@@ -74,6 +79,11 @@ class Evidence:
         covariance the update of each row uses (the CL step recomputes its moments).
     P_obs : ndarray, shape (E, 3, 3), optional
         The observers' covariances (the recovery bounds its inflation by their growth).
+    x_obs : ndarray, shape (E, 3), optional
+        The observers' estimates (zone-aware trust reads their positions).
+    zone_substituted : ndarray of bool, shape (E,), optional
+        Rows whose observer is inside a mapped zone and whose measurement was replaced by
+        the partner's range (zone-aware trust keeps them).
     """
 
     nu: np.ndarray
@@ -85,6 +95,8 @@ class Evidence:
     detected: np.ndarray | None = None
     inflation: np.ndarray | None = None
     P_obs: np.ndarray | None = None
+    x_obs: np.ndarray | None = None
+    zone_substituted: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -203,10 +215,12 @@ class MeanShiftCusum:
         )
 
 
-#: The stages, in the order they run (the gate first: the others read its verdict; the
-#: recovery last: it overrides every verdict).
+#: The stages, in the order they run (zone-aware trust withholds its rows from all others:
+#: a policy on the sensor, not a test; the gate first among the tests: the others read its
+#: verdict; the recovery last: it overrides every verdict).
 NORM_GATE = NormGate()
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
+    ZoneTrust(),
     NORM_GATE,
     NISCusum(),
     MeanShiftCusum(),
@@ -221,9 +235,49 @@ def active_stages(params: CLParams) -> tuple[DetectorStage, ...]:
 
 
 def detect(evidence: Evidence, params: CLParams, memory: LinkMemory | None) -> np.ndarray:
-    """Run every active stage; returns the discarded measurements, shape (E,)."""
+    """Run every active stage; returns the discarded measurements, shape (E,).
+
+    A stage that *withholds* (``withholds = True``: a policy, not a test, e.g. zone-aware
+    trust) runs first; the rows it discards are discarded, and the other stages judge the
+    remaining rows only (their statistics and the recovery never see the withheld rows).
+    """
+    stages = active_stages(params)
+    withheld = np.zeros(len(evidence.nu), dtype=bool)
+    for stage in stages:
+        if getattr(stage, "withholds", False):
+            withheld |= stage.discard(evidence, params, memory)
+    if withheld.any():
+        keep = np.flatnonzero(~withheld)
+        part = replace(
+            evidence,
+            **{
+                f.name: value[keep]
+                for f in fields(Evidence)
+                if isinstance(value := getattr(evidence, f.name), np.ndarray)
+            },
+        )
+        detected = withheld.copy()
+        detected[keep] = _run_stages(part, params, memory, stages)
+        evidence.gated = np.zeros(len(withheld), bool)
+        evidence.gated[keep] = part.gated
+        evidence.detected = detected
+        if part.inflation is not None:
+            evidence.inflation = np.ones(len(withheld))
+            evidence.inflation[keep] = part.inflation
+        return detected
+    return _run_stages(evidence, params, memory, stages)
+
+
+def _run_stages(
+    evidence: Evidence,
+    params: CLParams,
+    memory: LinkMemory | None,
+    stages: tuple[DetectorStage, ...],
+) -> np.ndarray:
     detected = np.zeros(len(evidence.nu), dtype=bool)
-    for stage in active_stages(params):
+    for stage in stages:
+        if getattr(stage, "withholds", False):
+            continue
         if stage.overrides:
             evidence.detected = detected
             detected = stage.discard(evidence, params, memory)

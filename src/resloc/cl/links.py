@@ -63,6 +63,10 @@ class LinkBatch:
         form, :meth:`from_predicted`): the copies are gathered on first read and kept, so
         that every reader (the numpy path, an attacker that alters them) sees ordinary
         arrays, while the compiled kernel reads the estimates by index and copies nothing.
+    z_reciprocal : ndarray, shape (E,), optional
+        The range neighbour j reported of the same pair this step (``nan``: none): what
+        zone-aware trust (:mod:`resloc.cl.detection_zone`) substitutes for a reading taken
+        inside a danger zone. None: the correction takes it from the batch's reverse links.
     """
 
     i: np.ndarray
@@ -77,6 +81,7 @@ class LinkBatch:
     tamper: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
     P_nb_ind: np.ndarray | None = None
     neighbours: NeighbourStates | None = None
+    z_reciprocal: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.i)

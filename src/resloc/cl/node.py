@@ -201,6 +201,7 @@ class RobotNode:
         lambda2: float,
         P_nb_ind: np.ndarray | None = None,
         factor_nb: np.ndarray | None = None,
+        z_reciprocal: np.ndarray | None = None,
     ) -> LinkOutcome:
         """Correction from this step's relative measurements of neighbours ``j``.
 
@@ -228,6 +229,10 @@ class RobotNode:
         factor_nb : ndarray, shape (E, 3, 3), optional
             The factors the neighbours keep for this robot (``factorized``: their
             :meth:`factor_for` ``(robot_id)``).
+        z_reciprocal : ndarray, shape (E, 2), optional
+            Each neighbour's own reading of this robot this step (range, bearing; ``nan``:
+            none), sent with its estimate: zone-aware trust (``params.zone_trust``) fuses
+            it as a position fix while this robot is inside a mapped danger zone.
 
         Returns
         -------
@@ -251,6 +256,9 @@ class RobotNode:
             P_nb_ind=None
             if P_nb_ind is None
             else np.asarray(P_nb_ind, dtype=float).reshape(-1, 3, 3)[order],
+            z_reciprocal=np.full((len(j), 2), np.nan)
+            if z_reciprocal is None
+            else np.asarray(z_reciprocal, dtype=float).reshape(-1, 2)[order],
         )
         self.x, self.P, out = correct(self.filt, self.x, self.P, links, self.params, self.memory)
         self._delivered_from = links.j[out.delivered]

@@ -126,6 +126,11 @@ class CLParams:
         Chi-square gate on the inflated NIS (default: false-alarm probability 1e-3).
     recovery_inflation_cap : float or ndarray (B,)
         Largest inflation ``f_max`` of the innovation covariance.
+    zone_trust : bool
+        Discard the measurements a robot takes while its estimate lies inside a mapped
+        sensing danger zone (:mod:`resloc.cl.detection_zone`).
+    zone_trust_map : tuple of (cx, cy, r)
+        The discs distrusted (the SDZ map, grown by the margin).
     """
 
     range_std: float = 0.005
@@ -162,6 +167,8 @@ class CLParams:
     recovery_after: float | np.ndarray = 10.0
     recovery_gate: float | np.ndarray = 13.815510557964274
     recovery_inflation_cap: float | np.ndarray = 100.0
+    zone_trust: bool = False
+    zone_trust_map: tuple = ()
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

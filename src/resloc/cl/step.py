@@ -10,6 +10,11 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
+from resloc.cl.detection_zone import (
+    materialize_with_reciprocal,
+    reciprocal_position_fix,
+    substitute_reciprocal,
+)
 from resloc.cl.detector import innovation_norm
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.kernels import fast_correct
@@ -111,12 +116,42 @@ def _decide(
     m = fusion.moments(filt, memory, x_i, P_i, x_ref, P_ref, ii, jj, R)
     z_rows = links.z[rows] if links.tamper is None else links.tamper(rows, m.z_hat, m.S)
     nu = innovation(z_rows, m.z_hat)
+    substituted = None
+    if params.zone_trust:
+        # Zone-aware trust: a reading taken inside a mapped SDZ is replaced by the
+        # partner's position fix when the partner, outside, measured the pair.
+        z_partner = None if links.z_reciprocal is None else links.z_reciprocal[rows]
+        substituted = substitute_reciprocal(x_i, links.x_nb[rows], z_partner, params)
+
+    def position_fixes(m: Moments, sel: np.ndarray) -> Moments:
+        # The substituted rows among ``sel`` get the partner's position fix (in place on nu).
+        if substituted is None:
+            return m
+        s = sel[substituted[sel]]
+        if not s.size:
+            return m
+        fix, nu[s] = reciprocal_position_fix(
+            x_i[s], P_i[s], links.x_nb[rows[s]], links.P_nb[rows[s]], z_partner[s], R
+        )
+        return _with_rows(m, s, fix)
+
+    m = position_fixes(m, np.arange(len(rows)))
     n_trig = innovation_norm(nu, m.S, params.trigger_norm, params.noise_std)
     if params.detector_norm == params.trigger_norm:
         n_det = n_trig
     else:
         n_det = innovation_norm(nu, m.S, params.detector_norm, params.noise_std)
-    evidence = Evidence(nu, m.S, n_det, ii, jj, np.zeros(len(rows), bool), P_obs=P_i)
+    evidence = Evidence(
+        nu,
+        m.S,
+        n_det,
+        ii,
+        jj,
+        np.zeros(len(rows), bool),
+        P_obs=P_i,
+        x_obs=x_i,
+        zone_substituted=substituted,
+    )
     detected = detect(evidence, params, memory)
     accepted = ~detected
     if evidence.inflation is not None:
@@ -132,6 +167,7 @@ def _decide(
             )
             m = _with_rows(m, r, fresh)
             nu[r] = innovation(z_rows[r], fresh.z_hat)
+            m = position_fixes(m, r)
     if params.threshold_innovation is ThresholdInnovation.LAST_SENT:
         size = np.where(known, memory.last_norm[pos] if len(memory) else 0.0, 0.0)
     else:
@@ -178,6 +214,7 @@ def _decide(
         )
         m = _with_rows(m, sub, fresh)
         nu[sub] = innovation(z_rows[sub], fresh.z_hat)
+        m = position_fixes(m, sub)
     return fuse, m, nu, P_i
 
 
@@ -249,6 +286,12 @@ def correct(
     problem = fusion.problem(params)
     if problem is not None:
         raise ValueError(f"fusion {params.fusion.value!r} {problem}")
+    if params.zone_trust and links.z_reciprocal is None:
+        # Every reading as reported (lies included) and its reverse link's range.
+        pre = fusion.moments(
+            filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, params.R
+        )
+        links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
     out = LinkOutcome.empty(E)
     x = x.copy()
     P = P.copy()

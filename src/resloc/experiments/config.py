@@ -22,6 +22,7 @@ from typing import Any
 
 from resloc.cl.cusum import chi2_gate
 from resloc.cl.detection import NORM_GATE
+from resloc.cl.detection_zone import zone_map
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
 from resloc.cl.fusion_methods import FUSION_STRATEGIES, fusion_strategy
@@ -164,6 +165,24 @@ class DetectorSpec:
     recovery_inflation_cap: float = option(
         100.0, "recovery: largest inflation of the innovation covariance", min=1.0, max=1e12
     )
+    # Defences that use what a team knows (docs/beyond.md, "Defences that hold").
+    zone_trust: bool = option(
+        False,
+        "inside a mapped SDZ (estimated position) a robot ignores its own readings and fuses "
+        "its outside neighbours' readings of it",
+    )
+    zone_trust_margin: float = option(
+        0.05, "zone trust: grow every mapped SDZ radius by this (m)", min=0.0, max=ARENA_MAX
+    )
+    zone_trust_shift: list = option(
+        [0.0, 0.0],
+        "zone trust: the map's error for evaluation, centres moved by [dx, dy] (m)",
+        min=-ARENA_MAX,
+        max=ARENA_MAX,
+    )
+    zone_trust_scale: float = option(
+        1.0, "zone trust: the map's error for evaluation, radii times this", min=0.0, max=1e3
+    )
 
 
 @dataclass(frozen=True)
@@ -242,6 +261,13 @@ class Scenario:
             recovery_after=float(d.recovery_after),
             recovery_gate=chi2_gate(d.recovery_false_alarm),
             recovery_inflation_cap=d.recovery_inflation_cap,
+            zone_trust=d.zone_trust,
+            zone_trust_map=zone_map(
+                [(z.center, z.radius) for z in w.sdz] if d.zone_trust else [],
+                d.zone_trust_margin,
+                tuple(d.zone_trust_shift),
+                d.zone_trust_scale,
+            ),
         )
 
     def replace(self, **changes: Any) -> Scenario:
@@ -269,6 +295,7 @@ _LIST_LENGTHS = {
     "motion.process_floor_std": 3,
     "attack.bias": 2,
     "attack.stealth_direction": 2,
+    "detector.zone_trust_shift": 2,
     "center": 2,
 }
 

@@ -26,6 +26,8 @@ _CUSUM = {**_NIS_STUDY, "detector.cusum": True}
 _MEAN = {**_CUSUM, "detector.mean_cusum": True}
 _GAUGE = {"estimator.fusion": "gauge"}
 _PAPER = {"detector.enabled": True, "detector.norm": "euclidean"}
+_FULL = {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True, "detector.recovery": True}
+_ZONE = {"detector.zone_trust": True}
 
 #: Defence name -> dotted scenario overrides (read-only).
 DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
@@ -52,12 +54,16 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
             # + the per-robot CUSUM of the NIS over all of a robot's links.
             "nis_link_robot_cusums": {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True},
             # Everything: gate, per-link and per-robot sequence tests, recovery.
-            "full": {
-                **_NIS,
-                **_LINK_CUSUMS,
-                "detector.robot_cusum": True,
-                "detector.recovery": True,
-            },
+            "full": dict(_FULL),
+            # Zone-aware trust (cl/detection_zone.py): a robot does not fuse what its own
+            # sensor reports while its estimate is inside a mapped SDZ. Legitimate only under
+            # the paper's threat model (sensing attacks confined to the known SDZs); the
+            # '@shifted' / '@shrunk' variants give the robots a wrong map (centre moved by
+            # one radius; radius halved) to measure what is left when that model fails.
+            "zone": {**_NIS, **_ZONE},
+            "zone+full": {**_FULL, **_ZONE},
+            "zone+full@shifted": {**_FULL, **_ZONE, "detector.zone_trust_shift": [0.5, 0.0]},
+            "zone+full@shrunk": {**_FULL, **_ZONE, "detector.zone_trust_scale": 0.5},
         }.items()
     }
 )

@@ -108,6 +108,11 @@ def check_supported(scenario: Scenario) -> None:
         )
     if scenario.trigger.risk_source is not RiskSource.TRUE:
         raise ConfigError("trigger.risk_source: the runtime supports 'true' only")
+    if scenario.detector.zone_trust:
+        raise ConfigError(
+            "detector.zone_trust: the runtime's messages do not carry a neighbour's reading of "
+            "the receiver yet (RobotNode.correct's z_reciprocal); set it false for a swarm"
+        )
     if scenario.world.attack.kind is AttackKind.STEALTHY:
         raise ConfigError(
             "attack.kind: 'stealthy' needs the victim's filter inside the world; "
