@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from resloc.experiments import runner
+from resloc.experiments import lockstep, runner
 from resloc.experiments.config import default_scenario
 from resloc.experiments.metrics import (
     NEES_EXCEED_3DOF,
@@ -93,12 +93,16 @@ def test_buffer_is_bounded_for_large_teams():
 def test_kernels_are_loaded_before_the_first_estimator_step(monkeypatch):
     events = []
     monkeypatch.setattr(runner, "warm_up_kernels", lambda: events.append("warm"))
-    real_step = runner._isolated_step
+    real_predict = lockstep.predict
 
-    def step(tr, *args, **kwargs):
-        events.append(tr.name)
-        return real_step(tr, *args, **kwargs)
+    def predict(*args, **kwargs):
+        events.append("predict")
+        return real_predict(*args, **kwargs)
 
-    monkeypatch.setattr(runner, "_isolated_step", step)
-    runner.run_scenario(default_scenario().replace(**{"run.steps": 2, "run.filters": ["ckf"]}))
-    assert events == ["warm", "ckf", "ckf"]
+    monkeypatch.setattr(lockstep, "predict", predict)
+    runner.run_scenario(
+        default_scenario().replace(
+            **{"run.steps": 2, "run.filters": ["ckf"], "run.dead_reckoning": False}
+        )
+    )
+    assert events == ["warm", "predict", "predict"]
