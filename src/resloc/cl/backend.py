@@ -15,10 +15,11 @@ variable ``RESLOC_BACKEND`` (``auto``, ``numba`` or ``numpy``) read at import.
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 import weakref
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import NamedTuple
 
@@ -42,6 +43,7 @@ __all__ = [
     "backend",
     "filter_kernel_spec",
     "kernel_refusal",
+    "per_filter",
     "set_backend",
     "use_backend",
 ]
@@ -122,20 +124,22 @@ class FilterKernelSpec(NamedTuple):
     circular: bool
 
 
-_filter_specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+def per_filter(build: Callable) -> Callable:
+    """``build(filt)`` kept per filter object (filters are immutable); a filter that is not
+    hashable or weakly referenceable is described anew each call."""
+    specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
+    @functools.wraps(build)
+    def cached(filt):
+        try:
+            return specs[filt]
+        except KeyError:
+            spec = specs[filt] = build(filt)
+            return spec
+        except TypeError:
+            return build(filt)
 
-def filter_kernel_spec(filt) -> FilterKernelSpec | None:
-    """The kernel's description of ``filt``, or None when the kernel does not reproduce it
-    (cached per filter object: filters are immutable)."""
-    try:
-        return _filter_specs[filt]
-    except KeyError:
-        spec = _build_filter_spec(filt)
-        _filter_specs[filt] = spec
-        return spec
-    except TypeError:  # not hashable or not weakly referenceable
-        return _build_filter_spec(filt)
+    return cached
 
 
 def _build_filter_spec(filt) -> FilterKernelSpec | None:
@@ -165,6 +169,10 @@ def _build_filter_spec(filt) -> FilterKernelSpec | None:
         np.ascontiguousarray(filt.rule6.Wc, dtype=float),
         bool(filt.circular),
     )
+
+
+#: The kernel's description of a filter, or None when the kernel does not reproduce it.
+filter_kernel_spec = per_filter(_build_filter_spec)
 
 
 def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str | None:

@@ -31,14 +31,13 @@ the reference to ~1e-15 (tested to 1e-9).
 from __future__ import annotations
 
 import math
-import weakref
 from typing import NamedTuple
 
 import numpy as np
 
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_trig as _kernels_trig
-from resloc.cl.backend import backend
+from resloc.cl.backend import backend, per_filter
 from resloc.cl.kernels_links import NOT_PD, OK
 from resloc.cl.kernels_math import chol3, jit, stamp_with_pieces, wrap
 from resloc.cl.kernels_trig import fast_atan2, small_angle_sincos
@@ -76,22 +75,6 @@ class PredictKernelSpec(NamedTuple):
     circular: bool
 
 
-_specs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def predict_kernel_spec(filt) -> PredictKernelSpec | None:
-    """The kernel's description of ``filt``'s prediction, or None when the kernel does not
-    reproduce it (cached per filter object: filters are immutable)."""
-    try:
-        return _specs[filt]
-    except KeyError:
-        spec = _build_spec(filt)
-        _specs[filt] = spec
-        return spec
-    except TypeError:  # not hashable or not weakly referenceable
-        return _build_spec(filt)
-
-
 def _build_spec(filt) -> PredictKernelSpec | None:
     if type(filt) is ExtendedFilter:
         w = np.zeros(1)
@@ -114,6 +97,11 @@ def _build_spec(filt) -> PredictKernelSpec | None:
         np.ascontiguousarray(filt.rule3.Wc, dtype=float),
         bool(filt.circular),
     )
+
+
+#: The kernel's description of a filter's prediction, or None when the kernel does not
+#: reproduce it.
+predict_kernel_spec = per_filter(_build_spec)
 
 
 def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | None:
