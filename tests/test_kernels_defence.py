@@ -28,7 +28,7 @@ FILTERS = {
     "ukf": make_filter("ukf", 0.8, 2.0, 1.0),
     "ekf": make_filter("ekf"),
 }
-STAGE_STORES = ("robot_cusum", "recovery", "recovery_spread")
+STAGE_STORES = ("robot_cusum", "recovery", "recovery_spread", "recovery_applied")
 
 
 def full_defence(**changes):
