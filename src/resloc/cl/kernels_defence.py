@@ -14,9 +14,11 @@ on a step. The stores then hold the reference's values; they may also hold keys 
 reference has not inserted yet (a robot whose measurements the gate all discarded), which
 :meth:`LinkStatistic.get <resloc.cl.memory.LinkStatistic.get>` reads as the same 0.
 
-When the recovery re-admits a measurement with robot ``i``'s covariance inflated by
-``f > 1``, the loop computes that link's moments a second time from ``f P_i`` and updates
-with them, as :func:`resloc.cl.step.correct` does.
+The recovery's third store, ``A_i`` (the inflation re-admissions applied since robot ``i``'s
+last ordinary acceptance, capped at ``f_max^2``), is kept the same way. When the recovery
+re-admits a measurement with robot ``i``'s covariance inflated by ``f > 1``, the loop
+computes that link's moments a second time from ``f P_i`` and updates with them, as
+:func:`resloc.cl.step.correct` does.
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -159,7 +161,7 @@ def _recovery(
 ):  # fmt: skip
     """Recovery after a run of rejections on one link of robot i: ``(detected, inflation)``.
 
-    ``f = min(2^((n - R) / R), f_max, max(G_i, 1), max(f_max / A_i, 1))`` while ``n >= R``
+    ``f = min(2^((n - R) / R), f_max, max(G_i, 1), max(f_max^2 / A_i, 1))`` while ``n >= R``
     (``G_i``: growth of ``tr P_i,pos`` since the last ordinary acceptance; ``A_i``: the
     inflation re-admissions applied since then); a discarded measurement with ``NIS / f <=
     gate`` is re-admitted with inflation ``f``. Updates the run count ``n``, the spread and
@@ -207,10 +209,8 @@ def defend_link(defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11):
     covariance), after the per-link stages' verdict ``detected`` and the gate's ``gated``:
     ``(detected, inflation)``. The robot CUSUM adds discards; the recovery runs last and
     overrides. Twin: the per-robot stages of :func:`resloc.cl.detection.detect`."""
-    robot, rk, rh, rg, rslot, recovery, after, gate, cap, runs, runs_slot, spread, sslot = defence[
-        :13
-    ]
-    applied, aslot = defence[13], defence[14]
+    robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
+    runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     stat = nis_of(nu0, nu1, l00, l10, l11)
     if robot and _robot_cusum(rg, rslot[e], stat, gain_at(rk, i), gain_at(rh, i), not gated):
         detected = True
