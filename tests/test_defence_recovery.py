@@ -4,12 +4,17 @@ re-admitted within a bounded number of measurements, and the recovery's bound ho
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from resloc.cl.detection import DETECTOR_STAGES, active_stages
-from resloc.cl.detection_recovery import recovery_inflation, update_rejection_runs
+from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages
+from resloc.cl.detection_recovery import (
+    recovery_inflation,
+    remaining_inflation,
+    update_rejection_runs,
+)
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.memory import LinkMemory, LinkStatistic
 from resloc.cl.params import CLParams
@@ -141,3 +146,58 @@ def test_recovery_cap_bounds_what_an_attacker_gets_accepted():
         assert out.detected.all()
         x, P = x_new, P_new
     np.testing.assert_allclose(x, 0.0)
+
+
+def test_total_inflation_between_acceptances_is_capped_at_f_max_squared():
+    f = np.array([50.0, 50.0, 50.0, np.nan])
+    applied = np.array([0.0, 100.0, 1e4, 0.0])
+    np.testing.assert_allclose(remaining_inflation(f, applied, 100.0)[:3], [50.0, 50.0, 1.0])
+    assert np.isnan(remaining_inflation(f, applied, 100.0)[3])
+
+
+def test_readmissions_record_the_applied_inflation_and_an_acceptance_resets_it():
+    """A robot kept in recovery by lies on every link: each re-admission multiplies ``A_i``
+    by what it applied, never past ``f_max^2``; an ordinary acceptance resets it."""
+    params = _params(recovery=True, recovery_after=1, recovery_inflation_cap=4.0)
+    stage = next(s for s in DETECTOR_STAGES if s.name == "recovery")
+    memory = LinkMemory(2)
+    applied = memory.stage_statistic("recovery_applied")
+    i = np.array([0])
+    P = np.eye(3)[None] * 1e-4
+    history = []
+    for k in range(30):
+        # The covariance the stage sees grows as inflated posteriors would make it.
+        P_obs = P * 4.0**k
+        S = np.eye(2)[None] * 1e-4 * 4.0**k
+        nu = np.array([[0.05, 0.0]]) * 2.0**k  # NIS 25: rejected, re-admitted at f >= 2
+        rejected = np.ones(1, bool)
+        ev = Evidence(nu, S, np.full(1, 5.0), i, np.ones(1, int), rejected, rejected, P_obs=P_obs)
+        stage.discard(ev, params, memory)
+        history.append(float(applied.get(i, i)[0]))
+    assert max(history) <= 16.0 + 1e-9 and history[-1] == pytest.approx(16.0)
+    passed = np.zeros(1, bool)
+    ev = Evidence(nu, S, np.zeros(1), i, np.ones(1, int), passed, passed, P_obs=P_obs)
+    stage.discard(ev, params, memory)
+    assert applied.get(i, i)[0] == 0.0
+
+
+def test_full_defence_stays_bounded_under_a_persistent_range_bias():
+    """Issue 13's divergence: with the recovery, ``full`` blew up under the suite's range
+    bias (early-SDZ scenario, one trial: MSLE 3.1 after 150 steps, 1e15 after 300, against
+    0.22 for the same stages without the recovery). It must stay with that defence."""
+    import resloc
+    from resloc.experiments.config import load_scenario
+    from resloc.experiments.defences import DEFENCES
+    from resloc.world.attackers import make_attacker
+
+    toml = Path(__file__).resolve().parents[1] / "examples" / "attack" / "early_sdz.toml"
+    base = load_scenario(toml).replace(
+        **{"run.steps": 150, "run.filters": ["ckf"], "run.dead_reckoning": False, "run.trials": 1}
+    )
+    adv = make_attacker("range_bias", size=2.0)
+    msle = {}
+    for name in ("full", "nis_link_robot_cusums"):
+        scenario = base.replace(**DEFENCES[name]).replace(**adv.overrides)
+        msle[name] = resloc.run_scenario(scenario, adversary=adv).summary()["ckf"]["msle_mean"]
+    assert np.isfinite(msle["full"])
+    assert msle["full"] <= 3.0 * msle["nis_link_robot_cusums"], msle

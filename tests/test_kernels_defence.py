@@ -28,7 +28,7 @@ FILTERS = {
     "ukf": make_filter("ukf", 0.8, 2.0, 1.0),
     "ekf": make_filter("ekf"),
 }
-STAGE_STORES = ("robot_cusum", "recovery", "recovery_spread")
+STAGE_STORES = ("robot_cusum", "recovery", "recovery_spread", "recovery_applied")
 
 
 def full_defence(**changes):
@@ -63,15 +63,20 @@ def assert_same_stage_statistics(fast: LinkMemory, ref: LinkMemory) -> None:
 
 @pytest.fixture
 def readmissions(monkeypatch):
-    """Counts the reference's re-admissions with an inflated covariance (f > 1)."""
-    count = {"inflated": 0, "readmitted": 0}
+    """Counts the reference's re-admissions with an inflated covariance (f > 1), and those
+    on top of an earlier one since the robot's last ordinary acceptance (``A_i > f``: the
+    inflations the total cap multiplies)."""
+    count = {"inflated": 0, "readmitted": 0, "repeated": 0}
     discard = RejectionRecovery.discard
 
     def counted(self, evidence, params, memory):
         detected = discard(self, evidence, params, memory)
         if evidence.inflation is not None:
             count["readmitted"] += int((evidence.detected & ~detected).sum())
-            count["inflated"] += int(((evidence.inflation > 1.0) & ~detected).sum())
+            inflated = (evidence.inflation > 1.0) & ~detected
+            count["inflated"] += int(inflated.sum())
+            applied = memory.stage_statistic("recovery_applied").get(evidence.i, evidence.i)
+            count["repeated"] += int((inflated & (applied > evidence.inflation * 1.000001)).sum())
         return detected
 
     monkeypatch.setattr(RejectionRecovery, "discard", counted)
@@ -98,6 +103,7 @@ def test_compiled_defence_stages_match_reference_over_a_run(name, case, readmiss
         assert robot_cusum_active > 0
     if case in ("strict-recovery", "recovery-only", "gauge-strict"):
         assert readmissions["inflated"] > 0, "no re-admission with an inflated covariance"
+        assert readmissions["repeated"] > 0, "no re-admission on top of an inflated one"
 
 
 def test_the_defence_stages_are_declared_compiled():

@@ -14,9 +14,11 @@ on a step. The stores then hold the reference's values; they may also hold keys 
 reference has not inserted yet (a robot whose measurements the gate all discarded), which
 :meth:`LinkStatistic.get <resloc.cl.memory.LinkStatistic.get>` reads as the same 0.
 
-When the recovery re-admits a measurement with robot ``i``'s covariance inflated by
-``f > 1``, the loop computes that link's moments a second time from ``f P_i`` and updates
-with them, as :func:`resloc.cl.step.correct` does.
+The recovery's third store, ``A_i`` (the inflation re-admissions applied since robot ``i``'s
+last ordinary acceptance, capped at ``f_max^2``), is kept the same way. When the recovery
+re-admits a measurement with robot ``i``'s covariance inflated by ``f > 1``, the loop
+computes that link's moments a second time from ``f P_i`` and updates with them, as
+:func:`resloc.cl.step.correct` does.
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -64,6 +66,8 @@ class KernelDefence(NamedTuple):
     runs_slot: np.ndarray  # (E,) int64
     spread: np.ndarray  # (n,) tr P_pos at the robot's last ordinary acceptance
     spread_slot: np.ndarray  # (E,) int64
+    applied: np.ndarray  # (n,) product of the inflations applied since then (0: none)
+    applied_slot: np.ndarray  # (E,) int64
 
 
 def _gain(v) -> np.ndarray:
@@ -114,15 +118,19 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
     else:
         robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
     if recovery_gains:
-        # the stores of RejectionRecovery (detection_recovery._runs and its spread)
+        # the stores of RejectionRecovery (detection_recovery._runs, its spread and the
+        # inflation applied)
         runs = memory.stage_statistic("recovery", width=None)
         spread = memory.stage_statistic("recovery_spread")
+        applied = memory.stage_statistic("recovery_applied")
         runs_slot = store_slots(runs, i, i, saved)
         spread_slot = store_slots(spread, i, i, saved)
+        applied_slot = store_slots(applied, i, i, saved)
         recovery_part = (True, *recovery_gains, runs.values, runs_slot, spread.values, spread_slot)
+        recovery_part += (applied.values, applied_slot)
     else:
         recovery_part = (False, _NO_GAIN, _NO_GAIN, _NO_GAIN)
-        recovery_part += (_NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS)
+        recovery_part += (_NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS)
     return DetectorState(KernelDefence(*robot_part, *recovery_part), tuple(saved))
 
 
@@ -147,14 +155,18 @@ def _robot_cusum(g, slot, stat, k, h, passed):
 
 
 @jit_inline
-def _recovery(runs, run_slot, spread, spread_slot, detected, stat, trace, after, gate, cap):
+def _recovery(
+    runs, run_slot, spread, spread_slot, applied, applied_slot, detected, stat, trace,
+    after, gate, cap,
+):  # fmt: skip
     """Recovery after a run of rejections on one link of robot i: ``(detected, inflation)``.
 
-    ``f = min(2^((n - R) / R), f_max, max(G_i, 1))`` while ``n >= R`` (``G_i``: growth of
-    ``tr P_i,pos`` since the last ordinary acceptance); a discarded measurement with ``NIS
-    / f <= gate`` is re-admitted with inflation ``f``. Updates the run count ``n`` and the
-    spread in place. Twin: ``RejectionRecovery.discard`` (with ``recovery_inflation`` and
-    ``update_rejection_runs``).
+    ``f = min(2^((n - R) / R), f_max, max(G_i, 1), max(f_max^2 / A_i, 1))`` while ``n >= R``
+    (``G_i``: growth of ``tr P_i,pos`` since the last ordinary acceptance; ``A_i``: the
+    inflation re-admissions applied since then); a discarded measurement with ``NIS / f <=
+    gate`` is re-admitted with inflation ``f``. Updates the run count ``n``, the spread and
+    ``A_i`` in place. Twin: ``RejectionRecovery.discard`` (with ``recovery_inflation``,
+    ``remaining_inflation``, ``_record_applied`` and ``update_rejection_runs``).
     """
     start = runs[run_slot]
     f = math.nan
@@ -168,14 +180,22 @@ def _recovery(runs, run_slot, spread, spread_slot, detected, stat, trace, after,
         growth = 1.0
     if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
         f = growth
+    before = applied[applied_slot]
+    remaining = (cap * cap) / (before if before > 1.0 else 1.0)
+    if remaining < 1.0:
+        remaining = 1.0
+    if f > remaining:
+        f = remaining
     if not detected:
         spread[spread_slot] = trace
+        applied[applied_slot] = 0.0
     inflation = 1.0
     readmitted = False
     if detected and math.isfinite(f) and stat / f <= gate:
         detected = False
         readmitted = True
         inflation = f
+        applied[applied_slot] = (before if before > 1.0 else 1.0) * f
     if not detected and not readmitted:
         runs[run_slot] = 0.0
     elif not readmitted:
@@ -189,7 +209,8 @@ def defend_link(defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11):
     covariance), after the per-link stages' verdict ``detected`` and the gate's ``gated``:
     ``(detected, inflation)``. The robot CUSUM adds discards; the recovery runs last and
     overrides. Twin: the per-robot stages of :func:`resloc.cl.detection.detect`."""
-    robot, rk, rh, rg, rslot, recovery, after, gate, cap, runs, runs_slot, spread, sslot = defence
+    robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
+    runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     stat = nis_of(nu0, nu1, l00, l10, l11)
     if robot and _robot_cusum(rg, rslot[e], stat, gain_at(rk, i), gain_at(rh, i), not gated):
         detected = True
@@ -197,7 +218,7 @@ def defend_link(defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11):
     if recovery:
         trace = Pi[0, 0] + Pi[1, 1]
         detected, inflation = _recovery(
-            runs, runs_slot[e], spread, sslot[e], detected, stat, trace,
+            runs, runs_slot[e], spread, sslot[e], applied, aslot[e], detected, stat, trace,
             gain_at(after, i), gain_at(gate, i), gain_at(cap, i),
         )  # fmt: skip
     return detected, inflation
