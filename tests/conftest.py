@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable
 
 import numpy as np
@@ -36,3 +37,11 @@ def random_spd() -> Callable[..., np.ndarray]:
         return 0.5 * (P + np.swapaxes(P, -1, -2))
 
     return make
+
+
+def pytest_configure(config):
+    # A suite started in the background by a non-interactive shell inherits SIGINT ignored
+    # (POSIX), and so would every process it starts; the Ctrl-C tests simulate a terminal's
+    # foreground job, so give SIGINT Python's usual handler (a child gets it back at exec).
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
