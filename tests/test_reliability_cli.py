@@ -354,3 +354,40 @@ def test_a_signal_during_a_finalizer_is_raised_after_it_not_lost(monkeypatch):
     finally:
         signal.signal(signal.SIGUSR1, previous)
     assert finished == [sum(range(10_000))] and unraisable == []
+
+
+def test_a_signal_during_a_callback_from_c_is_raised_after_it_not_lost():
+    """numba's compiler calls Python back through ctypes; an exception raised there cannot
+    propagate (it goes to sys.unraisablehook): the signal must be raised once it returns."""
+    import ctypes
+
+    from resloc.signals import raising_handler
+
+    class StopError(Exception):
+        pass
+
+    previous_hook = sys.unraisablehook
+    unraisable = []
+    sys.unraisablehook = unraisable.append
+    previous = signal.signal(signal.SIGUSR1, raising_handler(lambda signum: StopError()))
+    finished = []
+
+    @ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_int)
+    def callback(n):
+        os.kill(os.getpid(), signal.SIGUSR1)
+        total = 0
+        for k in range(n):  # bytecodes during which the signal is pending
+            total += k
+        finished.append(total)
+        return 0
+
+    try:
+        with pytest.raises(StopError):
+            callback(10_000)  # called from C, as llvmlite calls numba's cache callback
+            for _ in range(1000):
+                time.sleep(0.001)
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        sys.unraisablehook = previous_hook
+    assert finished == [] or finished == [sum(range(10_000))]
+    assert unraisable == []

@@ -7,17 +7,26 @@ is lost (measured: Ctrl-C and SIGTERM of ``resloc run`` were ignored that way). 
 handlers re-deliver the signal instead while a finalizer runs (from a helper thread: a
 ``kill`` from the handler itself would run the handler again at once, still inside the
 finalizer), so it is raised as soon as the finalizer returns.
+
+The same loss happens in code called back from C (a ``ctypes`` callback: numba's compiler
+calls one while it writes its cache, so a SIGTERM during the first compilation was printed
+as "Exception ignored on calling ctypes callback function" and lost). There the frame does
+not say so; the exception reaches :data:`sys.unraisablehook`, which these handlers wrap
+to re-deliver their own signals instead of printing them.
 """
 
 from __future__ import annotations
 
 import _thread
 import os
+import sys
 from collections.abc import Callable
 
 __all__ = ["raising_handler"]
 
 _FINALIZER_FILES = ("weakref.py", "_weakrefset.py")
+#: Marks an exception raised by one of these handlers with its signal number.
+_SIGNAL_ATTRIBUTE = "resloc_signal"
 
 
 def _in_finalizer(frame) -> bool:
@@ -27,14 +36,37 @@ def _in_finalizer(frame) -> bool:
     return code.co_name == "__del__" or code.co_filename.endswith(_FINALIZER_FILES)
 
 
+def _redeliver(signum: int) -> None:
+    _thread.start_new_thread(os.kill, (os.getpid(), signum))
+
+
+def _redelivering_hook(previous: Callable) -> Callable:
+    """``sys.unraisablehook`` that re-delivers a signal our handler raised where it could
+    not propagate, and passes everything else to ``previous``."""
+
+    def hook(unraisable) -> None:
+        signum = getattr(unraisable.exc_value, _SIGNAL_ATTRIBUTE, None)
+        if signum is None:
+            previous(unraisable)
+        else:
+            _redeliver(signum)
+
+    hook.redelivers_signals = True
+    return hook
+
+
 def raising_handler(make_exception: Callable[[int], BaseException]):
     """A handler for :func:`signal.signal` that raises ``make_exception(signum)`` in the
-    main thread, deferred while a finalizer is running."""
+    main thread, deferred while a finalizer or a callback from C is running."""
+    if not getattr(sys.unraisablehook, "redelivers_signals", False):
+        sys.unraisablehook = _redelivering_hook(sys.unraisablehook)
 
     def handler(signum, frame):
         if _in_finalizer(frame):
-            _thread.start_new_thread(os.kill, (os.getpid(), signum))
+            _redeliver(signum)
             return
-        raise make_exception(signum)
+        exc = make_exception(signum)
+        setattr(exc, _SIGNAL_ATTRIBUTE, signum)
+        raise exc
 
     return handler
