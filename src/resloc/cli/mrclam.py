@@ -10,9 +10,9 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import handle_errors, step_progress
+from resloc.cli.common import FilterChoice, handle_errors, step_progress
 from resloc.cli.export import export_option
-from resloc.cli.run import FilterChoice, warn_diverged
+from resloc.cli.run import warn_diverged
 from resloc.innovation_norm import InnovationNorm
 from resloc.validation import INT64_MAX
 
