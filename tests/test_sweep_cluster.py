@@ -103,14 +103,9 @@ def _start_worker(address: str, name: str, log: Path) -> subprocess.Popen:
     )
 
 
-@pytest.fixture(scope="module")
-def scheduler(tmp_path_factory):
-    """`dask scheduler` and two `dask worker` processes on 127.0.0.1; yields the address."""
-    from distributed import Client
-
-    logs = tmp_path_factory.mktemp("dask")
+def _start_scheduler(log: Path) -> tuple[subprocess.Popen, str]:
+    """`dask scheduler` on 127.0.0.1 (any free port); the process and its address."""
     port = _free_port()
-    address = f"tcp://127.0.0.1:{port}"
     sched = subprocess.Popen(
         [
             str(BIN / "dask"),
@@ -123,10 +118,27 @@ def scheduler(tmp_path_factory):
             "--dashboard-address",
             "127.0.0.1:0",  # its health/metrics endpoints: loopback, any free port
         ],
-        stdout=(logs / "scheduler.log").open("w"),
+        stdout=log.open("w"),
         stderr=subprocess.STDOUT,
         env=_env(),
     )
+    return sched, f"tcp://127.0.0.1:{port}"
+
+
+def _kill_tree(pid: int) -> None:
+    """SIGKILL a process and its children, as a crashed host would die."""
+    tree = psutil.Process(pid)
+    for p in [*tree.children(recursive=True), tree]:
+        p.kill()
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
+    """`dask scheduler` and two `dask worker` processes on 127.0.0.1; yields the address."""
+    from distributed import Client
+
+    logs = tmp_path_factory.mktemp("dask")
+    sched, address = _start_scheduler(logs / "scheduler.log")
     procs = [sched]
     try:
         procs += [_start_worker(address, f"w{k}", logs / f"w{k}.log") for k in range(2)]
@@ -180,9 +192,7 @@ def test_killed_worker_has_its_cells_retried(scheduler, tmp_path):
                 # process tree) as a crashed host would die.
                 if killed or not observer.processing(workers=[doomed_addr])[doomed_addr]:
                     return
-                tree = psutil.Process(doomed.pid)
-                for p in [*tree.children(recursive=True), tree]:
-                    p.kill()
+                _kill_tree(doomed.pid)
                 killed.append(doomed.pid)
 
             study = Study(scheduler=scheduler, store=ResultStore(tmp_path), progress=kill_when_busy)
@@ -193,6 +203,55 @@ def test_killed_worker_has_its_cells_retried(scheduler, tmp_path):
     assert result.failures == [] and study.stats.computed == study.stats.cells
     for key, values in _per_seed(reference).items():
         np.testing.assert_array_equal(_per_seed(result)[key], values)
+
+
+def test_cluster_left_without_workers_stops_the_study(tmp_path):
+    """Every worker of an existing cluster dies: the study stops within its timeout with
+    one error (the scheduler alone would keep the tasks waiting forever), and the cells
+    finished before are in the store; a cluster with no worker at all is refused."""
+    from distributed import Client
+
+    from resloc.errors import ResLocError
+    from resloc.experiments.backends import ClusterLostError
+
+    def overdue(signum, frame):
+        raise TimeoutError("the study kept waiting for a worker")
+
+    spec = parse_sweep({**SPEC, "run": {"steps": 150, "trials": 4}})
+    sched, address = _start_scheduler(tmp_path / "scheduler.log")
+    procs = [sched]
+    previous = signal.signal(signal.SIGALRM, overdue)
+    signal.alarm(120)  # bounded even when the study would wait forever
+    try:
+        with pytest.raises(ClusterLostError, match="no worker joined in 2 s"):
+            run_sweep(spec, study=Study(scheduler=address, cluster_timeout=2.0))
+        worker = _start_worker(address, "only", tmp_path / "only.log")
+        procs.append(worker)
+        with Client(address, timeout=30) as observer:
+            observer.wait_for_workers(1, timeout=60)
+        killed: list[float] = []
+
+        def kill_after_first_cell(done: float, total: float) -> None:
+            if done >= 1 and not killed:
+                _kill_tree(worker.pid)
+                killed.append(time.monotonic())
+
+        store = ResultStore(tmp_path / "store")
+        study = Study(
+            scheduler=address, store=store, progress=kill_after_first_cell, cluster_timeout=3.0
+        )
+        with pytest.raises(ClusterLostError, match="no worker for 3 s") as caught:
+            run_sweep(spec, study=study)
+        waited = time.monotonic() - killed[0]
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+        _stop(procs[::-1])
+    assert isinstance(caught.value, ResLocError)  # the CLI: one line, exit 2
+    assert f"dask worker {address}" in str(caught.value)
+    assert 3.0 <= waited < 30.0
+    assert 1 <= study.stats.computed < study.stats.cells
+    assert len(_entries(tmp_path / "store")) == study.stats.computed
 
 
 def _study_processes(mark: str) -> list[psutil.Process]:
@@ -290,7 +349,7 @@ def test_reproduce_quick_stopped_leaves_no_process(tmp_path, how):
     else:
         p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 130, err
+    assert p.returncode == (130 if how == "ctrl-c" else 143), err
     assert "interrupted:" in err and "Traceback" not in err and "leaked" not in err, err
     assert _no_orphans(mark) == []
     assert not out.exists()

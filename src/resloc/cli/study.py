@@ -1,6 +1,7 @@
 """Options and plumbing shared by the study commands (``reproduce``, ``compare``, ``sweep``):
 the executor (``--jobs``, ``--scheduler``), the result store (``--store``, ``--fresh``), the
-progress bar over cells, and the exits on interruption (130) and failed cells (1)."""
+progress bar over cells, and the exits on interruption (130 SIGINT, 143 SIGTERM) and failed
+cells (1)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import typer
 
-from resloc.cli.common import progress_display
+from resloc.cli.common import EXIT_INTERRUPTED, progress_display, signal_name
 
 __all__ = [
     "FRESH",
@@ -80,7 +81,8 @@ def study_session(
     overwrite: bool = False,
 ):
     """Yield a :class:`~resloc.experiments.executor.Study` with a progress bar; an
-    interruption prints where the finished cells are and exits 130. With ``out``, failed
+    interruption prints where the finished cells are and exits 128 + the signal (130 for
+    Ctrl-C, 143 for SIGTERM). With ``out``, failed
     cells (:class:`~resloc.experiments.executor.StudyFailedError`) are written there by
     :func:`write_failures` (exit 1)."""
     from resloc.experiments.executor import Study, StudyFailedError, StudyInterrupted
@@ -93,7 +95,9 @@ def study_session(
             yield study
         except StudyInterrupted as exc:
             print(str(exc), file=sys.stderr)
-            raise typer.Exit(130) from None
+            raise typer.Exit(
+                EXIT_INTERRUPTED.get(signal_name(exc.signum), 128 + exc.signum)
+            ) from None
         except StudyFailedError as exc:
             if out is None:
                 raise

@@ -15,12 +15,13 @@ import logging
 import os
 import signal
 import threading
+import time
 import traceback
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
 
-from resloc.errors import ConfigError
+from resloc.errors import ConfigError, ResLocError
 
 if TYPE_CHECKING:
     from resloc.experiments.executor import Task
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
 __all__ = [
     "RESUBMIT",
     "THREAD_ENV",
+    "ClusterLostError",
     "dask_available",
     "default_jobs",
     "open_backend",
@@ -130,14 +132,58 @@ class _SerialBackend(_Backend):
             yield task, run_task(task.fn, task.args, in_worker=False)
 
 
+class ClusterLostError(ResLocError):
+    """Every worker of an existing Dask cluster left and none came back in time."""
+
+
 class _DaskBackend(_Backend):
-    """Tasks on a Dask ``Client`` (embedded ``LocalCluster`` or an existing scheduler)."""
+    """Tasks on a Dask ``Client`` (embedded ``LocalCluster`` or an existing scheduler).
+
+    ``workerless_limit`` (seconds, external clusters): the scheduler keeps the tasks of a
+    cluster whose every worker died waiting for a worker forever; after this long without
+    one the study stops with :class:`ClusterLostError` (its finished cells are in the
+    store). ``None``: wait (the embedded cluster's nanny restarts its own workers).
+    """
 
     name = "dask"
+    #: Seconds between looks at the cluster's workers while nothing finishes.
+    POLL = 0.05
 
-    def __init__(self, client, workers: int) -> None:
+    def __init__(self, client, workers: int, workerless_limit: float | None = None) -> None:
         self.client = client
         self.workers = workers
+        self.workerless_limit = workerless_limit
+        self.address = getattr(client.scheduler, "address", "the cluster")
+
+    def _finished(self, pending) -> Iterator[Any]:
+        """The futures of ``pending`` as they finish; raises :class:`ClusterLostError`
+        when the cluster has had no worker for ``workerless_limit`` seconds."""
+        if self.workerless_limit is None:
+            yield from pending
+            return
+        workerless_since: float | None = None
+        next_look = 0.0
+        while not pending.is_empty():
+            if pending.has_ready():
+                yield from pending.next_batch(block=False)
+                workerless_since = None
+                continue
+            time.sleep(self.POLL)
+            now = time.monotonic()
+            if now < next_look:
+                continue
+            next_look = now + 1.0
+            if self.client.nthreads():
+                workerless_since = None
+            elif workerless_since is None:
+                workerless_since = now
+            elif now - workerless_since >= self.workerless_limit:
+                raise ClusterLostError(
+                    f"--scheduler {self.address}: no worker for {self.workerless_limit:g} s "
+                    f"({pending.count()} tasks not run); start `dask worker "
+                    f"{self.address}` and run the same command again (finished cells are "
+                    "in the store)"
+                )
 
     def run(self, tasks: list[Task]) -> Iterator[tuple[Task, tuple]]:
         from distributed import as_completed
@@ -159,7 +205,7 @@ class _DaskBackend(_Backend):
         futures = {submit(n): n for n in range(len(tasks))}
         pending = as_completed(list(futures), loop=self.client.loop)
         try:
-            for fut in pending:
+            for fut in self._finished(pending):
                 n = futures.pop(fut)
                 if fut.status == "error":
                     exc = fut.exception()
@@ -294,9 +340,15 @@ def _external_cluster(address: str, timeout: float) -> Iterator[_DaskBackend]:
         try:
             workers = len(client.scheduler_info()["workers"])
             if workers == 0:
-                client.wait_for_workers(1, timeout=timeout)
+                try:
+                    client.wait_for_workers(1, timeout=timeout)
+                except TimeoutError:
+                    raise ClusterLostError(
+                        f"--scheduler {address}: no worker joined in {timeout:g} s; start "
+                        f"`dask worker {address}` and run the same command again"
+                    ) from None
                 workers = len(client.scheduler_info()["workers"])
-            yield _DaskBackend(client, workers)
+            yield _DaskBackend(client, workers, workerless_limit=timeout)
         finally:
             client.close(timeout=10)
 

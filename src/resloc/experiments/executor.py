@@ -10,8 +10,10 @@ and reports progress over cells.
 
 A failing task does not stop the others: its cells are reported as :class:`CellFailure`
 (with the task's context and the traceback). SIGINT/SIGTERM stop the cluster and its
-workers and raise :class:`StudyInterrupted`; the finished cells stay in the store, so running
-the study again resumes it.
+workers and raise :class:`StudyInterrupted` (which says which signal); the finished cells
+stay in the store, so running the study again resumes it. An existing cluster left without
+workers stops the study after ``cluster_timeout`` seconds
+(:class:`~resloc.experiments.backends.ClusterLostError`).
 """
 
 from __future__ import annotations
@@ -116,15 +118,28 @@ class StudyStats:
 
 
 class StudyInterrupted(KeyboardInterrupt):
-    """SIGINT/SIGTERM during a study; the finished cells are in the store."""
+    """SIGINT/SIGTERM during a study; the finished cells are in the store. ``signum``: the
+    signal that stopped it."""
 
-    def __init__(self, stats: StudyStats, store: ResultStore | None) -> None:
+    def __init__(
+        self, stats: StudyStats, store: ResultStore | None, signum: int = signal.SIGINT
+    ) -> None:
         where = f" in {store.root}" if store is not None else ""
         super().__init__(
             f"interrupted: {stats.from_store + stats.computed} of {stats.cells} cells "
             f"finished{where}; run the same command again to resume"
         )
         self.stats = stats
+        self.signum = int(signum)
+
+
+class _SignalInterrupt(KeyboardInterrupt):
+    """A signal other than SIGINT, raised as KeyboardInterrupt so that every signal stops
+    the cluster the same way; ``signum`` keeps which one it was."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"signal {signum}")
+        self.signum = signum
 
 
 class StudyFailedError(RuntimeError):
@@ -149,7 +164,7 @@ def _sigterm_raises_interrupt() -> Iterator[None]:
         return
 
     def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
+        raise _SignalInterrupt(signum)
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
@@ -172,6 +187,9 @@ class Study:
         Where cells are read and written (``None``: nothing is kept).
     progress : callable(done, total), optional
         Called with finished cells / all cells.
+    cluster_timeout : float
+        Seconds to wait for an existing cluster's scheduler and, when every worker is
+        gone, for one to (re)join before :class:`~resloc.experiments.backends.ClusterLostError`.
     """
 
     def __init__(
@@ -180,9 +198,11 @@ class Study:
         scheduler: str | None = None,
         store: ResultStore | None = None,
         progress: ProgressFn | None = None,
+        cluster_timeout: float = 30.0,
     ) -> None:
         self.jobs = jobs
         self.scheduler = scheduler
+        self.cluster_timeout = cluster_timeout
         self.store = store
         self.progress = progress
         self.stats = StudyStats()
@@ -220,7 +240,9 @@ class Study:
         try:
             with (
                 _sigterm_raises_interrupt(),
-                open_backend(self.jobs, self.scheduler, len(order)) as backend,
+                open_backend(
+                    self.jobs, self.scheduler, len(order), self.cluster_timeout
+                ) as backend,
             ):
                 st.backend, st.workers = backend.name, backend.workers
                 for task, outcome in backend.run(order):
@@ -245,8 +267,9 @@ class Study:
                     done += len(task.keys)
                     self._report(done)
                 st.resubmitted = backend.resubmitted
-        except KeyboardInterrupt:
-            raise StudyInterrupted(st, self.store) from None
+        except KeyboardInterrupt as exc:
+            signum = getattr(exc, "signum", signal.SIGINT)
+            raise StudyInterrupted(st, self.store, signum) from None
         return results
 
     def _report(self, done: float) -> None:
