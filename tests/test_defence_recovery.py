@@ -4,6 +4,7 @@ re-admitted within a bounded number of measurements, and the recovery's bound ho
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -201,3 +202,11 @@ def test_full_defence_stays_bounded_under_a_persistent_range_bias():
         msle[name] = resloc.run_scenario(scenario, adversary=adv).summary()["ckf"]["msle_mean"]
     assert np.isfinite(msle["full"])
     assert msle["full"] <= 3.0 * msle["nis_link_robot_cusums"], msle
+
+
+def test_inflation_of_a_very_long_run_is_the_cap_without_a_warning():
+    # 2**n overflows for a run of ~1e4 R; the cap applies and nothing is printed
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f = recovery_inflation(np.array([1e5, 1e7]), 10.0, 1e3)
+    np.testing.assert_array_equal(f, [1e3, 1e3])

@@ -111,7 +111,8 @@ def recovery_inflation(
         ``f(n)``, ``nan`` where ``n < R`` (not in recovery).
     """
     after = np.asarray(after, dtype=float)
-    f = np.minimum(np.exp2((run - after) / after), cap)
+    with np.errstate(over="ignore"):  # a long run: 2**n is inf, and the cap applies
+        f = np.minimum(np.exp2((run - after) / after), cap)
     return np.where(run >= after, f, np.nan)
 
 
