@@ -28,7 +28,7 @@ from resloc.experiments.lockstep import (
     divergence,
     run_lockstep,
 )
-from resloc.experiments.metrics import AccuracyRecorder, confusion_counts
+from resloc.experiments.metrics import AccuracyRecorder
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.experiments.results import SERIES, TOTALS, EstimatorResult, RunResult
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
@@ -45,6 +45,7 @@ __all__ = [
     "RunResult",
     "check_run_size",
     "divergence",
+    "per_trial_counts",
     "record_step",
     "run_bytes",
     "run_scenario",
@@ -368,6 +369,41 @@ class _WorldSteps:
         }
 
 
+#: What :func:`record_step` counts per trial each step, in the rows of one array.
+_COUNTED = (
+    "triggered", "delivered", "detected", "failed", "fused", "attacked_fused", "tp", "fp", "fn",
+    "tn", "repairs",
+)  # fmt: skip
+
+
+def per_trial_counts(masks: np.ndarray, team_i: np.ndarray, T: int) -> np.ndarray:
+    """How many links of each trial every row of ``masks`` marks.
+
+    Parameters
+    ----------
+    masks : ndarray of bool, shape (K, E)
+    team_i : ndarray of int, shape (E,)
+        The trial of every link.
+    T : int
+
+    Returns
+    -------
+    ndarray of int64, shape (K, T)
+        Equal to ``np.bincount(team_i, weights=row, minlength=T)`` of each row; one
+        reduction for all rows (by cumulative sums at the trials' boundaries when the links
+        are sorted by trial, as the world's are).
+    """
+    K, E = masks.shape
+    if T == 1:
+        return masks.sum(axis=1, dtype=np.int64)[:, None]
+    if E and np.all(team_i[1:] >= team_i[:-1]):
+        bounds = np.searchsorted(team_i, np.arange(T + 1))
+        cum = np.zeros((K, E + 1), np.int64)
+        np.cumsum(masks, axis=1, out=cum[:, 1:])
+        return cum[:, bounds[1:]] - cum[:, bounds[:-1]]
+    return np.stack([np.bincount(team_i, weights=m, minlength=T) for m in masks]).astype(np.int64)
+
+
 def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
     """Accumulate one step of one estimator."""
     s, tot = tr.series, tr.totals
@@ -376,32 +412,39 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
     tot["candidates"] += candidates
     tot["attacked"] += attacked_n.astype(np.int64)
     if out is not None:
-        att = ws.attacked
-
-        def count(mask):
-            return np.bincount(team_i, weights=mask, minlength=T).astype(np.int64)
-
-        trig = count(out.triggered)
-        s["triggered"][k] = trig
-        s["delivered"][k] = count(out.delivered)
-        s["detected"][k] = count(out.detected)
-        tot["triggered"] += trig
-        tot["delivered"] += count(out.delivered)
-        tot["failed"] += count(out.triggered & ~out.delivered)
-        tot["detected"] += count(out.detected)
-        tot["fused"] += count(out.fused)
-        tot["attacked_fused"] += count(out.fused & att)
-        for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
+        att = np.asarray(ws.attacked, bool)
+        detected, triggered, delivered, fused = out.detected, out.triggered, out.delivered, out.fused
+        masks = np.stack(
+            (
+                triggered,
+                delivered,
+                detected,
+                triggered & ~delivered,
+                fused,
+                fused & att,
+                detected & att,
+                detected & ~att,
+                ~detected & att,
+                ~detected & ~att,
+                out.repaired,
+            )
+        )
+        counts = dict(zip(_COUNTED, per_trial_counts(masks, team_i, T), strict=True))
+        s["triggered"][k] = counts["triggered"]
+        s["delivered"][k] = counts["delivered"]
+        s["detected"][k] = counts["detected"]
+        for key, per_trial in counts.items():
             tot[key] += per_trial
-        tot["repairs"] += count(out.repaired)
         if fusion is not None and "acks" in fusion.node_exchanges:  # gauge acknowledges fusions
-            tot["ack_links"] += count(out.fused)
-            senders = np.unique(ws.i[out.fused])
+            tot["ack_links"] += counts["fused"]
+            senders = np.unique(ws.i[fused])
             tot["ack_frames"] += np.bincount(senders // N, minlength=T)
         own = ws.i < N
-        tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
-        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
-        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
+        flags = masks[[2, 0, 1, 4]]  # LINK_FLAGS order: detected, triggered, delivered, fused
+        if T > 1 or not own.all():
+            flags = flags[:, own]
+        tr.raster[k] = np.bincount(ws.i[own], weights=flags[1], minlength=N)
+        tr.link_flags.append(pack_outcomes(*flags))
     tr.track[k + 1] = tr.x[:N]
     P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]
