@@ -29,6 +29,7 @@ from resloc.experiments.lockstep import (
     run_lockstep,
 )
 from resloc.experiments.metrics import AccuracyRecorder
+from resloc.experiments.outcomes import OutcomeCounter
 from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
 from resloc.experiments.results import SERIES, TOTALS, EstimatorResult, RunResult
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
@@ -45,7 +46,6 @@ __all__ = [
     "RunResult",
     "check_run_size",
     "divergence",
-    "per_trial_counts",
     "record_step",
     "run_bytes",
     "run_scenario",
@@ -90,8 +90,12 @@ class EstimatorTrack(EstimatorState):
         self.track[0] = x0[:N]
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
-        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed
         self.accuracy = AccuracyRecorder(self.series, self.totals, T, N)
+        acks = fusion is not None and "acks" in fusion.node_exchanges
+        self.outcome_counts = OutcomeCounter(
+            self.series, self.totals, self.raster, self.link_flags, T, N, acks
+        )
 
 
 def expected_links(scenario: Scenario) -> float:
@@ -213,8 +217,9 @@ def run_scenario(
     # estimator's wall time carries the cache load.
     warm_up_kernels()
     run_lockstep(source, everyone, setup, tick)
-    for tr in everyone:  # a stopped estimator's buffered steps keep their metrics
+    for tr in everyone:  # a stopped estimator's buffered steps keep their records
         tr.accuracy.flush()
+        tr.outcome_counts.flush()
     for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
         exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
@@ -299,6 +304,7 @@ class _WorldSteps:
         k = step.k
         if tr.diverged is not None:  # stopped: no estimate, no link outcomes from here on
             tr.track[k + 1], tr.cov[k + 1] = np.nan, np.nan
+            tr.outcome_counts.flush()  # the steps before it first, in order
             tr.link_flags.append(np.zeros(self.own_links, np.uint8))
             return
         out = tr.outcomes[0] if tr.outcomes else None
@@ -369,82 +375,11 @@ class _WorldSteps:
         }
 
 
-#: What :func:`record_step` counts per trial each step, in the rows of one array.
-_COUNTED = (
-    "triggered", "delivered", "detected", "failed", "fused", "attacked_fused", "tp", "fp", "fn",
-    "tn", "repairs",
-)  # fmt: skip
-
-
-def per_trial_counts(masks: np.ndarray, team_i: np.ndarray, T: int) -> np.ndarray:
-    """How many links of each trial every row of ``masks`` marks.
-
-    Parameters
-    ----------
-    masks : ndarray of bool, shape (K, E)
-    team_i : ndarray of int, shape (E,)
-        The trial of every link.
-    T : int
-
-    Returns
-    -------
-    ndarray of int64, shape (K, T)
-        Equal to ``np.bincount(team_i, weights=row, minlength=T)`` of each row; one
-        reduction for all rows (by cumulative sums at the trials' boundaries when the links
-        are sorted by trial, as the world's are).
-    """
-    K, E = masks.shape
-    if T == 1:
-        return masks.sum(axis=1, dtype=np.int64)[:, None]
-    if E and np.all(team_i[1:] >= team_i[:-1]):
-        bounds = np.searchsorted(team_i, np.arange(T + 1))
-        cum = np.zeros((K, E + 1), np.int64)
-        np.cumsum(masks, axis=1, out=cum[:, 1:])
-        return cum[:, bounds[1:]] - cum[:, bounds[:-1]]
-    return np.stack([np.bincount(team_i, weights=m, minlength=T) for m in masks]).astype(np.int64)
-
-
 def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
-    """Accumulate one step of one estimator."""
-    s, tot = tr.series, tr.totals
-    s["candidates"][k] = candidates
-    s["attacked"][k] = attacked_n
-    tot["candidates"] += candidates
-    tot["attacked"] += attacked_n.astype(np.int64)
-    if out is not None:
-        att = np.asarray(ws.attacked, bool)
-        detected, triggered, delivered, fused = out.detected, out.triggered, out.delivered, out.fused
-        masks = np.stack(
-            (
-                triggered,
-                delivered,
-                detected,
-                triggered & ~delivered,
-                fused,
-                fused & att,
-                detected & att,
-                detected & ~att,
-                ~detected & att,
-                ~detected & ~att,
-                out.repaired,
-            )
-        )
-        counts = dict(zip(_COUNTED, per_trial_counts(masks, team_i, T), strict=True))
-        s["triggered"][k] = counts["triggered"]
-        s["delivered"][k] = counts["delivered"]
-        s["detected"][k] = counts["detected"]
-        for key, per_trial in counts.items():
-            tot[key] += per_trial
-        if fusion is not None and "acks" in fusion.node_exchanges:  # gauge acknowledges fusions
-            tot["ack_links"] += counts["fused"]
-            senders = np.unique(ws.i[fused])
-            tot["ack_frames"] += np.bincount(senders // N, minlength=T)
-        own = ws.i < N
-        flags = masks[[2, 0, 1, 4]]  # LINK_FLAGS order: detected, triggered, delivered, fused
-        if T > 1 or not own.all():
-            flags = flags[:, own]
-        tr.raster[k] = np.bincount(ws.i[own], weights=flags[1], minlength=N)
-        tr.link_flags.append(pack_outcomes(*flags))
+    """Accumulate one step of one estimator (its link outcomes and accuracy are counted in
+    bulk: :class:`~resloc.experiments.outcomes.OutcomeCounter`,
+    :class:`~resloc.experiments.metrics.AccuracyRecorder`)."""
+    tr.outcome_counts.add(k, out, ws.i, team_i, ws.attacked, candidates, attacked_n)
     tr.track[k + 1] = tr.x[:N]
     P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]
