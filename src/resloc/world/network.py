@@ -52,7 +52,8 @@ def radius_links(
     if len(p) < 2:
         e = np.zeros(0, dtype=np.int64)
         return e, e.copy()
-    span = float(np.ptp(p[:, 0])) + 4.0 * radius + 1.0
+    x = p[:, 0]
+    span = float(x.max() - x.min()) + 4.0 * radius + 1.0  # np.ptp
     shifted = p.astype(float, copy=True)
     shifted[:, 0] += team * span
     if method == "auto":
