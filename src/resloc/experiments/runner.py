@@ -30,12 +30,10 @@ from resloc.experiments.lockstep import (
 )
 from resloc.experiments.metrics import AccuracyRecorder
 from resloc.experiments.outcomes import OutcomeCounter
-from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
+from resloc.experiments.recording import LinkLog, link_columns
 from resloc.experiments.results import SERIES, TOTALS, EstimatorResult, RunResult
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.validation import check_memory
-from resloc.world.adversary import stealthy_tamper
-from resloc.world.attackers import AttackStep
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
@@ -283,6 +281,8 @@ class _WorldSteps:
             ws = world.step()
             attack_step = None
             if self.adversary is not None:
+                from resloc.world.attackers import AttackStep  # the suite loads numba
+
                 attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
                 ws.attacked = attack_step.attacked = self.adversary.mark(ws.attacked, attack_step)
             self.truth[k + 1] = ws.pose[:N]
@@ -337,6 +337,8 @@ class _WorldSteps:
         """Optional ``LinkBatch`` fields for this step (the same for every estimator)."""
         if not self.stealthy:
             return {}
+        from resloc.world.adversary import stealthy_tamper  # loads numba: only when stealthy
+
         p, a = self.params, self.attack
         tamper = stealthy_tamper(
             ws.z,

@@ -22,12 +22,12 @@ def radius_links(
 ) -> tuple[np.ndarray, np.ndarray]:
     """All directed links ``(i, j)``, ``i != j``, of robots of the same team within ``radius``.
 
-    No ``B x B`` distance matrix above :data:`PAIRWISE_MAX` robots. Teams (Monte Carlo trials) are kept apart by shifting
-    each team far along ``x`` before the search. Two equivalent searches: a KD-tree
-    (``scipy.spatial.cKDTree.query_pairs``, ``O(B log B)``) and cell lists (the plane cut
-    into squares of side ``radius``; a robot's neighbours are in its own and the 8
-    surrounding squares; ``O(B + E)`` work after sorting the robots by square); up to
-    :data:`PAIRWISE_MAX` robots every pair is tested. A pair is linked when
+    No ``B x B`` distance matrix above :data:`PAIRWISE_MAX` robots. Teams (Monte Carlo
+    trials) are kept apart by shifting each team far along ``x`` before the search. Two
+    equivalent searches: a KD-tree (``scipy.spatial.cKDTree.query_pairs``, ``O(B log B)``)
+    and cell lists (the plane cut into squares of side ``radius``; a robot's neighbours are
+    in its own and the 8 surrounding squares; ``O(B + E)`` work after sorting the robots by
+    square); up to :data:`PAIRWISE_MAX` robots every pair is tested. A pair is linked when
     ``dx^2 + dy^2 <= radius^2`` in the shifted coordinates, the KD-tree's own test, so all
     three give the same links.
 

@@ -15,7 +15,6 @@ from resloc.angles import wrap_angle
 from resloc.cl.graph import Lambda2Memo, component_lambda2
 from resloc.models.measurement import range_bearing
 from resloc.models.motion import unicycle_step
-from resloc.world.adversary import ReplayBuffer
 from resloc.world.attacks import AttackKind, apply_injection, attackable_links, injection
 from resloc.world.control import LeaderPath, lattice_offsets, si_to_unicycle
 from resloc.world.network import radius_links
@@ -130,11 +129,12 @@ class World:
         self._l2: np.ndarray = np.zeros(self.B)
         self._odometry_std = np.asarray(spec.motion.odometry_std, float)
         self._measurement_std = np.array([spec.sensing.range_std, spec.sensing.bearing_std])
-        self._replay = (
-            ReplayBuffer(spec.attack.replay_delay, self.B)
-            if spec.attack.kind is AttackKind.REPLAY
-            else None
-        )
+        self._replay = None
+        if spec.attack.kind is AttackKind.REPLAY:
+            # Imported here: the adversary module loads the compiled kernels (numba).
+            from resloc.world.adversary import ReplayBuffer
+
+            self._replay = ReplayBuffer(spec.attack.replay_delay, self.B)
 
     # ------------------------------------------------------------------ set-up
     def _desired(self, t: float) -> tuple[np.ndarray, float]:
@@ -188,7 +188,7 @@ class World:
 
     def step(self) -> WorldStep:
         """Move every robot one ``dt``, then sense and draw attacks and channel outcomes."""
-        m, sens, att = self.spec.motion, self.spec.sensing, self.spec.attack
+        sens, att = self.spec.sensing, self.spec.attack
         u = self.commands()
         self.pose = unicycle_step(self.pose, u, self.dt)
         self.k += 1
