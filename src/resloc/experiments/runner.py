@@ -314,9 +314,15 @@ class _WorldSteps:
 
     def comm_edges(self, ws) -> tuple[np.ndarray, np.ndarray]:
         """This step's links that can carry a message (in radio range, not jammed)."""
-        p = ws.pose[:, :2]
-        ok = (np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius) & ws.channel_ok
+        ok = self.in_comm(ws) & ws.channel_ok
         return ws.i[ok], ws.j[ok]
+
+    def in_comm(self, ws) -> np.ndarray:
+        """Which of this step's links are within radio range (the world's own flags)."""
+        if ws.in_comm is not None:
+            return ws.in_comm
+        p = ws.pose[:, :2]
+        return np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
 
     def lambda2(self, ws) -> np.ndarray:
         """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
@@ -324,8 +330,7 @@ class _WorldSteps:
         if self.dl2 is None:
             self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else 0.0)
             return ws.lambda2
-        p = ws.pose[:, :2]
-        in_comm = np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
+        in_comm = self.in_comm(ws)
         est = self.dl2.step(ws.i[in_comm], ws.j[in_comm])
         self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else float("nan"))
         self.l2_est.append(float(est[ok].mean()) if ok.any() else float("nan"))
