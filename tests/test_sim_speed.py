@@ -14,7 +14,7 @@ import scipy.sparse.csgraph as csgraph
 
 from resloc.cl import graph
 from resloc.cl.links import LinkOutcome
-from resloc.experiments import runner
+from resloc.experiments import metrics, runner
 from resloc.experiments.config import default_scenario
 from resloc.experiments.outcomes import COUNTED, OutcomeCounter, per_group_counts
 from resloc.experiments.recording import pack_outcomes
@@ -290,7 +290,7 @@ _RUN_PROBE = """
 import sys
 import resloc.cli.app
 from resloc.cli import run
-from resloc.experiments import runner
+from resloc.experiments import metrics, runner
 from resloc.experiments.config import default_scenario
 from resloc.experiments.output import save_run
 loaded = lambda: sorted(m for m in ("numba", "scipy", "scipy.sparse", "scipy.spatial",
@@ -311,3 +311,31 @@ def test_a_team_sized_run_needs_no_scipy_graph_modules_and_numba_only_to_step():
     ran = set(lines["RUN"].split(","))
     assert "numba" in ran  # loaded by the first kernel
     assert not ran & {"scipy.sparse", "scipy.spatial", "scipy.special", "matplotlib"}
+
+
+# ----------------------------------------------------------------------------- metrics
+def test_pair_distances_equal_numpys_norm_and_shared_truth_changes_nothing():
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(4, 9, 2)) * 3.0
+    want = np.linalg.norm(p[:, :, None, :] - p[:, None, :, :], axis=-1)
+    np.testing.assert_array_equal(metrics.pair_distances(p), want)
+    trials, robots, steps = 2, 5, 11
+    truth = [rng.normal(size=(trials * robots, 3)) for _ in range(steps)]
+    shared = metrics.TruthDistances()
+    records = []
+    for truth_cache in (None, shared, shared):  # alone, then two sharing one truth cache
+        series = {k: np.full((steps, trials), np.nan) for k in ("msle", "rmse", "nees", "nees_rel")}
+        totals = {
+            k: np.zeros(trials, np.int64)
+            for k in ("nees_samples", "nees_exceed", "nees_rel_exceed")
+        }
+        recorder = metrics.AccuracyRecorder(series, totals, trials, robots, truth_cache)
+        recorder.capacity = 4
+        est_rng = np.random.default_rng(8)
+        for k, pose in enumerate(truth):
+            x = pose + 0.1 * est_rng.normal(size=pose.shape)
+            recorder.add(k, pose, x, np.broadcast_to(0.01 * np.eye(3), (len(pose), 3, 3)))
+        records.append(series)
+    for key in records[0]:
+        np.testing.assert_array_equal(records[1][key], records[0][key])
+        np.testing.assert_array_equal(records[2][key], records[0][key])

@@ -28,7 +28,7 @@ from resloc.experiments.lockstep import (
     divergence,
     run_lockstep,
 )
-from resloc.experiments.metrics import AccuracyRecorder
+from resloc.experiments.metrics import AccuracyRecorder, TruthDistances
 from resloc.experiments.outcomes import OutcomeCounter
 from resloc.experiments.recording import LinkLog, link_columns
 from resloc.experiments.results import SERIES, TOTALS, EstimatorResult, RunResult
@@ -79,6 +79,7 @@ class EstimatorTrack(EstimatorState):
         T: int,
         N: int,
         fusion: FusionStrategy | None = None,
+        truth: TruthDistances | None = None,
     ):
         super().__init__(name, filt, x0, P0, T * N, fusion)
         self.series = {k: np.full((steps, T), np.nan) for k in SERIES}
@@ -89,7 +90,7 @@ class EstimatorTrack(EstimatorState):
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed
-        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N)
+        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N, truth)
         acks = fusion is not None and "acks" in fusion.node_exchanges
         self.outcome_counts = OutcomeCounter(
             self.series, self.totals, self.raster, self.link_flags, T, N, acks
@@ -197,13 +198,16 @@ def run_scenario(
     fusion = fusion_strategy(params.fusion)
     rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
     tracks = []
+    truth = TruthDistances()  # every estimator's metrics see the same truth
     for name in run.filters:
         filt = make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa)
-        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion))
+        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion, truth))
         fusion.init(tracks[-1].memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
-        dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+        dr = EstimatorTrack(
+            DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N, truth=truth
+        )
     estimated = scenario.trigger.risk_source is RiskSource.ESTIMATED
     setup = Estimation(
         params, dt, N, (world.sdz, world.cdz) if estimated else None, adversary=adversary
