@@ -41,12 +41,16 @@ def per_group_counts(masks: np.ndarray, group: np.ndarray, groups: int) -> np.nd
     ndarray of int64, shape (K, groups)
         ``np.bincount(group, weights=row, minlength=groups)`` of every row.
     """
-    K = masks.shape[0]
+    K, M = masks.shape
     if groups == 1:
         return np.count_nonzero(masks, axis=1).astype(np.int64)[:, None]
-    # One bincount over (row, group) pairs instead of one per row.
-    key = (np.arange(K)[:, None] * groups + group[None, :])[masks]
-    return np.bincount(key, minlength=K * groups).reshape(K, groups).astype(np.int64)
+    if M and np.all(group[1:] >= group[:-1]):  # sorted (steps in order, links by trial)
+        # Running counts along each row, read at the groups' boundaries.
+        bounds = np.searchsorted(group, np.arange(groups + 1))
+        running = np.zeros((K, M + 1), np.int64)
+        np.cumsum(masks, axis=1, out=running[:, 1:])
+        return running[:, bounds[1:]] - running[:, bounds[:-1]]
+    return np.stack([np.bincount(group[m], minlength=groups) for m in masks]).astype(np.int64)
 
 
 class OutcomeCounter:
