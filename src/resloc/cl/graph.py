@@ -1,20 +1,28 @@
-"""Graph Laplacian and algebraic connectivity ``lambda2(G)``."""
+"""Graph Laplacian and algebraic connectivity ``lambda2(G)``.
+
+Graphs of at most :data:`DENSE_MAX` nodes (a team of robots, a few trials) are handled with
+dense numpy arrays only; :mod:`scipy.sparse` is imported when a larger graph needs it (its
+import costs about a fifth of a second, more than a whole small run's graph work).
+"""
 
 from __future__ import annotations
 
 import enum
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import eigsh
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = [
     "DENSE_MAX",
     "Lambda2Memo",
     "Lambda2Source",
     "algebraic_connectivity",
+    "component_labels",
     "component_lambda2",
+    "dense_laplacian",
     "laplacian",
 ]
 
@@ -61,6 +69,8 @@ def laplacian(i: np.ndarray, j: np.ndarray, n: int) -> sp.csr_matrix:
     -------
     scipy.sparse.csr_matrix, shape (n, n)
     """
+    import scipy.sparse as sp
+
     A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
     A = ((A + A.T) > 0).astype(float)
     deg = np.asarray(A.sum(axis=1)).ravel()
@@ -81,6 +91,10 @@ def algebraic_connectivity(L: np.ndarray | sp.spmatrix) -> float:
     n = L.shape[0]
     if n < 2:
         return 0.0
+    if isinstance(L, np.ndarray):
+        return float(_dense_lambda2(np.asarray(L, float)[None])[0])
+    import scipy.sparse as sp
+
     if sp.issparse(L) and n > DENSE_MAX:
         return _sparse_lambda2(sp.csr_matrix(L))
     dense = L.toarray() if sp.issparse(L) else np.asarray(L, float)
@@ -99,6 +113,9 @@ def _dense_lambda2(L: np.ndarray) -> np.ndarray:
 
 def _sparse_lambda2(L: sp.csr_matrix) -> float:
     """``lambda2`` of a large sparse Laplacian: 0 if disconnected, else shift-invert."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import eigsh
+
     if connected_components(L, directed=False)[0] > 1:
         return 0.0
     n = L.shape[0]
@@ -169,6 +186,12 @@ def component_lambda2(
     -------
     ndarray, shape (n,)
     """
+    if mode not in ("component", "global"):
+        raise ValueError(f"lambda2 mode must be 'component' or 'global', got {mode!r}")
+    if n <= DENSE_MAX:
+        return _small_graph_lambda2(i, j, n, mode, group)
+    from scipy.sparse.csgraph import connected_components
+
     L = laplacian(i, j, n)
     if mode == "global":
         if group is None:
@@ -224,4 +247,65 @@ def component_lambda2(
         out[idx] = lam2
     if memo is not None:
         memo.values = values
+    return out
+
+
+def dense_laplacian(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """:func:`laplacian` as a dense ``(n, n)`` array (the same values: integer degrees on
+    the diagonal, ``-1`` per undirected edge), for graphs small enough to hold densely."""
+    A = np.zeros((n, n))
+    A[i, j] = 1.0
+    A[j, i] = 1.0
+    return np.diag(A.sum(axis=1)) - A
+
+
+def component_labels(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """Connected component of every node of the undirected graph with edges ``(i, j)``,
+    numbered ``0 .. C - 1`` in order of each component's smallest node, shape (n,).
+
+    Minimum-label propagation with pointer jumping: every node takes the smallest label
+    among itself and its neighbours until nothing changes (a few rounds for the graphs of
+    a team; the number of rounds is bounded by the components' diameters).
+    """
+    label = np.arange(n)
+    if len(i):
+        while True:
+            nxt = label.copy()
+            np.minimum.at(nxt, i, label[j])
+            np.minimum.at(nxt, j, label[i])
+            nxt = nxt[nxt]  # jump: a label is a node whose own label may be smaller still
+            if np.array_equal(nxt, label):
+                break
+            label = nxt
+    return np.unique(label, return_inverse=True)[1].astype(np.int64)
+
+
+def _small_graph_lambda2(
+    i: np.ndarray, j: np.ndarray, n: int, mode: str, group: np.ndarray | None
+) -> np.ndarray:
+    """:func:`component_lambda2` of a graph of at most :data:`DENSE_MAX` nodes, dense: the
+    same Laplacian values and the same batched eigensolve of each component's block (nodes
+    in increasing order), so the same numbers as the sparse path, without scipy."""
+    out = np.zeros(n)
+    if n == 0:
+        return out
+    L = dense_laplacian(np.asarray(i, np.int64), np.asarray(j, np.int64), n)
+    if mode == "global":
+        if group is None:
+            return np.full(n, algebraic_connectivity(L))
+        labels = np.unique(group, return_inverse=True)[1].astype(np.int64)
+    else:
+        labels = component_labels(np.asarray(i, np.int64), np.asarray(j, np.int64), n)
+    ncomp = int(labels.max()) + 1
+    if ncomp == 1:
+        out[:] = algebraic_connectivity(L)
+        return out
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
+    size = np.diff(bounds)
+    for s in np.unique(size[size > 1]):
+        comps = np.flatnonzero(size == s)
+        nodes = order[bounds[comps][:, None] + np.arange(s)]  # (C, s), increasing per row
+        lam = _dense_lambda2(L[nodes[:, :, None], nodes[:, None, :]])
+        out[nodes] = lam[:, None]
     return out

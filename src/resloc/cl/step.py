@@ -2,6 +2,9 @@
 
 ``predict`` then ``correct``. Both are pure functions of arrays with a leading batch axis;
 a robot process calls them with batch size 1, the simulator with every robot of every trial.
+Their compiled twins (:mod:`resloc.cl.kernels`, :mod:`resloc.cl.kernels_predict`) are
+imported on the first call: importing numba takes about half a second, which a command
+that never steps an estimator (``--help``, a rejected argument) should not pay.
 """
 
 from __future__ import annotations
@@ -17,8 +20,6 @@ from resloc.cl.detection_zone import (
 )
 from resloc.cl.detector import innovation_norm
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
-from resloc.cl.kernels import fast_correct
-from resloc.cl.kernels_predict import fast_predict
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import (
@@ -65,6 +66,8 @@ def predict(
     With the numba backend, the CKF, UKF and EKF predict in one compiled pass
     (:func:`resloc.cl.kernels_predict.fast_predict`, equal to this function to ~1e-15).
     """
+    from resloc.cl.kernels_predict import fast_predict  # numba's import, on first use
+
     fast = fast_predict(filt, x, P, u, dt, params)
     if fast is not None:
         return fast
@@ -279,6 +282,8 @@ def correct(
     E = len(links)
     if E == 0:
         return x, P, LinkOutcome.empty(E)
+    from resloc.cl.kernels import fast_correct  # numba's import, on first use
+
     fast = fast_correct(filt, x, P, links, params, memory)
     if fast is not None:
         return fast

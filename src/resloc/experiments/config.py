@@ -259,7 +259,9 @@ class Scenario:
             robot_cusum_h=d.robot_cusum_h,
             recovery=d.recovery,
             recovery_after=float(d.recovery_after),
-            recovery_gate=chi2_gate(d.recovery_false_alarm),
+            # The gate's quantile needs scipy.special (a third of a second to import);
+            # without recovery nothing reads it, and CLParams keeps its default.
+            **({"recovery_gate": chi2_gate(d.recovery_false_alarm)} if d.recovery else {}),
             recovery_inflation_cap=d.recovery_inflation_cap,
             zone_trust=d.zone_trust,
             zone_trust_map=zone_map(

@@ -13,15 +13,18 @@ __all__ = [
     "NEES_EXCEED_3DOF",
     "WIRE_BYTES",
     "AccuracyRecorder",
+    "TruthDistances",
     "align_se2",
     "communication",
     "confusion_counts",
     "detector_rates",
     "detector_scores",
     "msle",
+    "msle_of_distances",
     "nees",
     "nees_consistency",
     "nees_consistency_counts",
+    "pair_distances",
     "position_rmse",
     "rate",
     "relative_nees",
@@ -59,11 +62,24 @@ def msle(p_true: np.ndarray, p_est: np.ndarray) -> np.ndarray:
     -------
     ndarray, shape (T,)
     """
-    p_true = np.asarray(p_true, float)
-    p_est = np.asarray(p_est, float)
-    n = p_true.shape[1]
-    d_true = np.linalg.norm(p_true[:, :, None, :] - p_true[:, None, :, :], axis=-1)
-    d_est = np.linalg.norm(p_est[:, :, None, :] - p_est[:, None, :, :], axis=-1)
+    return msle_of_distances(pair_distances(p_true), pair_distances(p_est))
+
+
+def pair_distances(p: np.ndarray) -> np.ndarray:
+    """``|p_i - p_j|`` of every pair of robots of every trial, ``(T, N, 2) -> (T, N, N)``.
+
+    ``sqrt(dx^2 + dy^2)``: the value ``np.linalg.norm(..., axis=-1)`` gives for planar
+    differences, without its strided reduction over an axis of length 2.
+    """
+    p = np.asarray(p, float)
+    dx = p[:, :, None, 0] - p[:, None, :, 0]
+    dy = p[:, :, None, 1] - p[:, None, :, 1]
+    return np.sqrt(dx * dx + dy * dy)
+
+
+def msle_of_distances(d_true: np.ndarray, d_est: np.ndarray) -> np.ndarray:
+    """:func:`msle` from the true and estimated :func:`pair_distances` ``(T, N, N)``."""
+    n = d_true.shape[1]
     # The diagonal is 0 - 0, so summing over all (i, j) equals summing over j != i.
     return ((d_true - d_est) ** 2).sum(axis=(1, 2)) / n
 
@@ -354,6 +370,23 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
     return out
 
 
+class TruthDistances:
+    """The true :func:`pair_distances` of the last buffer of steps, kept for the next
+    :class:`AccuracyRecorder` that flushes the same steps (the estimators of one run see
+    the same truth, and their recorders flush the same rows one after the other)."""
+
+    def __init__(self) -> None:
+        self.key: bytes | None = None
+        self.value: np.ndarray | None = None
+
+    def distances(self, rows: np.ndarray, p_true: np.ndarray) -> np.ndarray:
+        """Pair distances of ``p_true: (C * T, N, 2)``, the truth of steps ``rows``."""
+        key = np.asarray(rows, np.int64).tobytes()
+        if key != self.key or self.value is None:
+            self.key, self.value = key, pair_distances(p_true)
+        return self.value
+
+
 class AccuracyRecorder:
     """The per-step accuracy of one estimator (MSLE, RMSE, NEES, relative NEES), computed in
     bulk over many steps.
@@ -375,6 +408,9 @@ class AccuracyRecorder:
         above :data:`NEES_EXCEED_3DOF`).
     trials, robots : int
         ``T`` and ``N``; states arrive as ``(T * N, 3)``, trial-major.
+    truth : TruthDistances, optional
+        Shared by the recorders of estimators that see the same truth at every step (one
+        run), so the true pair distances of a buffer are computed once, not per estimator.
     """
 
     #: Most bytes the buffered steps and their metric temporaries may take.
@@ -382,8 +418,16 @@ class AccuracyRecorder:
     #: Most steps per bulk evaluation (beyond it the fixed costs are already amortized).
     MAX_ROWS = 256
 
-    def __init__(self, series: dict, totals: dict, trials: int, robots: int) -> None:
+    def __init__(
+        self,
+        series: dict,
+        totals: dict,
+        trials: int,
+        robots: int,
+        truth: TruthDistances | None = None,
+    ) -> None:
         self.series, self.totals = series, totals
+        self.truth = truth
         self.trials, self.robots = trials, robots
         self.last_row = len(series["msle"]) - 1
         robots_total = trials * robots
@@ -425,7 +469,11 @@ class AccuracyRecorder:
         x = self.x[:C].reshape(C * T, N, 3)
         P = self.P[:C].reshape(C * T, N, 3, 3)
         s, tot = self.series, self.totals
-        s["msle"][rows] = msle(pose[..., :2], x[..., :2]).reshape(C, T)
+        if self.truth is None:
+            d_true = pair_distances(pose[..., :2])
+        else:
+            d_true = self.truth.distances(rows, pose[..., :2])
+        s["msle"][rows] = msle_of_distances(d_true, pair_distances(x[..., :2])).reshape(C, T)
         s["rmse"][rows] = position_rmse(pose[..., :2], x[..., :2]).reshape(C, T)
         per_robot = nees(pose.reshape(-1, 3), x.reshape(-1, 3), P.reshape(-1, 3, 3))
         per_robot = per_robot.reshape(C, T, N)

@@ -45,10 +45,13 @@ LINK_COLUMNS = ("step", "i", "j", "attacked")
 
 def pack_outcomes(*flags: np.ndarray) -> np.ndarray:
     """One byte per link holding the :data:`LINK_FLAGS` (in that order), shape (M,)."""
-    packed = np.zeros(len(flags[0]), np.uint8)
-    for bit, f in enumerate(flags):
-        packed |= np.asarray(f, np.uint8) << bit
-    return packed
+    if not flags:
+        return np.zeros(0, np.uint8)
+    stacked = np.asarray(flags, dtype=bool).reshape(len(flags), -1)
+    if len(flags) > 8:
+        raise ValueError(f"at most 8 flags fit in a byte, got {len(flags)}")
+    # Bit b of a link's byte is row b: packbits along the flags, least significant first.
+    return np.packbits(stacked, axis=0, bitorder="little")[0]
 
 
 def link_columns(rows: list[tuple]) -> dict[str, np.ndarray]:

@@ -28,13 +28,12 @@ from resloc.experiments.lockstep import (
     divergence,
     run_lockstep,
 )
-from resloc.experiments.metrics import AccuracyRecorder, confusion_counts
-from resloc.experiments.recording import LinkLog, link_columns, pack_outcomes
+from resloc.experiments.metrics import AccuracyRecorder, TruthDistances
+from resloc.experiments.outcomes import OutcomeCounter
+from resloc.experiments.recording import LinkLog, link_columns
 from resloc.experiments.results import SERIES, TOTALS, EstimatorResult, RunResult
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.validation import check_memory
-from resloc.world.adversary import stealthy_tamper
-from resloc.world.attackers import AttackStep
 from resloc.world.attacks import AttackKind
 from resloc.world.world import World
 
@@ -80,6 +79,7 @@ class EstimatorTrack(EstimatorState):
         T: int,
         N: int,
         fusion: FusionStrategy | None = None,
+        truth: TruthDistances | None = None,
     ):
         super().__init__(name, filt, x0, P0, T * N, fusion)
         self.series = {k: np.full((steps, T), np.nan) for k in SERIES}
@@ -89,8 +89,12 @@ class EstimatorTrack(EstimatorState):
         self.track[0] = x0[:N]
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
-        self.link_flags: list[np.ndarray] = []  # trial 0, packed per step
-        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N)
+        self.link_flags: list[np.ndarray] = []  # trial 0, packed
+        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N, truth)
+        acks = fusion is not None and "acks" in fusion.node_exchanges
+        self.outcome_counts = OutcomeCounter(
+            self.series, self.totals, self.raster, self.link_flags, T, N, acks
+        )
 
 
 def expected_links(scenario: Scenario) -> float:
@@ -194,13 +198,16 @@ def run_scenario(
     fusion = fusion_strategy(params.fusion)
     rounds = est.gauge_rounds if est.gauge_sums is GaugeSums.CONSENSUS else None
     tracks = []
+    truth = TruthDistances()  # every estimator's metrics see the same truth
     for name in run.filters:
         filt = make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa)
-        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion))
+        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion, truth))
         fusion.init(tracks[-1].memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:
-        dr = EstimatorTrack(DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N)
+        dr = EstimatorTrack(
+            DEAD_RECKONING, make_filter(FilterKind.EKF), x0, P0, steps, T, N, truth=truth
+        )
     estimated = scenario.trigger.risk_source is RiskSource.ESTIMATED
     setup = Estimation(
         params, dt, N, (world.sdz, world.cdz) if estimated else None, adversary=adversary
@@ -212,8 +219,9 @@ def run_scenario(
     # estimator's wall time carries the cache load.
     warm_up_kernels()
     run_lockstep(source, everyone, setup, tick)
-    for tr in everyone:  # a stopped estimator's buffered steps keep their metrics
+    for tr in everyone:  # a stopped estimator's buffered steps keep their records
         tr.accuracy.flush()
+        tr.outcome_counts.flush()
     for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
         exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
@@ -277,6 +285,8 @@ class _WorldSteps:
             ws = world.step()
             attack_step = None
             if self.adversary is not None:
+                from resloc.world.attackers import AttackStep  # the suite loads numba
+
                 attack_step = AttackStep(k + 1, dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
                 ws.attacked = attack_step.attacked = self.adversary.mark(ws.attacked, attack_step)
             self.truth[k + 1] = ws.pose[:N]
@@ -298,6 +308,7 @@ class _WorldSteps:
         k = step.k
         if tr.diverged is not None:  # stopped: no estimate, no link outcomes from here on
             tr.track[k + 1], tr.cov[k + 1] = np.nan, np.nan
+            tr.outcome_counts.flush()  # the steps before it first, in order
             tr.link_flags.append(np.zeros(self.own_links, np.uint8))
             return
         out = tr.outcomes[0] if tr.outcomes else None
@@ -307,9 +318,15 @@ class _WorldSteps:
 
     def comm_edges(self, ws) -> tuple[np.ndarray, np.ndarray]:
         """This step's links that can carry a message (in radio range, not jammed)."""
-        p = ws.pose[:, :2]
-        ok = (np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius) & ws.channel_ok
+        ok = self.in_comm(ws) & ws.channel_ok
         return ws.i[ok], ws.j[ok]
+
+    def in_comm(self, ws) -> np.ndarray:
+        """Which of this step's links are within radio range (the world's own flags)."""
+        if ws.in_comm is not None:
+            return ws.in_comm
+        p = ws.pose[:, :2]
+        return np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
 
     def lambda2(self, ws) -> np.ndarray:
         """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
@@ -317,8 +334,7 @@ class _WorldSteps:
         if self.dl2 is None:
             self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else 0.0)
             return ws.lambda2
-        p = ws.pose[:, :2]
-        in_comm = np.hypot(*(p[ws.i] - p[ws.j]).T) <= self.comm_radius
+        in_comm = self.in_comm(ws)
         est = self.dl2.step(ws.i[in_comm], ws.j[in_comm])
         self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else float("nan"))
         self.l2_est.append(float(est[ok].mean()) if ok.any() else float("nan"))
@@ -330,6 +346,8 @@ class _WorldSteps:
         """Optional ``LinkBatch`` fields for this step (the same for every estimator)."""
         if not self.stealthy:
             return {}
+        from resloc.world.adversary import stealthy_tamper  # loads numba: only when stealthy
+
         p, a = self.params, self.attack
         tamper = stealthy_tamper(
             ws.z,
@@ -369,39 +387,10 @@ class _WorldSteps:
 
 
 def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, record) -> None:
-    """Accumulate one step of one estimator."""
-    s, tot = tr.series, tr.totals
-    s["candidates"][k] = candidates
-    s["attacked"][k] = attacked_n
-    tot["candidates"] += candidates
-    tot["attacked"] += attacked_n.astype(np.int64)
-    if out is not None:
-        att = ws.attacked
-
-        def count(mask):
-            return np.bincount(team_i, weights=mask, minlength=T).astype(np.int64)
-
-        trig = count(out.triggered)
-        s["triggered"][k] = trig
-        s["delivered"][k] = count(out.delivered)
-        s["detected"][k] = count(out.detected)
-        tot["triggered"] += trig
-        tot["delivered"] += count(out.delivered)
-        tot["failed"] += count(out.triggered & ~out.delivered)
-        tot["detected"] += count(out.detected)
-        tot["fused"] += count(out.fused)
-        tot["attacked_fused"] += count(out.fused & att)
-        for key, per_trial in confusion_counts(out.detected, att, team_i, T).items():
-            tot[key] += per_trial
-        tot["repairs"] += count(out.repaired)
-        if fusion is not None and "acks" in fusion.node_exchanges:  # gauge acknowledges fusions
-            tot["ack_links"] += count(out.fused)
-            senders = np.unique(ws.i[out.fused])
-            tot["ack_frames"] += np.bincount(senders // N, minlength=T)
-        own = ws.i < N
-        tr.raster[k] = np.bincount(ws.i[own], weights=out.triggered[own], minlength=N)
-        flags = (out.detected, out.triggered, out.delivered, out.fused)  # LINK_FLAGS order
-        tr.link_flags.append(pack_outcomes(*(f[own] for f in flags)))
+    """Accumulate one step of one estimator (its link outcomes and accuracy are counted in
+    bulk: :class:`~resloc.experiments.outcomes.OutcomeCounter`,
+    :class:`~resloc.experiments.metrics.AccuracyRecorder`)."""
+    tr.outcome_counts.add(k, out, ws.i, team_i, ws.attacked, candidates, attacked_n)
     tr.track[k + 1] = tr.x[:N]
     P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]

@@ -25,7 +25,6 @@ test), and at most what the attacker can physically inject (``|a d_k| <= bias_k`
 
 from __future__ import annotations
 
-import enum
 from collections import deque
 from collections.abc import Callable
 
@@ -36,7 +35,7 @@ from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_detection import NORM_CODE
 from resloc.cl.kernels_tamper import kernel_tamper
 from resloc.linalg import solve_spd
-from resloc.world.attacks import apply_injection
+from resloc.world.attacks import StealthKnowledge, apply_injection
 
 __all__ = [
     "ReplayBuffer",
@@ -45,17 +44,6 @@ __all__ = [
     "largest_stealthy_step",
     "stealthy_tamper",
 ]
-
-
-class StealthKnowledge(enum.StrEnum):
-    """What the stealthy attacker keeps under its threshold.
-
-    ``full``: every test the victim runs (the gate and, if on, the CUSUM's reference).
-    ``gate``: only the per-measurement gate (a CUSUM then sees its persistent excess).
-    """
-
-    FULL = "full"
-    GATE = "gate"
 
 
 def largest_stealthy_step(

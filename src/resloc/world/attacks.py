@@ -11,11 +11,23 @@ from resloc.angles import wrap_angle
 __all__ = [
     "AttackKind",
     "LinkScope",
+    "StealthKnowledge",
     "apply_injection",
     "attackable_links",
     "injection",
     "link_hash_uniform",
 ]
+
+
+class StealthKnowledge(enum.StrEnum):
+    """What the stealthy attacker keeps under its threshold.
+
+    ``full``: every test the victim runs (the gate and, if on, the CUSUM's reference).
+    ``gate``: only the per-measurement gate (a CUSUM then sees its persistent excess).
+    """
+
+    FULL = "full"
+    GATE = "gate"
 
 
 class AttackKind(enum.StrEnum):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from resloc.errors import ConfigError
@@ -48,6 +50,23 @@ class LeaderPath:
             lengths.append(np.pi * d / 2.0 if kind == "arc" else d)
         self.lengths = np.array(lengths)
         self.cumulative = np.concatenate([[0.0], np.cumsum(self.lengths)])
+        # What at() needs of each segment, computed once (the same expressions, so the
+        # same values): its start, direction and heading (line), centre, radius, start angle
+        # (arc).
+        self._segments = [self._segment(k) for k in range(len(kinds))]
+        self._last = len(kinds) - 1
+        self._cumulative = [float(c) for c in self.cumulative]
+        self._lengths = [max(float(v), 1e-12) for v in self.lengths]
+
+    def _segment(self, k: int) -> tuple:
+        a, b = self.points[k], self.points[k + 1]
+        if self.kinds[k] == "line":
+            d = b - a
+            return ("line", a, d, float(np.arctan2(d[1], d[0])))
+        centre = 0.5 * (a + b)
+        r = 0.5 * float(np.linalg.norm(b - a))
+        phi0 = float(np.arctan2(a[1] - centre[1], a[0] - centre[0]))
+        return ("arc", centre, r, phi0)
 
     @property
     def length(self) -> float:
@@ -62,18 +81,15 @@ class LeaderPath:
         p : ndarray, shape (2,)
         heading : float
         """
-        s = float(np.clip(s, 0.0, self.length))
-        k = int(min(np.searchsorted(self.cumulative, s, side="right") - 1, len(self.kinds) - 1))
-        a, b = self.points[k], self.points[k + 1]
-        t = (s - self.cumulative[k]) / max(self.lengths[k], 1e-12)
-        if self.kinds[k] == "line":
-            d = b - a
-            return a + t * d, float(np.arctan2(d[1], d[0]))
-        centre = 0.5 * (a + b)
-        r = 0.5 * float(np.linalg.norm(b - a))
-        phi0 = float(np.arctan2(a[1] - centre[1], a[0] - centre[0]))
-        phi = phi0 + np.pi * t  # counter-clockwise (left turn)
-        p = centre + r * np.array([np.cos(phi), np.sin(phi)])
+        s = float(s)
+        s = min(max(s, 0.0), self._cumulative[-1]) if s == s else s  # clamp (nan stays nan)
+        k = min(bisect.bisect_right(self._cumulative, s) - 1, self._last)
+        t = (s - self._cumulative[k]) / self._lengths[k]
+        kind, origin, size, angle = self._segments[k]
+        if kind == "line":
+            return origin + t * size, angle
+        phi = angle + np.pi * t  # counter-clockwise (left turn)
+        p = origin + size * np.array([np.cos(phi), np.sin(phi)])
         return p, phi + np.pi / 2.0
 
 

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-__all__ = ["CELL_LIST_MIN", "radius_links"]
+__all__ = ["CELL_LIST_MIN", "PAIRWISE_MAX", "radius_links"]
+
+#: Up to this many robots :func:`radius_links` tests every pair directly (one ``B x B``
+#: array, a handful of numpy calls): at a team's size that is several times faster than
+#: building a KD-tree, and the run does not import :mod:`scipy.spatial`.
+PAIRWISE_MAX = 128
 
 #: From this many robots on, :func:`radius_links` finds the pairs by cell lists (uniform
 #: grid hashing, ``O(B)`` per step after one sort) instead of a KD-tree; both give the
@@ -18,13 +22,14 @@ def radius_links(
 ) -> tuple[np.ndarray, np.ndarray]:
     """All directed links ``(i, j)``, ``i != j``, of robots of the same team within ``radius``.
 
-    Never a ``B x B`` distance matrix. Teams (Monte Carlo trials) are kept apart by shifting
-    each team far along ``x`` before the search. Two equivalent searches: a KD-tree
-    (``scipy.spatial.cKDTree.query_pairs``, ``O(B log B)``) and cell lists (the plane cut
-    into squares of side ``radius``; a robot's neighbours are in its own and the 8
-    surrounding squares; ``O(B + E)`` work after sorting the robots by square). A pair is
-    linked when ``dx^2 + dy^2 <= radius^2`` in the shifted coordinates, the KD-tree's own
-    test, so both give the same links.
+    No ``B x B`` distance matrix above :data:`PAIRWISE_MAX` robots. Teams (Monte Carlo
+    trials) are kept apart by shifting each team far along ``x`` before the search. Two
+    equivalent searches: a KD-tree (``scipy.spatial.cKDTree.query_pairs``, ``O(B log B)``)
+    and cell lists (the plane cut into squares of side ``radius``; a robot's neighbours are
+    in its own and the 8 surrounding squares; ``O(B + E)`` work after sorting the robots by
+    square); up to :data:`PAIRWISE_MAX` robots every pair is tested. A pair is linked when
+    ``dx^2 + dy^2 <= radius^2`` in the shifted coordinates, the KD-tree's own test, so all
+    three give the same links.
 
     Parameters
     ----------
@@ -33,28 +38,35 @@ def radius_links(
     team : ndarray of int, shape (B,)
         Team (trial) index of every robot.
     radius : float
-    method : {"auto", "kdtree", "cells"}
-        ``auto``: cell lists from :data:`CELL_LIST_MIN` robots on.
+    method : {"auto", "kdtree", "cells", "pairs"}
+        ``auto``: every pair up to :data:`PAIRWISE_MAX` robots, cell lists from
+        :data:`CELL_LIST_MIN` robots on, a KD-tree between.
 
     Returns
     -------
     i, j : ndarray of int, shape (E,)
         Sorted by ``i`` then ``j``.
     """
-    if method not in ("auto", "kdtree", "cells"):
-        raise ValueError(f"method must be 'auto', 'kdtree' or 'cells', got {method!r}")
+    if method not in ("auto", "kdtree", "cells", "pairs"):
+        raise ValueError(f"method must be 'auto', 'kdtree', 'cells' or 'pairs', got {method!r}")
     if len(p) < 2:
         e = np.zeros(0, dtype=np.int64)
         return e, e.copy()
-    span = float(np.ptp(p[:, 0])) + 4.0 * radius + 1.0
+    x = p[:, 0]
+    span = float(x.max() - x.min()) + 4.0 * radius + 1.0  # np.ptp
     shifted = p.astype(float, copy=True)
     shifted[:, 0] += team * span
     if method == "auto":
         method = "cells" if len(p) >= CELL_LIST_MIN else "kdtree"
+        method = "pairs" if len(p) <= PAIRWISE_MAX else method
+    if method == "pairs":
+        return _pairwise_links(shifted, float(radius))
     if method == "cells":
         found = _cell_list_links(shifted, float(radius))
         if found is not None:
             return found
+    from scipy.spatial import cKDTree
+
     pairs = cKDTree(shifted).query_pairs(radius, output_type="ndarray")
     if len(pairs) == 0:
         e = np.zeros(0, dtype=np.int64)
@@ -63,6 +75,17 @@ def radius_links(
     j = np.concatenate([pairs[:, 1], pairs[:, 0]]).astype(np.int64)
     order = np.lexsort((j, i))
     return i[order], j[order]
+
+
+def _pairwise_links(q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Directed links within ``radius`` of the points ``q: (B, 2)`` by testing every pair
+    (``dx^2 + dy^2 <= radius^2``, as the KD-tree does), sorted by ``i`` then ``j``."""
+    dx = q[None, :, 0] - q[:, None, 0]
+    dy = q[None, :, 1] - q[:, None, 1]
+    near = dx * dx + dy * dy <= radius * radius
+    np.fill_diagonal(near, False)
+    i, j = np.nonzero(near)
+    return i.astype(np.int64), j.astype(np.int64)
 
 
 def _cell_list_links(q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray] | None:

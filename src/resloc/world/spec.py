@@ -14,8 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 from resloc.schema import option
-from resloc.world.adversary import StealthKnowledge
-from resloc.world.attacks import AttackKind, LinkScope
+from resloc.world.attacks import AttackKind, LinkScope, StealthKnowledge
 from resloc.world.zones import RiskProfile
 
 __all__ = [

@@ -15,7 +15,6 @@ from resloc.angles import wrap_angle
 from resloc.cl.graph import Lambda2Memo, component_lambda2
 from resloc.models.measurement import range_bearing
 from resloc.models.motion import unicycle_step
-from resloc.world.adversary import ReplayBuffer
 from resloc.world.attacks import AttackKind, apply_injection, attackable_links, injection
 from resloc.world.control import LeaderPath, lattice_offsets, si_to_unicycle
 from resloc.world.network import radius_links
@@ -25,6 +24,12 @@ from resloc.world.zones import Zone, ZoneField
 __all__ = ["World", "WorldStep", "zone_field"]
 
 _STREAMS = ("init", "odometry", "measurement", "attack", "channel")
+
+
+def _stacked(draws: list[np.ndarray]) -> np.ndarray:
+    """The trials' draws of one stream stacked along the first axis (one trial: its own
+    array, no copy)."""
+    return draws[0] if len(draws) == 1 else np.concatenate(draws)
 
 
 def zone_field(specs: tuple[ZoneSpec, ...]) -> ZoneField:
@@ -56,6 +61,8 @@ class WorldStep:
         ``Ds(i)``, ``Dc(i)`` at the true positions.
     lambda2 : ndarray, shape (B,)
         Algebraic connectivity of the communication graph seen by each robot.
+    in_comm : ndarray of bool, shape (E,), optional
+        The link is within radio range (``channel_ok`` before the CDZ's failures).
     """
 
     k: int
@@ -69,6 +76,7 @@ class WorldStep:
     risk_s: np.ndarray
     risk_c: np.ndarray
     lambda2: np.ndarray
+    in_comm: np.ndarray | None = None
 
 
 class World:
@@ -119,11 +127,14 @@ class World:
         self.pose = self._initial_poses()
         self._l2_key: tuple | None = None
         self._l2: np.ndarray = np.zeros(self.B)
-        self._replay = (
-            ReplayBuffer(spec.attack.replay_delay, self.B)
-            if spec.attack.kind is AttackKind.REPLAY
-            else None
-        )
+        self._odometry_std = np.asarray(spec.motion.odometry_std, float)
+        self._measurement_std = np.array([spec.sensing.range_std, spec.sensing.bearing_std])
+        self._replay = None
+        if spec.attack.kind is AttackKind.REPLAY:
+            # Imported here: the adversary module loads the compiled kernels (numba).
+            from resloc.world.adversary import ReplayBuffer
+
+            self._replay = ReplayBuffer(spec.attack.replay_delay, self.B)
 
     # ------------------------------------------------------------------ set-up
     def _desired(self, t: float) -> tuple[np.ndarray, float]:
@@ -171,29 +182,28 @@ class World:
         c, s = np.cos(self.pose[:, 2]), np.sin(self.pose[:, 2])
         ahead = self.pose[:, :2] + m.projection * np.stack([c, s], axis=1)
         v_si = m.gain * (p_des - ahead)
-        speed = np.linalg.norm(v_si, axis=1, keepdims=True)
+        speed = np.sqrt(np.add.reduce(v_si * v_si, axis=1, keepdims=True))  # = np.linalg.norm
         v_si *= np.minimum(1.0, m.v_max / np.maximum(speed, 1e-12))
         return si_to_unicycle(self.pose, v_si, m.projection, m.v_max, m.omega_max)
 
     def step(self) -> WorldStep:
         """Move every robot one ``dt``, then sense and draw attacks and channel outcomes."""
-        m, sens, att = self.spec.motion, self.spec.sensing, self.spec.attack
+        sens, att = self.spec.sensing, self.spec.attack
         u = self.commands()
         self.pose = unicycle_step(self.pose, u, self.dt)
         self.k += 1
-        odo_std = np.asarray(m.odometry_std, float)
-        u_meas = u + np.vstack([g.normal(size=(self.n, 2)) for g in self._fresh("odometry")]) * (
-            odo_std
+        u_meas = u + _stacked([g.normal(size=(self.n, 2)) for g in self._fresh("odometry")]) * (
+            self._odometry_std
         )
 
         p = self.pose[:, :2]
         i, j = radius_links(p, self.team, sens.radius)
         z = range_bearing(self.pose[i], self.pose[j])
         counts = np.bincount(self.team[i], minlength=self.trials)
-        noise = np.vstack(
+        noise = _stacked(
             [g.normal(size=(c, 2)) for g, c in zip(self._fresh("measurement"), counts, strict=True)]
         )
-        z = z + noise.reshape(-1, 2) * np.array([sens.range_std, sens.bearing_std])
+        z = z + noise.reshape(-1, 2) * self._measurement_std
         z[:, 0] = np.abs(z[:, 0])
         z[:, 1] = wrap_angle(z[:, 1])
 
@@ -203,7 +213,7 @@ class World:
         attacked = np.zeros(len(i), dtype=bool)
         att_rngs = self._fresh("attack")
         if self.sdz:
-            u_att = np.concatenate([g.random(c) for g, c in zip(att_rngs, counts, strict=True)])
+            u_att = _stacked([g.random(c) for g, c in zip(att_rngs, counts, strict=True)])
             can = attackable_links(
                 self.rid[i], self.rid[j], att.links, att.link_fraction, self.seed
             )
@@ -230,7 +240,7 @@ class World:
         in_comm = np.hypot(*(p[i] - p[j]).T) <= sens.comm_radius
         channel_ok = in_comm.copy()
         if self.cdz:
-            u_ch = np.concatenate(
+            u_ch = _stacked(
                 [g.random(c) for g, c in zip(self._fresh("channel"), counts, strict=True)]
             )
             if att.channel is ChannelRule.EITHER:
@@ -241,7 +251,18 @@ class World:
 
         lambda2 = self._lambda2(i[in_comm], j[in_comm])
         return WorldStep(
-            self.k, self.pose.copy(), u_meas, i, j, z, attacked, channel_ok, risk_s, risk_c, lambda2
+            self.k,
+            self.pose.copy(),
+            u_meas,
+            i,
+            j,
+            z,
+            attacked,
+            channel_ok,
+            risk_s,
+            risk_c,
+            lambda2,
+            in_comm,
         )
 
     def _lambda2(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:

@@ -51,7 +51,8 @@ def risk_profile(s: np.ndarray, profile: RiskProfile) -> np.ndarray:
         g = 1.0 - 0.2 * np.floor(np.minimum(s, 0.999999) * 5.0)
     else:
         g = np.ones_like(s)
-    return np.where(s <= 1.0, np.clip(g, 0.0, 1.0), 0.0)
+    # np.clip's value, without its Python-level dispatch (a third of a small call's time)
+    return np.where(s <= 1.0, np.minimum(np.maximum(g, 0.0), 1.0), 0.0)
 
 
 @dataclass(frozen=True)

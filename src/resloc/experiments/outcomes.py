@@ -1,0 +1,161 @@
+"""Per-trial counts of one estimator's link outcomes, computed in bulk over many steps.
+
+At a team's size one step's counts (transmissions, deliveries, detections, the detector's
+confusion counts, ...) are a couple of dozen numpy calls on a few hundred links, whose fixed
+cost exceeds their arithmetic. :class:`OutcomeCounter` keeps each step's outcomes as one
+byte per link and counts a whole buffer of steps at once; the counts are the per-step ones
+exactly (integers).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from resloc.experiments.recording import pack_outcomes
+
+__all__ = ["COUNTED", "OutcomeCounter", "per_group_counts"]
+
+#: The per-trial totals the counter accumulates from the link outcomes.
+COUNTED = (
+    "triggered", "delivered", "detected", "failed", "fused", "attacked_fused", "tp", "fp", "fn",
+    "tn", "repairs",
+)  # fmt: skip
+#: Bits of a link's byte: the recording's LINK_FLAGS first (so ``byte & 15`` is what the
+#: recording keeps), then whether the update was repaired and whether the link was attacked.
+_BITS = ("detected", "triggered", "delivered", "fused", "repaired", "attacked")
+_LOG_MASK = np.uint8(0b1111)
+
+
+def per_group_counts(masks: np.ndarray, group: np.ndarray, groups: int) -> np.ndarray:
+    """How many entries of each group every row of ``masks`` marks.
+
+    Parameters
+    ----------
+    masks : ndarray of bool, shape (K, M)
+    group : ndarray of int, shape (M,)
+        Values in ``[0, groups)``.
+    groups : int
+
+    Returns
+    -------
+    ndarray of int64, shape (K, groups)
+        ``np.bincount(group, weights=row, minlength=groups)`` of every row.
+    """
+    K, M = masks.shape
+    if groups == 1:
+        return np.count_nonzero(masks, axis=1).astype(np.int64)[:, None]
+    if M and np.all(group[1:] >= group[:-1]):  # sorted (steps in order, links by trial)
+        # Running counts along each row, read at the groups' boundaries.
+        bounds = np.searchsorted(group, np.arange(groups + 1))
+        running = np.zeros((K, M + 1), np.int64)
+        np.cumsum(masks, axis=1, out=running[:, 1:])
+        return running[:, bounds[1:]] - running[:, bounds[:-1]]
+    return np.stack([np.bincount(group[m], minlength=groups) for m in masks]).astype(np.int64)
+
+
+class OutcomeCounter:
+    """One estimator's per-step link outcomes, counted per trial in bulk.
+
+    :meth:`add` keeps a step's outcomes (one byte per link) and the world's per-step
+    arrays it needs (references, not copies); :meth:`flush` counts the buffered steps and
+    writes ``series`` rows ``candidates``, ``attacked``, ``triggered``, ``delivered``,
+    ``detected``, adds to ``totals`` (:data:`COUNTED`, ``candidates``, ``attacked`` and,
+    for a fusion that acknowledges fusions, ``ack_links`` and ``ack_frames``), fills the
+    ``raster`` rows (transmissions per robot of trial 0) and appends trial 0's recorded
+    flags to ``link_flags``. It flushes when :data:`MAX_ROWS` steps are buffered and when
+    the series' last row is added; whoever reads the records earlier calls :meth:`flush`.
+
+    Parameters
+    ----------
+    series, totals : dict of str to ndarray
+        Shapes (steps, T) and (T,).
+    raster : ndarray, shape (steps, N)
+    link_flags : list of ndarray
+        Receives trial 0's packed :data:`~resloc.experiments.recording.LINK_FLAGS`.
+    trials, robots : int
+        ``T`` and ``N``; robot ``b`` of a step's links is robot ``b % N`` of trial ``b // N``.
+    acks : bool
+        The fusion acknowledges every fusion (gauge): count ``ack_links`` and ``ack_frames``.
+    """
+
+    #: Most steps buffered (beyond it the fixed costs are already amortized).
+    MAX_ROWS = 256
+
+    def __init__(self, series, totals, raster, link_flags, trials, robots, acks=False) -> None:
+        self.series, self.totals, self.raster = series, totals, raster
+        self.link_flags = link_flags
+        self.trials, self.robots, self.acks = int(trials), int(robots), bool(acks)
+        self.last_row = len(series["candidates"]) - 1
+        self.pending: list[tuple] = []
+
+    def add(self, row, out, i, team_i, attacked, candidates, attacked_n) -> None:
+        """Record step ``row``: ``out`` (a :class:`~resloc.cl.links.LinkOutcome`, or None
+        when the estimator fuses nothing), the links' observers ``i``, their trials
+        ``team_i`` and ``attacked`` flags (each (E,)), and the step's per-trial
+        ``candidates`` and ``attacked_n`` (T,)."""
+        packed = None
+        if out is not None:
+            flags = (out.detected, out.triggered, out.delivered, out.fused, out.repaired)
+            packed = pack_outcomes(*flags, attacked)
+        self.pending.append((row, packed, i, team_i, candidates, attacked_n))
+        if len(self.pending) >= self.MAX_ROWS or row == self.last_row:
+            self.flush()
+
+    def flush(self) -> None:
+        """Count the buffered steps into the records."""
+        if not self.pending:
+            return
+        pending, self.pending = self.pending, []
+        T, N = self.trials, self.robots
+        s, tot = self.series, self.totals
+        rows = np.array([p[0] for p in pending])
+        candidates = np.stack([p[4] for p in pending])
+        attacked_n = np.stack([p[5] for p in pending])
+        s["candidates"][rows] = candidates
+        s["attacked"][rows] = attacked_n
+        tot["candidates"] += candidates.sum(axis=0)
+        tot["attacked"] += attacked_n.astype(np.int64).sum(axis=0)
+        linked = [p for p in pending if p[1] is not None]
+        if not linked:
+            return
+        rows = np.array([p[0] for p in linked])
+        C = len(linked)
+        sizes = np.array([len(p[1]) for p in linked])
+        packed = np.concatenate([p[1] for p in linked])
+        i = np.concatenate([p[2] for p in linked])
+        team_i = np.concatenate([p[3] for p in linked])
+        slot = np.repeat(np.arange(C), sizes)
+        bits = np.unpackbits(packed[None, :], axis=0, count=len(_BITS), bitorder="little")
+        detected, triggered, delivered, fused, repaired, att = bits.astype(bool)
+        masks = np.stack(
+            (
+                triggered,
+                delivered,
+                detected,
+                triggered & ~delivered,
+                fused,
+                fused & att,
+                detected & att,
+                detected & ~att,
+                ~detected & att,
+                ~detected & ~att,
+                repaired,
+            )
+        )
+        counts = per_group_counts(masks, slot * T + team_i, C * T).reshape(len(COUNTED), C, T)
+        counted = dict(zip(COUNTED, counts, strict=True))
+        for key in ("triggered", "delivered", "detected"):
+            s[key][rows] = counted[key]
+        for key, per_step in counted.items():
+            tot[key] += per_step.sum(axis=0)
+        if self.acks:  # gauge: one acknowledgement per fusion, one frame per fusing robot
+            tot["ack_links"] += counted["fused"].sum(axis=0)
+            B = T * N
+            senders = np.unique(slot[fused] * B + i[fused]) % B
+            tot["ack_frames"] += np.bincount(senders // N, minlength=T)
+        own = i < N
+        transmissions = np.bincount(
+            slot[own] * N + i[own], weights=triggered[own], minlength=C * N
+        ).reshape(C, N)
+        self.raster[rows] = transmissions
+        self.link_flags.append(packed[own] & _LOG_MASK)
