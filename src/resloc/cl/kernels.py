@@ -56,7 +56,8 @@ from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, kernel_fusion
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
-from resloc.cl.kernels_links import OK, correct_links
+from resloc.cl.kernels_links import OK
+from resloc.cl.kernels_rounds import run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
@@ -322,7 +323,9 @@ def fast_correct(
     P_out = np.array(P, dtype=float, order="C", copy=True)
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
-    status = correct_links(
+    status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
+        x,
+        P,
         x_out,
         P_out,
         kernel_links,
