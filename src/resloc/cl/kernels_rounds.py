@@ -160,28 +160,23 @@ def _point_axes(nz_idx, nz_val, nz_cnt):
 
 
 @_jit
-def _chol_lanes(A, rows, n, L, ok):
-    """Lower Cholesky factors of ``A[rows[c]]`` (3 x 3) into ``L[:, :, c]`` for lanes
-    ``c < n`` without jitter, and whether each succeeded (the first level of
-    :func:`~resloc.cl.kernels_math.chol3`, same operations in the same order)."""
+def _chol_lanes(A, n, L, ok):
+    """Lower Cholesky factors of the lanes' ``A = (a00, a10, a20, a11, a21, a22, finite)``
+    (a symmetric 3 x 3 matrix per lane, and whether all its nine entries are finite) into
+    ``L[:, :, c]`` for lanes ``c < n`` without jitter, and whether each succeeded (1.0)
+    (the first level of :func:`~resloc.cl.kernels_math.chol3`: same operations, same
+    order)."""
     for c in range(n):
-        r = rows[c]
-        a00 = A[r, 0, 0]
-        a10 = A[r, 1, 0]
-        a20 = A[r, 2, 0]
-        a11 = A[r, 1, 1]
-        a21 = A[r, 2, 1]
-        a22 = A[r, 2, 2]
-        # chol3 checks all nine entries; the upper triangle's through the sum
-        finite = math.isfinite(a00 + a10 + a20 + a11 + a21 + a22 + A[r, 0, 1])
-        finite = finite & math.isfinite(A[r, 0, 2] + A[r, 1, 2])
+        a00 = A[0, c]
+        a10 = A[1, c]
+        a20 = A[2, c]
         l00 = math.sqrt(a00)
         l10 = a10 / l00
         l20 = a20 / l00
-        s1 = a11 - l10 * l10
+        s1 = A[3, c] - l10 * l10
         l11 = math.sqrt(s1)
-        l21 = (a21 - l20 * l10) / l11
-        s2 = a22 - l20 * l20 - l21 * l21
+        l21 = (A[4, c] - l20 * l10) / l11
+        s2 = A[5, c] - l20 * l20 - l21 * l21
         l22 = math.sqrt(s2)
         L[0, 0, c] = l00
         L[1, 0, c] = l10
@@ -189,14 +184,34 @@ def _chol_lanes(A, rows, n, L, ok):
         L[1, 1, c] = l11
         L[2, 1, c] = l21
         L[2, 2, c] = l22
-        ok[c] = finite & (a00 > 0.0) & (s1 > 0.0) & (s2 > 0.0)
+        good = (A[6, c] == 1.0) & (a00 > 0.0) & (s1 > 0.0) & (s2 > 0.0)
+        ok[c] = 1.0 if good else 0.0
+
+
+@_jit
+def _load_covariances(P, rows, n, A):
+    """The lower triangle of ``P[rows[c]]`` per lane, and whether all nine entries are
+    finite (what :func:`_chol_lanes` factors)."""
+    for c in range(n):
+        r = rows[c]
+        A[0, c] = P[r, 0, 0]
+        A[1, c] = P[r, 1, 0]
+        A[2, c] = P[r, 2, 0]
+        A[3, c] = P[r, 1, 1]
+        A[4, c] = P[r, 2, 1]
+        A[5, c] = P[r, 2, 2]
+        finite = True
+        for a in range(3):
+            for b in range(3):
+                finite = finite and math.isfinite(P[r, a, b])
+        A[6, c] = 1.0 if finite else 0.0
 
 
 @_jit
 def _chol_jitter_lanes(A, rows, n, L, ok, jitter, scratch_in, scratch_out):
     """The lanes whose factor needed jitter, by :func:`chol3` itself. False: one failed."""
     for c in range(n):
-        if ok[c]:
+        if ok[c] == 1.0:
             continue
         r = rows[c]
         for a in range(3):
@@ -213,7 +228,7 @@ def _chol_jitter_lanes(A, rows, n, L, ok, jitter, scratch_in, scratch_out):
 @_jit
 def _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad):
     """Robot ``i``'s running estimate, ``j``'s transmitted one and the sine and cosine of
-    ``i``'s heading, per lane."""
+    ``i``'s heading, per lane (``bad``: 1.0 where the heading is out of range)."""
     for c in range(n):
         e = lane_e[c]
         i = li[e]
@@ -230,14 +245,15 @@ def _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad):
         sn, cs = sincos_lanes(h)
         sin_cos[0, c] = sn
         sin_cos[1, c] = cs
-        bad[c] = not (abs(h) <= SINCOS_LANES_MAX)
+        bad[c] = 0.0 if abs(h) <= SINCOS_LANES_MAX else 1.0
 
 
 @_jit
-def _points_lanes(axis, value, Wm, circular, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad):
+def _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad):
     """Range and bearing of every sigma point (eq. 3) and their weighted sums
-    ``sums = (range, sin, cos, bearing)`` per lane. Twin: the points' block of
-    ``correct_links`` (the bearing's sine and cosine by angle addition from the heading's)."""
+    ``sums = (range, sin, cos, bearing)`` per lane (``bad``: 1.0 added where a point needs
+    the row-order loop's special cases). Twin: the points' block of ``correct_links`` (the
+    bearing's sine and cosine by angle addition from the heading's and the offset's)."""
     for c in range(n):
         sums[0, c] = 0.0
         sums[1, c] = 0.0
@@ -245,41 +261,45 @@ def _points_lanes(axis, value, Wm, circular, n, xi, xr, sin_cos, Li, Lj, Z0, Z1,
         sums[3, c] = 0.0
     for k in range(axis.shape[0]):
         b = axis[k]
-        u = value[k]
         w = Wm[k]
-        for c in range(n):
-            xi0 = xi[0, c]
-            xi1 = xi[1, c]
-            th = xi[2, c]
-            sn = sin_cos[0, c]
-            cs = sin_cos[1, c]
-            if b < 0:  # the centre
-                dx = xr[0, c] - xi0
-                dy = xr[1, c] - xi1
-            elif b < 3:  # a point of robot i's half: offsets position and heading
-                dx = xr[0, c] - (xi0 + Li[0, b, c] * u)
-                dy = xr[1, c] - (xi1 + Li[1, b, c] * u)
+        if 0 <= b < 3:  # a point of robot i's half: offsets its position and heading
+            u = value[k]
+            for c in range(n):
+                dx = xr[0, c] - (xi[0, c] + Li[0, b, c] * u)
+                dy = xr[1, c] - (xi[1, c] + Li[1, b, c] * u)
                 o2 = Li[2, b, c] * u
-                th = th + o2
+                th = xi[2, c] + o2
                 so, co = sincos_lanes(o2)
-                sn0 = sn
-                sn = sn0 * co + cs * so
-                cs = cs * co - sn0 * so
-                bad[c] |= not (abs(o2) <= SINCOS_LANES_MAX)
-            else:  # a point of j's half
-                dx = (xr[0, c] + Lj[0, b - 3, c] * u) - xi0
-                dy = (xr[1, c] + Lj[1, b - 3, c] * u) - xi1
-            r = math.sqrt(dx * dx + dy * dy)
-            bad[c] |= not (r > 0.0 and r < math.inf)
-            bearing = wrap_lanes(atan2_lanes(dy, dx) - th)
-            Z0[k, c] = r
-            Z1[k, c] = bearing
-            sums[0, c] += r * w
-            if circular:
+                sn = sin_cos[0, c] * co + sin_cos[1, c] * so
+                cs = sin_cos[1, c] * co - sin_cos[0, c] * so
+                r = math.sqrt(dx * dx + dy * dy)
+                bearing = wrap_lanes(atan2_lanes(dy, dx) - th)
+                Z0[k, c] = r
+                Z1[k, c] = bearing
+                sums[0, c] += r * w
                 sums[1, c] += ((dy * cs - dx * sn) / r) * w
                 sums[2, c] += ((dx * cs + dy * sn) / r) * w
-            else:
                 sums[3, c] += bearing * w
+                good = (r > 0.0) & (r < math.inf) & (abs(o2) <= SINCOS_LANES_MAX)
+                bad[c] += 0.0 if good else 1.0
+        else:  # a point of j's half (offsets j's position), or the centre (u = 0)
+            bj = b - 3 if b >= 3 else 0
+            u = value[k] if b >= 3 else 0.0
+            for c in range(n):
+                dx = (xr[0, c] + Lj[0, bj, c] * u) - xi[0, c]
+                dy = (xr[1, c] + Lj[1, bj, c] * u) - xi[1, c]
+                sn = sin_cos[0, c]
+                cs = sin_cos[1, c]
+                r = math.sqrt(dx * dx + dy * dy)
+                bearing = wrap_lanes(atan2_lanes(dy, dx) - xi[2, c])
+                Z0[k, c] = r
+                Z1[k, c] = bearing
+                sums[0, c] += r * w
+                sums[1, c] += ((dy * cs - dx * sn) / r) * w
+                sums[2, c] += ((dx * cs + dy * sn) / r) * w
+                sums[3, c] += bearing * w
+                good = (r > 0.0) & (r < math.inf)
+                bad[c] += 0.0 if good else 1.0
 
 
 @_jit
@@ -293,7 +313,7 @@ def _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, 
         for c in range(n):
             ssin = sums[1, c]
             scos = sums[2, c]
-            bad[c] |= (ssin == 0.0) & (scos == 0.0)
+            bad[c] += 1.0 if (ssin == 0.0) & (scos == 0.0) else 0.0
             moments[1, c] = wrap_lanes(atan2_lanes(ssin, scos))
     else:
         for c in range(n):
@@ -315,20 +335,16 @@ def _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, 
                 for c in range(n):
                     mean[a, c] += (Li[a, b, c] * u) * w
     for k in range(m):
-        b = axis[k]
-        u = value[k]
+        # the point's offset of x_i: L_i's column b times u (zero for j's half, the centre)
+        b = axis[k] if 0 <= axis[k] < 3 else 0
+        u = value[k] if 0 <= axis[k] < 3 else 0.0
         w = Wc[k]
         for c in range(n):
             d0 = Z0[k, c] - moments[0, c]
             d1 = wrap_lanes(Z1[k, c] - moments[1, c])
-            if 0 <= b < 3:
-                g0 = Li[0, b, c] * u - mean[0, c]
-                g1 = Li[1, b, c] * u - mean[1, c]
-                g2 = Li[2, b, c] * u - mean[2, c]
-            else:
-                g0 = 0.0 - mean[0, c]
-                g1 = 0.0 - mean[1, c]
-                g2 = 0.0 - mean[2, c]
+            g0 = Li[0, b, c] * u - mean[0, c]
+            g1 = Li[1, b, c] * u - mean[1, c]
+            g2 = Li[2, b, c] * u - mean[2, c]
             moments[2, c] += d0 * w * d0
             moments[3, c] += d0 * w * d1
             moments[4, c] += d1 * w * d1
@@ -440,9 +456,10 @@ def correct_rounds(
     sin_cos = np.empty((2, C))
     Li = np.zeros((3, 3, C))
     Lj = np.zeros((3, 3, C))
-    ok_i = np.empty(C, np.bool_)
-    ok_j = np.empty(C, np.bool_)
-    bad = np.empty(C, np.bool_)
+    cov = np.empty((7, C))
+    ok_i = np.empty(C)
+    ok_j = np.empty(C)
+    bad = np.empty(C)
     Z0 = np.empty((m, C))
     Z1 = np.empty((m, C))
     sums = np.empty((4, C))
@@ -475,16 +492,18 @@ def correct_rounds(
                     lane_e[n] = block_start[b] + r
                     n += 1
             _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad)
-            _chol_lanes(P, obs, n, Li, ok_i)
-            _chol_lanes(P_ref, src, n, Lj, ok_j)
+            _load_covariances(P, obs, n, cov)
+            _chol_lanes(cov, n, Li, ok_i)
+            _load_covariances(P_ref, src, n, cov)
+            _chol_lanes(cov, n, Lj, ok_j)
             if not _chol_jitter_lanes(P, obs, n, Li, ok_i, jitter, scratch_in, scratch_out):
                 return NOT_PD
             if not _chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, scratch_in, scratch_out):
                 return NOT_PD
-            _points_lanes(axis, value, Wm, circular, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
+            _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
             _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad)
             for c in range(n):
-                if bad[c]:
+                if bad[c] != 0.0:
                     return FALLBACK
             status = _update_lanes(
                 x, P, lane_e, n, obs, moments, pxz, z, channel_ok, last_norm, robots, options,
