@@ -22,7 +22,10 @@ function                 paper                                block of ``correct
 ``_gather_lanes``        Algorithm 1 (points' factors)        ``chol3`` of ``P_i``, ``P_j``
 ``_points_lanes``        eq. (3), sigma points                the points' range, bearing
 ``_moments_lanes``       eq. (3), moments                     ``zh``, ``S``, ``P^xz``
-``_update_lanes``        eqs. (8)-(11), Algorithm 1 (gain)    detector to Schur update
+``_kalman_lanes``        eq. (9), Algorithm 1 (gain)          innovation to Schur update
+``_norms_lanes``         eq. (9), detector norms              ``_innovation_norm``
+``_decide_lanes``        eqs. (8), (10), (11), detector       gate, threshold, trigger
+``_apply_lanes``         Algorithm 1                          outputs, the update
 =======================  ===================================  ===========================
 
 Coverage (:func:`rounds_cover`): sigma-point filters whose 6-D points have at most one
@@ -66,9 +69,8 @@ from resloc.cl.kernels_links import (
     event_threshold_of_link,
     gate_link,
     innovation_norm_of_link,
-    schur_update,
 )
-from resloc.cl.kernels_math import chol2, chol3, is_pd3, repair3, solve2, stamp_with_pieces, wrap
+from resloc.cl.kernels_math import chol3, repair3, stamp_with_pieces, wrap
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -226,9 +228,10 @@ def _chol_jitter_lanes(A, rows, n, L, ok, jitter, scratch_in, scratch_out):
 
 
 @_jit
-def _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad):
-    """Robot ``i``'s running estimate, ``j``'s transmitted one and the sine and cosine of
-    ``i``'s heading, per lane (``bad``: 1.0 where the heading is out of range)."""
+def _gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad):
+    """Robot ``i``'s running estimate, ``j``'s transmitted one, the measurement and the sine
+    and cosine of ``i``'s heading, per lane (``bad``: 1.0 where the heading is out of
+    range)."""
     for c in range(n):
         e = lane_e[c]
         i = li[e]
@@ -240,6 +243,8 @@ def _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad):
         xi[2, c] = x[i, 2]
         xr[0, c] = x_ref[s, 0]
         xr[1, c] = x_ref[s, 1]
+        zl[0, c] = z[e, 0]
+        zl[1, c] = z[e, 1]
     for c in range(n):
         h = xi[2, c]
         sn, cs = sincos_lanes(h)
@@ -357,76 +362,212 @@ def _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, 
 
 
 @_jit
-def _update_lanes(
-    x, P, lane_e, n, obs, moments, pxz, z, channel_ok, last_norm, robots, options, out, K, Pn, T3
-):  # fmt: skip
-    """Innovation (eq. 9), detector gate, event threshold (eq. 11), trigger (eq. 10),
-    channel (eq. 8), and for a delivered measurement the Kalman update of ``x``, ``P`` (the
-    gain by the Cholesky factor of ``S``, then ``P - K S K^T`` symmetrized, repaired if not
-    positive definite), per lane in turn. Returns the status.
-    Twin: the decision and update blocks of ``correct_links`` (same pieces)."""
-    risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
-    R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
-    jitter = options[8]
-    out_norm, out_threshold, flags = out
+def _load_robot_covariances(P, rows, n, Pi):
+    """All nine entries of ``P[rows[c]]`` per lane (the update reads the full matrix, as
+    the row-order loop does)."""
+    for c in range(n):
+        r = rows[c]
+        for a in range(3):
+            for b in range(3):
+                Pi[3 * a + b, c] = P[r, a, b]
+
+
+@_jit
+def _kalman_lanes(n, zl, R, moments, pxz, Pi, update):
+    """Per lane (``zl``: the measurements): the innovation (eq. 9), the Cholesky factor of ``S`` (its first level,
+    no jitter), and the Kalman update the link would make if fused: the gain by the factor
+    of ``S``, the change of ``x`` and ``P - K S K^T`` symmetrized, and whether that is
+    positive definite (Sylvester). ``update = (nu0, nu1, l00, l10, l11, dx0, dx1, dx2,
+    P00, P01, P02, P11, P12, P22, pd, bad)``; ``bad``: 1.0 where ``S`` needs jitter or the
+    measured bearing is out of ``(-2 pi, 2 pi)``. Arrays have CHUNK columns. Twin: the innovation, gain and Schur
+    update blocks of ``correct_links`` (same operations, same order)."""
+    # Flat views, rows CHUNK apart: with the row stride a compile-time constant, LLVM
+    # proves the rows' stores independent and vectorizes the loop.
+    zf = zl.reshape(zl.size)
+    mf = moments.reshape(moments.size)
+    pf = pxz.reshape(pxz.size)
+    Pf = Pi.reshape(Pi.size)
+    uf = update.reshape(update.size)
+    r00 = R[0, 0]
+    r01 = R[0, 1]
+    r10 = R[1, 0]
+    r11 = R[1, 1]
+    for c in range(n):
+        z0 = zf[c]
+        z1 = zf[1 * CHUNK + c]
+        s00 = mf[2 * CHUNK + c] + r00
+        s01 = 0.5 * ((mf[3 * CHUNK + c] + r01) + (mf[3 * CHUNK + c] + r10))
+        s11 = mf[4 * CHUNK + c] + r11
+        nu0 = z0 - mf[c]
+        nu1 = wrap_lanes(z1 - mf[1 * CHUNK + c])
+        # chol2's first level (eps = 0)
+        l00 = math.sqrt(s00)
+        l10 = s01 / l00
+        q = s11 - l10 * l10
+        l11 = math.sqrt(q)
+        finite = (abs(s00) < math.inf) & (abs(s01) < math.inf) & (abs(s11) < math.inf)
+        good = finite & (s00 > 0.0) & (q > 0.0) & (abs(z1) < 2.0 * math.pi)
+        # K = P^xz S^-1 row by row (solve2's operations)
+        y0 = pf[c] / l00
+        k01 = ((pf[1 * CHUNK + c] - l10 * y0) / l11) / l11
+        k00 = (y0 - l10 * k01) / l00
+        y0 = pf[2 * CHUNK + c] / l00
+        k11 = ((pf[3 * CHUNK + c] - l10 * y0) / l11) / l11
+        k10 = (y0 - l10 * k11) / l00
+        y0 = pf[4 * CHUNK + c] / l00
+        k21 = ((pf[5 * CHUNK + c] - l10 * y0) / l11) / l11
+        k20 = (y0 - l10 * k21) / l00
+        # P - K S K^T (schur_update), then symmetrized
+        t00 = k00 * s00 + k01 * s01
+        t01 = k00 * s01 + k01 * s11
+        t10 = k10 * s00 + k11 * s01
+        t11 = k10 * s01 + k11 * s11
+        t20 = k20 * s00 + k21 * s01
+        t21 = k20 * s01 + k21 * s11
+        n00 = Pf[c] - (t00 * k00 + t01 * k01)
+        n01 = Pf[1 * CHUNK + c] - (t00 * k10 + t01 * k11)
+        n02 = Pf[2 * CHUNK + c] - (t00 * k20 + t01 * k21)
+        n10 = Pf[3 * CHUNK + c] - (t10 * k00 + t11 * k01)
+        n11 = Pf[4 * CHUNK + c] - (t10 * k10 + t11 * k11)
+        n12 = Pf[5 * CHUNK + c] - (t10 * k20 + t11 * k21)
+        n20 = Pf[6 * CHUNK + c] - (t20 * k00 + t21 * k01)
+        n21 = Pf[7 * CHUNK + c] - (t20 * k10 + t21 * k11)
+        n22 = Pf[8 * CHUNK + c] - (t20 * k20 + t21 * k21)
+        p00 = 0.5 * (n00 + n00)
+        p01 = 0.5 * (n01 + n10)
+        p02 = 0.5 * (n02 + n20)
+        p11 = 0.5 * (n11 + n11)
+        p12 = 0.5 * (n12 + n21)
+        p22 = 0.5 * (n22 + n22)
+        # is_pd3 on the symmetrized matrix
+        m2 = p00 * p11 - p01 * p01
+        det = (
+            p00 * (p11 * p22 - p12 * p12)
+            - p01 * (p01 * p22 - p12 * p02)
+            + p02 * (p01 * p12 - p11 * p02)
+        )
+        pd = (p00 > 0.0) & (m2 > 0.0) & (det > 0.0) & (abs(det) < math.inf)
+        uf[c] = nu0
+        uf[1 * CHUNK + c] = nu1
+        uf[2 * CHUNK + c] = l00
+        uf[3 * CHUNK + c] = l10
+        uf[4 * CHUNK + c] = l11
+        uf[5 * CHUNK + c] = k00 * nu0 + k01 * nu1
+        uf[6 * CHUNK + c] = k10 * nu0 + k11 * nu1
+        uf[7 * CHUNK + c] = k20 * nu0 + k21 * nu1
+        uf[8 * CHUNK + c] = p00
+        uf[9 * CHUNK + c] = p01
+        uf[10 * CHUNK + c] = p02
+        uf[11 * CHUNK + c] = p11
+        uf[12 * CHUNK + c] = p12
+        uf[13 * CHUNK + c] = p22
+        uf[14 * CHUNK + c] = 1.0 if pd else 0.0
+        uf[15 * CHUNK + c] = 0.0 if good else 1.0
+
+
+@_jit
+def _norms_lanes(n, update, options, norms):
+    """The innovation's size in the trigger's and the detector's norms (eq. 9) per lane:
+    ``norms = (trigger, detector)``. A loop of its own: the Euclidean norm is libm's
+    ``hypot`` (as the reference's ``np.hypot``), a call the other stages must not contain."""
+    noise_std, det_norm, trig_norm = options[1], options[4], options[5]
     std0 = noise_std[0]
     std1 = noise_std[1]
     for c in range(n):
-        e = lane_e[c]
-        i = obs[c]
-        S00 = moments[2, c] + R[0, 0]
-        S01 = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
-        S11 = moments[4, c] + R[1, 1]
-        nu0 = z[e, 0] - moments[0, c]
-        nu1 = wrap(z[e, 1] - moments[1, c])
-        l00, l10, l11 = chol2(S00, S01, S11, jitter)
-        if l00 == 0.0:
-            return NOT_PD
+        nu0 = update[0, c]
+        nu1 = update[1, c]
+        l00 = update[2, c]
+        l10 = update[3, c]
+        l11 = update[4, c]
         n_trig = innovation_norm_of_link(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
+        norms[0, c] = n_trig
         if det_norm == trig_norm:
-            n_det = n_trig
+            norms[1, c] = n_trig
         else:
-            n_det = innovation_norm_of_link(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
-        a_i = alpha[i] if alpha.shape[0] > 1 else alpha[0]
-        g_i = gamma[i] if gamma.shape[0] > 1 else gamma[0]
-        zs_i = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
-        zc_i = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
-        rho_i = rho[i] if rho.shape[0] > 1 else rho[0]
+            norms[1, c] = innovation_norm_of_link(det_norm, nu0, nu1, std0, std1, l00, l10, l11)
+
+
+@_jit
+def _robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs):
+    """What the decisions read per lane, gathered: ``inputs = (alpha, lambda2, gamma, size,
+    zeta_s, risk_s, zeta_c, risk_c, rho, channel_ok)`` (``size``: the innovation size of
+    the threshold: the last delivered one with ``last_sent``, else the trigger's norm)."""
+    risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
+    last_sent = options[7]
+    for c in range(n):
+        i = obs[c]
+        e = lane_e[c]
+        inputs[0, c] = alpha[i] if alpha.shape[0] > 1 else alpha[0]
+        inputs[1, c] = lambda2[i]
+        inputs[2, c] = gamma[i] if gamma.shape[0] > 1 else gamma[0]
+        inputs[3, c] = last_norm[e] if last_sent else norms[0, c]
+        inputs[4, c] = zeta_s[i] if zeta_s.shape[0] > 1 else zeta_s[0]
+        inputs[5, c] = risk_s[i]
+        inputs[6, c] = zeta_c[i] if zeta_c.shape[0] > 1 else zeta_c[0]
+        inputs[7, c] = risk_c[i]
+        inputs[8, c] = rho[i] if rho.shape[0] > 1 else rho[0]
+        inputs[9, c] = 1.0 if channel_ok[e] else 0.0
+
+
+@_jit
+def _decide_lanes(n, options, norms, inputs, decision):
+    """Detector gate, event threshold (eq. 11), trigger (eq. 10) and channel (eq. 8) per
+    lane: ``decision = (delta, detected, triggered, delivered)`` (flags as 0.0 / 1.0).
+    Twin: the decision block of ``correct_links`` (same pieces)."""
+    detector, trigger, risk_floor = options[2], options[3], options[6]
+    nf = norms.reshape(norms.size)  # rows CHUNK apart (see _kalman_lanes)
+    inf = inputs.reshape(inputs.size)
+    df = decision.reshape(decision.size)
+    for c in range(n):
         delta = event_threshold_of_link(
-            a_i, lambda2[i], g_i, last_norm[e] if last_sent else n_trig,
-            zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
+            inf[c], inf[CHUNK + c], inf[2 * CHUNK + c], inf[3 * CHUNK + c],
+            inf[4 * CHUNK + c], inf[5 * CHUNK + c], inf[6 * CHUNK + c], inf[7 * CHUNK + c],
+            risk_floor,
         )  # fmt: skip
-        detected = gate_link(n_det, detector, rho_i)
-        triggered, delivered = decide_link(detected, n_trig, delta, trigger, channel_ok[e])
-        out_norm[e] = n_trig
-        out_threshold[e] = math.nan if detected else delta
+        detected = gate_link(nf[CHUNK + c], detector, inf[8 * CHUNK + c])
+        triggered, delivered = decide_link(
+            detected, nf[c], delta, trigger, inf[9 * CHUNK + c] == 1.0
+        )
+        df[c] = delta
+        df[CHUNK + c] = 1.0 if detected else 0.0
+        df[2 * CHUNK + c] = 1.0 if triggered else 0.0
+        df[3 * CHUNK + c] = 1.0 if delivered else 0.0
+
+
+@_jit
+def _apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3):
+    """The lanes' decisions into the outputs, and for a delivered measurement the update
+    :func:`_kalman_lanes` prepared (repaired where not positive definite). Twin: the
+    outputs and the update of ``correct_links``."""
+    out_norm, out_threshold, flags = out
+    for c in range(n):
+        e = lane_e[c]
+        detected = decision[1, c] == 1.0
+        delivered = decision[3, c] == 1.0
+        out_norm[e] = norms[0, c]
+        out_threshold[e] = math.nan if detected else decision[0, c]
         flags[0, e] = detected
-        flags[1, e] = triggered
+        flags[1, e] = decision[2, c] == 1.0
         flags[2, e] = delivered
         flags[3, e] = delivered
         if not delivered:
             continue
-        for a in range(3):
-            k0, k1 = solve2(l00, l10, l11, pxz[2 * a, c], pxz[2 * a + 1, c])
-            K[a, 0] = k0
-            K[a, 1] = k1
-        xi0 = x[i, 0]
-        xi1 = x[i, 1]
-        xi2 = x[i, 2]
-        x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
-        x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
-        x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-        schur_update(P[i], K, S00, S01, S11, Pn)
-        for a in range(3):
-            for b in range(3):
-                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-        if not is_pd3(T3):
+        i = obs[c]
+        x[i, 0] = xi[0, c] + update[5, c]
+        x[i, 1] = xi[1, c] + update[6, c]
+        x[i, 2] = wrap(xi[2, c] + update[7, c])
+        T3[0, 0] = update[8, c]
+        T3[0, 1] = T3[1, 0] = update[9, c]
+        T3[0, 2] = T3[2, 0] = update[10, c]
+        T3[1, 1] = update[11, c]
+        T3[1, 2] = T3[2, 1] = update[12, c]
+        T3[2, 2] = update[13, c]
+        if update[14, c] != 1.0:
             repair3(T3)
             flags[4, e] = True
         for a in range(3):
             for b in range(3):
                 P[i, a, b] = T3[a, b]
-    return OK
 
 
 @_jit
@@ -453,6 +594,7 @@ def correct_rounds(
     src = np.empty(C, np.int64)
     xi = np.empty((3, C))
     xr = np.empty((2, C))
+    zl = np.empty((2, C))
     sin_cos = np.empty((2, C))
     Li = np.zeros((3, 3, C))
     Lj = np.zeros((3, 3, C))
@@ -468,8 +610,11 @@ def correct_rounds(
     mean = np.empty((3, C))
     scratch_in = np.empty((3, 3))
     scratch_out = np.empty((3, 3))
-    K = np.empty((3, 2))
-    Pn = np.empty((3, 3))
+    Pi = np.empty((9, C))
+    update = np.empty((16, C))
+    norms = np.empty((2, C))
+    inputs = np.empty((10, C))
+    decision = np.empty((4, C))
     T3 = np.empty((3, 3))
     E = li.shape[0]
     p = 0
@@ -491,7 +636,7 @@ def correct_rounds(
                 if block_count[b] > r:
                     lane_e[n] = block_start[b] + r
                     n += 1
-            _gather_lanes(x, li, nb, x_ref, lane_e, n, obs, src, xi, xr, sin_cos, bad)
+            _gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             _load_covariances(P, obs, n, cov)
             _chol_lanes(cov, n, Li, ok_i)
             _load_covariances(P_ref, src, n, cov)
@@ -502,15 +647,15 @@ def correct_rounds(
                 return NOT_PD
             _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
             _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad)
+            _load_robot_covariances(P, obs, n, Pi)
+            _kalman_lanes(n, zl, options[0], moments, pxz, Pi, update)
             for c in range(n):
-                if bad[c] != 0.0:
+                if bad[c] != 0.0 or update[15, c] != 0.0:
                     return FALLBACK
-            status = _update_lanes(
-                x, P, lane_e, n, obs, moments, pxz, z, channel_ok, last_norm, robots, options,
-                out, K, Pn, T3,
-            )  # fmt: skip
-            if status != OK:
-                return status
+            _norms_lanes(n, update, options, norms)
+            _robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs)
+            _decide_lanes(n, options, norms, inputs, decision)
+            _apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3)
     return OK
 
 
