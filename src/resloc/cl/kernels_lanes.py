@@ -6,9 +6,10 @@ calls and no branches it cannot turn into selects. numba compiles ``math.atan2``
 ``math.sin`` and ``math.cos`` to calls of the C library's scalar functions, so these
 functions give the same values from polynomials and selects alone:
 
-* :func:`atan2_lanes` is :func:`resloc.cl.kernels_trig.fast_atan2` with its reductions
-  written as selects (bit for bit the same value, within 2e-16 of ``math.atan2``) and
-  without its special-value branch: the caller guarantees finite input, not ``(0, 0)``;
+* :func:`atan2_lanes` is :func:`resloc.cl.kernels_trig.fast_atan2` (same polynomial) with
+  its reductions written as selects and one division instead of two (within 2e-16 of
+  ``math.atan2``), without its special-value branch: the caller guarantees finite input,
+  not ``(0, 0)``;
 * :func:`sincos_lanes` reduces ``a`` by multiples of ``pi/2`` (Cody-Waite, two parts) to
   ``|r| <= pi/4`` and evaluates the Taylor polynomials of
   :func:`~resloc.cl.kernels_trig.small_angle_sincos` (within 2e-16 of libm for
@@ -57,13 +58,15 @@ SINCOS_LANES_MAX = 64.0
 @_jit_inline
 def atan2_lanes(y, x):
     """``atan2(y, x)`` for finite ``(y, x) != (0, 0)``, without branches.
-    Twin: :func:`resloc.cl.kernels_trig.fast_atan2` (same value, bit for bit)."""
+    Twin: :func:`math.atan2` (within 2e-16), :func:`resloc.cl.kernels_trig.fast_atan2`."""
     ax = abs(x)
     ay = abs(y)
     steep = ay > ax
-    t = min(ax, ay) / max(ax, ay)
-    reduced = t > _TAN_PI_8
-    t = (t - 1.0) / (t + 1.0) if reduced else t
+    low = min(ax, ay)
+    high = max(ax, ay)
+    # one division: (low - high) / (low + high) is (t - 1) / (t + 1) for t = low / high
+    reduced = low > _TAN_PI_8 * high
+    t = (low - high if reduced else low) / (low + high if reduced else high)
     base = _PI_4 if reduced else 0.0
     s = t * t
     s2 = s * s

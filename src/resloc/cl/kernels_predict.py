@@ -104,14 +104,15 @@ def _build_spec(filt) -> PredictKernelSpec | None:
 predict_kernel_spec = per_filter(_build_spec)
 
 
-def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | None:
+def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, np.ndarray] | None:
     """The whole :func:`~resloc.cl.step.predict` in one compiled pass over the robots.
 
     Returns None (nothing computed) when the backend is numpy, the filter has no compiled
     twin, the shapes are not the documented ones, or a covariance is not positive definite
     even with jitter (the reference path then raises the explanatory error).
 
-    Parameters and returns as :func:`resloc.cl.step.predict`.
+    Parameters (``buffers`` checked by the caller) and returns as
+    :func:`resloc.cl.step.predict`.
     """
     if backend() != "numba":
         return None
@@ -130,8 +131,11 @@ def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | N
         return None
     odometry_var = np.ascontiguousarray(np.atleast_2d(odometry**2))
     floor_var = np.ascontiguousarray(floor**2 * dt)
-    x_out = np.empty((B, 3))
-    P_out = np.empty((B, 3, 3))
+    if buffers is None:
+        x_out = np.empty((B, 3))
+        P_out = np.empty((B, 3, 3))
+    else:
+        x_out, P_out = buffers
     status = _predict_robots(
         np.ascontiguousarray(x, dtype=float),
         np.ascontiguousarray(P, dtype=float),

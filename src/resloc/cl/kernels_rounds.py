@@ -71,6 +71,7 @@ from resloc.cl.kernels_links import (
     innovation_norm_of_link,
 )
 from resloc.cl.kernels_math import chol3, repair3, stamp_with_pieces, wrap
+from resloc.cl.links import LinkBatch
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -106,10 +107,11 @@ ROUNDS_MIN_LINKS = 64
 #: way to the row-order loop, ``row_order``), for tests and benchmarks.
 LOOP_RUNS: Counter = Counter()
 
+
 def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bool:
     """Whether :func:`correct_rounds` implements this configuration (arguments as those of
     :func:`~resloc.cl.kernels_links.correct_links`)."""
-    linearized, nz_idx, nz_val, nz_cnt = filt[:4]
+    linearized, nz_cnt = filt[0], filt[3]
     return not (
         linearized
         or np.any(nz_cnt > 1)
@@ -282,8 +284,9 @@ def _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad
                 Z0[k, c] = r
                 Z1[k, c] = bearing
                 sums[0, c] += r * w
-                sums[1, c] += ((dy * cs - dx * sn) / r) * w
-                sums[2, c] += ((dx * cs + dy * sn) / r) * w
+                w_r = w / r  # one division for both sums
+                sums[1, c] += (dy * cs - dx * sn) * w_r
+                sums[2, c] += (dx * cs + dy * sn) * w_r
                 sums[3, c] += bearing * w
                 good = (r > 0.0) & (r < math.inf) & (abs(o2) <= SINCOS_LANES_MAX)
                 bad[c] += 0.0 if good else 1.0
@@ -300,8 +303,9 @@ def _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad
                 Z0[k, c] = r
                 Z1[k, c] = bearing
                 sums[0, c] += r * w
-                sums[1, c] += ((dy * cs - dx * sn) / r) * w
-                sums[2, c] += ((dx * cs + dy * sn) / r) * w
+                w_r = w / r
+                sums[1, c] += (dy * cs - dx * sn) * w_r
+                sums[2, c] += (dx * cs + dy * sn) * w_r
                 sums[3, c] += bearing * w
                 good = (r > 0.0) & (r < math.inf)
                 bad[c] += 0.0 if good else 1.0
@@ -374,13 +378,14 @@ def _load_robot_covariances(P, rows, n, Pi):
 
 @_jit
 def _kalman_lanes(n, zl, R, moments, pxz, Pi, update):
-    """Per lane (``zl``: the measurements): the innovation (eq. 9), the Cholesky factor of ``S`` (its first level,
-    no jitter), and the Kalman update the link would make if fused: the gain by the factor
-    of ``S``, the change of ``x`` and ``P - K S K^T`` symmetrized, and whether that is
-    positive definite (Sylvester). ``update = (nu0, nu1, l00, l10, l11, dx0, dx1, dx2,
-    P00, P01, P02, P11, P12, P22, pd, bad)``; ``bad``: 1.0 where ``S`` needs jitter or the
-    measured bearing is out of ``(-2 pi, 2 pi)``. Arrays have CHUNK columns. Twin: the innovation, gain and Schur
-    update blocks of ``correct_links`` (same operations, same order)."""
+    """Per lane (``zl``: the measurements): the innovation (eq. 9), the Cholesky factor
+    of ``S`` (its first level, no jitter), and the Kalman update the link would make if
+    fused: the gain by the factor of ``S``, the change of ``x`` and ``P - K S K^T``
+    symmetrized, and whether that is positive definite (Sylvester). ``update = (nu0, nu1,
+    l00, l10, l11, dx0, dx1, dx2, P00, P01, P02, P11, P12, P22, pd, bad)``; ``bad``: 1.0
+    where ``S`` needs jitter or the measured bearing is out of ``(-2 pi, 2 pi)``. The
+    arrays have CHUNK columns. Twin: the innovation, gain and Schur update blocks of
+    ``correct_links`` (same operations, same order)."""
     # Flat views, rows CHUNK apart: with the row stride a compile-time constant, LLVM
     # proves the rows' stores independent and vectorizes the loop.
     zf = zl.reshape(zl.size)
@@ -581,7 +586,15 @@ def correct_rounds(
     :data:`FALLBACK` (on both, the outputs are partial and must be discarded).
     Twin: :func:`resloc.cl.kernels_links.correct_links`."""
     # fusion, detection, defence, gauge, tamper: off (see rounds_cover)
-    li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
+    li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
+        links[0],
+        links[1],
+        links[4],
+        links[5],
+        links[6],
+        links[7],
+        links[8],
+    )  # the transmitted rows x_nb, P_nb are x_ref, P_ref here (not cached)
     nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
     jitter = options[8]
     axis, value = _point_axes(nz_idx, nz_val, nz_cnt)
@@ -646,7 +659,9 @@ def correct_rounds(
             if not _chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, scratch_in, scratch_out):
                 return NOT_PD
             _points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
-            _moments_lanes(axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad)
+            _moments_lanes(
+                axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad
+            )
             _load_robot_covariances(P, obs, n, Pi)
             _kalman_lanes(n, zl, options[0], moments, pxz, Pi, update)
             for c in range(n):
@@ -659,6 +674,20 @@ def correct_rounds(
     return OK
 
 
-stamp_with_pieces(
-    correct_rounds, _kernels_math, _kernels_trig, _kernels_lanes, _kernels_links
-)
+stamp_with_pieces(correct_rounds, _kernels_math, _kernels_trig, _kernels_lanes, _kernels_links)
+
+
+def rounds_warm_up_batch():
+    """``(x, P, links)``: a ring of :data:`ROUNDS_MIN_LINKS` robots, each observing the
+    next, enough links for :func:`run_link_loop` to take the rounds (compiled, or loaded
+    from the cache, outside any timed section)."""
+    n = ROUNDS_MIN_LINKS
+    angle = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    x = np.column_stack([3.0 * np.cos(angle), 3.0 * np.sin(angle), angle - np.pi])
+    P = np.broadcast_to(0.01 * np.eye(3), (n, 3, 3)).copy()
+    i = np.arange(n)
+    j = (i + 1) % n
+    z = np.tile([0.3, 1.6], (n, 1))
+    ok = np.ones(n, dtype=bool)
+    links = LinkBatch(i, j, z, x[j], P[j], ok, np.zeros(n), np.zeros(n), np.ones(n))
+    return x, P, links
