@@ -102,7 +102,8 @@ def check_buffers(buffers, x, P, links: LinkBatch | None = None) -> None:
                 f"buffers: the {name} buffer must be a writeable C-contiguous float64 array "
                 f"of shape {np.shape(like)}"
             )
-    read = (x, P) if links is None else (x, P, links.x_nb, links.P_nb)
+    # the neighbour estimates where they are stored (reading links.x_nb would copy them)
+    read = (x, P) if links is None else (x, P, *links.neighbour_rows()[1:])
     if any(np.may_share_memory(b, a) for b in (bx, bP) for a in read):
         raise ValueError(
             "buffers must not share memory with x, P or the neighbour estimates (keep two "
