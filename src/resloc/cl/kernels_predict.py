@@ -31,6 +31,7 @@ the reference to ~1e-15 (tested to 1e-9).
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import NamedTuple
 
 import numpy as np
@@ -40,14 +41,26 @@ from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import backend, per_filter
 from resloc.cl.kernels_links import NOT_PD, OK
 from resloc.cl.kernels_math import chol3, jit, stamp_with_pieces, wrap
+from resloc.cl.kernels_predict_lanes import FALLBACK, predict_lanes
 from resloc.cl.kernels_trig import fast_atan2, small_angle_sincos
 from resloc.filters.ekf import ExtendedFilter
 from resloc.filters.sigma_points import SigmaPointFilter
 from resloc.linalg import JITTER_LEVELS
 
-__all__ = ["PredictKernelSpec", "fast_predict", "predict_kernel_spec"]
+__all__ = [
+    "LANES_MIN_ROBOTS",
+    "PREDICT_RUNS",
+    "PredictKernelSpec",
+    "fast_predict",
+    "predict_kernel_spec",
+]
 
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
+#: Sigma-point predictions of at least this many robots run in SIMD lanes
+#: (:mod:`resloc.cl.kernels_predict_lanes`).
+LANES_MIN_ROBOTS = 64
+#: How many predictions each loop ran (``lanes``, ``lanes_fallback``, ``robots``).
+PREDICT_RUNS: Counter = Counter()
 
 
 class PredictKernelSpec(NamedTuple):
@@ -136,7 +149,7 @@ def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, n
         P_out = np.empty((B, 3, 3))
     else:
         x_out, P_out = buffers
-    status = _predict_robots(
+    args = (
         np.ascontiguousarray(x, dtype=float),
         np.ascontiguousarray(P, dtype=float),
         np.ascontiguousarray(u, dtype=float),
@@ -148,6 +161,15 @@ def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, n
         x_out,
         P_out,
     )
+    # The one choice of the prediction's loop: lanes (kernels_predict_lanes) for sigma
+    # points from LANES_MIN_ROBOTS robots on, else (or when they fall back) robot by robot.
+    status = FALLBACK
+    if not spec.linearized and B >= LANES_MIN_ROBOTS:
+        status = predict_lanes(*args)
+        PREDICT_RUNS["lanes" if status != FALLBACK else "lanes_fallback"] += 1
+    if status == FALLBACK:
+        PREDICT_RUNS["robots"] += 1
+        status = _predict_robots(*args)
     if status != OK:
         return None
     return x_out, P_out
