@@ -16,9 +16,9 @@ kernel block                  paper                      numpy twin
 For sigma-point filters and at least :data:`LANES_MIN_ROBOTS` robots, :func:`fast_predict`
 runs the same prediction a chunk of robots at a time in SIMD lanes
 (:func:`resloc.cl.kernels_predict_lanes.predict_lanes`), robot by robot when a robot is
-outside the lanes' range. Which filters it covers is :func:`predict_kernel_spec` (the CKF and the UKF with any 3-D
-point rule, circular or arithmetic heading means, and the EKF); the backend choice is the
-correction's (:func:`resloc.cl.backend.backend`). A covariance that is not positive definite
+outside the lanes' range. Which filters it covers is :func:`predict_kernel_spec` (the
+CKF and the UKF with any 3-D point rule, circular or arithmetic heading means, and the
+EKF); the backend choice is the correction's (:func:`resloc.cl.backend.backend`). A covariance that is not positive definite
 even with jitter (or NaN) makes the kernel give up: the reference path then raises the
 library's :class:`~resloc.errors.NumericalError`.
 
