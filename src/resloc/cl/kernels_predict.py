@@ -18,9 +18,9 @@ runs the same prediction a chunk of robots at a time in SIMD lanes
 (:func:`resloc.cl.kernels_predict_lanes.predict_lanes`), robot by robot when a robot is
 outside the lanes' range. Which filters it covers is :func:`predict_kernel_spec` (the
 CKF and the UKF with any 3-D point rule, circular or arithmetic heading means, and the
-EKF); the backend choice is the correction's (:func:`resloc.cl.backend.backend`). A covariance that is not positive definite
-even with jitter (or NaN) makes the kernel give up: the reference path then raises the
-library's :class:`~resloc.errors.NumericalError`.
+EKF); the backend choice is the correction's (:func:`resloc.cl.backend.backend`). A
+covariance that is not positive definite even with jitter (or NaN) makes the kernel give
+up: the reference path then raises the library's :class:`~resloc.errors.NumericalError`.
 
 Numerics: the sines and cosines of the points' headings after the move are obtained from
 those before it by the angle-addition formulas (the move turns every point by the same
