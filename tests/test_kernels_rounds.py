@@ -131,6 +131,23 @@ def test_rounds_fall_back_to_row_order_on_a_special_case() -> None:
     assert_equivalent(fast, _reference(FILTERS["ckf"], x, P, links, params))
 
 
+def test_rounds_give_way_on_rows_not_sorted_by_observer() -> None:
+    """Rows out of observer order would put a robot in two lanes of one round: the row-order
+    loop runs instead (same result as asking for it)."""
+    x, P, links = random_batch(11, B=120)
+    order = np.r_[np.arange(60, len(links.i)), np.arange(60)]
+    shuffled = LinkBatch(
+        links.i[order], links.j[order], links.z[order], links.x_nb[order], links.P_nb[order],
+        links.channel_ok[order], links.risk_s, links.risk_c, links.lambda2,
+    )  # fmt: skip
+    params = PARAM_CASES["paper"]
+    before = rounds.LOOP_RUNS.copy()
+    with kernels.use_backend("numba"):
+        got = correct(FILTERS["ckf"], x, P, shuffled, params)
+    assert rounds.LOOP_RUNS - before == {"rounds_fallback": 1, "row_order": 1}
+    _assert_same(got, _compiled(FILTERS["ckf"], x, P, shuffled, params, loop="row_order"))
+
+
 @pytest.mark.parametrize(
     ("name", "changes"),
     [

@@ -33,9 +33,10 @@ non-zero entry (the CKF and the UKF), the Kalman update (``naive``), the detecto
 the event trigger with any norms and either threshold innovation, transmitted neighbour
 estimates. The stateful options (CUSUM stages, robot defence, gauge bookkeeping, the
 stealthy attacker, cached estimates, covariance intersection) and the EKF run in the
-row-order loop. A lane that needs a special case of the row-order loop (Cholesky jitter
-is handled here; a point at the robot's own position, a heading offset above ``pi/4``,
-non-finite values are not) makes :func:`correct_rounds` return :data:`FALLBACK` and
+row-order loop. A lane that needs a special case of the row-order loop (the Cholesky
+jitter of ``P_i``, ``P_j`` is handled here; a point at the robot's own position, an ``S``
+that needs jitter, a measured bearing outside ``(-2 pi, 2 pi)``, non-finite values, rows
+not sorted by observer are not) makes :func:`correct_rounds` return :data:`FALLBACK` and
 :func:`run_link_loop` runs the row-order loop from the start instead.
 
 :func:`run_link_loop` is the one place that chooses: the rounds for at least
@@ -635,6 +636,8 @@ def correct_rounds(
         blocks = 0
         rounds = 0
         while p < E and blocks < C:  # the next chunk: up to C robots' rows
+            if p > 0 and li[p] < li[p - 1]:
+                return FALLBACK  # rows not sorted by observer: a robot could be two lanes
             q = p + 1
             while q < E and li[q] == li[p]:
                 q += 1
