@@ -2,7 +2,7 @@
 
 :func:`resloc.cl.kernels_predict._predict_robots` predicts one robot after the other with
 scalar code. Robots are independent in the prediction, so :func:`predict_lanes` takes them
-in chunks of :data:`CHUNK` and runs every stage as a loop over the chunk's robots on arrays
+in chunks of ``CHUNK`` and runs every stage as a loop over the chunk's robots on arrays
 of one component each (structure of arrays), which LLVM compiles to SIMD instructions; the
 sines, cosines and the circular mean's ``atan2`` are the branch-free polynomials of
 :mod:`resloc.cl.kernels_lanes`. Same operations as the scalar kernel otherwise (its twin;
@@ -10,7 +10,7 @@ equal to ~1e-15, tested to 1e-9 against the numpy path). A robot the lanes do no
 heading out of ``[-SINCOS_LANES_MAX, SINCOS_LANES_MAX]``, a point's heading offset or the
 turn ``omega dt`` above ``pi/4``: a heading standard deviation above ~0.45 rad for the
 CKF; a circular mean of points that cancel; non-finite values) makes
-:func:`predict_lanes` return :data:`FALLBACK`, and the caller runs the scalar kernel
+:func:`predict_lanes` return ``FALLBACK``, and the caller runs the scalar kernel
 instead; a covariance that needs Cholesky jitter gets it from
 :func:`~resloc.cl.kernels_math.chol3` in its lane.
 """
@@ -25,6 +25,8 @@ from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_lanes import (
+    CHUNK,
+    FALLBACK,
     SINCOS_LANES_MAX,
     atan2_lanes,
     sincos_lanes,
@@ -44,12 +46,8 @@ else:  # pragma: no cover - exercised only where numba is absent
         return func
 
 
-__all__ = ["CHUNK", "FALLBACK", "predict_lanes"]
+__all__ = ["predict_lanes"]
 
-#: Robots per chunk.
-CHUNK = 256
-#: Status: a robot needs the scalar kernel; the outputs are partial and must be discarded.
-FALLBACK = 2
 _QUARTER_PI = math.pi / 4.0
 
 # Rows of the chunk's input array (``lanes``), CHUNK apart
@@ -270,7 +268,7 @@ def predict_lanes(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P_o
     """Every robot's sigma-point prediction, a chunk of robots at a time in lanes; writes
     ``x_out: (B, 3)``, ``P_out: (B, 3, 3)``. Arguments as
     :func:`resloc.cl.kernels_predict._predict_robots` (a sigma-point ``spec``). Returns the
-    status: ``OK``, ``NOT_PD`` or :data:`FALLBACK` (on both, the outputs are partial)."""
+    status: ``OK``, ``NOT_PD`` or ``FALLBACK`` (on both, the outputs are partial)."""
     unit, mirror, Wm, Wc, circular = spec[1], spec[2], spec[3], spec[4], spec[5]
     m = unit.shape[0]
     lanes = np.empty((_ROWS, CHUNK))

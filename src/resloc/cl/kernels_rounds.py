@@ -5,7 +5,8 @@ the other: a link's sigma points depend on the robot's estimate as its previous 
 it, so the transcendental functions of a link (13 ``atan2``, 12 ``sin``/``cos`` for the
 CKF) are scalar libm calls, most of a link's time. But robots are independent within a
 step: only the order of a robot's own links matters. :func:`correct_rounds` therefore
-takes the robots in chunks of :data:`CHUNK` and, within a chunk, processes round ``r``
+takes the robots in chunks of ``CHUNK`` (:mod:`resloc.cl.kernels_lanes`) and, within a
+chunk, processes round ``r``
 (every robot's ``r``-th link) before round ``r + 1``. Within a round the robots are
 independent, so every stage is a loop over *lanes* (one robot each) on arrays of one
 component each (structure of arrays), which LLVM compiles to SIMD instructions; the
@@ -36,7 +37,7 @@ stealthy attacker, cached estimates, covariance intersection) and the EKF run in
 row-order loop. A lane that needs a special case of the row-order loop (the Cholesky
 jitter of ``P_i``, ``P_j`` is handled here; a point at the robot's own position, an ``S``
 that needs jitter, a measured bearing outside ``(-2 pi, 2 pi)``, non-finite values, rows
-not sorted by observer are not) makes :func:`correct_rounds` return :data:`FALLBACK` and
+not sorted by observer are not) makes :func:`correct_rounds` return ``FALLBACK`` and
 :func:`run_link_loop` runs the row-order loop from the start instead.
 
 :func:`run_link_loop` is the one place that chooses: the rounds for at least
@@ -57,6 +58,8 @@ from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_fusion import CI
 from resloc.cl.kernels_lanes import (
+    CHUNK,
+    FALLBACK,
     SINCOS_LANES_MAX,
     atan2_lanes,
     sincos_lanes,
@@ -87,8 +90,6 @@ else:  # pragma: no cover - exercised only where numba is absent
 
 
 __all__ = [
-    "CHUNK",
-    "FALLBACK",
     "LOOP_RUNS",
     "ROUNDS_MIN_LINKS",
     "correct_rounds",
@@ -96,11 +97,6 @@ __all__ = [
     "run_link_loop",
 ]
 
-#: Status of :func:`correct_rounds`: a lane needs the row-order loop's special cases; the
-#: outputs are partial and must be discarded.
-FALLBACK = 2
-#: Robots per chunk (lanes of a round): the chunk's working arrays stay in the L1/L2 cache.
-CHUNK = 256
 #: The rounds run from this many links on; below, the row-order loop (measured, CKF, one
 #: correction: 28 links 1.09x the row order's time, 64 links 0.94x, 313 links 0.41x).
 ROUNDS_MIN_LINKS = 64
@@ -580,11 +576,11 @@ def _apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3):
 def correct_rounds(
     x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
 ):  # fmt: skip
-    """Every link of one step, robots in chunks of :data:`CHUNK` and each chunk in rounds
+    """Every link of one step, robots in chunks of ``CHUNK`` and each chunk in rounds
     (round ``r``: every robot's ``r``-th link); updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in
     place. Arguments as :func:`~resloc.cl.kernels_links.correct_links` (the configuration
     must be one :func:`rounds_cover` accepts). Returns the status: ``OK``, ``NOT_PD`` or
-    :data:`FALLBACK` (on both, the outputs are partial and must be discarded).
+    ``FALLBACK`` (on both, the outputs are partial and must be discarded).
     Twin: :func:`resloc.cl.kernels_links.correct_links`."""
     # fusion, detection, defence, gauge, tamper: off (see rounds_cover)
     li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
