@@ -7,9 +7,10 @@ CKF) are scalar libm calls, most of a link's time. But robots are independent wi
 step: only the order of a robot's own links matters. :func:`correct_rounds` therefore
 takes the robots in chunks of ``CHUNK`` (:mod:`resloc.cl.kernels_lanes`) and, within a
 chunk, processes round ``r`` (every robot's ``r``-th link) before round ``r + 1``.
-Within a round the robots are independent, so every stage is a loop over *lanes* (one robot each) on arrays of one
-component each (structure of arrays), which LLVM compiles to SIMD instructions; the
-transcendentals inside are branch-free polynomials (:mod:`resloc.cl.kernels_lanes`).
+Within a round the robots are independent, so every stage is a loop over *lanes* (one
+robot each) on arrays of one component each (structure of arrays), which LLVM compiles to
+SIMD instructions; the transcendentals inside are branch-free polynomials
+(:mod:`resloc.cl.kernels_lanes`).
 A robot's links are fused in the same order as by the row-order loop, so the results are
 the same up to floating-point rounding (tested to 1e-9), and the working arrays are the
 chunk's only (a few tens of kilobytes, whatever the number of robots).
