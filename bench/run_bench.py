@@ -40,6 +40,7 @@ import resource  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
+from collections import Counter  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -49,6 +50,7 @@ import scipy  # noqa: E402
 from resloc.angles import wrap_angle  # noqa: E402
 from resloc.cl import CLParams, LinkBatch, LinkMemory, correct, kernels, predict  # noqa: E402
 from resloc.cl.graph import Lambda2Memo, component_lambda2  # noqa: E402
+from resloc.cl.kernels_rounds import LOOP_RUNS  # noqa: E402
 from resloc.experiments.config import default_scenario  # noqa: E402
 from resloc.filters import covariance_is_pd, make_filter  # noqa: E402
 from resloc.models import range_bearing  # noqa: E402
@@ -298,17 +300,23 @@ def bench_params() -> CLParams:
 # ---------------------------------------------------------------------------------------
 # The engine
 # ---------------------------------------------------------------------------------------
-def engine_step(filt, params, x, P, s: StepData, memory, phases: list | None = None):
+def engine_step(
+    filt, params, x, P, s: StepData, memory, phases: list | None = None, spare=None
+):  # fmt: skip
     """One full CL step of every robot: predict, gather the neighbours' predicted estimates
-    into the link list, correct (every neighbour update, detector, trigger, channel)."""
+    into the link list, correct (every neighbour update, detector, trigger, channel).
+    ``spare``: a second pair of state arrays; then the prediction goes into it and the
+    correction back into ``x``, ``P`` (no state allocated per step; ``spare`` holds the
+    prediction afterwards)."""
     t0 = time.perf_counter()
-    xp, Pp = predict(filt, x, P, s.u_meas, DT, params)
+    xp, Pp = predict(filt, x, P, s.u_meas, DT, params, spare)
     t1 = time.perf_counter()
     links = LinkBatch.from_predicted(
         s.i, s.j, s.z, xp, Pp, s.channel_ok, s.risk_s, s.risk_c, s.lambda2
     )
     t2 = time.perf_counter()
-    x, P, out = correct(filt, xp, Pp, links, params, memory)
+    into = None if spare is None else (x, P)
+    x, P, out = correct(filt, xp, Pp, links, params, memory, into)
     if phases is not None:
         phases.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
     return x, P, out, xp, Pp
@@ -378,9 +386,22 @@ SCALE_SIZES_QUICK = (2_000, 20_000)
 SCALE_LAMBDA2_MAX = 100_000
 
 
+def _traced_step(filt, params, x, P, data, memory, spare=None):
+    """One engine step under tracemalloc: ``(x, P, peak bytes above the step's start)``."""
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    x, P, *_ = engine_step(filt, params, x, P, data, memory, spare=spare)
+    peak = tracemalloc.get_traced_memory()[1] - base
+    tracemalloc.stop()
+    return x, P, peak
+
+
 def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
     """``steps`` CL steps of ``N`` robots of a :class:`SpreadSwarm`, each after its world
-    step; the last step runs under tracemalloc (not timed) for the transient memory."""
+    step: the first ``steps - 1`` timed with caller-owned state buffers (a second pair of
+    state arrays, alternated: ``engine_step``'s ``spare``), then two under tracemalloc (not
+    timed) for the transient memory, with the pure-function API (new state arrays per
+    step) and with the buffers."""
     solve = N <= SCALE_LAMBDA2_MAX
     t = time.perf_counter()
     swarm = SpreadSwarm(N, seed=0, solve_lambda2=solve)
@@ -388,24 +409,26 @@ def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
         swarm.lambda2 = np.full(N, 1.0)  # see SCALE_LAMBDA2_MAX
     setup = time.perf_counter() - t
     filt = make_filter(kind)
-    x, P = swarm.x0, swarm.P0
+    x, P = swarm.x0.copy(), swarm.P0.copy()
+    spare = (np.empty_like(x), np.empty_like(P))
     memory = LinkMemory(N)
     times, cpu_times, cl_phases, world_phases, neighbours_cpu, links = [], [], [], [], [], 0
-    peak = base = 0
-    for k in range(steps):
+    loops_before = Counter(LOOP_RUNS)
+    peak = peak_buffers = 0
+    for k in range(steps + 1):
         data, world = swarm.step()
         world_phases.append(world)
         neighbours_cpu.append(swarm.neighbours_cpu_s)
         if k == steps - 1:
-            tracemalloc.start()
-            base = tracemalloc.get_traced_memory()[0]
-            x, P, *_ = engine_step(filt, params, x, P, data, memory)
-            peak = tracemalloc.get_traced_memory()[1] - base
-            tracemalloc.stop()
+            x, P, peak = _traced_step(filt, params, x, P, data, memory)
+            spare = (np.empty_like(x), np.empty_like(P))
+            continue
+        if k == steps:
+            x, P, peak_buffers = _traced_step(filt, params, x, P, data, memory, spare)
             break
         phases: list = []
         t, cpu = time.perf_counter(), time.thread_time()
-        x, P, out, _, _ = engine_step(filt, params, x, P, data, memory, phases)
+        x, P, out, _, _ = engine_step(filt, params, x, P, data, memory, phases, spare)
         times.append(time.perf_counter() - t)
         cpu_times.append(time.thread_time() - cpu)
         cl_phases.append(phases[0])
@@ -437,7 +460,9 @@ def scale_row(kind: str, N: int, steps: int, params: CLParams) -> dict:
         "phases_s_best": dict(zip(("predict", "links", "correct"), cl_phases[best], strict=True)),
         "ns_per_link_median": float(np.median(times)) / max(links / len(times), 1) * 1e9,
         "transient_bytes_per_robot": peak / N,
-        "state_bytes_per_robot": (x.nbytes + P.nbytes) / N,
+        "transient_bytes_per_robot_buffers": peak_buffers / N,
+        "link_loops": dict(Counter(LOOP_RUNS) - loops_before),
+        "state_bytes_per_robot": (x.nbytes + P.nbytes) / N,  # the buffers: as much again
         "world_s_median": world_median,
         "world_step_s_median": float(np.median([sum(v for v in w.values()) for w in world_phases])),
         "lambda2_solved_every_step": solve,
@@ -461,7 +486,9 @@ def run_scale(sizes, kinds, steps: int, params: CLParams) -> dict:
                 f"{row['phases_s_median']['links']:.4f}, correct "
                 f"{row['phases_s_median']['correct']:.3f}); world step (median) "
                 f"{row['world_step_s_median']:.3f} s; "
-                f"{row['transient_bytes_per_robot']:.0f} B/robot transient; load "
+                f"{row['transient_bytes_per_robot']:.0f} B/robot transient (new arrays), "
+                f"{row['transient_bytes_per_robot_buffers']:.0f} (buffers); loops "
+                f"{row['link_loops']}; load "
                 f"{os.getloadavg()[0]:.1f}",
                 flush=True,
             )
@@ -1024,11 +1051,11 @@ def scale_markdown(res: dict) -> str:
         return ""
     lines = [
         "| filter | N | links/step | CL step median (s) | best (s) | CPU median (s) "
-        "| predict (s) | links (s) "
-        "| correct (s) | ns/link | transient B/robot | world step (s) | neighbour search (s) "
-        "| lambda2 (s) |",
+        "| CPU best (s) | predict (s) | links (s) "
+        "| correct (s) | ns/link | transient B/robot (new arrays / buffers) | world step (s) "
+        "| neighbour search (s) | lambda2 (s) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-        "| ---: | ---: |",
+        "| ---: | ---: | ---: |",
     ]
     for r in scale["rows"]:
         ph, w = r["phases_s_median"], r["world_s_median"]
@@ -1036,9 +1063,11 @@ def scale_markdown(res: dict) -> str:
         lines.append(
             f"| {r['filter'].upper()} | {r['robots']:,} | {r['links_per_step']:,.0f} "
             f"| {r['step_s_median']:.3g} | {r['step_s_best']:.3g} "
-            f"| {r['step_cpu_s_median']:.3g} | {ph['predict']:.3g} "
+            f"| {r['step_cpu_s_median']:.3g} | {r['step_cpu_s_best']:.3g} | {ph['predict']:.3g} "
             f"| {ph['links']:.2g} | {ph['correct']:.3g} | {r['ns_per_link_median']:.0f} "
-            f"| {r['transient_bytes_per_robot']:.0f} | {r['world_step_s_median']:.3g} "
+            f"| {r['transient_bytes_per_robot']:.0f} / "
+            f"{r.get('transient_bytes_per_robot_buffers', float('nan')):.0f} "
+            f"| {r['world_step_s_median']:.3g} "
             f"| {w['neighbours']:.3g} | {l2} |"
         )
     for kind, e in scale["exponents"].items():

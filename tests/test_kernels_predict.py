@@ -61,13 +61,14 @@ def test_compiled_predict_equals_numpy(name, seed, monkeypatch):
     x, P, u = random_state(seed)
     params = CLParams(odometry_std=(0.02, 0.1), process_floor_std=(1e-3, 2e-3, 3e-3))
     ran = []
-    original = kp._predict_robots
+    for loop in ("_predict_robots", "predict_lanes"):  # robot by robot, or in lanes
+        original = getattr(kp, loop)
 
-    def spy(*args):
-        ran.append(True)
-        return original(*args)
+        def spy(*args, original=original):
+            ran.append(True)
+            return original(*args)
 
-    monkeypatch.setattr(kp, "_predict_robots", spy)
+        monkeypatch.setattr(kp, loop, spy)
     with kernels.use_backend("numba"):
         got = predict(filt, x, P, u, 0.05, params)
     assert ran, "the compiled prediction did not run"
@@ -119,3 +120,44 @@ def test_numpy_backend_and_unknown_filters_are_refused():
     assert kp.predict_kernel_spec(other) is None
     spec = kp.predict_kernel_spec(FILTERS["ukf"])
     assert spec.mirror.tolist() == [-1, -1, -1, -1, 1, 2, 3]  # centre, +e_k, -e_k
+
+
+def moderate_state(seed: int, B: int = 700):
+    """Headings everywhere (some at +-pi), standard deviations up to 0.1, turns up to
+    2 rad/s: every robot in the lanes' range."""
+    rng = np.random.default_rng(seed)
+    x = np.column_stack([rng.uniform(-50, 50, (B, 2)), rng.uniform(-np.pi, np.pi, B)])
+    x[:4, 2] = [np.pi - 1e-12, -np.pi, np.pi - 0.01, -np.pi + 1e-9]
+    sd = 10.0 ** rng.uniform(-4, -1, B)
+    A = rng.normal(size=(B, 3, 3)) * sd[:, None, None] / 3.0
+    P = A @ np.swapaxes(A, 1, 2) + 1e-10 * np.eye(3)
+    P[::7] = np.diag([1e-4, 1e-4, 0.0])  # singular: the factor needs jitter in its lane
+    u = np.column_stack([rng.uniform(-1, 1, B), rng.uniform(-2, 2, B)])
+    return x, P, u
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["ckf", "ukf", "ukf-default", "ckf-arith"])
+def test_predict_in_lanes_equals_numpy(name):
+    """Sigma-point predictions of many robots run in lanes
+    (:mod:`resloc.cl.kernels_predict_lanes`; asserted), equal to the numpy path."""
+    x, P, u = moderate_state(6)
+    params = CLParams(odometry_std=(0.02, 0.1), process_floor_std=(1e-3, 2e-3, 3e-3))
+    before = kp.PREDICT_RUNS.copy()
+    with kernels.use_backend("numba"):
+        got = predict(FILTERS[name], x, P, u, 0.05, params)
+    assert kp.PREDICT_RUNS - before == {"lanes": 1}
+    assert_close(got, reference(FILTERS[name], x, P, u, 0.05, params))
+
+
+@needs_numba
+def test_predict_lanes_fall_back_to_robot_by_robot():
+    """A heading spread the lanes' polynomials do not cover: the scalar kernel runs."""
+    x, P, u = moderate_state(7)
+    P[10] = np.diag([0.01, 0.01, 1.0])  # heading standard deviation 1 rad
+    params = CLParams()
+    before = kp.PREDICT_RUNS.copy()
+    with kernels.use_backend("numba"):
+        got = predict(FILTERS["ckf"], x, P, u, 0.05, params)
+    assert kp.PREDICT_RUNS - before == {"lanes_fallback": 1, "robots": 1}
+    assert_close(got, reference(FILTERS["ckf"], x, P, u, 0.05, params))

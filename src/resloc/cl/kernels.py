@@ -56,7 +56,8 @@ from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, kernel_fusion
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
-from resloc.cl.kernels_links import OK, correct_links
+from resloc.cl.kernels_links import OK
+from resloc.cl.kernels_rounds import rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
@@ -236,7 +237,7 @@ def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots, neighbours) -> bool
 
 
 def fast_correct(
-    filt, x, P, links: LinkBatch, params: CLParams, memory=None
+    filt, x, P, links: LinkBatch, params: CLParams, memory=None, buffers=None
 ) -> tuple[np.ndarray, np.ndarray, LinkOutcome] | None:
     """The whole correction of :func:`~resloc.cl.step.correct` in one compiled call.
 
@@ -246,7 +247,8 @@ def fast_correct(
     :class:`NumericalError`). Nothing is modified in that case. Otherwise ``memory`` (read
     only with ``last_sent``) is updated with the delivered links, as the reference does.
 
-    Shapes as in :func:`~resloc.cl.step.correct`; the outcome has ``compiled = True``.
+    Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
+    the outcome has ``compiled = True``.
     """
     if kernel_refusal(filt, params, links, memory) is not None:
         return None
@@ -318,11 +320,18 @@ def fast_correct(
         known,
     )
     out = KernelOutputs(np.empty(E), np.empty(E), np.zeros((5, E), dtype=np.bool_))
-    x_out = np.array(x, dtype=float, order="C", copy=True)
-    P_out = np.array(P, dtype=float, order="C", copy=True)
+    if buffers is None:
+        x_out = np.array(x, dtype=float, order="C", copy=True)
+        P_out = np.array(P, dtype=float, order="C", copy=True)
+    else:  # the caller's arrays (step.check_buffers): no state allocated per step
+        x_out, P_out = buffers
+        x_out[...] = x
+        P_out[...] = P
     spec: FilterKernelSpec = filter_kernel_spec(filt)
     detect = detection.kernel
-    status = correct_links(
+    status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
+        x,
+        P,
         x_out,
         P_out,
         kernel_links,
@@ -373,4 +382,5 @@ def warm_up() -> bool:
     )  # fmt: skip
     for kind in ("ckf", "ekf"):
         fast_correct(make_filter(kind), x, P, links, CLParams())
+    fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())  # kernels_rounds
     return True

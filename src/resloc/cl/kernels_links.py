@@ -432,3 +432,11 @@ stamp_with_pieces(
     _kernels_gauge,
     _kernels_tamper,
 )
+
+# The link's pieces by public names, for the loop over rounds (resloc.cl.kernels_rounds),
+# which runs the same decisions and update lane by lane.
+innovation_norm_of_link = _innovation_norm
+event_threshold_of_link = _event_threshold
+gate_link = _gate_link
+decide_link = _decide_link
+schur_update = _schur_update

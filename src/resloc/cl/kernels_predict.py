@@ -13,11 +13,14 @@ kernel block                  paper                      numpy twin
 ``_predict_robots`` (EKF)     eq. (2), linearized        :meth:`ExtendedFilter.predict`
 ============================  =========================  =========================================
 
-Which filters it covers is :func:`predict_kernel_spec` (the CKF and the UKF with any 3-D
-point rule, circular or arithmetic heading means, and the EKF); the backend choice is the
-correction's (:func:`resloc.cl.backend.backend`). A covariance that is not positive definite
-even with jitter (or NaN) makes the kernel give up: the reference path then raises the
-library's :class:`~resloc.errors.NumericalError`.
+For sigma-point filters and at least :data:`LANES_MIN_ROBOTS` robots, :func:`fast_predict`
+runs the same prediction a chunk of robots at a time in SIMD lanes
+(:func:`resloc.cl.kernels_predict_lanes.predict_lanes`), robot by robot when a robot is
+outside the lanes' range. Which filters it covers is :func:`predict_kernel_spec` (the
+CKF and the UKF with any 3-D point rule, circular or arithmetic heading means, and the
+EKF); the backend choice is the correction's (:func:`resloc.cl.backend.backend`). A
+covariance that is not positive definite even with jitter (or NaN) makes the kernel give
+up: the reference path then raises the library's :class:`~resloc.errors.NumericalError`.
 
 Numerics: the sines and cosines of the points' headings after the move are obtained from
 those before it by the angle-addition formulas (the move turns every point by the same
@@ -31,6 +34,7 @@ the reference to ~1e-15 (tested to 1e-9).
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import NamedTuple
 
 import numpy as np
@@ -40,14 +44,26 @@ from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import backend, per_filter
 from resloc.cl.kernels_links import NOT_PD, OK
 from resloc.cl.kernels_math import chol3, jit, stamp_with_pieces, wrap
+from resloc.cl.kernels_predict_lanes import FALLBACK, predict_lanes
 from resloc.cl.kernels_trig import fast_atan2, small_angle_sincos
 from resloc.filters.ekf import ExtendedFilter
 from resloc.filters.sigma_points import SigmaPointFilter
 from resloc.linalg import JITTER_LEVELS
 
-__all__ = ["PredictKernelSpec", "fast_predict", "predict_kernel_spec"]
+__all__ = [
+    "LANES_MIN_ROBOTS",
+    "PREDICT_RUNS",
+    "PredictKernelSpec",
+    "fast_predict",
+    "predict_kernel_spec",
+]
 
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
+#: Sigma-point predictions of at least this many robots run in SIMD lanes
+#: (:mod:`resloc.cl.kernels_predict_lanes`).
+LANES_MIN_ROBOTS = 64
+#: How many predictions each loop ran (``lanes``, ``lanes_fallback``, ``robots``).
+PREDICT_RUNS: Counter = Counter()
 
 
 class PredictKernelSpec(NamedTuple):
@@ -104,14 +120,15 @@ def _build_spec(filt) -> PredictKernelSpec | None:
 predict_kernel_spec = per_filter(_build_spec)
 
 
-def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | None:
+def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, np.ndarray] | None:
     """The whole :func:`~resloc.cl.step.predict` in one compiled pass over the robots.
 
     Returns None (nothing computed) when the backend is numpy, the filter has no compiled
     twin, the shapes are not the documented ones, or a covariance is not positive definite
     even with jitter (the reference path then raises the explanatory error).
 
-    Parameters and returns as :func:`resloc.cl.step.predict`.
+    Parameters (``buffers`` checked by the caller) and returns as
+    :func:`resloc.cl.step.predict`.
     """
     if backend() != "numba":
         return None
@@ -130,9 +147,12 @@ def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | N
         return None
     odometry_var = np.ascontiguousarray(np.atleast_2d(odometry**2))
     floor_var = np.ascontiguousarray(floor**2 * dt)
-    x_out = np.empty((B, 3))
-    P_out = np.empty((B, 3, 3))
-    status = _predict_robots(
+    if buffers is None:
+        x_out = np.empty((B, 3))
+        P_out = np.empty((B, 3, 3))
+    else:
+        x_out, P_out = buffers
+    args = (
         np.ascontiguousarray(x, dtype=float),
         np.ascontiguousarray(P, dtype=float),
         np.ascontiguousarray(u, dtype=float),
@@ -144,6 +164,15 @@ def fast_predict(filt, x, P, u, dt, params) -> tuple[np.ndarray, np.ndarray] | N
         x_out,
         P_out,
     )
+    # The one choice of the prediction's loop: lanes (kernels_predict_lanes) for sigma
+    # points from LANES_MIN_ROBOTS robots on, else (or when they fall back) robot by robot.
+    status = FALLBACK
+    if not spec.linearized and B >= LANES_MIN_ROBOTS:
+        status = predict_lanes(*args)
+        PREDICT_RUNS["lanes" if status != FALLBACK else "lanes_fallback"] += 1
+    if status == FALLBACK:
+        PREDICT_RUNS["robots"] += 1
+        status = _predict_robots(*args)
     if status != OK:
         return None
     return x_out, P_out

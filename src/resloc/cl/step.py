@@ -44,6 +44,7 @@ def predict(
     u: np.ndarray,
     dt: float,
     params: CLParams,
+    buffers: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Time update of every robot from its measured odometry (Algorithm 1, "Prediction").
 
@@ -56,6 +57,10 @@ def predict(
         Measured ``(v, omega)``.
     dt : float
     params : CLParams
+    buffers : (ndarray, ndarray), optional
+        Float64 C-contiguous arrays of shapes (B, 3), (B, 3, 3) that receive the prediction
+        and are returned (see :func:`check_buffers`), distinct from ``x`` and ``P``.
+        Without them the prediction is in new arrays.
 
     Returns
     -------
@@ -66,13 +71,56 @@ def predict(
     With the numba backend, the CKF, UKF and EKF predict in one compiled pass
     (:func:`resloc.cl.kernels_predict.fast_predict`, equal to this function to ~1e-15).
     """
+    check_buffers(buffers, x, P)
     from resloc.cl.kernels_predict import fast_predict  # numba's import, on first use
 
-    fast = fast_predict(filt, x, P, u, dt, params)
+    fast = fast_predict(filt, x, P, u, dt, params, buffers)
     if fast is not None:
         return fast
     Q = process_noise(x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std))
-    return filt.predict(x, P, u, dt, Q)
+    return _into(buffers, *filt.predict(x, P, u, dt, Q))
+
+
+def check_buffers(buffers, x, P, links: LinkBatch | None = None) -> None:
+    """Raise :class:`ValueError` unless ``buffers`` is None or a pair of writeable float64
+    C-contiguous arrays shaped like ``x: (B, 3)`` and ``P: (B, 3, 3)`` sharing no memory
+    with ``x``, ``P`` or (for a correction, ``links`` given) the neighbour estimates: the
+    step reads those while it writes, and if it gives way to the reference path midway,
+    the reference must see them unchanged."""
+    if buffers is None:
+        return
+    try:
+        bx, bP = buffers
+    except (TypeError, ValueError):
+        raise ValueError("buffers must be a pair (x, P) of arrays") from None
+    for name, b, like in (("x", bx, x), ("P", bP, P)):
+        if not (
+            isinstance(b, np.ndarray)
+            and b.dtype == np.float64
+            and b.flags.c_contiguous
+            and b.flags.writeable
+            and b.shape == np.shape(like)
+        ):
+            raise ValueError(
+                f"buffers: the {name} buffer must be a writeable C-contiguous float64 array "
+                f"of shape {np.shape(like)}"
+            )
+    # the neighbour estimates where they are stored (reading links.x_nb would copy them)
+    read = (x, P) if links is None else (x, P, *links.neighbour_rows()[1:])
+    if any(np.may_share_memory(b, a) for b in (bx, bP) for a in read):
+        raise ValueError(
+            "buffers must not share memory with x, P or the neighbour estimates (keep two "
+            "pairs of state arrays and alternate them)"
+        )
+
+
+def _into(buffers, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, P)``, written into ``buffers`` (returned) when given."""
+    if buffers is None:
+        return x, P
+    buffers[0][...] = x
+    buffers[1][...] = P
+    return buffers[0], buffers[1]
 
 
 def _take(m: Moments, rows: np.ndarray) -> Moments:
@@ -252,6 +300,7 @@ def correct(
     links: LinkBatch,
     params: CLParams,
     memory: LinkMemory | None = None,
+    buffers: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, LinkOutcome]:
     """Measurement correction of every robot from its neighbours (Algorithm 1, "Correction").
 
@@ -272,6 +321,12 @@ def correct(
     memory : LinkMemory, optional
         Needed for ``cached`` neighbour estimates and the ``last_sent`` threshold; updated
         in place.
+    buffers : (ndarray, ndarray), optional
+        Arrays that receive the corrected estimates and are returned, as in
+        :func:`predict`, distinct from ``x``, ``P`` and the neighbour estimates: at scale,
+        a caller that keeps two pairs of state arrays, predicts from the first into the
+        second and corrects back into the first, allocates no state per step. If an error
+        is raised, their content is unspecified.
 
     Returns
     -------
@@ -279,14 +334,22 @@ def correct(
         Corrected estimates ``hat x_i,k|k``, ``P_i,k|k``.
     outcome : LinkOutcome
     """
+    check_buffers(buffers, x, P, links)
     E = len(links)
     if E == 0:
-        return x, P, LinkOutcome.empty(E)
+        return (*_into(buffers, x, P), LinkOutcome.empty(E))
     from resloc.cl.kernels import fast_correct  # numba's import, on first use
 
-    fast = fast_correct(filt, x, P, links, params, memory)
+    fast = fast_correct(filt, x, P, links, params, memory, buffers)
     if fast is not None:
         return fast
+    x, P, out = _correct_reference(filt, x, P, links, params, memory)
+    return (*_into(buffers, x, P), out)
+
+
+def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
+    """The numpy correction of :func:`correct` (its executable specification)."""
+    E = len(links)
     fusion = fusion_strategy(params.fusion)
     problem = fusion.problem(params)
     if problem is not None:

@@ -1,0 +1,275 @@
+"""The compiled CL link loop in rounds: many robots' links at once, in SIMD lanes.
+
+:func:`resloc.cl.kernels_links.correct_links` walks the links in row order, one link after
+the other: a link's sigma points depend on the robot's estimate as its previous link left
+it, so the transcendental functions of a link (13 ``atan2``, 12 ``sin``/``cos`` for the
+CKF) are scalar libm calls, most of a link's time. But robots are independent within a
+step: only the order of a robot's own links matters. :func:`correct_rounds` therefore
+takes the robots in chunks of ``CHUNK`` (:mod:`resloc.cl.kernels_lanes`) and, within a
+chunk, processes round ``r`` (every robot's ``r``-th link) before round ``r + 1``.
+Within a round the robots are independent, so every stage is a loop over *lanes* (one
+robot each) on arrays of one component each (structure of arrays), which LLVM compiles to
+SIMD instructions; the transcendentals inside are branch-free polynomials
+(:mod:`resloc.cl.kernels_lanes`).
+A robot's links are fused in the same order as by the row-order loop, so the results are
+the same up to floating-point rounding (tested to 1e-9), and the working arrays are the
+chunk's only (a few tens of kilobytes, whatever the number of robots).
+
+Stages of one round (each a named function of :mod:`resloc.cl.kernels_link_stages`, twin
+in ``correct_links``):
+
+=======================  ===================================  ===========================
+function                 paper                                block of ``correct_links``
+=======================  ===================================  ===========================
+``gather_lanes``         Algorithm 1 (points' factors)        ``chol3`` of ``P_i``, ``P_j``
+``points_lanes``         eq. (3), sigma points                the points' range, bearing
+``moments_lanes``        eq. (3), moments                     ``zh``, ``S``, ``P^xz``
+``kalman_lanes``         eq. (9), Algorithm 1 (gain)          innovation to Schur update
+``norms_lanes``          eq. (9), detector norms              ``_innovation_norm``
+``decide_lanes``         eqs. (8), (10), (11), detector       gate, threshold, trigger
+``apply_lanes``          Algorithm 1                          outputs, the update
+=======================  ===================================  ===========================
+
+Coverage (:func:`rounds_cover`): sigma-point filters whose 6-D points have at most one
+non-zero entry (the CKF and the UKF), the Kalman update (``naive``), the detector gate and
+the event trigger with any norms and either threshold innovation, transmitted neighbour
+estimates. The stateful options (CUSUM stages, robot defence, gauge bookkeeping, the
+stealthy attacker, cached estimates, covariance intersection) and the EKF run in the
+row-order loop. A lane that needs a special case of the row-order loop (the Cholesky
+jitter of ``P_i``, ``P_j`` is handled here; a point at the robot's own position, an ``S``
+that needs jitter, a measured bearing outside ``(-2 pi, 2 pi)``, non-finite values, rows
+not sorted by observer are not) makes :func:`correct_rounds` return ``FALLBACK`` and
+:func:`run_link_loop` runs the row-order loop from the start instead.
+
+:func:`run_link_loop` is the one place that chooses: the rounds for at least
+:data:`ROUNDS_MIN_LINKS` links of a covered configuration, else the row-order loop.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from resloc.cl import kernels_lanes as _kernels_lanes
+from resloc.cl import kernels_link_stages as _kernels_link_stages
+from resloc.cl import kernels_links as _kernels_links
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_trig as _kernels_trig
+from resloc.cl.backend import HAVE_NUMBA
+from resloc.cl.kernels_fusion import CI
+from resloc.cl.kernels_lanes import CHUNK, FALLBACK
+from resloc.cl.kernels_link_stages import (
+    apply_lanes,
+    chol_jitter_lanes,
+    chol_lanes,
+    decide_lanes,
+    gather_lanes,
+    kalman_lanes,
+    load_covariances,
+    load_robot_covariances,
+    moments_lanes,
+    norms_lanes,
+    point_axes,
+    points_lanes,
+    robot_lanes,
+)
+from resloc.cl.kernels_links import NOT_PD, OK, correct_links
+from resloc.cl.kernels_math import stamp_with_pieces
+from resloc.cl.links import LinkBatch
+
+if HAVE_NUMBA:  # the optional extra ``fast``
+    import numba
+
+    # error_model="numpy": a float division is IEEE (no ZeroDivisionError branch), which
+    # the loop vectorizer needs.
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+else:  # pragma: no cover - exercised only where numba is absent
+
+    def _jit(func):
+        return func
+
+
+__all__ = [
+    "LOOP_RUNS",
+    "ROUNDS_MIN_LINKS",
+    "correct_rounds",
+    "rounds_cover",
+    "run_link_loop",
+]
+
+#: The rounds run from this many links on; below, the row-order loop (measured, CKF, one
+#: correction: 28 links 1.09x the row order's time, 64 links 0.94x, 313 links 0.41x).
+ROUNDS_MIN_LINKS = 64
+#: How many corrections each loop ran (``rounds``, ``rounds_fallback``: the rounds gave
+#: way to the row-order loop, ``row_order``), for tests and benchmarks.
+LOOP_RUNS: Counter = Counter()
+
+
+def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bool:
+    """Whether :func:`correct_rounds` implements this configuration (arguments as those of
+    :func:`~resloc.cl.kernels_links.correct_links`)."""
+    linearized, nz_cnt = filt[0], filt[3]
+    return not (
+        linearized
+        or np.any(nz_cnt > 1)
+        or fusion[0] == CI
+        or gauge[0]
+        or tamper[0]
+        or detection[0]  # link CUSUM
+        or detection[6]  # mean-shift CUSUM
+        or defence[0]  # robot CUSUM
+        or defence[5]  # recovery
+        or options[9]  # cached neighbour estimates
+    )
+
+
+def run_link_loop(
+    x, P, x_out, P_out, links, robots, filt, options, fusion, detection, defence, gauge, tamper,
+    out,
+):  # fmt: skip
+    """Every link of one step into ``x_out``, ``P_out`` (copies of ``x``, ``P`` on entry):
+    by rounds (:func:`correct_rounds`) where they cover the configuration and there are at
+    least :data:`ROUNDS_MIN_LINKS` links, else (or when the rounds fall back) in row order
+    (:func:`~resloc.cl.kernels_links.correct_links`). Returns the loop's status."""
+    args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out)
+    if len(links[0]) >= ROUNDS_MIN_LINKS and rounds_cover(
+        filt, options, fusion, detection, defence, gauge, tamper
+    ):
+        status = correct_rounds(x_out, P_out, *args)
+        if status != FALLBACK:
+            LOOP_RUNS["rounds"] += 1
+            return status
+        LOOP_RUNS["rounds_fallback"] += 1
+        x_out[...] = x
+        P_out[...] = P
+        out.flags[...] = False
+    LOOP_RUNS["row_order"] += 1
+    return correct_links(x_out, P_out, *args)
+
+
+@_jit
+def correct_rounds(
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+):  # fmt: skip
+    """Every link of one step, robots in chunks of ``CHUNK`` and each chunk in rounds
+    (round ``r``: every robot's ``r``-th link); updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in
+    place. Arguments as :func:`~resloc.cl.kernels_links.correct_links` (the configuration
+    must be one :func:`rounds_cover` accepts). Returns the status: ``OK``, ``NOT_PD`` or
+    ``FALLBACK`` (on both, the outputs are partial and must be discarded).
+    Twin: :func:`resloc.cl.kernels_links.correct_links`."""
+    # fusion, detection, defence, gauge, tamper: off (see rounds_cover)
+    li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
+        links[0],
+        links[1],
+        links[4],
+        links[5],
+        links[6],
+        links[7],
+        links[8],
+    )  # the transmitted rows x_nb, P_nb are x_ref, P_ref here (not cached)
+    nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
+    jitter = options[8]
+    axis, value = point_axes(nz_idx, nz_val, nz_cnt)
+    m = axis.shape[0]
+    C = CHUNK
+    block_start = np.empty(C, np.int64)
+    block_count = np.empty(C, np.int64)
+    lane_e = np.empty(C, np.int64)
+    obs = np.empty(C, np.int64)
+    src = np.empty(C, np.int64)
+    xi = np.empty((3, C))
+    xr = np.empty((2, C))
+    zl = np.empty((2, C))
+    sin_cos = np.empty((2, C))
+    Li = np.zeros((3, 3, C))
+    Lj = np.zeros((3, 3, C))
+    cov = np.empty((7, C))
+    ok_i = np.empty(C)
+    ok_j = np.empty(C)
+    bad = np.empty(C)
+    Z0 = np.empty((m, C))
+    Z1 = np.empty((m, C))
+    sums = np.empty((4, C))
+    moments = np.empty((5, C))
+    pxz = np.empty((6, C))
+    mean = np.empty((3, C))
+    scratch_in = np.empty((3, 3))
+    scratch_out = np.empty((3, 3))
+    Pi = np.empty((9, C))
+    update = np.empty((16, C))
+    norms = np.empty((2, C))
+    inputs = np.empty((10, C))
+    decision = np.empty((4, C))
+    T3 = np.empty((3, 3))
+    E = li.shape[0]
+    p = 0
+    while p < E:
+        blocks = 0
+        rounds = 0
+        while p < E and blocks < C:  # the next chunk: up to C robots' rows
+            if p > 0 and li[p] < li[p - 1]:
+                return FALLBACK  # rows not sorted by observer: a robot could be two lanes
+            q = p + 1
+            while q < E and li[q] == li[p]:
+                q += 1
+            block_start[blocks] = p
+            block_count[blocks] = q - p
+            rounds = max(rounds, q - p)
+            blocks += 1
+            p = q
+        for r in range(rounds):
+            n = 0
+            for b in range(blocks):
+                if block_count[b] > r:
+                    lane_e[n] = block_start[b] + r
+                    n += 1
+            gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
+            load_covariances(P, obs, n, cov)
+            chol_lanes(cov, n, Li, ok_i)
+            load_covariances(P_ref, src, n, cov)
+            chol_lanes(cov, n, Lj, ok_j)
+            if not chol_jitter_lanes(P, obs, n, Li, ok_i, jitter, scratch_in, scratch_out):
+                return NOT_PD
+            if not chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, scratch_in, scratch_out):
+                return NOT_PD
+            points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
+            moments_lanes(
+                axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad
+            )
+            load_robot_covariances(P, obs, n, Pi)
+            kalman_lanes(n, zl, options[0], moments, pxz, Pi, update)
+            for c in range(n):
+                if bad[c] != 0.0 or update[15, c] != 0.0:
+                    return FALLBACK
+            norms_lanes(n, update, options, norms)
+            robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs)
+            decide_lanes(n, options, norms, inputs, decision)
+            apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3)
+    return OK
+
+
+stamp_with_pieces(
+    correct_rounds,
+    _kernels_math,
+    _kernels_trig,
+    _kernels_lanes,
+    _kernels_links,
+    _kernels_link_stages,
+)
+
+
+def rounds_warm_up_batch():
+    """``(x, P, links)``: a ring of :data:`ROUNDS_MIN_LINKS` robots, each observing the
+    next, enough links for :func:`run_link_loop` to take the rounds (compiled, or loaded
+    from the cache, outside any timed section)."""
+    n = ROUNDS_MIN_LINKS
+    angle = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    x = np.column_stack([3.0 * np.cos(angle), 3.0 * np.sin(angle), angle - np.pi])
+    P = np.broadcast_to(0.01 * np.eye(3), (n, 3, 3)).copy()
+    i = np.arange(n)
+    j = (i + 1) % n
+    z = np.tile([0.3, 1.6], (n, 1))
+    ok = np.ones(n, dtype=bool)
+    links = LinkBatch(i, j, z, x[j], P[j], ok, np.zeros(n), np.zeros(n), np.ones(n))
+    return x, P, links
