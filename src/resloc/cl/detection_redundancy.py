@@ -1,0 +1,321 @@
+"""Redundancy: a neighbour whose position fix disagrees with the robot's other neighbours.
+
+A robot usually has several neighbours, and each link gives an independent *fix* of the
+robot's own position: neighbour j's broadcast position minus the relative position robot i
+measured,
+
+``f_ij = p_j - r_ij u(theta_i + b_ij)``,  ``u(a) = [cos a, sin a]``,
+
+with covariance (first order in j's position, i's heading and the sensor noise)
+
+``C_ij = P'_j,pos + J_theta P_i,thetatheta J_theta^T + J_z R J_z^T``.
+
+A lie on one link, whether it arrives through the sensor (``z_ij`` falsified) or through
+the radio (a compromised j broadcasting a false ``p_j``), moves that link's fix and no
+other. This stage compares every fix with the information-weighted mean of the robot's
+*other* fixes of the same step (leave-one-out; the robot's own prediction is left out, so a
+robot already pulled off by a lie does not carry the lie into its reference):
+
+``m_-j = (sum_{k != j} C_k^-1)^-1 sum_{k != j} C_k^-1 f_k``,
+``d_j = f_j - m_-j``,  ``T_j = d_j^T (C_j + (sum_{k != j} C_k^-1)^-1)^-1 d_j``
+
+and discards the link when ``T_j`` exceeds the chi-square gate (2 degrees of freedom,
+``redundancy_gate``) and the robot has at least ``redundancy_min_peers`` other fixes (with
+fewer there is no majority to side with; the other stages judge those links alone).
+
+Claimed covariances are not taken at their word (a compromised robot claims a tiny one to
+dominate both its victims' updates and the reference): in the test, each neighbour's claimed
+position covariance ``P_j,pos`` is scaled up to at least the median trace of the claimed
+position covariances of the robot's neighbours this step (``P'_j``), so no neighbour gets more
+weight in the reference than a typical one. The common errors of the fixes (the team's
+rigid-body error, in every ``p_j`` alike) cancel in ``d_j``; ``C_j`` keeps them, which makes
+the test conservative, not blind.
+
+What it assumes, and where it fails (``docs/attack/redundancy.md``): honest neighbours are
+the majority *by this weight* among a robot's fixes; lies that move several fixes of one
+robot consistently (a displaced robot: all its own readings are falsified consistently with
+one false position, and every reading of it too) are not inconsistent with each other, and
+a robot with fewer than ``redundancy_min_peers + 1`` fixes in a step is not protected by
+this stage.
+
+The correction computes the fixes and their references once per step, at the predicted
+estimates, over all of a robot's links (:func:`fix_evidence`), so the verdict is the same in
+the sequential and the summed update and in one robot's process; the stage itself judges
+each row from the :class:`~resloc.cl.detection.Evidence` fields that carry them. An attacker's
+copy of the detector supplies the same fields for its candidates
+(:class:`FixContext`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams, at_robots
+from resloc.linalg import solve_spd
+
+if TYPE_CHECKING:
+    from resloc.cl.detection import Evidence
+
+__all__ = [
+    "FixContext",
+    "RedundancyCheck",
+    "fix_evidence",
+    "leave_one_out",
+    "position_fix",
+    "redundancy_statistic",
+    "weight_capped_covariance",
+]
+
+#: A reference with no peer (never used: such rows are not judged) gets this covariance (m^2).
+_NO_PEER_COV = 1e12
+
+
+def weight_capped_covariance(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """Neighbours' claimed position covariances, each scaled up to at least the median trace
+    among the same observer's neighbours (no neighbour weighs more than a typical one).
+
+    Parameters
+    ----------
+    P_nb : ndarray, shape (E, 3, 3)
+        Claimed covariances of the neighbours' estimates.
+    i : ndarray of int, shape (E,)
+        Observer of each row.
+
+    Returns
+    -------
+    ndarray, shape (E, 2, 2)
+    """
+    P = np.asarray(P_nb, float)[:, :2, :2]
+    trace = P[:, 0, 0] + P[:, 1, 1]
+    median = _group_median(trace, np.asarray(i))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
+    return P * scale[:, None, None]
+
+
+def _group_median(values: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """The median of ``values: (E,)`` over the rows of each row's ``group``, shape (E,)."""
+    if not len(values):
+        return values.copy()
+    order = np.lexsort((values, group))
+    sorted_group = group[order]
+    start = np.flatnonzero(np.r_[True, sorted_group[1:] != sorted_group[:-1]])
+    count = np.diff(np.r_[start, len(values)])
+    ranked = values[order]
+    median = 0.5 * (ranked[start + (count - 1) // 2] + ranked[start + count // 2])
+    per_row = np.empty(len(values))
+    per_row[order] = np.repeat(median, count)
+    return per_row
+
+
+def position_fix(
+    z: np.ndarray,
+    x_obs: np.ndarray,
+    P_obs: np.ndarray,
+    x_nb: np.ndarray,
+    P_nb_pos: np.ndarray,
+    R: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observer i's position as link ``(i, j)`` says: ``f = p_j - r u(theta_i + b)``.
+
+    Parameters
+    ----------
+    z : ndarray, shape (E, 2)
+        Range and bearing of j measured by i.
+    x_obs, P_obs : ndarray, shapes (E, 3), (E, 3, 3)
+        Observer's estimate (its heading and heading variance are used).
+    x_nb : ndarray, shape (E, 3)
+        Neighbour's broadcast estimate.
+    P_nb_pos : ndarray, shape (E, 2, 2)
+        Position covariance credited to the neighbour.
+    R : ndarray, shape (2, 2)
+
+    Returns
+    -------
+    fix : ndarray, shape (E, 2)
+    C : ndarray, shape (E, 2, 2)
+    """
+    r = z[:, 0]
+    a = x_obs[:, 2] + z[:, 1]
+    c, s = np.cos(a), np.sin(a)
+    fix = x_nb[:, :2] - r[:, None] * np.stack([c, s], axis=1)
+    # d fix / d theta_i = d fix / d b = r [sin a, -cos a]; d fix / d r = -[cos a, sin a].
+    J_a = r[:, None] * np.stack([s, -c], axis=1)
+    J_z = np.stack([np.stack([-c, J_a[:, 0]], 1), np.stack([-s, J_a[:, 1]], 1)], 1)
+    C = (
+        P_nb_pos
+        + J_a[:, :, None] * J_a[:, None, :] * P_obs[:, 2, 2][:, None, None]
+        + J_z @ R @ np.swapaxes(J_z, -1, -2)
+    )
+    return fix, 0.5 * (C + np.swapaxes(C, -1, -2))
+
+
+def leave_one_out(
+    fix: np.ndarray, C: np.ndarray, i: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Information-weighted mean of each row's observer's *other* fixes.
+
+    Parameters
+    ----------
+    fix : ndarray, shape (E, 2)
+    C : ndarray, shape (E, 2, 2)
+    i : ndarray of int, shape (E,)
+
+    Returns
+    -------
+    reference : ndarray, shape (E, 2)
+        ``m_-j`` (the row's own fix where it has no peer).
+    reference_cov : ndarray, shape (E, 2, 2)
+        ``(sum_{k != j} C_k^-1)^-1`` (a huge diagonal where it has no peer).
+    peers : ndarray of int, shape (E,)
+        Number of other fixes of the same observer.
+    """
+    E = len(fix)
+    eye = np.broadcast_to(np.eye(2), (E, 2, 2))
+    Y = solve_spd(C, eye)  # information of each fix
+    y = np.einsum("eab,eb->ea", Y, fix)
+    robots, inverse = np.unique(i, return_inverse=True)
+    Y_sum = np.zeros((len(robots), 2, 2))
+    y_sum = np.zeros((len(robots), 2))
+    np.add.at(Y_sum, inverse, Y)
+    np.add.at(y_sum, inverse, y)
+    peers = np.bincount(inverse, minlength=len(robots))[inverse] - 1
+    Y_rest = Y_sum[inverse] - Y
+    y_rest = y_sum[inverse] - y
+    has = peers > 0
+    reference = fix.copy()
+    reference_cov = np.broadcast_to(_NO_PEER_COV * np.eye(2), (E, 2, 2)).copy()
+    if has.any():
+        Yh = 0.5 * (Y_rest[has] + np.swapaxes(Y_rest[has], -1, -2))
+        reference_cov[has] = solve_spd(Yh, eye[has])
+        reference[has] = np.einsum("eab,eb->ea", reference_cov[has], y_rest[has])
+    return reference, reference_cov, peers
+
+
+def redundancy_statistic(
+    fix: np.ndarray, C: np.ndarray, reference: np.ndarray, reference_cov: np.ndarray
+) -> np.ndarray:
+    """``T = d^T (C + C_ref)^-1 d`` with ``d = fix - reference``, shape (E,)."""
+    d = fix - reference
+    w = solve_spd(C + reference_cov, d[:, :, None])[:, :, 0]
+    return np.einsum("ea,ea->e", d, w)
+
+
+def fix_evidence(
+    z: np.ndarray,
+    x_obs: np.ndarray,
+    P_obs: np.ndarray,
+    x_nb: np.ndarray,
+    P_nb: np.ndarray,
+    i: np.ndarray,
+    R: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """The :class:`~resloc.cl.detection.Evidence` fields of this stage for a whole step.
+
+    Rows are every link of the step (a robot's rows all present); shapes as
+    :func:`position_fix`, ``P_nb: (E, 3, 3)`` the claimed covariances.
+
+    Returns
+    -------
+    dict
+        ``fix (E, 2)``, ``fix_cov (E, 2, 2)``, ``fix_reference (E, 2)``,
+        ``fix_reference_cov (E, 2, 2)``, ``fix_peers (E,)``.
+    """
+    fix, C = position_fix(z, x_obs, P_obs, x_nb, weight_capped_covariance(P_nb, i), R)
+    reference, reference_cov, peers = leave_one_out(fix, C, i)
+    return {
+        "fix": fix,
+        "fix_cov": C,
+        "fix_reference": reference,
+        "fix_reference_cov": reference_cov,
+        "fix_peers": peers,
+    }
+
+
+@dataclass
+class FixContext:
+    """What an attacker's copy of the detector needs to judge candidates on some rows of a
+    step: every link of the victims that step, as the victim will see it.
+
+    Attributes
+    ----------
+    z : ndarray, shape (E, 2)
+        The readings of every link (the candidates' rows at their honest value).
+    x_obs, P_obs, x_nb, P_nb : ndarray
+        The victims' predicted estimates and the neighbours' broadcast (claimed) ones,
+        shapes (E, 3), (E, 3, 3), (E, 3), (E, 3, 3).
+    i : ndarray of int, shape (E,)
+    R : ndarray, shape (2, 2)
+    rows : ndarray of int, shape (n,)
+        The rows the candidates are for.
+    """
+
+    z: np.ndarray
+    x_obs: np.ndarray
+    P_obs: np.ndarray
+    x_nb: np.ndarray
+    P_nb: np.ndarray
+    i: np.ndarray
+    R: np.ndarray
+    rows: np.ndarray
+
+    def fields(self, candidates: np.ndarray, joint: bool) -> dict[str, np.ndarray]:
+        """Evidence fields for ``candidates``, shape (G, n, 2), flattened to (G n, ...).
+
+        ``joint = False``: every candidate judged against the other rows at their values in
+        :attr:`z` (leave-one-out: a row's own value never enters its reference, so stacked
+        candidates are independent); ``joint = True``: ``G = 1``, the candidates replace
+        their rows and the references are recomputed (several rows of one victim lied on
+        together).
+        """
+        candidates = np.asarray(candidates, float).reshape(-1, len(self.rows), 2)
+        G = len(candidates)
+        z = self.z.copy()
+        if joint:
+            z[self.rows] = candidates[0]
+        base = fix_evidence(z, self.x_obs, self.P_obs, self.x_nb, self.P_nb, self.i, self.R)
+        capped = weight_capped_covariance(self.P_nb, self.i)[self.rows]
+        r = self.rows
+        fix, C = position_fix(
+            candidates.reshape(-1, 2),
+            np.tile(self.x_obs[r], (G, 1)),
+            np.tile(self.P_obs[r], (G, 1, 1)),
+            np.tile(self.x_nb[r], (G, 1)),
+            np.tile(capped, (G, 1, 1)),
+            self.R,
+        )
+        return {
+            "fix": fix,
+            "fix_cov": C,
+            "fix_reference": np.tile(base["fix_reference"][r], (G, 1)),
+            "fix_reference_cov": np.tile(base["fix_reference_cov"][r], (G, 1, 1)),
+            "fix_peers": np.tile(base["fix_peers"][r], G),
+        }
+
+
+class RedundancyCheck:
+    """Discard a link whose position fix disagrees with the robot's other fixes this step."""
+
+    name: ClassVar[str] = "redundancy"
+    compiled: ClassVar[bool] = False
+    overrides: ClassVar[bool] = False
+
+    def active(self, params: CLParams) -> bool:
+        return bool(params.redundancy)
+
+    def discard(
+        self, evidence: Evidence, params: CLParams, memory: LinkMemory | None
+    ) -> np.ndarray:
+        ev = evidence
+        if ev.fix is None:
+            raise ValueError(
+                "detector redundancy (params.redundancy) needs the step's position fixes "
+                "(Evidence.fix: resloc.cl.detection_redundancy.fix_evidence)"
+            )
+        stat = redundancy_statistic(ev.fix, ev.fix_cov, ev.fix_reference, ev.fix_reference_cov)
+        judged = ev.fix_peers >= at_robots(params.redundancy_min_peers, ev.i)
+        return judged & (stat > at_robots(params.redundancy_gate, ev.i))
