@@ -90,13 +90,11 @@ class Evidence:
     zone_substituted : ndarray of bool, shape (E,), optional
         Rows whose observer is inside a mapped zone and whose measurement was replaced by
         the partner's range (zone-aware trust keeps them).
-    fix, fix_cov : ndarray, shapes (E, 2), (E, 2, 2), optional
-        The observer's position as each link says, and its covariance (the redundancy
-        stage, :func:`resloc.cl.detection_redundancy.fix_evidence`).
-    fix_reference, fix_reference_cov : ndarray, shapes (E, 2), (E, 2, 2), optional
-        The information-weighted mean of the observer's other fixes of the step.
-    fix_peers : ndarray of int, shape (E,), optional
-        How many other fixes the observer has this step.
+    fix_excluded : ndarray of bool, shape (E,), optional
+        Rows whose position fix of the observer the step's fault exclusion removed (the
+        redundancy stage, :func:`resloc.cl.detection_redundancy.fix_evidence`).
+    fix_statistic : ndarray, shape (E,), optional
+        Their leave-one-out statistics (``nan``: not judged).
     """
 
     nu: np.ndarray
@@ -110,11 +108,8 @@ class Evidence:
     P_obs: np.ndarray | None = None
     x_obs: np.ndarray | None = None
     zone_substituted: np.ndarray | None = None
-    fix: np.ndarray | None = None
-    fix_cov: np.ndarray | None = None
-    fix_reference: np.ndarray | None = None
-    fix_reference_cov: np.ndarray | None = None
-    fix_peers: np.ndarray | None = None
+    fix_excluded: np.ndarray | None = None
+    fix_statistic: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):

@@ -63,6 +63,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FixContext",
     "RedundancyCheck",
+    "exclude_inconsistent",
     "fix_evidence",
     "leave_one_out",
     "position_fix",
@@ -155,15 +156,17 @@ def position_fix(
 
 
 def leave_one_out(
-    fix: np.ndarray, C: np.ndarray, i: np.ndarray
+    fix: np.ndarray, C: np.ndarray, i: np.ndarray, included: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Information-weighted mean of each row's observer's *other* fixes.
+    """Information-weighted mean of each row's observer's *other* included fixes.
 
     Parameters
     ----------
     fix : ndarray, shape (E, 2)
     C : ndarray, shape (E, 2, 2)
     i : ndarray of int, shape (E,)
+    included : ndarray of bool, shape (E,), optional
+        The fixes a reference may use (default: all).
 
     Returns
     -------
@@ -172,18 +175,20 @@ def leave_one_out(
     reference_cov : ndarray, shape (E, 2, 2)
         ``(sum_{k != j} C_k^-1)^-1`` (a huge diagonal where it has no peer).
     peers : ndarray of int, shape (E,)
-        Number of other fixes of the same observer.
+        Number of other included fixes of the same observer.
     """
     E = len(fix)
+    included = np.ones(E, bool) if included is None else np.asarray(included, bool)
     eye = np.broadcast_to(np.eye(2), (E, 2, 2))
-    Y = solve_spd(C, eye)  # information of each fix
+    Y = solve_spd(C, eye) * included[:, None, None]  # information of each included fix
     y = np.einsum("eab,eb->ea", Y, fix)
     robots, inverse = np.unique(i, return_inverse=True)
     Y_sum = np.zeros((len(robots), 2, 2))
     y_sum = np.zeros((len(robots), 2))
     np.add.at(Y_sum, inverse, Y)
     np.add.at(y_sum, inverse, y)
-    peers = np.bincount(inverse, minlength=len(robots))[inverse] - 1
+    n_included = np.bincount(inverse, weights=included.astype(float), minlength=len(robots))
+    peers = (n_included[inverse] - included).astype(int)
     Y_rest = Y_sum[inverse] - Y
     y_rest = y_sum[inverse] - y
     has = peers > 0
@@ -205,6 +210,59 @@ def redundancy_statistic(
     return np.einsum("ea,ea->e", d, w)
 
 
+def exclude_inconsistent(
+    fix: np.ndarray,
+    C: np.ndarray,
+    i: np.ndarray,
+    gate: float | np.ndarray,
+    min_peers: float | np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fault exclusion over each observer's fixes, one at a time.
+
+    Every round, each observer's included fixes are tested against the mean of its other
+    included fixes; the one with the largest statistic above ``gate`` is excluded, if at
+    least ``min_peers`` included fixes remain to have judged it. Rounds go on until no
+    observer excludes any more. (Testing all rows once would not do: a gross lie pulls every
+    honest row's reference by its share and they would all fail with it.)
+
+    Parameters
+    ----------
+    fix : ndarray, shape (E, 2)
+    C : ndarray, shape (E, 2, 2)
+    i : ndarray of int, shape (E,)
+        Observer of each row.
+    gate, min_peers : float or ndarray, shape (E,)
+
+    Returns
+    -------
+    excluded : ndarray of bool, shape (E,)
+    statistic : ndarray, shape (E,)
+        Each row's statistic against the observer's included fixes at the end (``nan``:
+        fewer than ``min_peers`` of them, not judged).
+    """
+    E = len(fix)
+    gate = np.broadcast_to(np.asarray(gate, float), (E,))
+    min_peers = np.broadcast_to(np.asarray(min_peers, float), (E,))
+    included = np.ones(E, bool)
+    if E == 0:
+        return ~included, np.zeros(0)
+    order_group = np.asarray(i)
+    while True:
+        ref, ref_cov, peers = leave_one_out(fix, C, i, included)
+        stat = redundancy_statistic(fix, C, ref, ref_cov)
+        # An included row's peers stay to judge it once it is out.
+        candidate = included & (peers >= min_peers) & (stat > gate)
+        if not candidate.any():
+            break
+        ranked = np.where(candidate, stat, -np.inf)
+        order = np.lexsort((-ranked, order_group))
+        first = np.r_[True, order_group[order][1:] != order_group[order][:-1]]
+        worst = order[first]
+        included[worst[np.isfinite(ranked[worst])]] = False
+    judged = peers >= min_peers
+    return ~included, np.where(judged, stat, np.nan)
+
+
 def fix_evidence(
     z: np.ndarray,
     x_obs: np.ndarray,
@@ -212,28 +270,29 @@ def fix_evidence(
     x_nb: np.ndarray,
     P_nb: np.ndarray,
     i: np.ndarray,
-    R: np.ndarray,
+    params: CLParams,
 ) -> dict[str, np.ndarray]:
     """The :class:`~resloc.cl.detection.Evidence` fields of this stage for a whole step.
 
     Rows are every link of the step (a robot's rows all present); shapes as
-    :func:`position_fix`, ``P_nb: (E, 3, 3)`` the claimed covariances.
+    :func:`position_fix`, ``P_nb: (E, 3, 3)`` the claimed covariances, ``i: (E,)`` the
+    observers (batch indices: the per-robot gate and ``min_peers`` are read at them).
 
     Returns
     -------
     dict
-        ``fix (E, 2)``, ``fix_cov (E, 2, 2)``, ``fix_reference (E, 2)``,
-        ``fix_reference_cov (E, 2, 2)``, ``fix_peers (E,)``.
+        ``fix_excluded (E,)``: the rows :func:`exclude_inconsistent` excludes;
+        ``fix_statistic (E,)``: their final statistics.
     """
-    fix, C = position_fix(z, x_obs, P_obs, x_nb, weight_capped_covariance(P_nb, i), R)
-    reference, reference_cov, peers = leave_one_out(fix, C, i)
-    return {
-        "fix": fix,
-        "fix_cov": C,
-        "fix_reference": reference,
-        "fix_reference_cov": reference_cov,
-        "fix_peers": peers,
-    }
+    fix, C = position_fix(z, x_obs, P_obs, x_nb, weight_capped_covariance(P_nb, i), params.R)
+    excluded, stat = exclude_inconsistent(
+        fix,
+        C,
+        i,
+        at_robots(params.redundancy_gate, i),
+        at_robots(params.redundancy_min_peers, i),
+    )
+    return {"fix_excluded": excluded, "fix_statistic": stat}
 
 
 @dataclass
@@ -249,7 +308,8 @@ class FixContext:
         The victims' predicted estimates and the neighbours' broadcast (claimed) ones,
         shapes (E, 3), (E, 3, 3), (E, 3), (E, 3, 3).
     i : ndarray of int, shape (E,)
-    R : ndarray, shape (2, 2)
+    params : CLParams
+        The victim's.
     rows : ndarray of int, shape (n,)
         The rows the candidates are for.
     """
@@ -260,41 +320,45 @@ class FixContext:
     x_nb: np.ndarray
     P_nb: np.ndarray
     i: np.ndarray
-    R: np.ndarray
+    params: CLParams
     rows: np.ndarray
 
-    def fields(self, candidates: np.ndarray, joint: bool) -> dict[str, np.ndarray]:
+    def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
         """Evidence fields for ``candidates``, shape (G, n, 2), flattened to (G n, ...).
 
-        ``joint = False``: every candidate judged against the other rows at their values in
-        :attr:`z` (leave-one-out: a row's own value never enters its reference, so stacked
-        candidates are independent); ``joint = True``: ``G = 1``, the candidates replace
-        their rows and the references are recomputed (several rows of one victim lied on
-        together).
+        Each of the ``G`` candidate sets replaces the candidates' rows in its own copy of
+        the victims' links (the other rows at their values in :attr:`z`), and each copy is
+        judged as the victims will judge the step: several lied-on rows of one victim
+        together, the exclusion run over all of the victim's rows.
         """
-        candidates = np.asarray(candidates, float).reshape(-1, len(self.rows), 2)
+        n = len(self.rows)
+        candidates = np.asarray(candidates, float).reshape(-1, n, 2)
         G = len(candidates)
-        z = self.z.copy()
-        if joint:
-            z[self.rows] = candidates[0]
-        base = fix_evidence(z, self.x_obs, self.P_obs, self.x_nb, self.P_nb, self.i, self.R)
-        capped = weight_capped_covariance(self.P_nb, self.i)[self.rows]
-        r = self.rows
+        victims = np.flatnonzero(np.isin(self.i, self.i[self.rows]))
+        V = len(victims)
+        where = np.searchsorted(victims, self.rows)  # the candidates' rows in the copy
+        z = np.tile(self.z[victims], (G, 1, 1))
+        z[:, where] = candidates
+        width = int(self.i.max()) + 1
+        copy = np.repeat(np.arange(G), V)
+        i = np.tile(self.i[victims], G)
+        # Each copy's observers are distinct robots (ids offset); per-robot gains gathered
+        # at the original ids.
+        params = self.params
+        gate = np.tile(at_robots(params.redundancy_gate, self.i[victims]) * np.ones(V), G)
+        peers = np.tile(at_robots(params.redundancy_min_peers, self.i[victims]) * np.ones(V), G)
+        group = i + copy * width
         fix, C = position_fix(
-            candidates.reshape(-1, 2),
-            np.tile(self.x_obs[r], (G, 1)),
-            np.tile(self.P_obs[r], (G, 1, 1)),
-            np.tile(self.x_nb[r], (G, 1)),
-            np.tile(capped, (G, 1, 1)),
-            self.R,
+            z.reshape(-1, 2),
+            np.tile(self.x_obs[victims], (G, 1)),
+            np.tile(self.P_obs[victims], (G, 1, 1)),
+            np.tile(self.x_nb[victims], (G, 1)),
+            np.tile(weight_capped_covariance(self.P_nb[victims], self.i[victims]), (G, 1, 1)),
+            params.R,
         )
-        return {
-            "fix": fix,
-            "fix_cov": C,
-            "fix_reference": np.tile(base["fix_reference"][r], (G, 1)),
-            "fix_reference_cov": np.tile(base["fix_reference_cov"][r], (G, 1, 1)),
-            "fix_peers": np.tile(base["fix_peers"][r], G),
-        }
+        excluded, stat = exclude_inconsistent(fix, C, group, gate, peers)
+        pick = (np.arange(G)[:, None] * V + where[None]).ravel()
+        return {"fix_excluded": excluded[pick], "fix_statistic": stat[pick]}
 
 
 class RedundancyCheck:
@@ -310,12 +374,9 @@ class RedundancyCheck:
     def discard(
         self, evidence: Evidence, params: CLParams, memory: LinkMemory | None
     ) -> np.ndarray:
-        ev = evidence
-        if ev.fix is None:
+        if evidence.fix_excluded is None:
             raise ValueError(
                 "detector redundancy (params.redundancy) needs the step's position fixes "
-                "(Evidence.fix: resloc.cl.detection_redundancy.fix_evidence)"
+                "(Evidence.fix_excluded: resloc.cl.detection_redundancy.fix_evidence)"
             )
-        stat = redundancy_statistic(ev.fix, ev.fix_cov, ev.fix_reference, ev.fix_reference_cov)
-        judged = ev.fix_peers >= at_robots(params.redundancy_min_peers, ev.i)
-        return judged & (stat > at_robots(params.redundancy_gate, ev.i))
+        return evidence.fix_excluded.copy()

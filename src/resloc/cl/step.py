@@ -303,7 +303,7 @@ def correct(
         # Every link's fix of its observer, judged against the observer's other fixes of
         # the step at the predicted estimates (the same verdict in either update mode).
         fixes = fix_evidence(
-            links.z, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, params.R
+            links.z, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, params
         )
     out = LinkOutcome.empty(E)
     x = x.copy()
@@ -311,9 +311,7 @@ def correct(
     if params.update_mode is UpdateMode.SUMMED:
         rows = np.arange(E)
         xi, Pi = x[links.i], P[links.i]
-        fuse, m, nu, P_used = _decide(
-            filt, fusion, xi, Pi, rows, links, params, memory, out, fixes
-        )
+        fuse, m, nu, P_used = _decide(filt, fusion, xi, Pi, rows, links, params, memory, out, fixes)
         f = np.flatnonzero(fuse)
         if f.size:
             ii = links.i[f]

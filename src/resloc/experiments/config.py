@@ -192,7 +192,9 @@ class DetectorSpec:
         1e-3, "redundancy: chi-square gate at this false-alarm probability", gt=0.0, max=0.5
     )
     redundancy_min_peers: int = option(
-        2, "redundancy: other fixes a robot needs in a step for its links to be judged", min=1,
+        2,
+        "redundancy: other fixes a robot needs in a step for its links to be judged",
+        min=1,
         max=1000,
     )
 

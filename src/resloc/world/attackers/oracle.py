@@ -45,8 +45,8 @@ BISECTIONS = 6
 #: (the gate, the per-link CUSUMs, recovery's re-admission test): candidates may be stacked.
 ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
-#: :class:`~resloc.cl.detection_redundancy.FixContext`): row-wise with the other rows held at
-#: their values, then judged jointly (several lied-on rows of one victim).
+#: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
+#: set in its own copy of the victims' links: stackable, and exact for lies told together).
 CONTEXT_STAGES = frozenset({"redundancy"})
 
 
@@ -75,7 +75,7 @@ def fix_context(
         links.x_nb,
         links.P_nb if P_nb is None else P_nb,
         np.asarray(links.i),
-        params.R,
+        params,
         np.asarray(rows),
     )
 
@@ -144,9 +144,8 @@ def accepted(
         stack of candidates.
     context : FixContext, optional
         The victims' other links this step, for a stage that reads them (the redundancy
-        check; required when it is active). ``z`` is then a stack of candidates for
-        ``context.rows``; with ``row_wise_only = False`` exactly one candidate per row (the
-        rows' lies judged together).
+        check; required when it is active). ``z`` is then a stack of candidate sets for
+        ``context.rows``, each judged with the victims' other links at their values.
 
     Returns
     -------
@@ -156,7 +155,7 @@ def accepted(
     norm = innovation_norm(nu, S, params.detector_norm, params.noise_std)
     extra = {}
     if context is not None and any(s.name in CONTEXT_STAGES for s in active_stages(params)):
-        extra = context.fields(z, joint=not row_wise_only)
+        extra = context.fields(z)
     evidence = Evidence(nu, S, norm, i, j, np.zeros(len(z), bool), **extra)
     if gate_only:
         gate = DETECTOR_STAGES[0]
