@@ -379,4 +379,9 @@ class RedundancyCheck:
                 "detector redundancy (params.redundancy) needs the step's position fixes "
                 "(Evidence.fix_excluded: resloc.cl.detection_redundancy.fix_evidence)"
             )
-        return evidence.fix_excluded.copy()
+        out = evidence.fix_excluded.copy()
+        if evidence.zone_substituted is not None:
+            # A row zone trust substituted is fused as the partner's position fix, not as
+            # the (distrusted) reading the fix above was computed from.
+            out &= ~evidence.zone_substituted
+        return out
