@@ -33,9 +33,11 @@ class Isolate:
 
     name = "isolate"
     summary = "robot 5's links are never fused (a genie that knows the displaced robot)"
-    params: dict = {}
     grid = ({},)
-    overrides: dict = {}
+
+    def __init__(self) -> None:
+        self.params: dict = {}
+        self.overrides: dict = {}
 
     def mark(self, sdz_attacked, step):
         return (step.i % step.robots == TARGET) | (step.j % step.robots == TARGET)
@@ -74,7 +76,9 @@ def main() -> None:
     ratio = np.divide(out["isolated"], out["clean"])
     out["ratio"] = ratio.tolist()
     print(json.dumps(out, indent=1))
-    print(f"isolated / clean: mean {ratio.mean():.3g}, min {ratio.min():.3g}, max {ratio.max():.3g}")
+    print(
+        f"isolated / clean: mean {ratio.mean():.3g}, min {ratio.min():.3g},  max {ratio.max():.3g}"
+    )
     Path("runs").mkdir(exist_ok=True)
     Path("runs/displaced_bound.json").write_text(json.dumps(out, indent=1))
 

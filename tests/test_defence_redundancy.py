@@ -72,7 +72,7 @@ def test_group_median_matches_numpy_per_group():
 
 
 def test_position_fix_is_exact_and_its_covariance_is_first_order():
-    z, x_obs, P_obs, x_nb, P_nb, i = _victim()
+    z, x_obs, P_obs, x_nb, P_nb, _ = _victim()
     fix, C = position_fix(z, x_obs, P_obs, x_nb, P_nb[:, :2, :2], R)
     np.testing.assert_allclose(fix, np.zeros((5, 2)), atol=1e-12)
     # Monte Carlo over the neighbour's position, the observer's heading and the sensor noise.
@@ -159,10 +159,13 @@ def test_the_stage_reads_the_exclusion_and_needs_its_fields():
         **fix_evidence(z, x_obs, P_obs, x_nb, P_nb, i, PARAMS),
     )
     np.testing.assert_array_equal(detect(ev, PARAMS, None), [True, False, False, False, False])
+    # a row zone trust substituted is fused as the partner's fix: not judged by its reading
+    ev.zone_substituted = np.array([True, False, False, False, False])
+    assert not DETECTOR_STAGES[2].discard(ev, PARAMS, None).any()
     bare = Evidence(
         np.zeros((1, 2)), np.eye(2)[None], np.zeros(1), i[:1], i[:1] + 1, np.zeros(1, bool)
     )
-    with pytest.raises(ValueError, match="redundancy.*position fixes"):
+    with pytest.raises(ValueError, match=r"redundancy.*position fixes"):
         detect(bare, PARAMS, None)
     names = [s.name for s in DETECTOR_STAGES]
     assert names.index("redundancy") == names.index("gate") + 1
@@ -291,7 +294,7 @@ def test_the_compromised_robots_lie_sits_on_the_redundancy_gate(claimed_cov):
 
 def test_the_oracle_refuses_to_guess_without_the_victims_estimates():
     params = CLParams(detector_norm="nis", rho=3.7, redundancy=True)
-    links, step, z_hat, S = _compromised_scene(params)
+    links = _compromised_scene(params)[0]
     fixed = replace(links, neighbours=None, x_nb=links.x_nb, P_nb=links.P_nb)
     with pytest.raises(ValueError, match="victims' estimates"):
         fix_context(fixed, np.array([4]), params)
