@@ -55,7 +55,6 @@ import numpy as np
 
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
-from resloc.linalg import solve_spd
 
 if TYPE_CHECKING:
     from resloc.cl.detection import Evidence
@@ -155,6 +154,58 @@ def position_fix(
     return fix, 0.5 * (C + np.swapaxes(C, -1, -2))
 
 
+def _sym2(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The entries ``(a, b, c)`` of symmetric 2 x 2 matrices ``[[a, b], [b, c]]``."""
+    return M[:, 0, 0], 0.5 * (M[:, 0, 1] + M[:, 1, 0]), M[:, 1, 1]
+
+
+def _information(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``[[a, b], [b, c]]^-1`` in closed form (2 x 2 SPD: ``det > 0``), as ``(a, b, c)``."""
+    det = a * c - b * b
+    return c / det, -b / det, a / det
+
+
+def _group_sums(inverse: np.ndarray, n: int, *values: np.ndarray) -> list[np.ndarray]:
+    return [np.bincount(inverse, weights=v, minlength=n) for v in values]
+
+
+def _reference(
+    fix: np.ndarray, C3: tuple, inverse: np.ndarray, n: int, included: np.ndarray
+) -> tuple[np.ndarray, tuple, np.ndarray]:
+    """Leave-one-out reference of every row over the included rows of its group (entries
+    form); see :func:`leave_one_out`."""
+    w = included.astype(float)
+    Ya, Yb, Yc = (v * w for v in _information(*C3))
+    ya = Ya * fix[:, 0] + Yb * fix[:, 1]
+    yb = Yb * fix[:, 0] + Yc * fix[:, 1]
+    Sa, Sb, Sc, sa, sb, count = _group_sums(inverse, n, Ya, Yb, Yc, ya, yb, w)
+    Ra, Rb, Rc = Sa[inverse] - Ya, Sb[inverse] - Yb, Sc[inverse] - Yc
+    ra, rb = sa[inverse] - ya, sb[inverse] - yb
+    peers = np.rint(count[inverse] - w).astype(int)
+    has = peers > 0
+    det = np.where(has, Ra * Rc - Rb * Rb, 1.0)
+    Qa = np.where(has, Rc / det, _NO_PEER_COV)
+    Qb = np.where(has, -Rb / det, 0.0)
+    Qc = np.where(has, Ra / det, _NO_PEER_COV)
+    reference = np.where(
+        has[:, None], np.stack([Qa * ra + Qb * rb, Qb * ra + Qc * rb], axis=1), fix
+    )
+    return reference, (Qa, Qb, Qc), peers
+
+
+def _statistic(fix: np.ndarray, C3: tuple, reference: np.ndarray, Q3: tuple) -> np.ndarray:
+    """``d^T (C + Q)^-1 d`` in closed form, shape (E,)."""
+    a, b, c = (x + y for x, y in zip(C3, Q3, strict=True))
+    d0, d1 = fix[:, 0] - reference[:, 0], fix[:, 1] - reference[:, 1]
+    return (c * d0 * d0 - 2.0 * b * d0 * d1 + a * d1 * d1) / (a * c - b * b)
+
+
+def _matrix(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
+
+
 def leave_one_out(
     fix: np.ndarray, C: np.ndarray, i: np.ndarray, included: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -176,38 +227,25 @@ def leave_one_out(
         ``(sum_{k != j} C_k^-1)^-1`` (a huge diagonal where it has no peer).
     peers : ndarray of int, shape (E,)
         Number of other included fixes of the same observer.
+
+    Notes
+    -----
+    Everything is 2 x 2 and symmetric: the information sums and the solves are written in
+    closed form on the entries (the attacker's oracle evaluates this on tens of thousands of
+    rows per step).
     """
     E = len(fix)
     included = np.ones(E, bool) if included is None else np.asarray(included, bool)
-    eye = np.broadcast_to(np.eye(2), (E, 2, 2))
-    Y = solve_spd(C, eye) * included[:, None, None]  # information of each included fix
-    y = np.einsum("eab,eb->ea", Y, fix)
     robots, inverse = np.unique(i, return_inverse=True)
-    Y_sum = np.zeros((len(robots), 2, 2))
-    y_sum = np.zeros((len(robots), 2))
-    np.add.at(Y_sum, inverse, Y)
-    np.add.at(y_sum, inverse, y)
-    n_included = np.bincount(inverse, weights=included.astype(float), minlength=len(robots))
-    peers = (n_included[inverse] - included).astype(int)
-    Y_rest = Y_sum[inverse] - Y
-    y_rest = y_sum[inverse] - y
-    has = peers > 0
-    reference = fix.copy()
-    reference_cov = np.broadcast_to(_NO_PEER_COV * np.eye(2), (E, 2, 2)).copy()
-    if has.any():
-        Yh = 0.5 * (Y_rest[has] + np.swapaxes(Y_rest[has], -1, -2))
-        reference_cov[has] = solve_spd(Yh, eye[has])
-        reference[has] = np.einsum("eab,eb->ea", reference_cov[has], y_rest[has])
-    return reference, reference_cov, peers
+    reference, Q3, peers = _reference(fix, _sym2(C), inverse, len(robots), included)
+    return reference, _matrix(*Q3), peers
 
 
 def redundancy_statistic(
     fix: np.ndarray, C: np.ndarray, reference: np.ndarray, reference_cov: np.ndarray
 ) -> np.ndarray:
     """``T = d^T (C + C_ref)^-1 d`` with ``d = fix - reference``, shape (E,)."""
-    d = fix - reference
-    w = solve_spd(C + reference_cov, d[:, :, None])[:, :, 0]
-    return np.einsum("ea,ea->e", d, w)
+    return _statistic(fix, _sym2(C), reference, _sym2(reference_cov))
 
 
 def exclude_inconsistent(
@@ -246,19 +284,21 @@ def exclude_inconsistent(
     included = np.ones(E, bool)
     if E == 0:
         return ~included, np.zeros(0)
-    order_group = np.asarray(i)
+    robots, inverse = np.unique(i, return_inverse=True)
+    n = len(robots)
+    C3 = _sym2(C)
     while True:
-        ref, ref_cov, peers = leave_one_out(fix, C, i, included)
-        stat = redundancy_statistic(fix, C, ref, ref_cov)
+        reference, Q3, peers = _reference(fix, C3, inverse, n, included)
+        stat = _statistic(fix, C3, reference, Q3)
         # An included row's peers stay to judge it once it is out.
         candidate = included & (peers >= min_peers) & (stat > gate)
         if not candidate.any():
             break
-        ranked = np.where(candidate, stat, -np.inf)
-        order = np.lexsort((-ranked, order_group))
-        first = np.r_[True, order_group[order][1:] != order_group[order][:-1]]
-        worst = order[first]
-        included[worst[np.isfinite(ranked[worst])]] = False
+        rows = np.flatnonzero(candidate)
+        # The worst candidate of each observer.
+        order = rows[np.lexsort((-stat[rows], inverse[rows]))]
+        first = np.r_[True, inverse[order][1:] != inverse[order][:-1]]
+        included[order[first]] = False
     judged = peers >= min_peers
     return ~included, np.where(judged, stat, np.nan)
 
