@@ -377,8 +377,6 @@ class FixContext:
         victims = np.flatnonzero(np.isin(self.i, self.i[self.rows]))
         V = len(victims)
         where = np.searchsorted(victims, self.rows)  # the candidates' rows in the copy
-        z = np.tile(self.z[victims], (G, 1, 1))
-        z[:, where] = candidates
         width = int(self.i.max()) + 1
         copy = np.repeat(np.arange(G), V)
         i = np.tile(self.i[victims], G)
@@ -388,14 +386,24 @@ class FixContext:
         gate = np.tile(at_robots(params.redundancy_gate, self.i[victims]) * np.ones(V), G)
         peers = np.tile(at_robots(params.redundancy_min_peers, self.i[victims]) * np.ones(V), G)
         group = i + copy * width
-        fix, C = position_fix(
-            z.reshape(-1, 2),
-            np.tile(self.x_obs[victims], (G, 1)),
-            np.tile(self.P_obs[victims], (G, 1, 1)),
-            np.tile(self.x_nb[victims], (G, 1)),
-            np.tile(weight_capped_covariance(self.P_nb[victims], self.i[victims]), (G, 1, 1)),
+        # The other rows' fixes are the same in every copy: computed once, then the
+        # candidates' fixes put in their places.
+        x_obs, P_obs, x_nb = self.x_obs[victims], self.P_obs[victims], self.x_nb[victims]
+        capped = weight_capped_covariance(self.P_nb[victims], self.i[victims])
+        base_fix, base_C = position_fix(self.z[victims], x_obs, P_obs, x_nb, capped, params.R)
+        cand_fix, cand_C = position_fix(
+            candidates.reshape(-1, 2),
+            np.tile(x_obs[where], (G, 1)),
+            np.tile(P_obs[where], (G, 1, 1)),
+            np.tile(x_nb[where], (G, 1)),
+            np.tile(capped[where], (G, 1, 1)),
             params.R,
         )
+        fix = np.tile(base_fix, (G, 1, 1))
+        C = np.tile(base_C, (G, 1, 1, 1))
+        fix[:, where] = cand_fix.reshape(G, n, 2)
+        C[:, where] = cand_C.reshape(G, n, 2, 2)
+        fix, C = fix.reshape(-1, 2), C.reshape(-1, 2, 2)
         excluded, stat = exclude_inconsistent(fix, C, group, gate, peers)
         pick = (np.arange(G)[:, None] * V + where[None]).ravel()
         return {"fix_excluded": excluded[pick], "fix_statistic": stat[pick]}
