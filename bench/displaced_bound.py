@@ -61,6 +61,8 @@ def main() -> None:
             "run.steps": args.steps,
             "run.filters": ["ckf"],
             "run.dead_reckoning": True,
+            # No SDZ: the world's own zone attack stays off (the study's clean run).
+            "sdz": [],
         }
     )
     clean = run_scenario(base)
