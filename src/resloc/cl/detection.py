@@ -14,6 +14,11 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
 ``robot_cusum``
     While the CUSUM of the NIS over *all* of a robot's links alarms, its measurements whose
     NIS exceeds ``robot_cusum_k`` (:mod:`resloc.cl.detection_robot`).
+``redundancy``
+    Discards a link whose position fix of the observer disagrees with the observer's other
+    fixes of the step (leave-one-out, claimed covariances capped at a typical neighbour's:
+    :mod:`resloc.cl.detection_redundancy`); against lies on one link of several, from the
+    sensor or from a compromised neighbour's broadcast.
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -38,6 +43,7 @@ import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
+from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
@@ -84,6 +90,11 @@ class Evidence:
     zone_substituted : ndarray of bool, shape (E,), optional
         Rows whose observer is inside a mapped zone and whose measurement was replaced by
         the partner's range (zone-aware trust keeps them).
+    fix_excluded : ndarray of bool, shape (E,), optional
+        Rows whose position fix of the observer the step's fault exclusion removed (the
+        redundancy stage, :func:`resloc.cl.detection_redundancy.fix_evidence`).
+    fix_statistic : ndarray, shape (E,), optional
+        Their leave-one-out statistics (``nan``: not judged).
     """
 
     nu: np.ndarray
@@ -97,6 +108,8 @@ class Evidence:
     P_obs: np.ndarray | None = None
     x_obs: np.ndarray | None = None
     zone_substituted: np.ndarray | None = None
+    fix_excluded: np.ndarray | None = None
+    fix_statistic: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -222,6 +235,7 @@ NORM_GATE = NormGate()
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     NORM_GATE,
+    RedundancyCheck(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

@@ -131,6 +131,13 @@ class CLParams:
         sensing danger zone (:mod:`resloc.cl.detection_zone`).
     zone_trust_map : tuple of (cx, cy, r)
         The discs distrusted (the SDZ map, grown by the margin).
+    redundancy : bool
+        Discard a link whose position fix of the observer disagrees with the observer's
+        other fixes of the step (:mod:`resloc.cl.detection_redundancy`).
+    redundancy_gate : float or ndarray (B,)
+        Chi-square gate (2 degrees of freedom) on the leave-one-out statistic.
+    redundancy_min_peers : float or ndarray (B,)
+        Other fixes a robot needs in a step for its links to be judged.
     """
 
     range_std: float = 0.005
@@ -169,6 +176,9 @@ class CLParams:
     recovery_inflation_cap: float | np.ndarray = 100.0
     zone_trust: bool = False
     zone_trust_map: tuple = ()
+    redundancy: bool = False
+    redundancy_gate: float | np.ndarray = 13.815510557964274
+    redundancy_min_peers: float | np.ndarray = 2.0
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -13,6 +13,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
+from resloc.cl.detection_redundancy import fix_evidence
 from resloc.cl.detection_zone import (
     materialize_with_reciprocal,
     reciprocal_position_fix,
@@ -143,12 +144,14 @@ def _decide(
     params: CLParams,
     memory: LinkMemory | None,
     out: LinkOutcome,
+    fixes: dict[str, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, Moments, np.ndarray]:
     """Detector, trigger and channel for ``rows`` of ``links`` given robot estimates ``x_i``.
 
     Returns the rows to fuse, the moments to fuse them with (same order as ``rows``), the
     innovations and the observers' covariances to update (``P_i``, inflated where a
     detector stage re-admitted a measurement). Writes the per-link decisions into ``out``.
+    ``fixes``: the step's position fixes of every link (the redundancy stage), or None.
     """
     ii, jj = links.i[rows], links.j[rows]
     R = params.R
@@ -202,6 +205,7 @@ def _decide(
         P_obs=P_i,
         x_obs=x_i,
         zone_substituted=substituted,
+        **({} if fixes is None else {k: v[rows] for k, v in fixes.items()}),
     )
     detected = detect(evidence, params, memory)
     accepted = ~detected
@@ -354,19 +358,28 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     problem = fusion.problem(params)
     if problem is not None:
         raise ValueError(f"fusion {params.fusion.value!r} {problem}")
-    if params.zone_trust and links.z_reciprocal is None:
+    if (params.zone_trust and links.z_reciprocal is None) or (
+        params.redundancy and links.tamper is not None
+    ):
         # Every reading as reported (lies included) and its reverse link's range.
         pre = fusion.moments(
             filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, params.R
         )
         links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+    fixes = None
+    if params.redundancy:
+        # Every link's fix of its observer, judged against the observer's other fixes of
+        # the step at the predicted estimates (the same verdict in either update mode).
+        fixes = fix_evidence(
+            links.z, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, params
+        )
     out = LinkOutcome.empty(E)
     x = x.copy()
     P = P.copy()
     if params.update_mode is UpdateMode.SUMMED:
         rows = np.arange(E)
         xi, Pi = x[links.i], P[links.i]
-        fuse, m, nu, P_used = _decide(filt, fusion, xi, Pi, rows, links, params, memory, out)
+        fuse, m, nu, P_used = _decide(filt, fusion, xi, Pi, rows, links, params, memory, out, fixes)
         f = np.flatnonzero(fuse)
         if f.size:
             ii = links.i[f]
@@ -390,7 +403,9 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     for r in range(len(bounds) - 1):
         rows = order[bounds[r] : bounds[r + 1]]
         ii = links.i[rows]  # distinct within a round
-        fuse, m, nu, P_used = _decide(filt, fusion, x[ii], P[ii], rows, links, params, memory, out)
+        fuse, m, nu, P_used = _decide(
+            filt, fusion, x[ii], P[ii], rows, links, params, memory, out, fixes
+        )
         if not fuse.any():
             continue
         f = np.flatnonzero(fuse)

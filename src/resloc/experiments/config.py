@@ -183,6 +183,20 @@ class DetectorSpec:
     zone_trust_scale: float = option(
         1.0, "zone trust: the map's error for evaluation, radii times this", min=0.0, max=1e3
     )
+    redundancy: bool = option(
+        False,
+        "discard a link whose fix of the robot's position disagrees with its other "
+        "neighbours' fixes (claimed covariances capped at a typical neighbour's)",
+    )
+    redundancy_false_alarm: float = option(
+        1e-3, "redundancy: chi-square gate at this false-alarm probability", gt=0.0, max=0.5
+    )
+    redundancy_min_peers: int = option(
+        2,
+        "redundancy: other fixes a robot needs in a step for its links to be judged",
+        min=1,
+        max=1000,
+    )
 
 
 @dataclass(frozen=True)
@@ -270,6 +284,9 @@ class Scenario:
                 tuple(d.zone_trust_shift),
                 d.zone_trust_scale,
             ),
+            redundancy=d.redundancy,
+            redundancy_gate=chi2_gate(d.redundancy_false_alarm),
+            redundancy_min_peers=float(d.redundancy_min_peers),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -28,6 +28,7 @@ _GAUGE = {"estimator.fusion": "gauge"}
 _PAPER = {"detector.enabled": True, "detector.norm": "euclidean"}
 _FULL = {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True, "detector.recovery": True}
 _ZONE = {"detector.zone_trust": True}
+_REDUNDANCY = {"detector.redundancy": True}
 
 #: Defence name -> dotted scenario overrides (read-only).
 DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
@@ -64,6 +65,11 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
             "zone+full": {**_FULL, **_ZONE},
             "zone+full@shifted": {**_FULL, **_ZONE, "detector.zone_trust_shift": [0.5, 0.0]},
             "zone+full@shrunk": {**_FULL, **_ZONE, "detector.zone_trust_scale": 0.5},
+            # Redundancy (cl/detection_redundancy.py): a link whose fix of the robot's
+            # position disagrees with its other neighbours' fixes is not fused, claimed
+            # covariances capped at a typical neighbour's. Needs no map.
+            "full+redundancy": {**_FULL, **_REDUNDANCY},
+            "zone+full+redundancy": {**_FULL, **_ZONE, **_REDUNDANCY},
         }.items()
     }
 )

@@ -12,7 +12,7 @@ from resloc.angles import wrap_angle
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
-from resloc.world.attackers.oracle import largest_accepted
+from resloc.world.attackers.oracle import fix_context, largest_accepted
 
 __all__ = ["AttackStep", "Attacker", "SensingLie", "Strategy"]
 
@@ -193,6 +193,7 @@ class SensingLie(Strategy):
                 params,
                 memory,
                 self.gate_only,
+                None if self.gate_only else fix_context(links, r, params),
             )
             z = out[hit] + a[:, None] * lie
             z[:, 0] = np.abs(z[:, 0])

@@ -10,7 +10,7 @@ import numpy as np
 from resloc.angles import wrap_angle
 from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
-from resloc.world.attackers.oracle import largest_accepted_along
+from resloc.world.attackers.oracle import fix_context, largest_accepted_along
 from resloc.world.attackers.sensing import measurement_difference
 
 __all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
@@ -114,7 +114,10 @@ class CompromisedRobot(Strategy):
                 cand[..., 1] = wrap_angle(cand[..., 1])
                 return cand
 
-            a = largest_accepted_along(path, zh, S[hit], links.i[r], links.j[r], params, memory)
+            context = fix_context(links, r, params, P_nb)
+            a = largest_accepted_along(
+                path, zh, S[hit], links.i[r], links.j[r], params, memory, context=context
+            )
             out[hit] = path(a[None])[0]
             return out
 

@@ -17,14 +17,18 @@ from collections.abc import Callable
 import numpy as np
 
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
+from resloc.cl.detection_redundancy import FixContext
 from resloc.cl.detector import innovation_norm
+from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.filters.update import innovation
 
 __all__ = [
+    "CONTEXT_STAGES",
     "ROW_WISE_STAGES",
     "accepted",
+    "fix_context",
     "largest_accepted",
     "largest_accepted_along",
     "scratch_memory",
@@ -40,6 +44,40 @@ BISECTIONS = 6
 #: Stages whose verdict on a row depends only on that row and the state before the round
 #: (the gate, the per-link CUSUMs, recovery's re-admission test): candidates may be stacked.
 ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
+#: Stages whose verdict on a row also reads the step's other rows (through a
+#: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
+#: set in its own copy of the victims' links: stackable, and exact for lies told together).
+CONTEXT_STAGES = frozenset({"redundancy"})
+
+
+def fix_context(
+    links: LinkBatch, rows: np.ndarray, params: CLParams, P_nb: np.ndarray | None = None
+) -> FixContext | None:
+    """What the attacker's copy of the detector needs of the step's other links to judge
+    candidates on ``rows`` (indices into ``links``), or None when no active stage reads them.
+
+    The victims' predicted estimates are read from the batch (``links.neighbours``: the
+    simulator's links reference the batch's predicted arrays; the attacker knows them).
+    ``P_nb``: the covariances the victims receive, when the attacker changes them.
+    """
+    if not any(s.name in CONTEXT_STAGES for s in active_stages(params)):
+        return None
+    if links.neighbours is None:
+        raise ValueError(
+            "the redundancy stage's oracle needs the victims' estimates: build the links "
+            "with LinkBatch.from_predicted"
+        )
+    source = links.neighbours
+    return FixContext(
+        np.asarray(links.z, float),
+        source.x[links.i],
+        source.P[links.i],
+        links.x_nb,
+        links.P_nb if P_nb is None else P_nb,
+        np.asarray(links.i),
+        params,
+        np.asarray(rows),
+    )
 
 
 def _scratch(value):
@@ -81,6 +119,7 @@ def accepted(
     memory: LinkMemory | None,
     gate_only: bool = False,
     row_wise_only: bool = False,
+    context: FixContext | None = None,
 ) -> np.ndarray:
     """Whether the victim's detector, in its current state, accepts measurements ``z``.
 
@@ -100,8 +139,13 @@ def accepted(
     gate_only : bool
         Judge by the per-measurement gate alone (an attacker that knows nothing else).
     row_wise_only : bool
-        Run only the stages that judge each row alone (:data:`ROW_WISE_STAGES`): then
-        rows may be any stack of candidates.
+        Run only the stages that judge each row alone (:data:`ROW_WISE_STAGES`, and
+        :data:`CONTEXT_STAGES` with the context's other rows held): then rows may be any
+        stack of candidates.
+    context : FixContext, optional
+        The victims' other links this step, for a stage that reads them (the redundancy
+        check; required when it is active). ``z`` is then a stack of candidate sets for
+        ``context.rows``, each judged with the victims' other links at their values.
 
     Returns
     -------
@@ -109,7 +153,10 @@ def accepted(
     """
     nu = innovation(z, z_hat)
     norm = innovation_norm(nu, S, params.detector_norm, params.noise_std)
-    evidence = Evidence(nu, S, norm, i, j, np.zeros(len(z), bool))
+    extra = {}
+    if context is not None and any(s.name in CONTEXT_STAGES for s in active_stages(params)):
+        extra = context.fields(z)
+    evidence = Evidence(nu, S, norm, i, j, np.zeros(len(z), bool), **extra)
     if gate_only:
         gate = DETECTOR_STAGES[0]
         return ~gate.discard(evidence, params, None) if gate.active(params) else ~evidence.gated
@@ -119,7 +166,7 @@ def accepted(
     memory = scratch_memory(memory)
     detected = np.zeros(len(z), dtype=bool)
     for stage in active_stages(params):
-        if stage.name not in ROW_WISE_STAGES:
+        if stage.name not in ROW_WISE_STAGES | CONTEXT_STAGES:
             continue
         if stage.overrides:
             evidence.detected = detected
@@ -139,6 +186,7 @@ def largest_accepted(
     params: CLParams,
     memory: LinkMemory | None,
     gate_only: bool = False,
+    context: FixContext | None = None,
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with ``z + a lie`` accepted by the victim.
 
@@ -150,7 +198,7 @@ def largest_accepted(
         Honest measurements.
     lie : ndarray, shape (E, 2)
         The full injection per row.
-    z_hat, S, i, j, params, memory, gate_only
+    z_hat, S, i, j, params, memory, gate_only, context
         As :func:`accepted`.
 
     Returns
@@ -167,6 +215,7 @@ def largest_accepted(
         params,
         memory,
         gate_only,
+        context,
     )
 
 
@@ -179,6 +228,7 @@ def largest_accepted_along(
     params: CLParams,
     memory: LinkMemory | None,
     gate_only: bool = False,
+    context: FixContext | None = None,
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with the measurement ``path(a)`` accepted.
 
@@ -202,7 +252,7 @@ def largest_accepted_along(
     path : callable
         ``path(frac)`` with ``frac`` of shape (G, E) returns the candidate measurements,
         shape (G, E, 2); ``path(0)`` is the measurement sent without a lie.
-    z_hat, S, i, j, params, memory, gate_only
+    z_hat, S, i, j, params, memory, gate_only, context
         As :func:`accepted`.
 
     Returns
@@ -227,6 +277,7 @@ def largest_accepted_along(
             memory,
             gate_only,
             row_wise_only=coupled,
+            context=context,
         ).reshape(G, E)
 
     lo = np.zeros(E)
@@ -243,17 +294,17 @@ def largest_accepted_along(
         width = width / (GRID - 1)
     a = np.where(any_ok, np.minimum(lo, 1.0), 0.0)
     if coupled:
-        a = _joint(a, path, z_hat, S, i, j, params, memory)
+        a = _joint(a, path, z_hat, S, i, j, params, memory, context)
     return a
 
 
-def _joint(a, path, z_hat, S, i, j, params, memory) -> np.ndarray:
+def _joint(a, path, z_hat, S, i, j, params, memory, context=None) -> np.ndarray:
     """The rows' fractions ``a`` (each accepted by the row-wise stages) judged together by
     the whole detector; each rejected row bisected between 0 and its ``a`` (the others at
     their current choice) until the round passes. Rows still rejected send no lie."""
 
     def round_ok(frac: np.ndarray) -> np.ndarray:
-        return accepted(path(frac[None])[0], z_hat, S, i, j, params, memory)
+        return accepted(path(frac[None])[0], z_hat, S, i, j, params, memory, context=context)
 
     ok = round_ok(a)
     bad = ~ok & (a > 0.0)
