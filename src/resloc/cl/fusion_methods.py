@@ -64,9 +64,10 @@ class FusionStrategy(Protocol):
 
     method: ClassVar[str]
     compiled: ClassVar[bool] = False
-    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"``,
-    #: :mod:`resloc.cl.kernels_fusion`) and the per-link bookkeeping (``"none"``;
-    #: ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
+    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"`` and
+    #: ``"split_ci"``, :mod:`resloc.cl.kernels_fusion`; ``"tracked"`` and ``"factorized"``,
+    #: the correlated joint's moments and records of :mod:`resloc.cl.kernels_joint`) and the
+    #: per-link bookkeeping (``"none"``; ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
     kernel_update: ClassVar[str] = "kalman"
     kernel_bookkeeping: ClassVar[str] = "none"
     node_refusal: ClassVar[str | None] = None
@@ -198,6 +199,8 @@ class SplitCIFusion(_TransmittedOnly):
     ``memory.independent`` and in every transmission (``LinkBatch.P_nb_ind``)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.SPLIT_CI
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "split_ci"
     node_exchanges: ClassVar[tuple[str, ...]] = ("delivery_acks",)
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
@@ -283,6 +286,8 @@ class TrackedFusion(_Bookkept):
     """``tracked``: the team's joint covariance, kept exactly (:mod:`resloc.cl.tracking`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.TRACKED
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "tracked"
     node_refusal: ClassVar[str | None] = (
         "it keeps the team's joint covariance, which no single robot has "
         "(its distributed form is fusion 'factorized')"
@@ -300,6 +305,8 @@ class FactorizedFusion(TrackedFusion):
     (:mod:`resloc.cl.factorized`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.FACTORIZED
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "factorized"
     node_refusal: ClassVar[str | None] = None
     node_exchanges: ClassVar[tuple[str, ...]] = ("factors",)
 

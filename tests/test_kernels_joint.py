@@ -1,0 +1,166 @@
+"""The compiled ``tracked``, ``factorized`` (:mod:`resloc.cl.kernels_joint`) and ``split_ci``
+(:mod:`resloc.cl.kernels_fusion`) fusion against the numpy reference over multi-step runs:
+same estimates, covariances and decisions to 1e-9 at every step with the compiled path
+asserted, and the same method state (the tracked joint, the factors, the independent
+parts) after every step; for the CKF, UKF and EKF, with the detector stages and recovery,
+with jamming, and with ``cached`` neighbour estimates where the method allows them."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl import fusion as cl_fusion
+from resloc.cl.backend import kernel_refusal
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.experiments.config import default_scenario
+from resloc.filters import make_filter
+from resloc.world.world import World
+from test_engine import assert_equivalent, random_batch
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+FILTERS = {
+    "ckf": make_filter("ckf"),
+    "ukf": make_filter("ukf", 0.8, 2.0, 1.0),
+    "ekf": make_filter("ekf"),
+}
+
+
+def assert_same_state(method: str, fast: LinkMemory, ref: LinkMemory) -> None:
+    """The method's state after a step is the same on both paths."""
+    if method == "split_ci":
+        np.testing.assert_allclose(fast.independent, ref.independent, rtol=0, atol=1e-9)
+    elif method == "tracked":
+        np.testing.assert_allclose(fast.joint.sigma, ref.joint.sigma, rtol=0, atol=1e-9)
+    elif method == "factorized":
+        for name in ("sig", "A", "Bm"):
+            a, b = getattr(fast.joint, name), getattr(ref.joint, name)
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9, err_msg=name)
+        np.testing.assert_array_equal(fast.joint.fused, ref.joint.fused)
+
+
+def lockstep(method, filt, params, steps: int, seed: int, trials: int = 2, jam=None):
+    """The default scenario (``trials`` batched) through both paths side by side, as the
+    runner steps it (the method's prediction and transmitted fields included); ``jam``:
+    the share of channels jammed at random. Returns the counts of fused links and of links
+    the detector rejected."""
+    sc = default_scenario()
+    world = World(sc.world, trials, seed, sc.trigger.lambda2)
+    rng = np.random.default_rng(seed)
+    x0, P0 = world.initial_estimates()
+    fusion = fusion_strategy(method)
+    state = {}
+    for backend in ("numba", "numpy"):
+        memory = LinkMemory(world.B)
+        fusion.init(memory, x0, P0, world.n)
+        state[backend] = (x0.copy(), P0.copy(), memory)
+    fused = detected = 0
+    for _ in range(steps):
+        ws = world.step()
+        channel_ok = ws.channel_ok
+        if jam is not None:
+            channel_ok = channel_ok & (rng.random(len(channel_ok)) >= jam)
+        res = {}
+        for backend, (x, P, memory) in state.items():
+            with kernels.use_backend(backend):
+                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+                links = LinkBatch(
+                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], channel_ok,
+                    ws.risk_s, ws.risk_c, ws.lambda2, **fusion.link_fields(memory, ws.j),
+                )  # fmt: skip
+                res[backend] = correct(filt, xp, Pp, links, params, memory)
+                fusion.exchange(memory, ws.i, ws.j)
+            state[backend] = (res[backend][0], res[backend][1], memory)
+        assert_equivalent(res["numba"], res["numpy"])
+        assert_same_state(method, state["numba"][2], state["numpy"][2])
+        fused += int(res["numpy"][2].fused.sum())
+        detected += int(res["numpy"][2].detected.sum())
+    return fused, detected
+
+
+METHODS = ["tracked", "factorized", "split_ci"]
+
+
+@pytest.mark.parametrize("name", list(FILTERS))
+@pytest.mark.parametrize("method", METHODS)
+def test_compiled_method_matches_reference_over_a_run(method: str, name: str) -> None:
+    params = replace(default_scenario().cl_params(), fusion=method)
+    assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
+    fused, _ = lockstep(method, FILTERS[name], params, 150, seed=11)
+    assert fused > 0
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_compiled_method_with_the_detector_recovery_and_jamming(method: str) -> None:
+    """A tight NIS gate with the CUSUMs and the recovery stage (re-admissions on an
+    inflated covariance), and a third of the channels jammed."""
+    from resloc.experiments.defences import DEFENCES
+
+    base = default_scenario().replace(**DEFENCES["full"]).cl_params()
+    params = replace(base, fusion=method, rho=1.2, recovery_after=2.0, recovery_gate=3.0)
+    fused, detected = lockstep(method, FILTERS["ckf"], params, 80, seed=12, jam=0.35)
+    assert fused > 0 and detected > 0
+
+
+@pytest.mark.parametrize("name", ["ckf", "ekf"])
+def test_compiled_split_ci_with_cached_neighbour_estimates(name: str) -> None:
+    """``split_ci`` allows ``cached`` neighbour estimates (``tracked`` and ``factorized``
+    refuse them): moments from j's last received estimate, a delivered link fused with the
+    fresh one."""
+    params = replace(default_scenario().cl_params(), fusion="split_ci", neighbour_estimate="cached")
+    assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
+    fused, _ = lockstep("split_ci", FILTERS[name], params, 80, seed=13, jam=0.2)
+    assert fused > 0
+
+
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+def test_compiled_split_ci_runs_both_weight_branches(criterion: str, monkeypatch) -> None:
+    """Links fused with a weight below 1 and links whose weight is 1 (the prior and its
+    independent part kept), for both weight criteria."""
+    seen: list[np.ndarray] = []
+    weights = cl_fusion.ci_weights
+
+    def recorded(*args, **kwargs):
+        w = weights(*args, **kwargs)
+        seen.append(w)
+        return w
+
+    monkeypatch.setattr(cl_fusion, "ci_weights", recorded)
+    params = replace(default_scenario().cl_params(), fusion="split_ci", ci_criterion=criterion)
+    lockstep("split_ci", FILTERS["ukf"], params, 80, seed=14)
+    w = np.concatenate(seen)
+    assert (w < 1.0).any() and (w == 1.0).any(), "both CI branches must run"
+
+
+def test_a_second_correction_in_a_step_goes_to_the_reference() -> None:
+    """``factorized`` records a step's updates until the next prediction and ``tracked``
+    until its ``finish``: a correction that finds records it did not make is the
+    reference's (the kernel would not see them)."""
+    from resloc.cl.kernels_fusion import fusion_state
+
+    x, P, links = random_batch(3)
+    memory = LinkMemory(40)
+    fusion_strategy("factorized").init(memory, x, P, 40)
+    assert fusion_state("factorized", "trace", memory, links, len(links)) is not None
+    memory.joint.fused[0, 1] = True
+    assert fusion_state("factorized", "trace", memory, links, len(links)) is None
+    tracked = LinkMemory(40)
+    fusion_strategy("tracked").init(tracked, x, P, 40)
+    assert fusion_state("tracked", "trace", tracked, links, len(links)) is not None
+    tracked.joint.noise[2] = 1e-3
+    assert fusion_state("tracked", "trace", tracked, links, len(links)) is None
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_without_the_method_state_the_reference_raises(method: str) -> None:
+    x, P, links = random_batch(3)
+    params = replace(default_scenario().cl_params(), fusion=method)
+    with kernels.use_backend("numba"):
+        assert kernels.fast_correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40)) is None
+        with pytest.raises(ValueError, match="split_ci needs|memory.joint"):
+            correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40))
