@@ -1,22 +1,27 @@
-"""Compiled twins of the fusion methods that change the update itself: ``ci``.
+"""Compiled twins of the fusion methods that change the update itself: ``ci`` and the
+weights and inflated update ``split_ci`` shares (:mod:`resloc.cl.kernels_split`), and the
+fusion method as the link loop takes it (:class:`KernelFusion`).
 
 Covariance intersection (:func:`resloc.cl.fusion.fused_update` with ``ci``) uses the joint
 bound ``blockdiag(P_i / w, P_j / (1 - w))``: the weight ``w`` of each link minimises the
 linearized posterior size (:func:`resloc.cl.fusion.ci_weights`: a grid, one parabolic
 refinement, kept only where it helps, and ``w = 1``, "ignore j", when no weight beats the
 prior), then the filter's own moments are extended by the inflations through the
-range/bearing Jacobians at the means. The CL link loop (:mod:`resloc.cl.kernels_links`)
-calls :func:`ci_update` in place of the plain Kalman update for a fused link;
-:class:`KernelFusion` carries the method's code and constants, chosen from the strategy
-(:attr:`FusionStrategy.kernel_code <resloc.cl.fusion_methods.FusionStrategy.kernel_code>`).
+range/bearing Jacobians at the means (split CI: of the dependent parts only). The CL link
+loop (:mod:`resloc.cl.kernels_links`) calls :func:`ci_update` in place of the plain Kalman
+update for a fused link. :func:`fusion_state` builds the :class:`KernelFusion` of the
+strategy's :attr:`~resloc.cl.fusion_methods.FusionStrategy.kernel_update`: its code, its
+constants and working copies of the state it updates per link (split CI's independent
+parts; the cross-covariance bookkeeping of ``tracked`` and ``factorized``,
+:mod:`resloc.cl.kernels_joint`); :func:`fusion_commit` hands them back.
 
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost`` (``ci``: no
-                               independent parts)
-:func:`_ci_weight`             :func:`resloc.cl.fusion.ci_weights`
+:func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
+:func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
+:func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
 =============================  ==========================================================
 """
 
@@ -35,7 +40,7 @@ from resloc.cl.kernels_joint import (
     joint_state,
     no_joint,
 )
-from resloc.cl.kernels_math import chol2, chol3, jit_inline, solve2, wrap
+from resloc.cl.kernels_math import chol2, jit_inline, solve2, wrap
 
 __all__ = [
     "CI",
@@ -246,7 +251,7 @@ def _gram(c, d):
 
 
 @jit_inline
-def _ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
+def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
     """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
     from the covariances ``Di``, ``Dj`` (``ci``) or, with ``split``, their dependent parts
     and independent parts ``Ii``, ``Ij``. Twin: :func:`resloc.cl.fusion.ci_weights`."""
@@ -315,20 +320,20 @@ def ci_update(
     ``Hj``: the range/bearing Jacobians at the means, ``(S, Pxz)``: the filter's moments
     under ``blockdiag(P_i, P_j)``, ``re``: its ``R_eff`` (EKF). Returns False when the
     inflated ``S`` has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`."""
-    w = _ci_weight(Pi, Pj, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2])
+    w = ci_weight(Pi, Pj, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2])
     if w >= 1.0:  # j adds nothing: the prior is kept
         for a in range(3):
             for b in range(3):
                 Pn[a, b] = Pi[a, b]
         return True
-    return _ci_posterior(
+    return ci_posterior(
         x, i, xi0, xi1, xi2, Pi, Pi, Pj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
         re00, re01, re11, R, jitter, K, A3, T3, Pn,
     )  # fmt: skip
 
 
 @jit_inline
-def _ci_posterior(
+def ci_posterior(
     x, i, xi0, xi1, xi2, Pi, Di, Dj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
     re00, re01, re11, R, jitter, K, A3, T3, Pn,
 ):  # fmt: skip
@@ -410,132 +415,3 @@ def _ci_posterior(
             for b in range(3):
                 Pn[a, b] = A3[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
     return True
-
-
-@jit_inline
-def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
-    """``P_ind`` shrunk so that ``0 <= P_ind <= P``, into ``out`` (``L``, ``Linv``, ``M``:
-    scratch). False when ``P`` has no Cholesky factor.
-    Twin: :func:`resloc.cl.fusion.clip_independent` (one matrix)."""
-    if not chol3(P, L, jitter):
-        return False
-    for col in range(3):  # L^-1 by forward substitution of I (twin: forward_substitution)
-        for r in range(3):
-            acc = 1.0 if r == col else 0.0
-            for c in range(r):
-                acc -= L[r, c] * Linv[c, col]
-            Linv[r, col] = acc / L[r, r]
-    _sandwich3(Linv, P_ind, out, M)  # out = Linv P_ind Linv^T, then M = sym(out)
-    for a in range(3):
-        for b in range(3):
-            M[a, b] = 0.5 * (out[a, b] + out[b, a])
-    lam = np.linalg.eigvalsh(M)
-    top = lam[2]
-    scale = 1.0 / max(top, 1e-300) if top > 1.0 else 1.0
-    for a in range(3):
-        for b in range(3):
-            out[a, b] = P_ind[a, b] * scale
-    if lam[0] < 0.0:  # project the independent part itself onto the PSD cone
-        for a in range(3):
-            for b in range(3):
-                M[a, b] = 0.5 * (out[a, b] + out[b, a])
-        vals, V = np.linalg.eigh(M)
-        for a in range(3):
-            for b in range(3):
-                s = 0.0
-                for k in range(3):
-                    s += V[a, k] * max(vals[k], 0.0) * V[b, k]
-                out[a, b] = s
-    for a in range(3):
-        for b in range(a + 1, 3):
-            m = 0.5 * (out[a, b] + out[b, a])
-            out[a, b] = m
-            out[b, a] = m
-    return True
-
-
-@jit_inline
-def _sandwich3(A, B, out, T):
-    """``out = A B A^T`` of 3 x 3 matrices as ``(A B) A^T`` (``T``: scratch)."""
-    for a in range(3):
-        for b in range(3):
-            T[a, b] = A[a, 0] * B[0, b] + A[a, 1] * B[1, b] + A[a, 2] * B[2, b]
-    for a in range(3):
-        for b in range(3):
-            out[a, b] = T[a, 0] * A[b, 0] + T[a, 1] * A[b, 1] + T[a, 2] * A[b, 2]
-
-
-@jit_inline
-def split_ci_update(
-    x, e, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-    re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
-):  # fmt: skip
-    """Split covariance intersection of robot ``i`` from link ``e``: as :func:`ci_update`
-    with only the dependent parts inflated, then robot i's independent part (in
-    ``fusion.independent``) updated, ``(I - K H) I_i (I - K H)^T + K R K^T`` clipped to the
-    posterior, with ``H`` the Jacobian (EKF) or the statistical linearization ``(A^-1
-    P^xz)^T``. j's transmitted independent part is ``fusion.P_nb_ind[e]``. False when a
-    covariance has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`
-    (``split_ci``)."""
-    independent = fusion[4]
-    work = fusion[6]
-    Ii = work[0]
-    Ij = work[1]
-    Di = work[2]
-    Dj = work[3]
-    L = work[4]
-    Linv = work[5]
-    M = work[6]
-    Q = work[7]
-    if not _clip_independent(Pi, independent[i], Ii, L, Linv, M, jitter):
-        return False
-    if not _clip_independent(Pj, fusion[5][e], Ij, L, Linv, M, jitter):
-        return False
-    for a in range(3):
-        for b in range(3):
-            Di[a, b] = Pi[a, b] - Ii[a, b]
-            Dj[a, b] = Pj[a, b] - Ij[a, b]
-    w = _ci_weight(Di, Dj, Ii, Ij, True, Hi, Hj, R, fusion[1], fusion[2])
-    if w >= 1.0:  # j adds nothing: the prior (and its clipped independent part) is kept
-        for a in range(3):
-            for b in range(3):
-                Pn[a, b] = Pi[a, b]
-                M[a, b] = 0.5 * (Ii[a, b] + Ii[b, a])
-        return _clip_independent(Pi, M, independent[i], L, Linv, Q, jitter)
-    if not _ci_posterior(
-        x, i, xi0, xi1, xi2, Pi, Di, Dj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-        re00, re01, re11, R, jitter, K, A3, T3, Pn,
-    ):  # fmt: skip
-        return False
-    # H_eff: the Jacobian (EKF) or the statistical linearization (A^-1 P^xz)^T, 2 x 3 in Dj
-    if linearized:
-        for a in range(2):
-            for b in range(3):
-                Dj[a, b] = Hi[a, b]
-    else:
-        if not chol3(A3, L, jitter):
-            return False
-        for col in range(2):  # solve_spd(A, P^xz): forward, then backward substitution
-            y0 = Pxz[0, col] / L[0, 0]
-            y1 = (Pxz[1, col] - L[1, 0] * y0) / L[1, 1]
-            y2 = (Pxz[2, col] - L[2, 0] * y0 - L[2, 1] * y1) / L[2, 2]
-            h2 = y2 / L[2, 2]
-            h1 = (y1 - L[2, 1] * h2) / L[1, 1]
-            h0 = (y0 - L[1, 0] * h1 - L[2, 0] * h2) / L[0, 0]
-            Dj[col, 0] = h0
-            Dj[col, 1] = h1
-            Dj[col, 2] = h2
-    for a in range(3):  # Di = I - K H_eff
-        for b in range(3):
-            Di[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Dj[0, b] + K[a, 1] * Dj[1, b])
-    _sandwich3(Di, Ii, Ij, L)
-    for a in range(3):  # + K R K^T, symmetrized; the posterior symmetrized into Q
-        t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
-        t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
-        for b in range(3):
-            Ij[a, b] += t0 * K[b, 0] + t1 * K[b, 1]
-    for a in range(3):
-        for b in range(3):
-            M[a, b] = 0.5 * (Ij[a, b] + Ij[b, a])
-            Q[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-    return _clip_independent(Q, M, independent[i], L, Linv, Di, jitter)

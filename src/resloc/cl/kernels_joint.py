@@ -100,18 +100,6 @@ def no_joint(E: int) -> KernelJoint:
     )  # fmt: skip
 
 
-def _fresh_tracking(joint: JointCovariance) -> bool:
-    """Nothing recorded since the joint's last ``predict`` / ``finish`` (``M`` selects each
-    robot's own block, no noise)."""
-    if joint.noise.any():
-        return False
-    B = joint.T * joint.N
-    b = np.arange(B)
-    cols = 3 * (b % joint.N)
-    diag = joint.M[b[:, None], np.arange(3)[None, :], cols[:, None] + np.arange(3)[None, :]]
-    return bool(np.count_nonzero(joint.M) == 3 * B and (diag == 1.0).all())
-
-
 def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint | None:
     """The kernel's working copies of the method's state in ``memory.joint`` for the links
     ``(i, j)`` (batch indices, shapes (E,)); None when the kernel cannot reproduce the reference (no
@@ -129,7 +117,7 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
         if not np.array_equal(team, nbr // joint.N):
             return None  # a link across teams: the reference's indexing decides
     if code == TRACKED:
-        if not isinstance(joint, JointCovariance) or not _fresh_tracking(joint):
+        if not isinstance(joint, JointCovariance) or joint.updates:
             return None
         B = joint.T * joint.N
         eye = np.broadcast_to(np.eye(3), (B, 3, 3))
@@ -160,18 +148,13 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
     fused links' ``B_ij`` at theirs) and the noise; ``factorized``, the factors, ``A``,
     ``B`` and the pairs that fused."""
     if state.code == TRACKED:
+        # (imported here: the once-per-step kernels import the CL kernel's modules)
+        from resloc.cl.kernels_fusion_step import scatter_tracked_blocks
+
         joint = memory.joint
-        N = state.N
-        B = joint.T * N
-        M = np.zeros_like(joint.M)
-        b = np.arange(B)
-        rows = np.arange(3)[None, :, None]
-        M[b[:, None, None], rows, 3 * (b % N)[:, None, None] + np.arange(3)] = state.A
-        f = np.flatnonzero(fused)
-        cols = 3 * (state.nbr[f] % N)[:, None, None] + np.arange(3)
-        M[np.asarray(i)[f][:, None, None], rows, cols] = state.Bij[f]
-        joint.M = M
+        scatter_tracked_blocks(joint, state.A, state.Bij, i, state.nbr, fused)
         joint.noise = state.noise
+        joint.updates = int(np.count_nonzero(fused))
     elif state.code == FACTORIZED:
         joint = memory.joint
         joint.sig = state.sig

@@ -23,10 +23,11 @@ from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_joint as _kernels_joint
 from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
-from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update, split_ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_joint import (
     NO_JOINT,
@@ -47,6 +48,7 @@ from resloc.cl.kernels_math import (
     stamp_with_pieces,
     wrap,
 )
+from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 
 #: Kernel status codes.
@@ -463,5 +465,6 @@ stamp_with_pieces(
     _kernels_fusion,
     _kernels_gauge,
     _kernels_joint,
+    _kernels_split,
     _kernels_tamper,
 )
