@@ -27,6 +27,7 @@ import numpy as np
 
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_predict as _kernels_predict
+from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.backend import backend
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_math import jit, jit_inline, stamp_with_pieces
@@ -379,4 +380,4 @@ def _propagate_independent(x, P_ind, u, dt, odometry_var, floor_var, out):
 
 
 for _kernel in (_propagate_joint, _left_multiply_factors, _propagate_independent):
-    stamp_with_pieces(_kernel, _kernels_math, _kernels_predict)
+    stamp_with_pieces(_kernel, _kernels_math, _kernels_predict, _kernels_split)
