@@ -9,9 +9,11 @@ differ in where ``C_ij`` comes from and what an update records:
     Robot i's current error is ``M_i e_pred + w_i``. Within one correction ``M_i`` has a
     block at i's own column (``A_i``, the product of its ``I - K H_i``) and one per link it
     fused (``B_ij = -K H_j`` left-multiplied by its later gains): the kernel keeps those
-    blocks (:class:`KernelJoint` ``A``, ``Bij``) and the propagated noise, forms ``P_i = M_i
-    Sigma M_i^T + N_i`` and ``C_ij = M_i Sigma[:, j]`` from them, and the covariance a
-    robot keeps after an update is that ``P_i``. :func:`joint_commit` writes the blocks
+    blocks (:class:`KernelJoint` ``A``, ``Bij``) and the propagated noise and forms ``C_ij =
+    M_i Sigma[:, j]`` from them. The covariance a robot keeps after an update, ``P_i = M_i
+    Sigma M_i^T + N_i`` in the reference, is the same quantity by the update's recursion
+    ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
+    the robot's first link). :func:`joint_commit` writes the blocks
     into the dense ``M`` the reference's ``finish`` (``Sigma <- M Sigma M^T + N``) reads.
 ``factorized`` (:class:`~resloc.cl.factorized.FactorizedCovariance`)
     ``C_ij = sigma_ij sigma_ji,pred^T`` shrunk to a valid joint
@@ -82,7 +84,7 @@ class KernelJoint(NamedTuple):
     sig_pred: np.ndarray  # (B, N, 3, 3) factorized: the factors the messages carry
     Bm: np.ndarray  # (B, N, 3, 3) factorized: B_il of the step
     fused: np.ndarray  # (B, N) bool factorized: i fused l's estimate this step
-    work: np.ndarray  # (4, 3, 3) scratch: P_i and C_ij of the moments, P_j, 3 x 3
+    work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
 
 
@@ -90,14 +92,18 @@ _EMPTY3 = np.zeros((0, 3, 3))
 _EMPTY4 = np.zeros((0, 0, 3, 3))
 
 
+_NO_JOINT = KernelJoint(
+    NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
+    _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)),
+    np.zeros((2, 6, 6)),
+)  # fmt: skip
+
+
 def no_joint(E: int) -> KernelJoint:
-    """Nothing to track (every method but ``tracked`` and ``factorized``)."""
+    """Nothing to track (every method but ``tracked`` and ``factorized``; the kernel reads
+    none of its arrays)."""
     del E
-    return KernelJoint(
-        NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
-        _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((4, 3, 3)),
-        np.zeros((2, 6, 6)),
-    )  # fmt: skip
+    return _NO_JOINT
 
 
 def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint | None:
@@ -108,7 +114,7 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     joint = None if memory is None else memory.joint
     nbr = np.ascontiguousarray(j, dtype=np.int64)
     E = len(nbr)
-    base = no_joint(E)._replace(code=code, nbr=nbr)
+    base = _NO_JOINT._replace(code=code, nbr=nbr, work=np.zeros((5, 3, 3)), J6=np.zeros((2, 6, 6)))
     if isinstance(joint, JointCovariance | FactorizedCovariance) and E:
         B = len(joint.A) if isinstance(joint, FactorizedCovariance) else joint.T * joint.N
         team = np.asarray(i) // joint.N
@@ -222,27 +228,41 @@ def _tracked_row(joint, e, first, fused, i, col, out, T3):
 
 
 @jit_inline
-def _tracked_current(joint, e_end, first, fused, i, Pm, T3, R3):
-    """``P_i = sym(M_i Sigma M_i^T + N_i)`` of robot ``i`` from its blocks (its fused links
-    in rows ``first .. e_end - 1``) into ``Pm`` (``T3``, ``R3``: scratch).
-    Twin: ``JointCovariance.current``."""
-    N = joint[1]
-    nbr = joint[2]
-    noise = joint[4]
-    A = joint[5]
-    Bij = joint[6]
-    for a in range(3):
+def _tracked_update(G, K, R, joint, e, Pn, T1, T2):
+    """Robot i's covariance after an update with gain ``K`` and ``G = I - K H_i``:
+    ``[G, D] [[P_i, C_ij], [C_ij^T, P_j]] [G, D]^T + K R K^T`` with ``D = -K H_j`` (the
+    link's ``Bij``) and the blocks of :func:`joint_cross` (``work``), symmetrized, into
+    ``Pn``. Twin: ``JointCovariance.current`` after ``update`` (``M_i Sigma M_i^T + N_i``
+    with the updated ``M_i``, ``N_i``; the same quantity)."""
+    work = joint[11]
+    Pm = work[0]
+    C = work[1]
+    Pr = work[2]
+    D = joint[6][e]
+    for a in range(3):  # T1 = G P_i + D C^T, T2 = G C + D P_j
         for b in range(3):
-            R3[a, b] = noise[i, a, b]
-    _tracked_row(joint, e_end, first, fused, i, i % N, T3, Pm)
-    _add_mul_t(T3, A[i], R3)
-    for r in range(first, e_end):
-        if fused[r]:
-            _tracked_row(joint, e_end, first, fused, i, nbr[r] % N, T3, Pm)
-            _add_mul_t(T3, Bij[r], R3)
+            T1[a, b] = (G[a, 0] * Pm[0, b] + G[a, 1] * Pm[1, b] + G[a, 2] * Pm[2, b]) + (
+                D[a, 0] * C[b, 0] + D[a, 1] * C[b, 1] + D[a, 2] * C[b, 2]
+            )
+            T2[a, b] = (G[a, 0] * C[0, b] + G[a, 1] * C[1, b] + G[a, 2] * C[2, b]) + (
+                D[a, 0] * Pr[0, b] + D[a, 1] * Pr[1, b] + D[a, 2] * Pr[2, b]
+            )
     for a in range(3):
+        t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
+        t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
         for b in range(3):
-            Pm[a, b] = 0.5 * (R3[a, b] + R3[b, a])
+            Pn[a, b] = (
+                (T1[a, 0] * G[b, 0] + T1[a, 1] * G[b, 1] + T1[a, 2] * G[b, 2])
+                + (T2[a, 0] * D[b, 0] + T2[a, 1] * D[b, 1] + T2[a, 2] * D[b, 2])
+                + (t0 * K[b, 0] + t1 * K[b, 1])
+            )
+    for a in range(3):
+        for b in range(a, 3):
+            m = 0.5 * (Pn[a, b] + Pn[b, a])
+            Pn[a, b] = m
+            Pn[b, a] = m
+            work[4, a, b] = m
+            work[4, b, a] = m
 
 
 @jit_inline
@@ -306,9 +326,18 @@ def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
     T3 = work[3]
     L6 = joint[12][1]
     if code == TRACKED:
-        _tracked_current(joint, e, first, fused, i, Pm, T3, L6[:3, :3])
-        _tracked_row(joint, e, first, fused, i, j % N, C, T3)
         sigma = joint[3]
+        now = work[4]  # robot i's covariance now: Sigma_ii at its first link
+        if e == first:
+            t = i // N
+            c0 = 3 * (i % N)
+            for a in range(3):
+                for b in range(3):
+                    now[a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
+        for a in range(3):
+            for b in range(3):
+                Pm[a, b] = now[a, b]
+        _tracked_row(joint, e, first, fused, i, j % N, C, T3)
         t = j // N
         c0 = 3 * (j % N)
         for a in range(3):
@@ -475,7 +504,7 @@ def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
         for b in range(3):
             G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
     _left_multiply(G, A[i], T3)
-    if code == TRACKED:  # the blocks of M_i, the noise, then P_i from them
+    if code == TRACKED:  # the blocks of M_i, the noise, then P_i
         noise = joint[4]
         Bij = joint[6]
         for r in range(first, e):
@@ -496,8 +525,7 @@ def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
         for a in range(3):
             for b in range(3):
                 noise[i, a, b] = Pn[a, b]
-        work = joint[11]
-        _tracked_current(joint, e + 1, first, fused, i, Pn, work[3], joint[12][1][:3, :3])
+        _tracked_update(G, K, R, joint, e, Pn, T3, joint[12][1][:3, :3])
         return
     sig = joint[7]  # FACTORIZED: every factor i holds, its B, then B_ij -= K H_j
     Bm = joint[9]
