@@ -190,38 +190,42 @@ def _joint_finish(M, sigma, noise, N, out):
     ``M`` (B, 3, 3N), over its non-zero 3 x 3 blocks."""
     n3 = 3 * N
     W = np.zeros((n3, n3))
-    nz = np.zeros((N, N), dtype=np.bool_)
+    cols = np.zeros((N, N), dtype=np.int64)  # each robot's non-zero blocks of M
+    count = np.zeros(N, dtype=np.int64)
     for t in range(sigma.shape[0]):
         for a in range(N):
+            count[a] = 0
             for p in range(N):
                 found = False
                 for r in range(3):
                     for c in range(3):
                         if M[t * N + a, r, 3 * p + c] != 0.0:
                             found = True
-                nz[a, p] = found
+                if found:
+                    cols[a, count[a]] = p
+                    count[a] += 1
         for a in range(N):  # W = M sigma, by the non-zero blocks of M
             for r in range(3):
                 for c in range(n3):
                     W[3 * a + r, c] = 0.0
-            for p in range(N):
-                if nz[a, p]:
-                    for r in range(3):
-                        for c in range(n3):
-                            W[3 * a + r, c] += (
-                                M[t * N + a, r, 3 * p] * sigma[t, 3 * p, c]
-                                + M[t * N + a, r, 3 * p + 1] * sigma[t, 3 * p + 1, c]
-                                + M[t * N + a, r, 3 * p + 2] * sigma[t, 3 * p + 2, c]
-                            )
+            for k in range(count[a]):
+                p = cols[a, k]
+                for r in range(3):
+                    for c in range(n3):
+                        W[3 * a + r, c] += (
+                            M[t * N + a, r, 3 * p] * sigma[t, 3 * p, c]
+                            + M[t * N + a, r, 3 * p + 1] * sigma[t, 3 * p + 1, c]
+                            + M[t * N + a, r, 3 * p + 2] * sigma[t, 3 * p + 2, c]
+                        )
         for a in range(N):  # out = W M^T
             for b in range(N):
                 for r in range(3):
                     for c in range(3):
                         s = noise[t * N + a, r, c] if a == b else 0.0
-                        for q in range(N):
-                            if nz[b, q]:
-                                for d in range(3):
-                                    s += W[3 * a + r, 3 * q + d] * M[t * N + b, c, 3 * q + d]
+                        for k in range(count[b]):
+                            q = cols[b, k]
+                            for d in range(3):
+                                s += W[3 * a + r, 3 * q + d] * M[t * N + b, c, 3 * q + d]
                         out[t, 3 * a + r, 3 * b + c] = s
         _symmetrize_in_place(out[t])
 

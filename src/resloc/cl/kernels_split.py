@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl.kernels_fusion import ci_posterior, ci_weight
+from resloc.cl.kernels_joint import symmetric_eigenvalues3
 from resloc.cl.kernels_math import chol3, jit_inline
 
 __all__ = ["sandwich3", "split_ci_update"]
@@ -54,13 +55,12 @@ def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
                 out[a, b] = v
                 out[b, a] = v
         return True
-    lam = np.linalg.eigvalsh(M)
-    top = lam[2]
+    low, _middle, top = symmetric_eigenvalues3(M)
     scale = 1.0 / max(top, 1e-300) if top > 1.0 else 1.0
     for a in range(3):
         for b in range(3):
             out[a, b] = P_ind[a, b] * scale
-    if lam[0] < 0.0:  # project the independent part itself onto the PSD cone
+    if low < 0.0:  # project the independent part itself onto the PSD cone
         for a in range(3):
             for b in range(3):
                 M[a, b] = 0.5 * (out[a, b] + out[b, a])
