@@ -108,45 +108,43 @@ def no_joint(E: int) -> KernelJoint:
 
 def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint | None:
     """The kernel's working copies of the method's state in ``memory.joint`` for the links
-    ``(i, j)`` (batch indices, shapes (E,)); None when the kernel cannot reproduce the reference (no
-    bookkeeping, a robot's ``local`` factors, or updates already recorded by an earlier
-    correction of the step)."""
+    ``(i, j)`` (batch indices, shapes (E,)); None when the kernel cannot reproduce the
+    reference (no bookkeeping, a robot's ``local`` factors, links across teams, or updates
+    already recorded by an earlier correction of the step)."""
     joint = None if memory is None else memory.joint
     nbr = np.ascontiguousarray(j, dtype=np.int64)
     E = len(nbr)
-    base = _NO_JOINT._replace(code=code, nbr=nbr, work=np.zeros((5, 3, 3)), J6=np.zeros((2, 6, 6)))
-    if isinstance(joint, JointCovariance | FactorizedCovariance) and E:
-        B = len(joint.A) if isinstance(joint, FactorizedCovariance) else joint.T * joint.N
-        team = np.asarray(i) // joint.N
-        if max(int(np.max(i)), int(nbr.max())) >= B or nbr.min() < 0:
-            return None
-        if not np.array_equal(team, nbr // joint.N):
-            return None  # a link across teams: the reference's indexing decides
     if code == TRACKED:
         if not isinstance(joint, JointCovariance) or joint.updates:
             return None
         B = joint.T * joint.N
-        A = np.zeros((B, 3, 3))
-        A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
-        return base._replace(
-            N=joint.N,
-            sigma=np.ascontiguousarray(joint.sigma, dtype=float),
-            noise=np.zeros((B, 3, 3)),
-            A=A,
-            Bij=np.zeros((E, 3, 3)),
-        )
-    if code == FACTORIZED:
+    elif code == FACTORIZED:
         if not isinstance(joint, FactorizedCovariance) or joint.local or joint.fused.any():
             return None
-        return base._replace(
-            N=joint.N,
-            A=np.array(joint.A, dtype=float, order="C", copy=True),
-            sig=np.array(joint.sig, dtype=float, order="C", copy=True),
-            sig_pred=np.ascontiguousarray(joint.sig_pred, dtype=float),
-            Bm=np.array(joint.Bm, dtype=float, order="C", copy=True),
-            fused=np.array(joint.fused, dtype=np.bool_, order="C", copy=True),
-        )
-    return base
+        B = joint.B
+    else:
+        return _NO_JOINT
+    N = joint.N
+    if E and (max(int(np.max(i)), int(nbr.max())) >= B or nbr.min() < 0):
+        return None
+    if not np.array_equal(np.asarray(i) // N, nbr // N):
+        return None  # a link across teams: the reference's indexing decides
+    A = np.zeros((B, 3, 3))  # no update recorded yet: each A_i = I, every B_il = 0
+    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+    work = np.zeros((5, 3, 3))
+    J6 = np.zeros((2, 6, 6))
+    if code == TRACKED:
+        sigma = np.ascontiguousarray(joint.sigma, dtype=float)
+        return KernelJoint(
+            code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.zeros((E, 3, 3)), _EMPTY4, _EMPTY4,
+            _EMPTY4, _NO_JOINT.fused, work, J6,
+        )  # fmt: skip
+    return KernelJoint(
+        code, N, nbr, _NO_JOINT.sigma, _EMPTY3, A, _EMPTY3,
+        np.array(joint.sig, dtype=float, order="C", copy=True),
+        np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
+        np.zeros((B, N), dtype=np.bool_), work, J6,
+    )  # fmt: skip
 
 
 def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -> None:
