@@ -166,21 +166,53 @@ def test_without_the_method_state_the_reference_raises(method: str) -> None:
             correct(FILTERS["ckf"], x, P, links, params, LinkMemory(40))
 
 
-def test_closed_form_eigenvalues_match_lapack() -> None:
-    """The kernels decide the CI clip and the factors' shrink on closed-form 3 x 3
-    eigenvalues: they agree with LAPACK to round-off relative to the largest one, also for
-    nearly singular and nearly repeated spectra."""
-    from resloc.cl.kernels_joint import symmetric_eigenvalues3
+def _random_spd(rng, n: int) -> np.ndarray:
+    A = rng.normal(size=(n, 3, 3)) * rng.uniform(0.05, 2.0, (n, 1, 1))
+    return A @ np.swapaxes(A, -1, -2) + 1e-3 * np.eye(3)
 
-    rng = np.random.default_rng(0)
-    for k in range(600):
-        A = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-6, 3)
-        if k % 3 == 0:
-            A[:, 2] = A[:, 0] * 0.999999
-        M = A @ A.T
-        if k % 5 == 0:
-            M = 2.0 * np.eye(3) + 1e-12 * M
-        lam = np.linalg.eigvalsh(M)
-        got = np.array(symmetric_eigenvalues3(M))
-        assert np.abs(got - lam).max() <= 1e-12 * np.abs(lam).max()
-    assert symmetric_eigenvalues3(np.zeros((3, 3))) == (0.0, 0.0, 0.0)
+
+def test_compiled_valid_cross_shrinks_like_the_reference() -> None:
+    """The factors' cross-covariance shrunk to a valid joint (``valid_cross``): rows with
+    a correlation above the cap (shrunk) and below it (kept), one matrix at a time in the
+    kernel's twin. The runs above rarely need the shrink, so it is checked here."""
+    from resloc.cl.factorized import valid_cross
+    from resloc.cl.kernels_joint import _valid_cross
+    from resloc.linalg import JITTER_LEVELS
+
+    rng = np.random.default_rng(3)
+    Pi, Pj = _random_spd(rng, 300), _random_spd(rng, 300)
+    C = rng.normal(size=(300, 3, 3)) * rng.uniform(0.01, 3.0, (300, 1, 1))
+    ref = valid_cross(Pi, Pj, C)
+    shrunk = ~np.all(ref == C, axis=(1, 2))
+    assert 0 < shrunk.sum() < len(C)
+    jitter = np.asarray(JITTER_LEVELS, dtype=float)
+    for e in range(len(C)):
+        got = C[e].copy()
+        scratch = [np.zeros((3, 3)) for _ in range(4)]
+        assert _valid_cross(Pi[e], Pj[e], got, *scratch, jitter)
+        np.testing.assert_allclose(got, ref[e], rtol=1e-11, atol=1e-13)
+
+
+def test_compiled_clip_of_independent_parts_like_the_reference() -> None:
+    """Split CI's independent part clipped to its covariance (``clip_independent``): parts
+    inside ``0 < P_ind < P`` (kept), above it (scaled) and indefinite (projected)."""
+    from resloc.cl.fusion import clip_independent
+    from resloc.cl.kernels_split import _clip_independent
+    from resloc.linalg import JITTER_LEVELS
+
+    rng = np.random.default_rng(4)
+    P = _random_spd(rng, 300)
+    P_ind = P * rng.uniform(0.1, 1.6, (300, 1, 1))
+    w, V = np.linalg.eigh(P_ind[:60])
+    w[:, 0] = -np.abs(w[:, 0]) * 0.1  # indefinite
+    P_ind[:60] = np.einsum("bij,bj,bkj->bik", V, w, V)
+    P_ind = 0.5 * (P_ind + np.swapaxes(P_ind, -1, -2))
+    ref = clip_independent(P, P_ind)
+    jitter = np.asarray(JITTER_LEVELS, dtype=float)
+    kept = np.all(np.abs(ref - P_ind) <= 1e-15 * np.abs(P_ind).max(), axis=(1, 2))
+    assert 0 < kept.sum() < len(P)
+    for e in range(len(P)):
+        out = np.zeros((3, 3))
+        scratch = [np.zeros((3, 3)) for _ in range(3)]
+        assert _clip_independent(P[e], P_ind[e], out, *scratch, jitter)
+        np.testing.assert_allclose(out, ref[e], rtol=0, atol=1e-11 * np.abs(ref[e]).max())

@@ -300,7 +300,9 @@ def _valid_cross(Pi, Pj, C, Li, Lj, X, T3, jitter):
     for a in range(3):  # X^T X: its largest eigenvalue is sigma_max^2
         for b in range(3):
             T3[a, b] = X[0, a] * X[0, b] + X[1, a] * X[1, b] + X[2, a] * X[2, b]
-    smax = math.sqrt(max(symmetric_eigenvalues3(T3)[2], 0.0))
+    if scaled_unit_minus_is_pd(T3, _CAP * _CAP):  # sigma_max < cap certified
+        return True
+    smax = math.sqrt(max(np.linalg.eigvalsh(T3)[2], 0.0))
     if smax > _CAP:
         scale = _CAP / max(smax, 1e-300)
         for a in range(3):
@@ -310,33 +312,19 @@ def _valid_cross(Pi, Pj, C, Li, Lj, X, T3, jitter):
 
 
 @jit_inline
-def symmetric_eigenvalues3(M):
-    """The eigenvalues ``(low, middle, high)`` of a symmetric 3 x 3 ``M`` in closed form
-    (Smith 1961: ``M = q I + p B``, ``det B = 2 cos 3 phi``); accurate to round-off relative
-    to the largest magnitude, which is all its callers decide on.
-    Twin: :func:`numpy.linalg.eigvalsh` (3 x 3)."""
-    p1 = M[0, 1] * M[0, 1] + M[0, 2] * M[0, 2] + M[1, 2] * M[1, 2]
-    q = (M[0, 0] + M[1, 1] + M[2, 2]) / 3.0
-    d0 = M[0, 0] - q
-    d1 = M[1, 1] - q
-    d2 = M[2, 2] - q
-    p2 = d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1
-    if p2 <= 0.0:
-        return q, q, q
-    p = math.sqrt(p2 / 6.0)
-    b00 = d0 / p
-    b11 = d1 / p
-    b22 = d2 / p
-    b01 = M[0, 1] / p
-    b02 = M[0, 2] / p
-    b12 = M[1, 2] / p
-    det_b = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
-    r = 0.5 * (det_b + b02 * (b01 * b12 - b11 * b02))
-    r = min(max(r, -1.0), 1.0)
-    phi = math.acos(r) / 3.0
-    high = q + 2.0 * p * math.cos(phi)
-    low = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    return low, 3.0 * q - high - low, high
+def scaled_unit_minus_is_pd(M, c):
+    """Sylvester's criterion on ``c I - M`` (symmetric 3 x 3 ``M``): every eigenvalue of
+    ``M`` below ``c``."""
+    a = c - M[0, 0]
+    b = c - M[1, 1]
+    d = c - M[2, 2]
+    m2 = a * b - M[0, 1] * M[0, 1]
+    det = (
+        a * (b * d - M[1, 2] * M[1, 2])
+        - M[0, 1] * (M[0, 1] * d - M[1, 2] * M[0, 2])
+        + M[0, 2] * (M[0, 1] * M[1, 2] - b * M[0, 2])
+    )
+    return a > 0.0 and m2 > 0.0 and det > 0.0
 
 
 @jit_inline

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl.kernels_fusion import ci_posterior, ci_weight
-from resloc.cl.kernels_joint import symmetric_eigenvalues3
+from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit_inline
 
 __all__ = ["sandwich3", "split_ci_update"]
@@ -47,7 +47,7 @@ def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
     for a in range(3):
         for b in range(3):
             M[a, b] = 0.5 * (out[a, b] + out[b, a])
-    if _is_pd_sym(M) and _unit_minus_is_pd(M):
+    if _is_pd_sym(M) and scaled_unit_minus_is_pd(M, 1.0):
         # 0 < M < I certified (Sylvester's criterion): no eigenvalue above 1, none below 0
         for a in range(3):
             for b in range(a, 3):
@@ -55,7 +55,9 @@ def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
                 out[a, b] = v
                 out[b, a] = v
         return True
-    low, _middle, top = symmetric_eigenvalues3(M)
+    lam = np.linalg.eigvalsh(M)
+    low = lam[0]
+    top = lam[2]
     scale = 1.0 / max(top, 1e-300) if top > 1.0 else 1.0
     for a in range(3):
         for b in range(3):
@@ -89,21 +91,6 @@ def _is_pd_sym(M):
         + M[0, 2] * (M[0, 1] * M[1, 2] - M[1, 1] * M[0, 2])
     )
     return M[0, 0] > 0.0 and m2 > 0.0 and det > 0.0
-
-
-@jit_inline
-def _unit_minus_is_pd(M):
-    """Sylvester's criterion on ``I - M`` (symmetric 3 x 3 ``M``)."""
-    a = 1.0 - M[0, 0]
-    b = 1.0 - M[1, 1]
-    c = 1.0 - M[2, 2]
-    m2 = a * b - M[0, 1] * M[0, 1]
-    det = (
-        a * (b * c - M[1, 2] * M[1, 2])
-        - M[0, 1] * (M[0, 1] * c - M[1, 2] * M[0, 2])
-        + M[0, 2] * (M[0, 1] * M[1, 2] - b * M[0, 2])
-    )
-    return a > 0.0 and m2 > 0.0 and det > 0.0
 
 
 @jit_inline
