@@ -216,3 +216,17 @@ def test_compiled_clip_of_independent_parts_like_the_reference() -> None:
         scratch = [np.zeros((3, 3)) for _ in range(3)]
         assert _clip_independent(P[e], P_ind[e], out, *scratch, jitter)
         np.testing.assert_allclose(out, ref[e], rtol=0, atol=1e-11 * np.abs(ref[e]).max())
+
+
+def test_sylvester_certificate_of_eigenvalues_below_a_bound() -> None:
+    """``scaled_unit_minus_is_pd(M, c)`` certifies every eigenvalue of ``M`` below ``c``
+    (it decides when the kernels skip an eigenvalue computation): never wrongly."""
+    from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
+
+    rng = np.random.default_rng(5)
+    M = _random_spd(rng, 500)
+    top = np.linalg.eigvalsh(M)[:, -1]
+    for c in (0.5, 1.0, 3.0):
+        got = np.array([scaled_unit_minus_is_pd(m, c) for m in M])
+        assert not (got & (top >= c)).any()
+        assert (got == (top < c * (1 - 1e-12))).mean() > 0.99

@@ -315,16 +315,19 @@ def _valid_cross(Pi, Pj, C, Li, Lj, X, T3, jitter):
 def scaled_unit_minus_is_pd(M, c):
     """Sylvester's criterion on ``c I - M`` (symmetric 3 x 3 ``M``): every eigenvalue of
     ``M`` below ``c``."""
-    a = c - M[0, 0]
-    b = c - M[1, 1]
-    d = c - M[2, 2]
-    m2 = a * b - M[0, 1] * M[0, 1]
+    n00 = c - M[0, 0]  # N = c I - M
+    n11 = c - M[1, 1]
+    n22 = c - M[2, 2]
+    n01 = -M[0, 1]
+    n02 = -M[0, 2]
+    n12 = -M[1, 2]
+    m2 = n00 * n11 - n01 * n01
     det = (
-        a * (b * d - M[1, 2] * M[1, 2])
-        - M[0, 1] * (M[0, 1] * d - M[1, 2] * M[0, 2])
-        + M[0, 2] * (M[0, 1] * M[1, 2] - b * M[0, 2])
+        n00 * (n11 * n22 - n12 * n12)
+        - n01 * (n01 * n22 - n12 * n02)
+        + n02 * (n01 * n12 - n11 * n02)
     )
-    return a > 0.0 and m2 > 0.0 and det > 0.0
+    return n00 > 0.0 and m2 > 0.0 and det > 0.0
 
 
 @jit_inline
