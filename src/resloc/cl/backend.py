@@ -198,8 +198,11 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
         return refusal
     if links.tamper is not None and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
-    if links.P_nb_ind is not None:
+    split = fusion_strategy(params.fusion).kernel_update == "split_ci"
+    if links.P_nb_ind is not None and not split:
         return "transmitted independent parts belong to split covariance intersection"
+    if split and links.P_nb_ind is None:
+        return "split CI needs the transmitted independent parts (LinkBatch.P_nb_ind)"
     return None
 
 

@@ -64,9 +64,10 @@ class FusionStrategy(Protocol):
 
     method: ClassVar[str]
     compiled: ClassVar[bool] = False
-    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"``,
-    #: :mod:`resloc.cl.kernels_fusion`) and the per-link bookkeeping (``"none"``;
-    #: ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
+    #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"`` and
+    #: ``"split_ci"``, :mod:`resloc.cl.kernels_fusion`; ``"tracked"`` and ``"factorized"``,
+    #: the correlated joint's moments and records of :mod:`resloc.cl.kernels_joint`) and the
+    #: per-link bookkeeping (``"none"``; ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
     kernel_update: ClassVar[str] = "kalman"
     kernel_bookkeeping: ClassVar[str] = "none"
     node_refusal: ClassVar[str | None] = None
@@ -198,6 +199,8 @@ class SplitCIFusion(_TransmittedOnly):
     ``memory.independent`` and in every transmission (``LinkBatch.P_nb_ind``)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.SPLIT_CI
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "split_ci"
     node_exchanges: ClassVar[tuple[str, ...]] = ("delivery_acks",)
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
@@ -205,14 +208,15 @@ class SplitCIFusion(_TransmittedOnly):
         memory.local = local
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
-        memory.independent = propagate_independent(
-            x,
-            memory.independent,
-            u,
-            dt,
-            np.asarray(params.odometry_std),
-            np.asarray(params.process_floor_std),
-        )
+        # The compiled twin when the backend allows it (imported here: the kernels import
+        # this module's registry).
+        from resloc.cl.kernels_fusion_step import compiled_propagate_independent
+
+        noise = np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
+        propagated = compiled_propagate_independent(x, memory.independent, u, dt, *noise)
+        if propagated is None:
+            propagated = propagate_independent(x, memory.independent, u, dt, *noise)
+        memory.independent = propagated
         return P_pred
 
     def link_fields(self, memory, j) -> dict[str, np.ndarray]:
@@ -260,10 +264,17 @@ class _Bookkept(_TransmittedOnly):
         return memory.joint
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
+        compiled = self._compiled_predict(self._joint(memory), x, u, dt, params, P_pred)
+        if compiled is not None:
+            return compiled
         Q = process_noise(
             x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
         )
         return self._joint(memory).predict(x, u, dt, Q, P_pred)
+
+    def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
+        """The bookkeeping's compiled prediction, None where there is none."""
+        return None
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
         x_new, P_new = kalman_update(x_i, P_i, nu, m)
@@ -283,6 +294,8 @@ class TrackedFusion(_Bookkept):
     """``tracked``: the team's joint covariance, kept exactly (:mod:`resloc.cl.tracking`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.TRACKED
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "tracked"
     node_refusal: ClassVar[str | None] = (
         "it keeps the team's joint covariance, which no single robot has "
         "(its distributed form is fusion 'factorized')"
@@ -294,18 +307,46 @@ class TrackedFusion(_Bookkept):
     def moments(self, filt, memory, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
         return self._joint(memory).moments(filt, x_i, P_i, x_j, P_j, i, j, R)
 
+    # The compiled twins of the once-per-step parts (resloc.cl.kernels_fusion_step) when the
+    # backend and the bookkeeping allow them; imported here: the kernels import this
+    # module's registry.
+    def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
+        from resloc.cl.kernels_fusion_step import compiled_tracked_predict
+
+        return compiled_tracked_predict(joint, x, u, dt, params)
+
+    def finish(self, memory, P, j, delivered) -> np.ndarray:
+        from resloc.cl.kernels_fusion_step import compiled_tracked_finish
+
+        joint = self._joint(memory)
+        compiled = compiled_tracked_finish(joint)
+        return joint.finish(P) if compiled is None else compiled
+
 
 class FactorizedFusion(TrackedFusion):
     """``factorized``: cross-covariances by factors each robot keeps
     (:mod:`resloc.cl.factorized`)."""
 
     method: ClassVar[FusionMethod] = FusionMethod.FACTORIZED
+    compiled: ClassVar[bool] = True
+    kernel_update: ClassVar[str] = "factorized"
     node_refusal: ClassVar[str | None] = None
     node_exchanges: ClassVar[tuple[str, ...]] = ("factors",)
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         team = _team_size(self.method, team_size)
         memory.joint = FactorizedCovariance(len(P0), team, local=local)
+
+    def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
+        from resloc.cl.kernels_fusion_step import compiled_factorized_predict
+
+        return compiled_factorized_predict(joint, x, u, dt, P_pred)
+
+    def finish(self, memory, P, j, delivered) -> np.ndarray:
+        from resloc.cl.kernels_fusion_step import compiled_factorized_finish
+
+        joint = self._joint(memory)
+        return P if compiled_factorized_finish(joint) else joint.finish(P)
 
 
 class GaugeFusion(_Bookkept):

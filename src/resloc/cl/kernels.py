@@ -54,7 +54,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
-from resloc.cl.kernels_fusion import KERNEL_UPDATES, kernel_fusion
+from resloc.cl.kernels_fusion import fusion_commit, fusion_state
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
 from resloc.cl.kernels_links import OK
 from resloc.cl.kernels_rounds import rounds_warm_up_batch, run_link_loop
@@ -279,9 +279,9 @@ def fast_correct(
             return None
         z = tamper.z
     bookkeeping = COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping]
-    fusion = kernel_fusion(KERNEL_UPDATES[strategy.kernel_update], params.ci_criterion)
+    fusion = fusion_state(strategy.kernel_update, params.ci_criterion, memory, links, E)
     gauge = bookkeeping.state(memory, E)
-    if gauge is None:
+    if gauge is None or fusion is None:
         return None  # the reference path raises the explanatory error, or records exactly
     detection = detector_state(params, memory, li, lj)
     if detection is None:
@@ -351,6 +351,7 @@ def fast_correct(
         return None
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
+    fusion_commit(fusion, memory, li, fused)
     P_out = strategy.finish(memory, P_out, lj, delivered)
     if need_memory and delivered.any():
         d = np.flatnonzero(delivered)

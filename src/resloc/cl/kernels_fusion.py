@@ -1,22 +1,27 @@
-"""Compiled twins of the fusion methods that change the update itself: ``ci``.
+"""Compiled twins of the fusion methods that change the update itself: ``ci`` and the
+weights and inflated update ``split_ci`` shares (:mod:`resloc.cl.kernels_split`), and the
+fusion method as the link loop takes it (:class:`KernelFusion`).
 
 Covariance intersection (:func:`resloc.cl.fusion.fused_update` with ``ci``) uses the joint
 bound ``blockdiag(P_i / w, P_j / (1 - w))``: the weight ``w`` of each link minimises the
 linearized posterior size (:func:`resloc.cl.fusion.ci_weights`: a grid, one parabolic
 refinement, kept only where it helps, and ``w = 1``, "ignore j", when no weight beats the
 prior), then the filter's own moments are extended by the inflations through the
-range/bearing Jacobians at the means. The CL link loop (:mod:`resloc.cl.kernels_links`)
-calls :func:`ci_update` in place of the plain Kalman update for a fused link;
-:class:`KernelFusion` carries the method's code and constants, chosen from the strategy
-(:attr:`FusionStrategy.kernel_code <resloc.cl.fusion_methods.FusionStrategy.kernel_code>`).
+range/bearing Jacobians at the means (split CI: of the dependent parts only). The CL link
+loop (:mod:`resloc.cl.kernels_links`) calls :func:`ci_update` in place of the plain Kalman
+update for a fused link. :func:`fusion_state` builds the :class:`KernelFusion` of the
+strategy's :attr:`~resloc.cl.fusion_methods.FusionStrategy.kernel_update`: its code, its
+constants and working copies of the state it updates per link (split CI's independent
+parts; the cross-covariance bookkeeping of ``tracked`` and ``factorized``,
+:mod:`resloc.cl.kernels_joint`); :func:`fusion_commit` hands them back.
 
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost`` (``ci``: no
-                               independent parts)
-:func:`_ci_weight`             :func:`resloc.cl.fusion.ci_weights`
+:func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
+:func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
+:func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
 =============================  ==========================================================
 """
 
@@ -27,116 +32,261 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.fusion import CI_GRID, CICriterion
+from resloc.cl.kernels_joint import (
+    FACTORIZED,
+    TRACKED,
+    KernelJoint,
+    joint_commit,
+    joint_state,
+    no_joint,
+)
 from resloc.cl.kernels_math import chol2, jit_inline, solve2, wrap
 
-__all__ = ["CI", "KERNEL_UPDATES", "NAIVE_UPDATE", "KernelFusion", "kernel_fusion"]
+__all__ = [
+    "CI",
+    "FACTORIZED_UPDATE",
+    "KERNEL_UPDATES",
+    "NAIVE_UPDATE",
+    "SPLIT_CI",
+    "TRACKED_UPDATE",
+    "KernelFusion",
+    "fusion_commit",
+    "fusion_state",
+    "kernel_fusion",
+]
 
 #: Codes of the link update in the kernel.
 NAIVE_UPDATE = 0  # the filter's Kalman update (naive and gauge fusion)
 CI = 1  # covariance intersection
+SPLIT_CI = 2  # split covariance intersection
+TRACKED_UPDATE = 3  # Kalman update under the tracked joint (resloc.cl.kernels_joint)
+FACTORIZED_UPDATE = 4  # Kalman update under the factorized joint (resloc.cl.kernels_joint)
 #: A strategy's ``kernel_update`` -> its code.
-KERNEL_UPDATES = {"kalman": NAIVE_UPDATE, "ci": CI}
+KERNEL_UPDATES = {
+    "kalman": NAIVE_UPDATE,
+    "ci": CI,
+    "split_ci": SPLIT_CI,
+    "tracked": TRACKED_UPDATE,
+    "factorized": FACTORIZED_UPDATE,
+}
+_JOINT_CODES = {TRACKED_UPDATE: TRACKED, FACTORIZED_UPDATE: FACTORIZED}
 
 
 class KernelFusion(NamedTuple):
-    """The fusion method as the link loop takes it."""
+    """The fusion method as the link loop takes it: its code, constants and the working
+    copies of the state it updates per link (empty arrays when it keeps none)."""
 
-    code: int  # NAIVE_UPDATE or CI
+    code: int  # a KERNEL_UPDATES code
     det: bool  # CI weight by the posterior determinant (else its trace)
     grid: np.ndarray  # (G,) candidate CI weights
+    joint: KernelJoint  # tracked / factorized: the cross-covariance bookkeeping
+    independent: np.ndarray  # (B, 3, 3) split CI: the robots' independent parts
+    P_nb_ind: np.ndarray  # (E, 3, 3) split CI: the transmitted independent parts
+    work: np.ndarray  # (8, 3, 3) split CI: scratch
 
 
 _GRID = np.ascontiguousarray(CI_GRID, dtype=float)
+_NONE3 = np.zeros((0, 3, 3))
 
 
-def kernel_fusion(code: int, criterion: CICriterion) -> KernelFusion:
-    """The kernel form of a fusion method with update ``code`` and CI ``criterion``."""
-    return KernelFusion(int(code), CICriterion(criterion) is CICriterion.DET, _GRID)
+def kernel_fusion(code: int, criterion: CICriterion, E: int = 0) -> KernelFusion:
+    """The kernel form of a fusion method with update ``code`` and CI ``criterion`` that
+    keeps no per-link state."""
+    return KernelFusion(
+        int(code), CICriterion(criterion) is CICriterion.DET, _GRID, no_joint(E), _NONE3,
+        _NONE3, np.zeros((8, 3, 3)),
+    )  # fmt: skip
+
+
+def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
+    """The kernel form of the fusion method whose strategy declares ``kernel_update =
+    update``, with working copies of its state in ``memory`` for the ``E`` links of
+    ``links``; None when the kernel cannot reproduce the reference (then the reference
+    raises its explanatory error, or records exactly)."""
+    code = KERNEL_UPDATES[update]
+    fusion = kernel_fusion(code, criterion, E)
+    if code == SPLIT_CI:
+        if memory is None or memory.independent is None or links.P_nb_ind is None:
+            return None
+        if np.shape(links.P_nb_ind) != (E, 3, 3) or np.shape(memory.independent)[1:] != (3, 3):
+            return None
+        if len(memory.independent) <= int(np.max(links.i)):
+            return None
+        return fusion._replace(
+            independent=np.array(memory.independent, dtype=float, order="C", copy=True),
+            P_nb_ind=np.ascontiguousarray(links.P_nb_ind, dtype=float),
+        )
+    if code in _JOINT_CODES:
+        joint = joint_state(_JOINT_CODES[code], memory, links.i, links.j)
+        return None if joint is None else fusion._replace(joint=joint)
+    return fusion
+
+
+def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray) -> None:
+    """Hand the kernel's records of a correction to the method's state in ``memory``."""
+    if fusion.code == SPLIT_CI:
+        memory.independent = fusion.independent
+    elif fusion.code in _JOINT_CODES:
+        joint_commit(fusion.joint, memory, i, fused)
 
 
 @jit_inline
-def _ci_cost(w, det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11, g00, g01, g10, g11, R):
+def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
-    weight ``w`` from the link's 2 x 2 reductions: ``a = H_i P_i H_i^T``, ``b = H_j P_j
-    H_j^T``, ``g = C^T C`` with ``C = P_i H_i^T`` (``tr_i``, ``det_i``: of ``P_i``).
-    Twin: ``resloc.cl.fusion._posterior_cost`` without independent parts."""
+    weight ``w`` from the link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
+    ``a = H_i D_i H_i^T``, ``b = H_j D_j H_j^T``, ``g = C^T C`` with ``C = D_i H_i^T``
+    (``D``: the covariances, or their dependent parts with ``split``), and with ``split``
+    the independent parts' ``ai = H_i I_i H_i^T``, ``bi = H_j I_j H_j^T + R``, ``gdi =
+    C^T (I_i H_i^T)``, ``gii`` and the parts ``Dp``, ``Ip`` of ``P_i`` themselves
+    (``tr_i``: trace of ``Dp``, ``det_i``: its determinant, used without ``split``).
+    Twin: ``resloc.cl.fusion._posterior_cost``."""
     u = 1.0 / w
     v = 1.0 / (1.0 - w)
-    sj00 = b00 * v + R[0, 0]
-    sj01 = b01 * v + R[0, 1]
-    sj10 = b10 * v + R[1, 0]
-    sj11 = b11 * v + R[1, 1]
-    s00 = a00 * u + sj00
-    s01 = a01 * u + sj01
-    s10 = a10 * u + sj10
-    s11 = a11 * u + sj11
+    if split:
+        sj00 = b[0] * v + bi[0]
+        sj01 = b[1] * v + bi[1]
+        sj10 = b[2] * v + bi[2]
+        sj11 = b[3] * v + bi[3]
+        s00 = a[0] * u + ai[0] + sj00
+        s01 = a[1] * u + ai[1] + sj01
+        s10 = a[2] * u + ai[2] + sj10
+        s11 = a[3] * u + ai[3] + sj11
+    else:
+        sj00 = b[0] * v + R[0, 0]
+        sj01 = b[1] * v + R[0, 1]
+        sj10 = b[2] * v + R[1, 0]
+        sj11 = b[3] * v + R[1, 1]
+        s00 = a[0] * u + sj00
+        s01 = a[1] * u + sj01
+        s10 = a[2] * u + sj10
+        s11 = a[3] * u + sj11
     det_s = s00 * s11 - s01 * s10
     if det:
+        if split:  # det(D_i / w + I_i)
+            return _det3_scaled(Dp, u, Ip) * (sj00 * sj11 - sj01 * sj10) / det_s
         return det_i * u * u * u * (sj00 * sj11 - sj01 * sj10) / det_s
-    q00 = g00 * u * u
-    q01 = g01 * u * u
-    q10 = g10 * u * u
-    q11 = g11 * u * u
+    if split:
+        q00 = g[0] * u * u + (gdi[0] + gdi[0]) * u + gii[0]
+        q01 = g[1] * u * u + (gdi[1] + gdi[2]) * u + gii[1]
+        q10 = g[2] * u * u + (gdi[2] + gdi[1]) * u + gii[2]
+        q11 = g[3] * u * u + (gdi[3] + gdi[3]) * u + gii[3]
+        tr_a = tr_i / w + (Ip[0, 0] + Ip[1, 1] + Ip[2, 2])
+    else:
+        q00 = g[0] * u * u
+        q01 = g[1] * u * u
+        q10 = g[2] * u * u
+        q11 = g[3] * u * u
+        tr_a = tr_i / w
     tr_gsinv = (q00 * s11 + q11 * s00 - q01 * s10 - q10 * s01) / det_s
-    return tr_i / w - tr_gsinv
+    return tr_a - tr_gsinv
 
 
 @jit_inline
-def _ci_weight(Pi, Pj, Hi, Hj, R, det, grid):
-    """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior).
-    Twin: :func:`resloc.cl.fusion.ci_weights`."""
-    # C = P_i H_i^T (3 x 2), reduced to a = H_i C and g = C^T C
-    a00 = a01 = a10 = a11 = 0.0
-    g00 = g01 = g10 = g11 = 0.0
-    for r in range(3):
-        c0 = 0.0
-        c1 = 0.0
-        for k in range(3):
-            c0 += Pi[r, k] * Hi[0, k]
-            c1 += Pi[r, k] * Hi[1, k]
-        a00 += Hi[0, r] * c0
-        a01 += Hi[0, r] * c1
-        a10 += Hi[1, r] * c0
-        a11 += Hi[1, r] * c1
-        g00 += c0 * c0
-        g01 += c0 * c1
-        g10 += c1 * c0
-        g11 += c1 * c1
-    b00 = b01 = b10 = b11 = 0.0  # b = (H_j P_j) H_j^T
+def _det3_scaled(D, u, I3):
+    """``det(D u + I3)`` of 3 x 3 matrices."""
+    m00 = D[0, 0] * u + I3[0, 0]
+    m01 = D[0, 1] * u + I3[0, 1]
+    m02 = D[0, 2] * u + I3[0, 2]
+    m10 = D[1, 0] * u + I3[1, 0]
+    m11 = D[1, 1] * u + I3[1, 1]
+    m12 = D[1, 2] * u + I3[1, 2]
+    m20 = D[2, 0] * u + I3[2, 0]
+    m21 = D[2, 1] * u + I3[2, 1]
+    m22 = D[2, 2] * u + I3[2, 2]
+    return (
+        m00 * (m11 * m22 - m12 * m21)
+        - m01 * (m10 * m22 - m12 * m20)
+        + m02 * (m10 * m21 - m11 * m20)
+    )
+
+
+@jit_inline
+def _row_times_ht(D, r, H):
+    """Row ``r`` of ``D H^T`` (3 x 3 times 3 x 2) as a 2-tuple."""
+    return (
+        D[r, 0] * H[0, 0] + D[r, 1] * H[0, 1] + D[r, 2] * H[0, 2],
+        D[r, 0] * H[1, 0] + D[r, 1] * H[1, 1] + D[r, 2] * H[1, 2],
+    )
+
+
+@jit_inline
+def _reduce_i(D, Hi):
+    """``a = H_i D H_i^T`` (a 4-tuple) and the rows of ``C = D H_i^T`` (a 6-tuple
+    ``(c00, c01, c10, c11, c20, c21)``)."""
+    c00, c01 = _row_times_ht(D, 0, Hi)
+    c10, c11 = _row_times_ht(D, 1, Hi)
+    c20, c21 = _row_times_ht(D, 2, Hi)
+    a00 = Hi[0, 0] * c00 + Hi[0, 1] * c10 + Hi[0, 2] * c20
+    a01 = Hi[0, 0] * c01 + Hi[0, 1] * c11 + Hi[0, 2] * c21
+    a10 = Hi[1, 0] * c00 + Hi[1, 1] * c10 + Hi[1, 2] * c20
+    a11 = Hi[1, 0] * c01 + Hi[1, 1] * c11 + Hi[1, 2] * c21
+    return (a00, a01, a10, a11), (c00, c01, c10, c11, c20, c21)
+
+
+@jit_inline
+def _reduce_j(D, Hj):
+    """``H_j D H_j^T`` as a 4-tuple."""
+    b00 = b01 = b10 = b11 = 0.0
     for k in range(3):
         t0 = 0.0
         t1 = 0.0
         for c in range(3):
-            t0 += Hj[0, c] * Pj[c, k]
-            t1 += Hj[1, c] * Pj[c, k]
+            t0 += Hj[0, c] * D[c, k]
+            t1 += Hj[1, c] * D[c, k]
         b00 += t0 * Hj[0, k]
         b01 += t0 * Hj[1, k]
         b10 += t1 * Hj[0, k]
         b11 += t1 * Hj[1, k]
-    tr_i = Pi[0, 0] + Pi[1, 1] + Pi[2, 2]
+    return (b00, b01, b10, b11)
+
+
+@jit_inline
+def _gram(c, d):
+    """``c^T d`` of two 3 x 2 matrices (6-tuples of rows, :func:`_reduce_i`) as a 4-tuple."""
+    g00 = c[0] * d[0] + c[2] * d[2] + c[4] * d[4]
+    g01 = c[0] * d[1] + c[2] * d[3] + c[4] * d[5]
+    g10 = c[1] * d[0] + c[3] * d[2] + c[5] * d[4]
+    g11 = c[1] * d[1] + c[3] * d[3] + c[5] * d[5]
+    return (g00, g01, g10, g11)
+
+
+@jit_inline
+def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
+    """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
+    from the covariances ``Di``, ``Dj`` (``ci``) or, with ``split``, their dependent parts
+    and independent parts ``Ii``, ``Ij``. Twin: :func:`resloc.cl.fusion.ci_weights`."""
+    a, cd = _reduce_i(Di, Hi)
+    g = _gram(cd, cd)
+    b = _reduce_j(Dj, Hj)
+    zero = (0.0, 0.0, 0.0, 0.0)
+    ai = zero
+    bi = zero
+    gdi = zero
+    gii = zero
+    if split:
+        ai, ci = _reduce_i(Ii, Hi)
+        gdi = _gram(cd, ci)
+        gii = _gram(ci, ci)
+        bj = _reduce_j(Ij, Hj)
+        bi = (bj[0] + R[0, 0], bj[1] + R[0, 1], bj[2] + R[1, 0], bj[3] + R[1, 1])
+    tr_i = Di[0, 0] + Di[1, 1] + Di[2, 2]
     det_i = (
-        Pi[0, 0] * (Pi[1, 1] * Pi[2, 2] - Pi[1, 2] * Pi[2, 1])
-        - Pi[0, 1] * (Pi[1, 0] * Pi[2, 2] - Pi[1, 2] * Pi[2, 0])
-        + Pi[0, 2] * (Pi[1, 0] * Pi[2, 1] - Pi[1, 1] * Pi[2, 0])
+        Di[0, 0] * (Di[1, 1] * Di[2, 2] - Di[1, 2] * Di[2, 1])
+        - Di[0, 1] * (Di[1, 0] * Di[2, 2] - Di[1, 2] * Di[2, 0])
+        + Di[0, 2] * (Di[1, 0] * Di[2, 1] - Di[1, 1] * Di[2, 0])
     )
     n = grid.shape[0]
     best = np.inf
     k = 0
     for t in range(n):
-        cost = _ci_cost(
-            grid[t], det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11,
-            g00, g01, g10, g11, R,
-        )  # fmt: skip
+        cost = _ci_cost(grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
         if cost < best or (t == 0 and not cost >= best):
             best = cost
             k = t
     kc = min(max(k, 1), n - 2)
-    c0 = _ci_cost(grid[kc - 1], det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11,
-                  g00, g01, g10, g11, R)  # fmt: skip
-    c1 = _ci_cost(grid[kc], det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11,
-                  g00, g01, g10, g11, R)  # fmt: skip
-    c2 = _ci_cost(grid[kc + 1], det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11,
-                  g00, g01, g10, g11, R)  # fmt: skip
+    c0 = _ci_cost(grid[kc - 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
+    c1 = _ci_cost(grid[kc], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
+    c2 = _ci_cost(grid[kc + 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
     h = grid[1] - grid[0]
     denom = c0 - 2.0 * c1 + c2
     shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
@@ -145,13 +295,18 @@ def _ci_weight(Pi, Pj, Hi, Hj, R, det, grid):
         w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
     else:
         w = grid[k]
-    refined = _ci_cost(w, det, tr_i, det_i, a00, a01, a10, a11, b00, b01, b10, b11,
-                       g00, g01, g10, g11, R)  # fmt: skip
+    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
     if refined <= best:
         best = refined
     else:
         w = grid[k]
-    prior = det_i if det else tr_i
+    if split:  # the prior P_i = D_i + I_i
+        if det:
+            prior = _det3_scaled(Di, 1.0, Ii)
+        else:
+            prior = tr_i + (Ii[0, 0] + Ii[1, 1] + Ii[2, 2])
+    else:
+        prior = det_i if det else tr_i
     return w if best < prior else 1.0
 
 
@@ -165,18 +320,34 @@ def ci_update(
     ``Hj``: the range/bearing Jacobians at the means, ``(S, Pxz)``: the filter's moments
     under ``blockdiag(P_i, P_j)``, ``re``: its ``R_eff`` (EKF). Returns False when the
     inflated ``S`` has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`."""
-    w = _ci_weight(Pi, Pj, Hi, Hj, R, fusion[1], fusion[2])
+    w = ci_weight(Pi, Pj, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2])
     if w >= 1.0:  # j adds nothing: the prior is kept
         for a in range(3):
             for b in range(3):
                 Pn[a, b] = Pi[a, b]
         return True
+    return ci_posterior(
+        x, i, xi0, xi1, xi2, Pi, Pi, Pj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
+        re00, re01, re11, R, jitter, K, A3, T3, Pn,
+    )  # fmt: skip
+
+
+@jit_inline
+def ci_posterior(
+    x, i, xi0, xi1, xi2, Pi, Di, Dj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
+    re00, re01, re11, R, jitter, K, A3, T3, Pn,
+):  # fmt: skip
+    """The update with weight ``w < 1``: inflations ``D_i (1/w - 1)`` and ``D_j (1/(1-w) -
+    1)`` of the (dependent parts of the) covariances added to the filter's moments; writes
+    ``x[i]``, ``K``, the prior ``A3 = sym(P_i + D_i (1/w - 1))`` and the unsymmetrized
+    posterior ``Pn``. False when the inflated ``S`` has no Cholesky factor.
+    Twin: :func:`resloc.cl.fusion.fused_update` (after the weights)."""
     fi = 1.0 / w - 1.0
     fj = 1.0 / (1.0 - w) - 1.0
     # A = sym(P_i + D_i), D_i = f_i P_i; extra_j = H_j D_j H_j^T; H_i D_i H_i^T
     for a in range(3):
         for b in range(3):
-            A3[a, b] = 0.5 * ((Pi[a, b] + Pi[a, b] * fi) + (Pi[b, a] + Pi[b, a] * fi))
+            A3[a, b] = 0.5 * ((Pi[a, b] + Di[a, b] * fi) + (Pi[b, a] + Di[b, a] * fi))
     e00 = e01 = e10 = e11 = 0.0
     d00 = d01 = d10 = d11 = 0.0
     for k in range(3):
@@ -185,10 +356,10 @@ def ci_update(
         u0 = 0.0
         u1 = 0.0
         for c in range(3):
-            t0 += Hj[0, c] * (Pj[c, k] * fj)
-            t1 += Hj[1, c] * (Pj[c, k] * fj)
-            u0 += Hi[0, c] * (Pi[c, k] * fi)
-            u1 += Hi[1, c] * (Pi[c, k] * fi)
+            t0 += Hj[0, c] * (Dj[c, k] * fj)
+            t1 += Hj[1, c] * (Dj[c, k] * fj)
+            u0 += Hi[0, c] * (Di[c, k] * fi)
+            u1 += Hi[1, c] * (Di[c, k] * fi)
         e00 += t0 * Hj[0, k]
         e01 += t0 * Hj[1, k]
         e10 += t1 * Hj[0, k]
@@ -207,9 +378,11 @@ def ci_update(
         p0 = 0.0
         p1 = 0.0
         for c in range(3):
-            p0 += (Pi[a, c] * fi) * Hi[0, c]
-            p1 += (Pi[a, c] * fi) * Hi[1, c]
-        k0, k1 = solve2(l00, l10, l11, Pxz[a, 0] + p0, Pxz[a, 1] + p1)
+            p0 += (Di[a, c] * fi) * Hi[0, c]
+            p1 += (Di[a, c] * fi) * Hi[1, c]
+        Pxz[a, 0] += p0
+        Pxz[a, 1] += p1
+        k0, k1 = solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
         K[a, 0] = k0
         K[a, 1] = k1
     x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)

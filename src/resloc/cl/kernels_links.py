@@ -21,12 +21,21 @@ from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_joint as _kernels_joint
 from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
-from resloc.cl.kernels_fusion import CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
+from resloc.cl.kernels_joint import (
+    NO_JOINT,
+    correlated_linearized_moments,
+    correlated_offsets,
+    joint_cross,
+    joint_record,
+)
 from resloc.cl.kernels_math import (
     chol2,
     chol3,
@@ -39,6 +48,7 @@ from resloc.cl.kernels_math import (
     stamp_with_pieces,
     wrap,
 )
+from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 
 #: Kernel status codes.
@@ -186,6 +196,9 @@ def correct_links(
     Pinf = np.zeros((3, 3))
     defending = defence[0] or defence[5]
     fusion_code = fusion[0]
+    # tracked / factorized: moments under a correlated joint (kernels_joint)
+    joint = fusion[3]
+    correlated = joint[0] != NO_JOINT
     std0 = noise_std[0]
     std1 = noise_std[1]
     record_gauge = gauge[0]
@@ -220,27 +233,37 @@ def correct_links(
             re00 = 0.0
             re01 = 0.0
             re11 = 0.0
-            if linearized:
+            if correlated and not joint_cross(joint, e, first, fused, i, Pi, Pr, jitter):
+                return NOT_PD
+            if linearized and correlated:
+                zh0, zh1, S00, S01, S11 = correlated_linearized_moments(
+                    joint, xi0, xi1, xi2, xr0, xr1, R, Hi, Hj, Pxz
+                )
+            elif linearized:
                 zh0, zh1, S00, S01, S11, re00, re01, re11 = _linearized_moments(
                     xi0, xi1, xi2, Pi, xr0, xr1, Pr, R, Hi, Hj, T3, Pxz
                 )
             else:
                 # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
                 # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
-                if not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
+                if correlated:
+                    if not correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
+                        return NOT_PD
+                elif not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
                     return NOT_PD
-                for k in range(m):
-                    for a in range(6):
-                        off[k, a] = 0.0
-                    for t in range(nz_cnt[k]):
-                        b = nz_idx[k, t]
-                        u = nz_val[k, t]
-                        if b < 3:
-                            for a in range(3):
-                                off[k, a] += Li[a, b] * u
-                        else:
-                            for a in range(3):
-                                off[k, 3 + a] += Lj[a, b - 3] * u
+                else:
+                    for k in range(m):
+                        for a in range(6):
+                            off[k, a] = 0.0
+                        for t in range(nz_cnt[k]):
+                            b = nz_idx[k, t]
+                            u = nz_val[k, t]
+                            if b < 3:
+                                for a in range(3):
+                                    off[k, a] += Li[a, b] * u
+                            else:
+                                for a in range(3):
+                                    off[k, 3 + a] += Lj[a, b - 3] * u
                 zr = 0.0
                 ssin = 0.0
                 scos = 0.0
@@ -378,6 +401,13 @@ def correct_links(
                 re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
             ):  # fmt: skip
                 return NOT_PD
+        elif fusion_code == SPLIT_CI:  # split covariance intersection (kernels_fusion)
+            range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
+            if not split_ci_update(
+                x, e, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
+                Hj, re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
+            ):  # fmt: skip
+                return NOT_PD
         else:
             # Kalman gain K = P^xz S^-1 by the Cholesky factor of S (twin: kalman_gain)
             for a in range(3):
@@ -387,7 +417,7 @@ def correct_links(
             x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
             x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
             x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-            if linearized:
+            if linearized and not correlated:
                 # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
                 for a in range(3):
                     for b in range(3):
@@ -407,8 +437,12 @@ def correct_links(
                         for c in range(3):
                             s += T3[a, c] * A3[b, c]
                         Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
-            else:
+            else:  # (the correlated joint's moments carry no Jacobian: P - K S K^T)
                 _schur_update(Pi, K, S00, S01, S11, Pn)
+            if correlated:  # tracked: Pn becomes the joint's P_i after the update
+                joint_record(
+                    joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3, Pn
+                )
         for a in range(3):
             for b in range(3):
                 T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
@@ -430,6 +464,8 @@ stamp_with_pieces(
     _kernels_defence,
     _kernels_fusion,
     _kernels_gauge,
+    _kernels_joint,
+    _kernels_split,
     _kernels_tamper,
 )
 

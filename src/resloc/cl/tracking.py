@@ -164,6 +164,7 @@ class JointCovariance:
         for a in range(3):
             self.M[b, a, 3 * local + a] = 1.0
         self.noise = np.zeros((B, 3, 3))
+        self.updates = 0  # updates recorded since (M, noise) were reset
 
     # ------------------------------------------------------------------ step
     def predict(
@@ -303,6 +304,7 @@ class JointCovariance:
         e = np.arange(len(i))[:, None, None]
         Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= KH_j
         self.M[i] = Mi
+        self.updates += len(i)
         self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
             K, -1, -2
         )

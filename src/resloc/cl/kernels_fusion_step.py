@@ -1,0 +1,387 @@
+"""The once-per-step parts of ``tracked``, ``factorized`` and ``split_ci`` fusion, compiled.
+
+The per-link records are the CL kernel's (:mod:`resloc.cl.kernels_joint`,
+:mod:`resloc.cl.kernels_split`); these are the prediction and the end of the correction,
+each the twin of a method of the bookkeeping object (or of a function), used by the
+strategies (:mod:`resloc.cl.fusion_methods`) when the backend is numba and the object is a
+batch's (a robot process's ``local`` factors stay numpy). Each returns None or False
+(nothing changed) when it does not apply; the strategy then runs the reference.
+
+=================================  ======================================================
+function                           numpy twin
+=================================  ======================================================
+:func:`compiled_tracked_predict`   :meth:`resloc.cl.tracking.JointCovariance.predict`
+:func:`compiled_tracked_finish`    :meth:`resloc.cl.tracking.JointCovariance.finish`
+:func:`scatter_tracked_blocks`     the dense ``M`` of ``JointCovariance.update``
+:func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
+:func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
+:func:`compiled_propagate_independent`  :func:`resloc.cl.fusion.propagate_independent`
+=================================  ======================================================
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_predict as _kernels_predict
+from resloc.cl import kernels_split as _kernels_split
+from resloc.cl.backend import backend
+from resloc.cl.factorized import FactorizedCovariance
+from resloc.cl.kernels_math import jit, jit_inline, stamp_with_pieces
+from resloc.cl.kernels_predict import _process_noise
+from resloc.cl.kernels_split import sandwich3
+from resloc.cl.tracking import JointCovariance
+
+__all__ = [
+    "compiled_factorized_finish",
+    "compiled_factorized_predict",
+    "compiled_propagate_independent",
+    "compiled_tracked_finish",
+    "compiled_tracked_predict",
+    "scatter_tracked_blocks",
+    "unicycle_jacobian_into",
+]
+
+
+@jit_inline
+def unicycle_jacobian_into(v, s, c, dt, F):
+    """``F = df/dx`` of eq. (2) at a heading with sine ``s`` and cosine ``c``, speed ``v``.
+    Twin: :func:`resloc.models.motion.unicycle_state_jacobian`."""
+    for a in range(3):
+        for b in range(3):
+            F[a, b] = 1.0 if a == b else 0.0
+    F[0, 2] = -v * s * dt
+    F[1, 2] = v * c * dt
+
+
+def _odometry(params, dt: float, B: int):
+    odometry = np.asarray(params.odometry_std, dtype=float)
+    floor = np.asarray(params.process_floor_std, dtype=float)
+    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
+        return None
+    return np.ascontiguousarray(np.atleast_2d(odometry**2)), np.ascontiguousarray(floor**2 * dt)
+
+
+def _inputs_ok(x, u, B: int) -> bool:
+    return np.shape(x) == (B, 3) and np.shape(u) == (B, 2)
+
+
+def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | None:
+    """``JointCovariance.predict`` compiled: ``Sigma <- F Sigma F^T + blockdiag(Q)`` per
+    team (``F``, ``Q`` at the estimates ``x: (B, 3)`` before the prediction, odometry
+    ``u: (B, 2)``), the step's bookkeeping started; returns the diagonal blocks (B, 3, 3)."""
+    if backend() != "numba" or not isinstance(joint, JointCovariance):
+        return None
+    B = joint.T * joint.N
+    noise = _odometry(params, dt, B)
+    if noise is None or not _inputs_ok(x, u, B):
+        return None
+    sigma = np.array(joint.sigma, dtype=float, order="C", copy=True)
+    _propagate_joint(
+        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt),
+        *noise, joint.N, sigma,
+    )  # fmt: skip
+    joint.sigma = sigma
+    joint._start_step()
+    return joint.diagonal()
+
+
+@jit
+def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma):
+    """``sigma[t]_(ab) <- F_a sigma_(ab) F_b^T`` for every pair of robots of every team,
+    ``+ Q_a`` on the diagonal blocks, then symmetrized, in place."""
+    B = x.shape[0]
+    per_robot_noise = odometry_var.shape[0] > 1
+    F = np.zeros((B, 3, 3))
+    Q = np.zeros((B, 3, 3))
+    T = np.zeros((3, 3))
+    for b in range(B):
+        s2 = math.sin(x[b, 2])
+        c2 = math.cos(x[b, 2])
+        r = b if per_robot_noise else 0
+        _process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q[b])
+        unicycle_jacobian_into(u[b, 0], s2, c2, dt, F[b])
+    for t in range(sigma.shape[0]):
+        for a in range(N):
+            Fa = F[t * N + a]
+            for c in range(N):
+                Fc = F[t * N + c]
+                r0 = 3 * a
+                c0 = 3 * c
+                for p in range(3):
+                    for q in range(3):
+                        T[p, q] = (
+                            Fa[p, 0] * sigma[t, r0, c0 + q]
+                            + Fa[p, 1] * sigma[t, r0 + 1, c0 + q]
+                            + Fa[p, 2] * sigma[t, r0 + 2, c0 + q]
+                        )
+                for p in range(3):
+                    for q in range(3):
+                        sigma[t, r0 + p, c0 + q] = (
+                            T[p, 0] * Fc[q, 0] + T[p, 1] * Fc[q, 1] + T[p, 2] * Fc[q, 2]
+                        )
+            for p in range(3):
+                for q in range(3):
+                    sigma[t, 3 * a + p, 3 * a + q] += Q[t * N + a, p, q]
+        _symmetrize_in_place(sigma[t])
+
+
+@jit
+def _symmetrize_in_place(S):
+    n = S.shape[0]
+    for p in range(n):
+        for q in range(p + 1, n):
+            m = 0.5 * (S[p, q] + S[q, p])
+            S[p, q] = m
+            S[q, p] = m
+
+
+def scatter_tracked_blocks(joint, A, Bij, i, j, fused) -> None:
+    """The dense ``M`` of ``joint`` from the blocks of a correction: robot b's ``A_b`` at
+    its own column, each fused link's ``B_ij`` at j's (the reference's ``M`` after its
+    updates)."""
+    M = np.zeros_like(joint.M)
+    rows = np.flatnonzero(fused)
+    _scatter(
+        M, np.ascontiguousarray(A), np.ascontiguousarray(Bij),
+        np.ascontiguousarray(np.asarray(i)[rows], dtype=np.int64),
+        np.ascontiguousarray(np.asarray(j)[rows], dtype=np.int64),
+        np.ascontiguousarray(rows, dtype=np.int64), joint.N,
+    )  # fmt: skip
+    joint.M = M
+
+
+@jit
+def _scatter(M, A, Bij, obs, nbr, rows, N):
+    for b in range(A.shape[0]):
+        c0 = 3 * (b % N)
+        for p in range(3):
+            for q in range(3):
+                M[b, p, c0 + q] = A[b, p, q]
+    for k in range(rows.shape[0]):
+        c0 = 3 * (nbr[k] % N)
+        for p in range(3):
+            for q in range(3):
+                M[obs[k], p, c0 + q] = Bij[rows[k], p, q]
+
+
+def compiled_tracked_finish(joint) -> np.ndarray | None:
+    """``JointCovariance.finish`` compiled: ``Sigma <- M Sigma M^T + blockdiag(N)`` per team
+    (skipping ``M``'s zero blocks), symmetrized, the step's bookkeeping started; returns the
+    diagonal blocks (B, 3, 3)."""
+    if backend() != "numba" or not isinstance(joint, JointCovariance):
+        return None
+    sigma = np.empty_like(joint.sigma)
+    _joint_finish(
+        np.ascontiguousarray(joint.M, dtype=float), np.ascontiguousarray(joint.sigma, dtype=float),
+        np.ascontiguousarray(joint.noise, dtype=float), joint.N, sigma,
+    )  # fmt: skip
+    joint.sigma = sigma
+    joint._start_step()
+    return joint.diagonal()
+
+
+@jit
+def _joint_finish(M, sigma, noise, N, out):
+    """``out[t] = sym(M_t sigma[t] M_t^T + blockdiag(noise))`` with ``M_t`` the team's rows of
+    ``M`` (B, 3, 3N), over its non-zero 3 x 3 blocks."""
+    n3 = 3 * N
+    W = np.zeros((n3, n3))
+    cols = np.zeros((N, N), dtype=np.int64)  # each robot's non-zero blocks of M
+    count = np.zeros(N, dtype=np.int64)
+    for t in range(sigma.shape[0]):
+        for a in range(N):
+            count[a] = 0
+            for p in range(N):
+                found = False
+                for r in range(3):
+                    for c in range(3):
+                        if M[t * N + a, r, 3 * p + c] != 0.0:
+                            found = True
+                if found:
+                    cols[a, count[a]] = p
+                    count[a] += 1
+        for a in range(N):  # W = M sigma, by the non-zero blocks of M
+            for r in range(3):
+                for c in range(n3):
+                    W[3 * a + r, c] = 0.0
+            for k in range(count[a]):
+                p = cols[a, k]
+                for r in range(3):
+                    for c in range(n3):
+                        W[3 * a + r, c] += (
+                            M[t * N + a, r, 3 * p] * sigma[t, 3 * p, c]
+                            + M[t * N + a, r, 3 * p + 1] * sigma[t, 3 * p + 1, c]
+                            + M[t * N + a, r, 3 * p + 2] * sigma[t, 3 * p + 2, c]
+                        )
+        for a in range(N):  # out = W M^T
+            for b in range(N):
+                for r in range(3):
+                    for c in range(3):
+                        s = noise[t * N + a, r, c] if a == b else 0.0
+                        for k in range(count[b]):
+                            q = cols[b, k]
+                            for d in range(3):
+                                s += W[3 * a + r, 3 * q + d] * M[t * N + b, c, 3 * q + d]
+                        out[t, 3 * a + r, 3 * b + c] = s
+        _symmetrize_in_place(out[t])
+
+
+def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | None:
+    """``FactorizedCovariance.predict`` compiled: ``sigma_il <- F_i sigma_il`` for every
+    factor, the step's bookkeeping started; returns ``P_pred``."""
+    if backend() != "numba" or not isinstance(joint, FactorizedCovariance) or joint.local:
+        return None
+    if not _inputs_ok(x, u, joint.B):
+        return None
+    sig = np.array(joint.sig, dtype=float, order="C", copy=True)
+    _left_multiply_factors(
+        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt), sig
+    )
+    joint.sig = sig
+    joint._start_step(P_pred)
+    return P_pred
+
+
+@jit
+def _left_multiply_factors(x, u, dt, sig):
+    F = np.zeros((3, 3))
+    T = np.zeros((3, 3))
+    for b in range(sig.shape[0]):
+        unicycle_jacobian_into(u[b, 0], math.sin(x[b, 2]), math.cos(x[b, 2]), dt, F)
+        for m in range(sig.shape[1]):
+            for p in range(3):
+                for q in range(3):
+                    T[p, q] = (
+                        F[p, 0] * sig[b, m, 0, q]
+                        + F[p, 1] * sig[b, m, 1, q]
+                        + F[p, 2] * (sig[b, m, 2, q])
+                    )
+            for p in range(3):
+                for q in range(3):
+                    sig[b, m, p, q] = T[p, q]
+
+
+def compiled_factorized_finish(joint) -> bool:
+    """``FactorizedCovariance.finish`` compiled: for every pair of teammates that fused in
+    either direction this step, the lower id keeps the pair's new cross-covariance
+    (``_pair_cross``) as its factor, the higher id the identity. False when it does not
+    apply."""
+    if backend() != "numba" or not isinstance(joint, FactorizedCovariance) or joint.local:
+        return False
+    if joint.B % joint.N:
+        return False
+    sig = np.array(joint.sig, dtype=float, order="C", copy=True)
+    _close_pairs(
+        np.ascontiguousarray(joint.fused, dtype=np.bool_), np.ascontiguousarray(joint.A),
+        np.ascontiguousarray(joint.Bm), np.ascontiguousarray(joint.P_pred),
+        np.ascontiguousarray(joint.sig_pred), joint.N, sig,
+    )  # fmt: skip
+    joint.sig = sig
+    return True
+
+
+@jit
+def _mul(X, Y, out):
+    for p in range(3):
+        for q in range(3):
+            out[p, q] = X[p, 0] * Y[0, q] + X[p, 1] * Y[1, q] + X[p, 2] * Y[2, q]
+
+
+@jit
+def _mul_t(X, Y, out):
+    """``out = X Y^T``."""
+    for p in range(3):
+        for q in range(3):
+            out[p, q] = X[p, 0] * Y[q, 0] + X[p, 1] * Y[q, 1] + X[p, 2] * Y[q, 2]
+
+
+@jit
+def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
+    """Twin of ``FactorizedCovariance.finish`` and ``_pair_cross``: ``[A_a, B_ac] [[P_a,
+    P_ac], [P_ca, P_c]]_pred [B_ca, A_c]^T`` with ``P_ac = sigma_ac sigma_ca^T`` (pred)."""
+    P_ac = np.zeros((3, 3))
+    T1 = np.zeros((3, 3))
+    T2 = np.zeros((3, 3))
+    C = np.zeros((3, 3))
+    for t in range(A.shape[0] // N):
+        for la in range(N):
+            a = t * N + la
+            for lc in range(la + 1, N):
+                c = t * N + lc
+                if not (fused[a, lc] or fused[c, la]):
+                    continue
+                _mul_t(sig_pred[a, lc], sig_pred[c, la], P_ac)
+                _mul(A[a], P_pred[a], T1)  # A_a P_a B_ca^T
+                _mul_t(T1, Bm[c, la], C)
+                _mul(A[a], P_ac, T1)  # + A_a P_ac A_c^T
+                _mul_t(T1, A[c], T2)
+                for p in range(3):
+                    for q in range(3):
+                        C[p, q] += T2[p, q]
+                _mul_t(Bm[a, lc], P_ac, T1)  # + B_ac P_ac^T B_ca^T
+                _mul_t(T1, Bm[c, la], T2)
+                for p in range(3):
+                    for q in range(3):
+                        C[p, q] += T2[p, q]
+                _mul(Bm[a, lc], P_pred[c], T1)  # + B_ac P_c A_c^T
+                _mul_t(T1, A[c], T2)
+                for p in range(3):
+                    for q in range(3):
+                        sig[a, lc, p, q] = C[p, q] + T2[p, q]
+                        sig[c, la, p, q] = 1.0 if p == q else 0.0
+
+
+def compiled_propagate_independent(x, P_ind, u, dt, odometry_std, floor_std):
+    """:func:`resloc.cl.fusion.propagate_independent` compiled: ``sym(F P_ind F^T + Q)`` of
+    every robot (shapes as there); None (nothing computed) when the backend is numpy or the
+    shapes are not the documented ones."""
+    if backend() != "numba":
+        return None
+    x = np.asarray(x)
+    B = x.shape[0] if x.ndim == 2 else -1
+    odometry = np.asarray(odometry_std, dtype=float)
+    floor = np.asarray(floor_std, dtype=float)
+    if x.shape != (B, 3) or np.shape(P_ind) != (B, 3, 3) or np.shape(u) != (B, 2):
+        return None
+    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
+        return None
+    out = np.empty((B, 3, 3))
+    _propagate_independent(
+        np.ascontiguousarray(x, dtype=float),
+        np.ascontiguousarray(P_ind, dtype=float),
+        np.ascontiguousarray(u, dtype=float),
+        float(dt),
+        np.ascontiguousarray(np.atleast_2d(odometry**2)),
+        np.ascontiguousarray(floor**2 * dt),
+        out,
+    )
+    return out
+
+
+@jit
+def _propagate_independent(x, P_ind, u, dt, odometry_var, floor_var, out):
+    """``out[b] = sym(F_b P_ind[b] F_b^T + Q_b)`` with the unicycle Jacobian ``F`` at
+    ``x[b]`` and the process noise ``Q`` (:func:`~resloc.cl.kernels_predict._process_noise`).
+    Twin: :func:`resloc.cl.fusion.propagate_independent`."""
+    per_robot_noise = odometry_var.shape[0] > 1
+    Q = np.zeros((3, 3))
+    F = np.zeros((3, 3))
+    T = np.zeros((3, 3))
+    for b in range(x.shape[0]):
+        s2 = math.sin(x[b, 2])
+        c2 = math.cos(x[b, 2])
+        r = b if per_robot_noise else 0
+        _process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q)
+        unicycle_jacobian_into(u[b, 0], s2, c2, dt, F)
+        sandwich3(F, P_ind[b], T, out[b])  # T = F P F^T (out[b] as scratch)
+        for a in range(3):
+            for c in range(3):
+                out[b, a, c] = 0.5 * ((T[a, c] + Q[a, c]) + (T[c, a] + Q[c, a]))
+
+
+for _kernel in (_propagate_joint, _left_multiply_factors, _propagate_independent):
+    stamp_with_pieces(_kernel, _kernels_math, _kernels_predict, _kernels_split)
