@@ -15,6 +15,7 @@ import pytest
 
 from resloc.cl import CLParams, LinkBatch, LinkMemory, ThresholdInnovation, correct, kernels
 from resloc.cl import kernels_rounds as rounds
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.step import predict
 from resloc.experiments.config import default_scenario
 from resloc.world.world import World
@@ -154,15 +155,22 @@ def test_rounds_give_way_on_rows_not_sorted_by_observer() -> None:
         ("ekf", {}),
         ("ckf", {"cusum": True}),
         ("ckf", {"fusion": "ci"}),
+        ("ckf", {"fusion": "split_ci"}),
+        ("ckf", {"fusion": "tracked"}),
+        ("ckf", {"fusion": "factorized"}),
         ("ckf", {"neighbour_estimate": "cached"}),
     ],
 )
 def test_rounds_leave_what_they_do_not_cover_to_the_row_order_loop(name, changes) -> None:
     x, P, links = random_batch(9, B=120)
     params = replace(PARAM_CASES["paper"], **changes)
+    memory = LinkMemory(len(x))
+    fusion_strategy(params.fusion).init(memory, x, P, len(x))
+    if params.fusion == "split_ci":  # the neighbours' independent parts travel with them
+        links = replace(links, P_nb_ind=0.5 * links.P_nb)
     before = rounds.LOOP_RUNS.copy()
     with kernels.use_backend("numba"):
-        res = correct(FILTERS[name], x, P, links, params, LinkMemory(len(x)))
+        res = correct(FILTERS[name], x, P, links, params, memory)
     assert res[2].compiled
     assert rounds.LOOP_RUNS - before == {"row_order": 1}
 

@@ -57,7 +57,7 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA
-from resloc.cl.kernels_fusion import CI
+from resloc.cl.kernels_fusion import NAIVE_UPDATE
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
     apply_lanes,
@@ -113,7 +113,7 @@ def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bo
     return not (
         linearized
         or np.any(nz_cnt > 1)
-        or fusion[0] == CI
+        or fusion[0] != NAIVE_UPDATE  # CI, split CI, the tracked / factorized joints
         or gauge[0]
         or tamper[0]
         or detection[0]  # link CUSUM
