@@ -31,7 +31,7 @@ from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.backend import backend
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_math import jit, jit_inline, stamp_with_pieces
-from resloc.cl.kernels_predict import _process_noise
+from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
 from resloc.cl.tracking import JointCovariance
 
@@ -102,7 +102,7 @@ def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma):
         s2 = math.sin(x[b, 2])
         c2 = math.cos(x[b, 2])
         r = b if per_robot_noise else 0
-        _process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q[b])
+        odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q[b])
         unicycle_jacobian_into(u[b, 0], s2, c2, dt, F[b])
     for t in range(sigma.shape[0]):
         for a in range(N):
@@ -365,7 +365,8 @@ def compiled_propagate_independent(x, P_ind, u, dt, odometry_std, floor_std):
 @jit
 def _propagate_independent(x, P_ind, u, dt, odometry_var, floor_var, out):
     """``out[b] = sym(F_b P_ind[b] F_b^T + Q_b)`` with the unicycle Jacobian ``F`` at
-    ``x[b]`` and the process noise ``Q`` (:func:`~resloc.cl.kernels_predict._process_noise`).
+    ``x[b]`` and the process noise ``Q``
+    (:func:`~resloc.cl.kernels_predict.odometry_process_noise`).
     Twin: :func:`resloc.cl.fusion.propagate_independent`."""
     per_robot_noise = odometry_var.shape[0] > 1
     Q = np.zeros((3, 3))
@@ -375,7 +376,7 @@ def _propagate_independent(x, P_ind, u, dt, odometry_var, floor_var, out):
         s2 = math.sin(x[b, 2])
         c2 = math.cos(x[b, 2])
         r = b if per_robot_noise else 0
-        _process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q)
+        odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q)
         unicycle_jacobian_into(u[b, 0], s2, c2, dt, F)
         sandwich3(F, P_ind[b], T, out[b])  # T = F P F^T (out[b] as scratch)
         for a in range(3):

@@ -5,13 +5,13 @@ noise, the Cholesky factors, the points, the unicycle, the circular mean, the co
 this kernel makes one pass over the robots and keeps a robot's work in registers, so the
 step allocates only its outputs. Per robot, fused:
 
-============================  =========================  =========================================
+============================  =========================  ==========================================
 kernel block                  paper                      numpy twin
-============================  =========================  =========================================
-``_process_noise``            odometry noise             :func:`resloc.models.motion.process_noise`
+============================  =========================  ==========================================
+``odometry_process_noise``    odometry noise             :func:`resloc.models.motion.process_noise`
 ``_predict_robots`` (points)  Algorithm 1, "Prediction"  :meth:`SigmaPointFilter.predict`
 ``_predict_robots`` (EKF)     eq. (2), linearized        :meth:`ExtendedFilter.predict`
-============================  =========================  =========================================
+============================  =========================  ==========================================
 
 For sigma-point filters and at least :data:`LANES_MIN_ROBOTS` robots, :func:`fast_predict`
 runs the same prediction a chunk of robots at a time in SIMD lanes
@@ -179,7 +179,7 @@ def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, n
 
 
 @jit
-def _process_noise(c, s, dt, m0, m1, floor_var, Q):
+def odometry_process_noise(c, s, dt, m0, m1, floor_var, Q):
     """``Q = G M G^T + diag(floor^2 dt)`` at a heading with cosine ``c`` and sine ``s``
     into ``Q`` (3 x 3). Twin: :func:`resloc.models.motion.process_noise`."""
     g0 = c * dt
@@ -219,7 +219,7 @@ def _predict_robots(x, P, u, dt, odometry_var, floor_var, spec, jitter, x_out, P
         s2 = math.sin(x2)
         c2 = math.cos(x2)
         r = b if per_robot_noise else 0
-        _process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q)
+        odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q)
         if linearized:
             # x = f(x, u), P = F P F^T + Q (twin: ExtendedFilter.predict)
             x_out[b, 0] = x0 + v * c2 * dt

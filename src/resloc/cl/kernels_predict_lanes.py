@@ -133,7 +133,7 @@ def _points(n, dt, floor_var, unit, mirror, Wm, lanes, L, Xf, sums, SC, Q, bad):
     unicycle into ``Xf`` (``3 k + a`` rows), with the weighted sums ``(mean0, mean1, sin,
     cos, heading)`` (then the heading's and the turn's sine and cosine) in ``sums``; ``SC``:
     the points' offsets' sines and cosines (a mirrored point reuses its twin's). Twin:
-    ``_process_noise`` and the points block of ``_predict_robots``."""
+    ``odometry_process_noise`` and the points block of ``_predict_robots``."""
     lf = lanes.reshape(lanes.size)
     Lf = L.reshape(L.size)
     Xff = Xf.reshape(Xf.size)
