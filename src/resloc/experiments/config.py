@@ -285,7 +285,7 @@ class Scenario:
                 d.zone_trust_scale,
             ),
             redundancy=d.redundancy,
-            redundancy_gate=chi2_gate(d.redundancy_false_alarm),
+            **({"redundancy_gate": chi2_gate(d.redundancy_false_alarm)} if d.redundancy else {}),
             redundancy_min_peers=float(d.redundancy_min_peers),
         )
 
