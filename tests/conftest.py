@@ -45,3 +45,7 @@ def pytest_configure(config):
     # foreground job, so give SIGINT Python's usual handler (a child gets it back at exec).
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    # Likewise `nohup` starts the suite with SIGHUP ignored; the hang-up tests simulate a
+    # closed terminal, so SIGHUP gets its default action back (the commands catch it).
+    if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
