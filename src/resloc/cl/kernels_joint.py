@@ -44,7 +44,7 @@ import numpy as np
 
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_math import chol3, jit_inline, wrap
+from resloc.cl.kernels_math import chol3, jit, jit_inline, wrap
 from resloc.cl.tracking import JointCovariance
 
 __all__ = [
@@ -330,7 +330,7 @@ def scaled_unit_minus_is_pd(M, c):
     return n00 > 0.0 and m2 > 0.0 and det > 0.0
 
 
-@jit_inline
+@jit
 def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
     """The blocks of the correlated joint for link ``e`` of robot ``i``: the observer's
     covariance into ``work[0]``, ``C_ij`` into ``work[1]`` and j's covariance into
@@ -433,7 +433,7 @@ def _chol6(A, L, jitter):
     return False
 
 
-@jit_inline
+@jit
 def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
     """The filter's unit points times the Cholesky factor of the correlated joint
     (:func:`joint_cross`'s blocks) into ``off: (m, 6)``. False when the joint has no
@@ -453,7 +453,7 @@ def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
     return True
 
 
-@jit_inline
+@jit
 def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz):
     """First-order moments of eq. (3) under the correlated joint (:func:`joint_cross`'s
     blocks): ``S = H J H^T + R``, ``P^xz = J[:3] H^T`` with ``H = [H_i, H_j]`` at the means;
@@ -509,7 +509,7 @@ def _left_multiply(G, M, T3):
             M[a, b] = T3[a, b]
 
 
-@jit_inline
+@jit
 def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after

@@ -25,7 +25,7 @@ import numpy as np
 
 from resloc.cl.kernels_fusion import ci_posterior, ci_weight
 from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
-from resloc.cl.kernels_math import chol3, jit_inline
+from resloc.cl.kernels_math import chol3, jit, jit_inline
 
 __all__ = ["sandwich3", "split_ci_update"]
 
@@ -104,7 +104,7 @@ def sandwich3(A, B, out, T):
             out[a, b] = T[a, 0] * A[b, 0] + T[a, 1] * A[b, 1] + T[a, 2] * A[b, 2]
 
 
-@jit_inline
+@jit
 def split_ci_update(
     x, e, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
     re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
