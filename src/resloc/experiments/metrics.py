@@ -22,6 +22,7 @@ __all__ = [
     "msle",
     "msle_of_distances",
     "nees",
+    "nees_band",
     "nees_consistency",
     "nees_consistency_counts",
     "pair_distances",
@@ -286,6 +287,17 @@ def nees_consistency(samples: np.ndarray, dof: int = 3, level: float = 0.95) -> 
     return nees_consistency_counts(float(x.sum()), x.size, above, dof, level)
 
 
+def nees_band(dof: int, samples: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``level`` chi-square band of an average of ``samples`` independent NEES.
+
+    ``[chi2.ppf((1 - level) / 2, dof M) / M, chi2.ppf((1 + level) / 2, dof M) / M]`` with
+    ``M = samples`` (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4.2).
+    """
+    m = int(samples)
+    alpha = 1.0 - level
+    return float(chi2_ppf(alpha / 2, dof * m) / m), float(chi2_ppf(1 - alpha / 2, dof * m) / m)
+
+
 def nees_consistency_counts(
     total: float, samples: int, exceed: int, dof: int = 3, level: float = 0.95
 ) -> dict[str, float]:
@@ -322,8 +334,7 @@ def nees_consistency_counts(
         nan = float("nan")
         keys = ("anees", "band_lo", "band_hi", "in_band", "exceed_share", "exceed_pvalue")
         return {**dict.fromkeys(keys, nan), "samples": 0, "exceed_expected": alpha}
-    lo = float(chi2_ppf(alpha / 2, dof * m) / m)
-    hi = float(chi2_ppf(1 - alpha / 2, dof * m) / m)
+    lo, hi = nees_band(dof, m, level)
     anees = float(total) / m
     return {
         "anees": anees,

@@ -11,26 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from resloc.distributions import chi2
 from resloc.experiments.compare.methods import BEST, NAIVE_REFERENCE, PAPER
+from resloc.experiments.metrics import nees_band
 from resloc.experiments.stats import mean_ci, ratio
 
 __all__ = ["CompareResult", "compare_result", "nees_band", "save_compare"]
-
-
-def nees_band(dof: int, samples: int, level: float = 0.95) -> tuple[float, float]:
-    """Two-sided ``level`` chi-square band of an average of ``samples`` independent NEES.
-
-    ``[chi2.ppf((1 - level) / 2, dof M) / M, chi2.ppf((1 + level) / 2, dof M) / M]`` with
-    ``M = samples`` (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4.2). The comparison uses
-    ``M = seeds``: with relative measurements only, the team's absolute pose is unobservable,
-    so all robots of a trial share one common error and their NEES are not independent;
-    the trials are (``docs/beyond.md``).
-    """
-    m = int(samples)
-    lo = chi2.ppf((1.0 - level) / 2.0, dof * m) / m
-    hi = chi2.ppf((1.0 + level) / 2.0, dof * m) / m
-    return float(lo), float(hi)
 
 
 def _est(samples) -> dict:
@@ -112,6 +97,9 @@ def _table_row(o: dict) -> dict:
 
 def _fusion_row(o: dict, seeds: int) -> dict:
     t, m = o["task"], o["metrics"]
+    # M = seeds: with relative measurements only the team's absolute pose is unobservable,
+    # so all robots of a trial share one common error and their NEES are not
+    # independent; the trials are (docs/beyond.md).
     lo, hi = nees_band(3, seeds)
     lo1, hi1 = nees_band(3, 1)
     per_seed = np.asarray(m["nees"], float)
