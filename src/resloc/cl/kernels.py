@@ -52,6 +52,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     use_backend,
 )
 from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import fusion_commit, fusion_state
@@ -208,20 +209,26 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
     return prepared
 
 
-def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots, neighbours) -> bool:
-    """Every index the kernel will use is in range (the compiled loop does not check)."""
-    li = np.asarray(links.i)
+_NO_ROWS = np.zeros(0, np.int64)
+
+
+def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours) -> bool:
+    """Every index the kernel will use is in range (the compiled loop does not check), and
+    no link repeats the one before it. ``li``, ``lj``: the links' observers and observed
+    nodes as contiguous int64 arrays."""
     E = len(li)
-    B = int(li.max()) + 1
-    if li.min() < 0 or np.shape(x)[0] < B or np.shape(P)[0] < B:
+    nb, x_nb, P_nb = neighbours
+    S = len(x_nb)
+    if nb is not None:
+        if not isinstance(nb, np.ndarray) or nb.shape != (E,) or nb.dtype.kind not in "iu":
+            return False
+        nb = _contiguous(nb, np.int64)
+    B = observer_bound(li, lj, _NO_ROWS if nb is None else nb, S)
+    if B < 1 or np.shape(x)[0] < B or np.shape(P)[0] < B:
         return False
     if np.shape(x)[1:] != (3,) or np.shape(P)[1:] != (3, 3):
         return False
-    nb, x_nb, P_nb = neighbours
-    S = len(x_nb)
     if np.shape(x_nb) != (S, 3) or np.shape(P_nb) != (S, 3, 3):
-        return False
-    if nb is not None and (np.shape(nb) != (E,) or nb.min() < 0 or nb.max() >= S):
         return False
     per_link = (
         (links.z, (E, 2)),
@@ -258,17 +265,15 @@ def fast_correct(
     if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
     li = _contiguous(links.i, np.int64)
-    lj = np.asarray(links.j, dtype=np.int64)
+    lj = _contiguous(links.j, np.int64)
     E = len(li)
     gains, options = _prepared(params)
     robots = KernelRobots(
         _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
     )
     neighbours = links.neighbour_rows()
-    if E == 0 or not _shapes_ok(x, P, links, robots, neighbours):
+    if E == 0 or not _shapes_ok(x, P, links, li, lj, robots, neighbours):
         return None
-    if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
-        return None  # a duplicated link would read its own store within one call
     strategy = fusion_strategy(params.fusion)
     if strategy.problem(params) is not None:
         return None  # the reference path raises the explanatory error
