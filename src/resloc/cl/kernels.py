@@ -177,17 +177,32 @@ def _contiguous(a, dtype=float) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
+class _Prepared(NamedTuple):
+    """What a correction takes from ``params`` alone (a frozen dataclass: a run passes the
+    same object every step), prepared once."""
+
+    gains: tuple[np.ndarray, ...]  # rho, alpha, gamma, zeta_s, zeta_c: (1,) or (B,)
+    options: KernelOptions
+    strategy: object  # the fusion method's FusionStrategy
+    problem: str | None  # why the strategy cannot run with params
+    bookkeeping: CompiledBookkeeping
+    last_sent: bool
+    cached: bool
+
+
 _last_prepared: tuple = (None, None)
 
 
-def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
-    """The gains ``(rho, alpha, gamma, zeta_s, zeta_c)`` and the options of ``params`` as
-    the kernel takes them, kept for the last ``params`` object (frozen)."""
+def _prepared(params: CLParams) -> _Prepared:
+    """The gains, options and fusion strategy of ``params`` as the kernel takes them, kept
+    for the last ``params`` object."""
     global _last_prepared
     ref, prepared = _last_prepared
     if ref is not None and ref() is params:
         return prepared
     gains = params.rho, params.alpha, params.gamma, params.zeta_s, params.zeta_c
+    last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
+    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
     options = KernelOptions(
         _contiguous(params.R),
         _contiguous(params.noise_std),
@@ -196,17 +211,58 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
         NORM_CODE[params.detector_norm],
         NORM_CODE[params.trigger_norm],
         float(params.risk_factor_floor),
-        params.threshold_innovation is ThresholdInnovation.LAST_SENT,
+        last_sent,
         _JITTER,
-        params.neighbour_estimate is NeighbourEstimate.CACHED,
+        cached,
         bool(params.update_without_transmission),
     )
-    prepared = (tuple(_per_robot(g) for g in gains), options)
+    strategy = fusion_strategy(params.fusion)
+    prepared = _Prepared(
+        tuple(_per_robot(g) for g in gains),
+        options,
+        strategy,
+        strategy.problem(params),
+        COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping],
+        last_sent,
+        cached,
+    )
     try:
         _last_prepared = (weakref.ref(params), prepared)
     except TypeError:  # not weakly referenceable: no cache
         _last_prepared = (None, None)
     return prepared
+
+
+_last_refusal: tuple = (None, None, None, None)
+
+
+def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
+    """:func:`~resloc.cl.backend.kernel_refusal`, kept for the last filter, ``params``,
+    backend and the links' optional fields it reads (whether there is a tamper hook and
+    whether it has a compiled form, whether there are transmitted independent parts)."""
+    global _last_refusal
+    tamper = links.tamper
+    form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
+    key = (backend(), form, links.P_nb_ind is None)
+    filt_ref, params_ref, last_key, refusal = _last_refusal
+    if last_key == key and filt_ref() is filt and params_ref() is params:
+        return refusal
+    refusal = kernel_refusal(filt, params, links)
+    try:
+        _last_refusal = (weakref.ref(filt), weakref.ref(params), key, refusal)
+    except TypeError:  # not weakly referenceable: no cache
+        _last_refusal = (None, None, None, None)
+    return refusal
+
+
+_NO_TAMPER: list = []
+
+
+def _no_tamper():
+    """:func:`~resloc.cl.kernels_tamper.no_tamper`, built once (the kernel only reads it)."""
+    if not _NO_TAMPER:
+        _NO_TAMPER.append(no_tamper())
+    return _NO_TAMPER[0]
 
 
 _NO_ROWS = np.zeros(0, np.int64)
@@ -229,23 +285,22 @@ def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours)
             return False
         nb = _contiguous(nb, np.int64)
     B = observer_bound(li, lj, _NO_ROWS if nb is None else nb, S)
-    if B < 1 or _shape(x)[0] < B or _shape(P)[0] < B:
+    x_shape, P_shape = _shape(x), _shape(P)
+    if B < 1 or len(x_shape) != 2 or len(P_shape) != 3 or x_shape[0] < B or P_shape[0] < B:
         return False
-    if _shape(x)[1:] != (3,) or _shape(P)[1:] != (3, 3):
+    if x_shape[1] != 3 or P_shape[1:] != (3, 3):
         return False
-    if _shape(x_nb) != (S, 3) or _shape(P_nb) != (S, 3, 3):
+    if _shape(x_nb) != (S, 3) or _shape(P_nb) != (S, 3, 3) or (nb is None and S != E):
         return False
-    per_link = (
-        (links.z, (E, 2)),
-        (x_nb, (E, 3) if nb is None else (S, 3)),
-        (links.channel_ok, (E,)),
-        (links.j, (E,)),
-    )
-    if any(_shape(a) != shape for a, shape in per_link):
+    if _shape(links.z) != (E, 2) or _shape(links.channel_ok) != (E,) or _shape(links.j) != (E,):
         return False
-    if any(a.ndim != 1 or len(a) < B for a in robots[:3]):
-        return False
-    return all(a.shape[0] == 1 or a.shape[0] >= B for a in robots[3:])
+    for a in robots[:3]:  # risks and lambda2: every observer's
+        if a.ndim != 1 or len(a) < B:
+            return False
+    for a in robots[3:]:  # gains: one, or every observer's
+        if a.shape[0] != 1 and a.shape[0] < B:
+            return False
+    return True
 
 
 def fast_correct(
@@ -262,33 +317,35 @@ def fast_correct(
     Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
     the outcome has ``compiled = True``.
     """
-    if kernel_refusal(filt, params, links, memory) is not None:
+    if _refusal(filt, params, links) is not None:
         return None
-    last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
-    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
+    prepared = _prepared(params)
+    last_sent, cached, options = prepared.last_sent, prepared.cached, prepared.options
     need_memory = last_sent or cached
     if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
     li = _contiguous(links.i, np.int64)
     lj = _contiguous(links.j, np.int64)
     E = len(li)
-    gains, options = _prepared(params)
     robots = KernelRobots(
-        _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
+        _contiguous(links.risk_s),
+        _contiguous(links.risk_c),
+        _contiguous(links.lambda2),
+        *prepared.gains,
     )
     neighbours = links.neighbour_rows()
     if E == 0 or not _shapes_ok(x, P, links, li, lj, robots, neighbours):
         return None
-    strategy = fusion_strategy(params.fusion)
-    if strategy.problem(params) is not None:
+    strategy = prepared.strategy
+    if prepared.problem is not None:
         return None  # the reference path raises the explanatory error
-    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
+    tamper = _no_tamper() if links.tamper is None else links.tamper.kernel_form
     z = links.z
     if tamper.on:  # the attacker's honest measurements and observers must be this batch's
         if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
             return None
         z = tamper.z
-    bookkeeping = COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping]
+    bookkeeping = prepared.bookkeeping
     fusion = fusion_state(strategy.kernel_update, params.ci_criterion, memory, links, E)
     gauge = bookkeeping.state(memory, E)
     if gauge is None or fusion is None:
