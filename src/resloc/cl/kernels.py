@@ -233,25 +233,28 @@ def _prepared(params: CLParams) -> _Prepared:
     return prepared
 
 
-_last_refusal: tuple = (None, None, None, None)
+#: Per filter (a run's estimators alternate): the last ``params``, key and refusal.
+_refusals: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
-    """:func:`~resloc.cl.backend.kernel_refusal`, kept for the last filter, ``params``,
+    """:func:`~resloc.cl.backend.kernel_refusal`, kept per filter for its last ``params``,
     backend and the links' optional fields it reads (whether there is a tamper hook and
     whether it has a compiled form, whether there are transmitted independent parts)."""
-    global _last_refusal
     tamper = links.tamper
     form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
     key = (backend(), form, links.P_nb_ind is None)
-    filt_ref, params_ref, last_key, refusal = _last_refusal
-    if last_key == key and filt_ref() is filt and params_ref() is params:
-        return refusal
+    try:
+        params_ref, last_key, refusal = _refusals[filt]
+        if last_key == key and params_ref() is params:
+            return refusal
+    except (KeyError, TypeError):
+        pass
     refusal = kernel_refusal(filt, params, links)
     try:
-        _last_refusal = (weakref.ref(filt), weakref.ref(params), key, refusal)
-    except TypeError:  # not weakly referenceable: no cache
-        _last_refusal = (None, None, None, None)
+        _refusals[filt] = (weakref.ref(params), key, refusal)
+    except TypeError:  # not hashable or weakly referenceable: no cache
+        pass
     return refusal
 
 

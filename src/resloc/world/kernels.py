@@ -55,27 +55,33 @@ PROFILE_CODE = {
 
 
 @jit
-def move_team(pose, p_des, projection, gain, v_max, omega_max, dt, u, new_pose):
+def move_team(pose, leader, offsets, projection, gain, v_max, omega_max, dt, u, new_pose):
     """The true commands and the move of every robot, in place.
 
     Parameters
     ----------
     pose : ndarray, shape (B, 3)
         Poses at step ``k``.
-    p_des : ndarray, shape (N, 2)
-        One team's desired positions at step ``k + 1`` (robot ``b`` follows row ``b % N``).
+    leader : ndarray, shape (2,)
+        The leader's desired position at step ``k + 1``.
+    offsets : ndarray, shape (N - 1, 2)
+        The followers' offsets from it (in the world frame): robot ``b`` of a team of ``N``
+        goes to ``leader`` (``b % N == 0``) or ``leader + offsets[b % N - 1]``.
     projection, gain, v_max, omega_max, dt : float
     u : ndarray, shape (B, 2)
         Out: the commands ``(v, omega)``.
     new_pose : ndarray, shape (B, 3)
         Out: the poses at step ``k + 1``.
     """
-    n = p_des.shape[0]
+    n = offsets.shape[0] + 1
     for b in range(pose.shape[0]):
         x, y, th = pose[b, 0], pose[b, 1], pose[b, 2]
+        r = b % n
+        want_x = leader[0] if r == 0 else leader[0] + offsets[r - 1, 0]
+        want_y = leader[1] if r == 0 else leader[1] + offsets[r - 1, 1]
         c, s = math.cos(th), math.sin(th)
-        vx = gain * (p_des[b % n, 0] - (x + projection * c))
-        vy = gain * (p_des[b % n, 1] - (y + projection * s))
+        vx = gain * (want_x - (x + projection * c))
+        vy = gain * (want_y - (y + projection * s))
         speed = math.sqrt(vx * vx + vy * vy)
         scale = min(1.0, v_max / max(speed, 1e-12))
         vx *= scale
@@ -142,7 +148,8 @@ def _shifted(pose, n, radius):
     return q
 
 
-def team_links(pose: np.ndarray, n: int, radius: float, comm_radius: float):
+@jit
+def team_links(pose, n, radius, comm_radius):
     """The sensed links of teams of ``n`` consecutive robots, and what the world needs of
     them: twin of ``radius_links(pose[:, :2], team, radius, method="pairs")`` (the same
     search coordinates and test, so the same links in the same order) and of the ranges
@@ -168,16 +175,13 @@ def team_links(pose: np.ndarray, n: int, radius: float, comm_radius: float):
     counts : ndarray of int64, shape (B // n,)
         Links per team.
     """
-    radius = float(radius)
     q = _shifted(pose, n, radius)
     E = _count_team_links(q, n, radius * radius)
     i, j = np.empty(E, np.int64), np.empty(E, np.int64)
     dx, dy, rng = np.empty(E), np.empty(E), np.empty(E)
     in_comm = np.empty(E, np.bool_)
-    counts = np.zeros(len(pose) // n, np.int64)
-    _fill_team_links(
-        pose, q, n, radius * radius, float(comm_radius), i, j, dx, dy, rng, in_comm, counts
-    )
+    counts = np.zeros(pose.shape[0] // n, np.int64)
+    _fill_team_links(pose, q, n, radius * radius, comm_radius, i, j, dx, dy, rng, in_comm, counts)
     return i, j, dx, dy, rng, in_comm, counts
 
 

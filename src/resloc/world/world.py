@@ -156,12 +156,18 @@ class World:
     # ------------------------------------------------------------------ set-up
     def _desired(self, t: float) -> tuple[np.ndarray, float]:
         """Desired positions ``(N, 2)`` of one team at time ``t`` and the path heading."""
+        p_leader, off, heading = self._leader_and_offsets(t)
+        return np.vstack([p_leader[None, :], p_leader + off]), heading
+
+    def _leader_and_offsets(self, t: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The leader's desired position ``(2,)`` at time ``t``, the followers' offsets
+        from it ``(N - 1, 2)`` in the world frame, and the path heading."""
         p_leader, heading = self.path.at(self.spec.motion.leader_speed * t)
         off = self.offsets
         if self.spec.motion.formation is FormationFrame.LEADER:
             c, s = np.cos(heading), np.sin(heading)
             off = off @ np.array([[c, s], [-s, c]])
-        return np.vstack([p_leader[None, :], p_leader + off]), heading
+        return p_leader, off, heading
 
     def _initial_poses(self) -> np.ndarray:
         p, heading = self._desired(0.0)
@@ -211,10 +217,10 @@ class World:
             self.pose = unicycle_step(self.pose, u, self.dt)
             return u
         m = self.spec.motion
-        p_des, _ = self._desired((self.k + 1) * self.dt)
+        leader, offsets, _ = self._leader_and_offsets((self.k + 1) * self.dt)
         u, pose = np.empty((self.B, 2)), np.empty((self.B, 3))
         self._compiled.move_team(
-            self.pose, p_des, m.projection, m.gain, m.v_max, m.omega_max, self.dt, u, pose
+            self.pose, leader, offsets, m.projection, m.gain, m.v_max, m.omega_max, self.dt, u, pose
         )
         self.pose = pose
         return u
@@ -236,7 +242,9 @@ class World:
             z[:, 1] = wrap_angle(z[:, 1])
             in_comm = np.hypot(*(p[i] - p[j]).T) <= sens.comm_radius
             return i, j, z, counts, in_comm
-        found = self._compiled.team_links(self.pose, self.n, sens.radius, sens.comm_radius)
+        found = self._compiled.team_links(
+            self.pose, self.n, float(sens.radius), float(sens.comm_radius)
+        )
         i, j, dx, dy, distance, in_comm, counts = found
         noise = _stacked([g.normal(size=(c, 2)) for g, c in zip(rngs, counts, strict=True)])
         angle = np.arctan2(dy, dx)  # numpy's: numba's libm atan2 differs in the last bit
