@@ -266,3 +266,15 @@ def zone_arrays(field) -> ZoneArrays | None:
     if not zones or any(z.profile not in PROFILE_CODE for z in zones):
         return None
     return ZoneArrays(zones)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) the world's kernels on a tiny world,
+    outside any timed section."""
+    pose = np.array([[0.0, 0.0, 0.1], [0.5, 0.2, -0.3]])
+    u, moved = np.empty((2, 2)), np.empty((2, 3))
+    move_team(pose, np.zeros(2), np.array([[-0.5, 0.0]]), 0.05, 1.0, 0.2, 3.0, 0.03, u, moved)
+    i, _, dx, dy, distance, _, _ = team_links(pose, 2, 1.0, 1.0)
+    noisy_measurements(distance, np.arctan2(dy, dx), pose, i, np.zeros((len(i), 2)), np.ones(2))
+    zones = ZoneArrays([])
+    zone_risk(pose[:, :2], zones.centre, zones.radius, zones.peak, zones.profile, zones.tau)
