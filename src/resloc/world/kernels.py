@@ -268,9 +268,15 @@ def zone_arrays(field) -> ZoneArrays | None:
     return ZoneArrays(zones)
 
 
+_WARM: list[bool] = []
+
+
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) the world's kernels on a tiny world,
-    outside any timed section."""
+    outside any timed section; once per process."""
+    if _WARM:
+        return
+    _WARM.append(True)
     pose = np.array([[0.0, 0.0, 0.1], [0.5, 0.2, -0.3]])
     u, moved = np.empty((2, 2)), np.empty((2, 3))
     move_team(pose, np.zeros(2), np.array([[-0.5, 0.0]]), 0.05, 1.0, 0.2, 3.0, 0.03, u, moved)

@@ -38,11 +38,12 @@ def compiled_world(team_size: int):
     numpy one: with the CL's compiled backend (:func:`resloc.cl.backend.backend`) and
     teams of at most :data:`~resloc.world.network.PAIRWISE_MAX` robots (every pair of a
     team is tested; larger teams take :func:`~resloc.world.network.radius_links`' cell
-    lists or KD-tree)."""
+    lists or KD-tree). The kernels are loaded (or compiled) here, once per process."""
     if backend() != "numba" or team_size > PAIRWISE_MAX:
         return None
-    from resloc.world import kernels  # loads numba: only when it steps
+    from resloc.world import kernels  # loads numba: only for a compiled world
 
+    kernels.warm_up()  # before the first step (a world process's first step is timed)
     return kernels
 
 
