@@ -52,6 +52,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     use_backend,
 )
 from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import fusion_commit, fusion_state
@@ -176,17 +177,32 @@ def _contiguous(a, dtype=float) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=dtype)
 
 
+class _Prepared(NamedTuple):
+    """What a correction takes from ``params`` alone (a frozen dataclass: a run passes the
+    same object every step), prepared once."""
+
+    gains: tuple[np.ndarray, ...]  # rho, alpha, gamma, zeta_s, zeta_c: (1,) or (B,)
+    options: KernelOptions
+    strategy: object  # the fusion method's FusionStrategy
+    problem: str | None  # why the strategy cannot run with params
+    bookkeeping: CompiledBookkeeping
+    last_sent: bool
+    cached: bool
+
+
 _last_prepared: tuple = (None, None)
 
 
-def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
-    """The gains ``(rho, alpha, gamma, zeta_s, zeta_c)`` and the options of ``params`` as
-    the kernel takes them, kept for the last ``params`` object (frozen)."""
+def _prepared(params: CLParams) -> _Prepared:
+    """The gains, options and fusion strategy of ``params`` as the kernel takes them, kept
+    for the last ``params`` object."""
     global _last_prepared
     ref, prepared = _last_prepared
     if ref is not None and ref() is params:
         return prepared
     gains = params.rho, params.alpha, params.gamma, params.zeta_s, params.zeta_c
+    last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
+    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
     options = KernelOptions(
         _contiguous(params.R),
         _contiguous(params.noise_std),
@@ -195,12 +211,21 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
         NORM_CODE[params.detector_norm],
         NORM_CODE[params.trigger_norm],
         float(params.risk_factor_floor),
-        params.threshold_innovation is ThresholdInnovation.LAST_SENT,
+        last_sent,
         _JITTER,
-        params.neighbour_estimate is NeighbourEstimate.CACHED,
+        cached,
         bool(params.update_without_transmission),
     )
-    prepared = (tuple(_per_robot(g) for g in gains), options)
+    strategy = fusion_strategy(params.fusion)
+    prepared = _Prepared(
+        tuple(_per_robot(g) for g in gains),
+        options,
+        strategy,
+        strategy.problem(params),
+        COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping],
+        last_sent,
+        cached,
+    )
     try:
         _last_prepared = (weakref.ref(params), prepared)
     except TypeError:  # not weakly referenceable: no cache
@@ -208,32 +233,77 @@ def _prepared(params: CLParams) -> tuple[tuple[np.ndarray, ...], KernelOptions]:
     return prepared
 
 
-def _shapes_ok(x, P, links: LinkBatch, robots: KernelRobots, neighbours) -> bool:
-    """Every index the kernel will use is in range (the compiled loop does not check)."""
-    li = np.asarray(links.i)
+#: Per filter (a run's estimators alternate): the last ``params``, key and refusal.
+_refusals: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
+    """:func:`~resloc.cl.backend.kernel_refusal`, kept per filter for its last ``params``,
+    backend and the links' optional fields it reads (whether there is a tamper hook and
+    whether it has a compiled form, whether there are transmitted independent parts)."""
+    tamper = links.tamper
+    form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
+    key = (backend(), form, links.P_nb_ind is None)
+    try:
+        params_ref, last_key, refusal = _refusals[filt]
+        if last_key == key and params_ref() is params:
+            return refusal
+    except (KeyError, TypeError):
+        pass
+    refusal = kernel_refusal(filt, params, links)
+    try:
+        _refusals[filt] = (weakref.ref(params), key, refusal)
+    except TypeError:  # not hashable or weakly referenceable: no cache
+        pass
+    return refusal
+
+
+_NO_TAMPER: list = []
+
+
+def _no_tamper():
+    """:func:`~resloc.cl.kernels_tamper.no_tamper`, built once (the kernel only reads it)."""
+    if not _NO_TAMPER:
+        _NO_TAMPER.append(no_tamper())
+    return _NO_TAMPER[0]
+
+
+_NO_ROWS = np.zeros(0, np.int64)
+
+
+def _shape(a) -> tuple:
+    """``np.shape(a)`` without its dispatch for an array (a third of a microsecond each)."""
+    return a.shape if type(a) is np.ndarray else np.shape(a)
+
+
+def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours) -> bool:
+    """Every index the kernel will use is in range (the compiled loop does not check), and
+    no link repeats the one before it. ``li``, ``lj``: the links' observers and observed
+    nodes as contiguous int64 arrays."""
     E = len(li)
-    B = int(li.max()) + 1
-    if li.min() < 0 or np.shape(x)[0] < B or np.shape(P)[0] < B:
-        return False
-    if np.shape(x)[1:] != (3,) or np.shape(P)[1:] != (3, 3):
-        return False
     nb, x_nb, P_nb = neighbours
     S = len(x_nb)
-    if np.shape(x_nb) != (S, 3) or np.shape(P_nb) != (S, 3, 3):
+    if nb is not None:
+        if not isinstance(nb, np.ndarray) or nb.shape != (E,) or nb.dtype.kind not in "iu":
+            return False
+        nb = _contiguous(nb, np.int64)
+    B = observer_bound(li, lj, _NO_ROWS if nb is None else nb, S)
+    x_shape, P_shape = _shape(x), _shape(P)
+    if B < 1 or len(x_shape) != 2 or len(P_shape) != 3 or x_shape[0] < B or P_shape[0] < B:
         return False
-    if nb is not None and (np.shape(nb) != (E,) or nb.min() < 0 or nb.max() >= S):
+    if x_shape[1] != 3 or P_shape[1:] != (3, 3):
         return False
-    per_link = (
-        (links.z, (E, 2)),
-        (x_nb, (E, 3) if nb is None else (S, 3)),
-        (links.channel_ok, (E,)),
-        (links.j, (E,)),
-    )
-    if any(np.shape(a) != shape for a, shape in per_link):
+    if _shape(x_nb) != (S, 3) or _shape(P_nb) != (S, 3, 3) or (nb is None and S != E):
         return False
-    if any(a.ndim != 1 or len(a) < B for a in robots[:3]):
+    if _shape(links.z) != (E, 2) or _shape(links.channel_ok) != (E,) or _shape(links.j) != (E,):
         return False
-    return all(a.shape[0] == 1 or a.shape[0] >= B for a in robots[3:])
+    for a in robots[:3]:  # risks and lambda2: every observer's
+        if a.ndim != 1 or len(a) < B:
+            return False
+    for a in robots[3:]:  # gains: one, or every observer's
+        if a.shape[0] != 1 and a.shape[0] < B:
+            return False
+    return True
 
 
 def fast_correct(
@@ -250,35 +320,35 @@ def fast_correct(
     Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
     the outcome has ``compiled = True``.
     """
-    if kernel_refusal(filt, params, links, memory) is not None:
+    if _refusal(filt, params, links) is not None:
         return None
-    last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
-    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
+    prepared = _prepared(params)
+    last_sent, cached, options = prepared.last_sent, prepared.cached, prepared.options
     need_memory = last_sent or cached
     if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
     li = _contiguous(links.i, np.int64)
-    lj = np.asarray(links.j, dtype=np.int64)
+    lj = _contiguous(links.j, np.int64)
     E = len(li)
-    gains, options = _prepared(params)
     robots = KernelRobots(
-        _contiguous(links.risk_s), _contiguous(links.risk_c), _contiguous(links.lambda2), *gains
+        _contiguous(links.risk_s),
+        _contiguous(links.risk_c),
+        _contiguous(links.lambda2),
+        *prepared.gains,
     )
     neighbours = links.neighbour_rows()
-    if E == 0 or not _shapes_ok(x, P, links, robots, neighbours):
+    if E == 0 or not _shapes_ok(x, P, links, li, lj, robots, neighbours):
         return None
-    if E > 1 and np.any((li[1:] == li[:-1]) & (lj[1:] == lj[:-1])):
-        return None  # a duplicated link would read its own store within one call
-    strategy = fusion_strategy(params.fusion)
-    if strategy.problem(params) is not None:
+    strategy = prepared.strategy
+    if prepared.problem is not None:
         return None  # the reference path raises the explanatory error
-    tamper = no_tamper() if links.tamper is None else links.tamper.kernel_form
+    tamper = _no_tamper() if links.tamper is None else links.tamper.kernel_form
     z = links.z
     if tamper.on:  # the attacker's honest measurements and observers must be this batch's
         if tamper.z.shape != (E, 2) or not np.array_equal(tamper.observer, li):
             return None
         z = tamper.z
-    bookkeeping = COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping]
+    bookkeeping = prepared.bookkeeping
     fusion = fusion_state(strategy.kernel_update, params.ci_criterion, memory, links, E)
     gauge = bookkeeping.state(memory, E)
     if gauge is None or fusion is None:

@@ -34,6 +34,7 @@ the reference to ~1e-15 (tested to 1e-9).
 from __future__ import annotations
 
 import math
+import weakref
 from collections import Counter
 from typing import NamedTuple
 
@@ -120,6 +121,31 @@ def _build_spec(filt) -> PredictKernelSpec | None:
 predict_kernel_spec = per_filter(_build_spec)
 
 
+_last_variances: tuple = (None, None, None)
+
+
+def _noise_variances(params, dt: float) -> tuple[tuple, np.ndarray, np.ndarray]:
+    """The shape of ``params.odometry_std``, its variances as 2-D rows and the floor's
+    ``floor^2 dt`` as the kernel takes them, kept for the last ``params`` object (frozen)
+    and ``dt`` (the shapes are checked by the caller)."""
+    global _last_variances
+    ref, key, variances = _last_variances
+    if ref is not None and ref() is params and key == dt:
+        return variances
+    odometry = np.asarray(params.odometry_std, dtype=float)
+    floor = np.asarray(params.process_floor_std, dtype=float)
+    variances = (
+        odometry.shape,
+        np.ascontiguousarray(np.atleast_2d(odometry**2)),
+        np.ascontiguousarray(floor**2 * dt),
+    )
+    try:
+        _last_variances = (weakref.ref(params), dt, variances)
+    except TypeError:  # not weakly referenceable: no cache
+        _last_variances = (None, None, None)
+    return variances
+
+
 def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, np.ndarray] | None:
     """The whole :func:`~resloc.cl.step.predict` in one compiled pass over the robots.
 
@@ -141,12 +167,9 @@ def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, n
     B = x.shape[0] if x.ndim == 2 else -1
     if x.shape != (B, 3) or P.shape != (B, 3, 3) or u.shape != (B, 2):
         return None
-    odometry = np.asarray(params.odometry_std, dtype=float)
-    floor = np.asarray(params.process_floor_std, dtype=float)
-    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
+    odometry_shape, odometry_var, floor_var = _noise_variances(params, dt)
+    if odometry_shape not in ((2,), (B, 2)) or floor_var.shape != (3,):
         return None
-    odometry_var = np.ascontiguousarray(np.atleast_2d(odometry**2))
-    floor_var = np.ascontiguousarray(floor**2 * dt)
     if buffers is None:
         x_out = np.empty((B, 3))
         P_out = np.empty((B, 3, 3))

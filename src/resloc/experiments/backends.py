@@ -91,8 +91,10 @@ def warm_up_kernels() -> None:
     except ImportError:  # pragma: no cover - numba is optional
         return
     warm = getattr(kernels, "warm_up", None)
-    if warm is not None:
-        warm()
+    if warm is not None and warm():
+        from resloc.world import kernels as world_kernels  # the world step's twin
+
+        world_kernels.warm_up()
 
 
 def run_task(fn: Callable[..., Sequence[Any]], args: tuple, in_worker: bool = True):

@@ -263,6 +263,7 @@ class _WorldSteps:
         self.l2_true: list[float] = []
         self.l2_est: list[float] = []
         self.l2_abs_rel: list[float] = []
+        self._l2_seen: tuple = (None, 0.0)  # the world's last lambda2 array and its mean
         if scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED:
             # Initial Fiedler-vector guesses drawn per trial (independent of the batching).
             y0 = np.concatenate(
@@ -330,10 +331,14 @@ class _WorldSteps:
 
     def lambda2(self, ws) -> np.ndarray:
         """The ``lambda2`` each robot's trigger uses this step, shape (B,)."""
-        ok = ws.lambda2 > 0
         if self.dl2 is None:
-            self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else 0.0)
+            # The world hands the same array until the graph changes: its mean is kept.
+            if ws.lambda2 is not self._l2_seen[0]:
+                ok = ws.lambda2 > 0
+                self._l2_seen = (ws.lambda2, float(ws.lambda2[ok].mean()) if ok.any() else 0.0)
+            self.l2_true.append(self._l2_seen[1])
             return ws.lambda2
+        ok = ws.lambda2 > 0
         in_comm = self.in_comm(ws)
         est = self.dl2.step(ws.i[in_comm], ws.j[in_comm])
         self.l2_true.append(float(ws.lambda2[ok].mean()) if ok.any() else float("nan"))

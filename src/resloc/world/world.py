@@ -12,16 +12,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.angles import wrap_angle
+from resloc.cl.backend import backend
 from resloc.cl.graph import Lambda2Memo, component_lambda2
 from resloc.models.measurement import range_bearing
 from resloc.models.motion import unicycle_step
 from resloc.world.attacks import AttackKind, apply_injection, attackable_links, injection
 from resloc.world.control import LeaderPath, lattice_offsets, si_to_unicycle
-from resloc.world.network import radius_links
+from resloc.world.network import PAIRWISE_MAX, radius_links
 from resloc.world.spec import ChannelRule, FormationFrame, WorldSpec, ZoneSpec
 from resloc.world.zones import Zone, ZoneField
 
-__all__ = ["World", "WorldStep", "zone_field"]
+__all__ = ["World", "WorldStep", "compiled_world", "zone_field"]
 
 _STREAMS = ("init", "odometry", "measurement", "attack", "channel")
 
@@ -30,6 +31,20 @@ def _stacked(draws: list[np.ndarray]) -> np.ndarray:
     """The trials' draws of one stream stacked along the first axis (one trial: its own
     array, no copy)."""
     return draws[0] if len(draws) == 1 else np.concatenate(draws)
+
+
+def compiled_world(team_size: int):
+    """The compiled twin of the world's step (:mod:`resloc.world.kernels`), or None for the
+    numpy one: with the CL's compiled backend (:func:`resloc.cl.backend.backend`) and
+    teams of at most :data:`~resloc.world.network.PAIRWISE_MAX` robots (every pair of a
+    team is tested; larger teams take :func:`~resloc.world.network.radius_links`' cell
+    lists or KD-tree). The kernels are loaded (or compiled) here, once per process."""
+    if backend() != "numba" or team_size > PAIRWISE_MAX:
+        return None
+    from resloc.world import kernels  # loads numba: only for a compiled world
+
+    kernels.warm_up()  # before the first step (a world process's first step is timed)
+    return kernels
 
 
 def zone_field(specs: tuple[ZoneSpec, ...]) -> ZoneField:
@@ -135,16 +150,25 @@ class World:
             from resloc.world.adversary import ReplayBuffer
 
             self._replay = ReplayBuffer(spec.attack.replay_delay, self.B)
+        self._compiled = compiled_world(self.n)
+        self._sdz_compiled = self._compiled and self._compiled.zone_arrays(self.sdz)
+        self._cdz_compiled = self._compiled and self._compiled.zone_arrays(self.cdz)
 
     # ------------------------------------------------------------------ set-up
     def _desired(self, t: float) -> tuple[np.ndarray, float]:
         """Desired positions ``(N, 2)`` of one team at time ``t`` and the path heading."""
+        p_leader, off, heading = self._leader_and_offsets(t)
+        return np.vstack([p_leader[None, :], p_leader + off]), heading
+
+    def _leader_and_offsets(self, t: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The leader's desired position ``(2,)`` at time ``t``, the followers' offsets
+        from it ``(N - 1, 2)`` in the world frame, and the path heading."""
         p_leader, heading = self.path.at(self.spec.motion.leader_speed * t)
         off = self.offsets
         if self.spec.motion.formation is FormationFrame.LEADER:
             c, s = np.cos(heading), np.sin(heading)
             off = off @ np.array([[c, s], [-s, c]])
-        return np.vstack([p_leader[None, :], p_leader + off]), heading
+        return p_leader, off, heading
 
     def _initial_poses(self) -> np.ndarray:
         p, heading = self._desired(0.0)
@@ -186,29 +210,69 @@ class World:
         v_si *= np.minimum(1.0, m.v_max / np.maximum(speed, 1e-12))
         return si_to_unicycle(self.pose, v_si, m.projection, m.v_max, m.omega_max)
 
+    def _move(self) -> np.ndarray:
+        """Move every robot from step ``k`` to ``k + 1`` (``self.pose``); returns the true
+        commands ``(B, 2)``."""
+        if self._compiled is None:
+            u = self.commands()
+            self.pose = unicycle_step(self.pose, u, self.dt)
+            return u
+        m = self.spec.motion
+        leader, offsets, _ = self._leader_and_offsets((self.k + 1) * self.dt)
+        u, pose = np.empty((self.B, 2)), np.empty((self.B, 3))
+        self._compiled.move_team(
+            self.pose, leader, offsets, m.projection, m.gain, m.v_max, m.omega_max, self.dt, u, pose
+        )
+        self.pose = pose
+        return u
+
+    def _sense(self) -> tuple[np.ndarray, ...]:
+        """The sensed links ``i, j`` of the current poses, their measurements ``z: (E, 2)``
+        (noise drawn from each trial's stream), links per trial ``(T,)`` and which links
+        are within radio range ``(E,)``."""
+        sens = self.spec.sensing
+        rngs = self._fresh("measurement")
+        if self._compiled is None:
+            p = self.pose[:, :2]
+            i, j = radius_links(p, self.team, sens.radius)
+            z = range_bearing(self.pose[i], self.pose[j])
+            counts = np.bincount(self.team[i], minlength=self.trials)
+            noise = _stacked([g.normal(size=(c, 2)) for g, c in zip(rngs, counts, strict=True)])
+            z = z + noise.reshape(-1, 2) * self._measurement_std
+            z[:, 0] = np.abs(z[:, 0])
+            z[:, 1] = wrap_angle(z[:, 1])
+            in_comm = np.hypot(*(p[i] - p[j]).T) <= sens.comm_radius
+            return i, j, z, counts, in_comm
+        found = self._compiled.team_links(
+            self.pose, self.n, float(sens.radius), float(sens.comm_radius)
+        )
+        i, j, dx, dy, distance, in_comm, counts = found
+        noise = _stacked([g.normal(size=(c, 2)) for g, c in zip(rngs, counts, strict=True)])
+        angle = np.arctan2(dy, dx)  # numpy's: numba's libm atan2 differs in the last bit
+        z = self._compiled.noisy_measurements(
+            distance, angle, self.pose, i, noise.reshape(-1, 2), self._measurement_std
+        )
+        return i, j, z, counts, in_comm
+
+    def _risk(self, field: ZoneField, compiled) -> np.ndarray:
+        """``field``'s risk at the robots' true positions, ``(B,)``."""
+        if not field:
+            return np.zeros(self.B)
+        if compiled is not None:
+            return compiled.risk(self.pose[:, :2])
+        return field.risk(self.pose[:, :2])
+
     def step(self) -> WorldStep:
         """Move every robot one ``dt``, then sense and draw attacks and channel outcomes."""
-        sens, att = self.spec.sensing, self.spec.attack
-        u = self.commands()
-        self.pose = unicycle_step(self.pose, u, self.dt)
+        att = self.spec.attack
+        u = self._move()
         self.k += 1
         u_meas = u + _stacked([g.normal(size=(self.n, 2)) for g in self._fresh("odometry")]) * (
             self._odometry_std
         )
-
-        p = self.pose[:, :2]
-        i, j = radius_links(p, self.team, sens.radius)
-        z = range_bearing(self.pose[i], self.pose[j])
-        counts = np.bincount(self.team[i], minlength=self.trials)
-        noise = _stacked(
-            [g.normal(size=(c, 2)) for g, c in zip(self._fresh("measurement"), counts, strict=True)]
-        )
-        z = z + noise.reshape(-1, 2) * self._measurement_std
-        z[:, 0] = np.abs(z[:, 0])
-        z[:, 1] = wrap_angle(z[:, 1])
-
-        risk_s = self.sdz.risk(p) if self.sdz else np.zeros(self.B)
-        risk_c = self.cdz.risk(p) if self.cdz else np.zeros(self.B)
+        i, j, z, counts, in_comm = self._sense()
+        risk_s = self._risk(self.sdz, self._sdz_compiled)
+        risk_c = self._risk(self.cdz, self._cdz_compiled)
 
         attacked = np.zeros(len(i), dtype=bool)
         att_rngs = self._fresh("attack")
@@ -237,7 +301,6 @@ class World:
                 )
                 z[attacked] = apply_injection(z[attacked], gamma)
 
-        in_comm = np.hypot(*(p[i] - p[j]).T) <= sens.comm_radius
         channel_ok = in_comm.copy()
         if self.cdz:
             u_ch = _stacked(
