@@ -436,20 +436,20 @@ def _chol6(A, L, jitter):
 @jit
 def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
     """The filter's unit points times the Cholesky factor of the correlated joint
-    (:func:`joint_cross`'s blocks) into ``off: (m, 6)``. False when the joint has no
+    (:func:`joint_cross`'s blocks) into ``off: (6, m)``. False when the joint has no
     Cholesky factor. Twin: :func:`resloc.cl.tracking.joint_moments` (its offsets)."""
     J = _joint6(joint)
     L = joint[12][1]
     if not _chol6(J, L, jitter):
         return False
-    for k in range(off.shape[0]):
+    for k in range(off.shape[1]):
         for a in range(6):
-            off[k, a] = 0.0
+            off[a, k] = 0.0
         for t in range(nz_cnt[k]):
             b = nz_idx[k, t]
             u = nz_val[k, t]
             for a in range(b, 6):  # L is lower triangular
-                off[k, a] += L[a, b] * u
+                off[a, k] += L[a, b] * u
     return True
 
 
