@@ -80,19 +80,32 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
     if noise is None or not _inputs_ok(x, u, B):
         return None
     sigma = np.array(joint.sigma, dtype=float, order="C", copy=True)
+    diagonal = np.empty((B, 3, 3))
     _propagate_joint(
         np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt),
-        *noise, joint.N, sigma,
+        *noise, joint.N, sigma, diagonal,
     )  # fmt: skip
     joint.sigma = sigma
     joint._start_step()
-    return joint.diagonal()
+    return diagonal
 
 
 @jit
-def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma):
+def _diagonal_blocks(sigma, N, diagonal):
+    """The diagonal blocks of every team's joint into ``diagonal: (B, 3, 3)``.
+    Twin: :meth:`resloc.cl.tracking.JointCovariance.diagonal`."""
+    for t in range(sigma.shape[0]):
+        for a in range(N):
+            for p in range(3):
+                for q in range(3):
+                    diagonal[t * N + a, p, q] = sigma[t, 3 * a + p, 3 * a + q]
+
+
+@jit
+def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma, diagonal):
     """``sigma[t]_(ab) <- F_a sigma_(ab) F_b^T`` for every pair of robots of every team,
-    ``+ Q_a`` on the diagonal blocks, then symmetrized, in place."""
+    ``+ Q_a`` on the diagonal blocks, then symmetrized, in place; the diagonal blocks into
+    ``diagonal: (B, 3, 3)``."""
     B = x.shape[0]
     per_robot_noise = odometry_var.shape[0] > 1
     F = np.zeros((B, 3, 3))
@@ -127,6 +140,7 @@ def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma):
                 for q in range(3):
                     sigma[t, 3 * a + p, 3 * a + q] += Q[t * N + a, p, q]
         _symmetrize_in_place(sigma[t])
+    _diagonal_blocks(sigma, N, diagonal)
 
 
 @jit
@@ -142,30 +156,30 @@ def _symmetrize_in_place(S):
 def scatter_tracked_blocks(joint, A, Bij, i, j, fused) -> None:
     """The dense ``M`` of ``joint`` from the blocks of a correction: robot b's ``A_b`` at
     its own column, each fused link's ``B_ij`` at j's (the reference's ``M`` after its
-    updates)."""
-    M = np.zeros_like(joint.M)
-    rows = np.flatnonzero(fused)
+    updates). ``joint.M`` must be as the step started it (no update recorded): the blocks
+    are written into it in place."""
+    joint.M = np.ascontiguousarray(joint.M, dtype=float)
     _scatter(
-        M, np.ascontiguousarray(A), np.ascontiguousarray(Bij),
-        np.ascontiguousarray(np.asarray(i)[rows], dtype=np.int64),
-        np.ascontiguousarray(np.asarray(j)[rows], dtype=np.int64),
-        np.ascontiguousarray(rows, dtype=np.int64), joint.N,
+        joint.M, np.ascontiguousarray(A), np.ascontiguousarray(Bij),
+        np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
+        np.ascontiguousarray(fused, dtype=np.bool_), joint.N,
     )  # fmt: skip
-    joint.M = M
 
 
 @jit
-def _scatter(M, A, Bij, obs, nbr, rows, N):
+def _scatter(M, A, Bij, obs, nbr, fused, N):
     for b in range(A.shape[0]):
         c0 = 3 * (b % N)
         for p in range(3):
             for q in range(3):
                 M[b, p, c0 + q] = A[b, p, q]
-    for k in range(rows.shape[0]):
-        c0 = 3 * (nbr[k] % N)
+    for e in range(obs.shape[0]):
+        if not fused[e]:
+            continue
+        c0 = 3 * (nbr[e] % N)
         for p in range(3):
             for q in range(3):
-                M[obs[k], p, c0 + q] = Bij[rows[k], p, q]
+                M[obs[e], p, c0 + q] = Bij[e, p, q]
 
 
 def compiled_tracked_finish(joint) -> np.ndarray | None:
@@ -175,59 +189,85 @@ def compiled_tracked_finish(joint) -> np.ndarray | None:
     if backend() != "numba" or not isinstance(joint, JointCovariance):
         return None
     sigma = np.empty_like(joint.sigma)
+    diagonal = np.empty((joint.T * joint.N, 3, 3))
     _joint_finish(
         np.ascontiguousarray(joint.M, dtype=float), np.ascontiguousarray(joint.sigma, dtype=float),
-        np.ascontiguousarray(joint.noise, dtype=float), joint.N, sigma,
+        np.ascontiguousarray(joint.noise, dtype=float), joint.N, sigma, diagonal,
     )  # fmt: skip
     joint.sigma = sigma
     joint._start_step()
-    return joint.diagonal()
+    return diagonal
 
 
 @jit
-def _joint_finish(M, sigma, noise, N, out):
+def _nonzero_blocks(M, row, N, cols):
+    """The column blocks of robot ``row``'s ``M`` (3, 3N) with a non-zero entry into
+    ``cols``; returns how many."""
+    count = 0
+    for p in range(N):
+        found = False
+        for r in range(3):
+            for c in range(3):
+                if M[row, r, 3 * p + c] != 0.0:
+                    found = True
+        if found:
+            cols[count] = p
+            count += 1
+    return count
+
+
+@jit
+def _block_rows_times(M, row, cols, count, X, out, at):
+    """``out[at:at+3] = M_row X`` over ``M_row``'s non-zero column blocks ``cols[:count]``:
+    rows of ``X`` (3N, 3N) scaled and added, each a loop over contiguous columns (SIMD)."""
+    n3 = X.shape[1]
+    for r in range(3):
+        dst = out[at + r]
+        for c in range(n3):
+            dst[c] = 0.0
+        for k in range(count):
+            p = cols[k]
+            for d in range(3):
+                coef = M[row, r, 3 * p + d]
+                src = X[3 * p + d]
+                for c in range(n3):
+                    dst[c] += coef * src[c]
+
+
+@jit
+def _joint_finish(M, sigma, noise, N, out, diagonal):
     """``out[t] = sym(M_t sigma[t] M_t^T + blockdiag(noise))`` with ``M_t`` the team's rows of
-    ``M`` (B, 3, 3N), over its non-zero 3 x 3 blocks."""
+    ``M`` (B, 3, 3N), over its non-zero 3 x 3 blocks; the diagonal blocks into ``diagonal:
+    (B, 3, 3)``. ``W = M_t sigma`` and ``V = M_t W^T = (M_t sigma M_t^T)^T`` (sigma is
+    symmetric) are both sums of scaled rows (:func:`_block_rows_times`)."""
     n3 = 3 * N
-    W = np.zeros((n3, n3))
+    W = np.empty((n3, n3))
+    U = np.empty((n3, n3))
+    V = np.empty((n3, n3))
     cols = np.zeros((N, N), dtype=np.int64)  # each robot's non-zero blocks of M
     count = np.zeros(N, dtype=np.int64)
     for t in range(sigma.shape[0]):
         for a in range(N):
-            count[a] = 0
-            for p in range(N):
-                found = False
-                for r in range(3):
-                    for c in range(3):
-                        if M[t * N + a, r, 3 * p + c] != 0.0:
-                            found = True
-                if found:
-                    cols[a, count[a]] = p
-                    count[a] += 1
-        for a in range(N):  # W = M sigma, by the non-zero blocks of M
-            for r in range(3):
-                for c in range(n3):
-                    W[3 * a + r, c] = 0.0
-            for k in range(count[a]):
-                p = cols[a, k]
-                for r in range(3):
-                    for c in range(n3):
-                        W[3 * a + r, c] += (
-                            M[t * N + a, r, 3 * p] * sigma[t, 3 * p, c]
-                            + M[t * N + a, r, 3 * p + 1] * sigma[t, 3 * p + 1, c]
-                            + M[t * N + a, r, 3 * p + 2] * sigma[t, 3 * p + 2, c]
-                        )
-        for a in range(N):  # out = W M^T
-            for b in range(N):
-                for r in range(3):
-                    for c in range(3):
-                        s = noise[t * N + a, r, c] if a == b else 0.0
-                        for k in range(count[b]):
-                            q = cols[b, k]
-                            for d in range(3):
-                                s += W[3 * a + r, 3 * q + d] * M[t * N + b, c, 3 * q + d]
-                        out[t, 3 * a + r, 3 * b + c] = s
-        _symmetrize_in_place(out[t])
+            count[a] = _nonzero_blocks(M, t * N + a, N, cols[a])
+        S = sigma[t]
+        for a in range(N):  # W = M sigma
+            _block_rows_times(M, t * N + a, cols[a], count[a], S, W, 3 * a)
+        for p in range(n3):  # U = W^T
+            for q in range(n3):
+                U[q, p] = W[p, q]
+        for a in range(N):  # V = M W^T
+            _block_rows_times(M, t * N + a, cols[a], count[a], U, V, 3 * a)
+        result = out[t]
+        for p in range(n3):  # out = sym(V^T + blockdiag(noise))
+            for q in range(p + 1):
+                a = p // 3
+                b = q // 3
+                v = 0.5 * (V[q, p] + V[p, q])
+                if a == b:
+                    v += 0.5 * (noise[t * N + a, p % 3, q % 3] + noise[t * N + a, q % 3, p % 3])
+                result[p, q] = v
+                result[q, p] = v
+    _diagonal_blocks(out, N, diagonal)
 
 
 def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | None:

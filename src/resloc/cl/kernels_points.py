@@ -15,12 +15,12 @@ This module is compiled with ``error_model="numpy"`` (an IEEE division, no
 ``ZeroDivisionError`` branch, which the loop vectorizer needs), so its functions are called
 from the link loop, not inlined into it.
 
-==========================  ============================  ===================================
-function                    paper                         numpy twin
-==========================  ============================  ===================================
-:func:`point_moments`       eq. (3), sigma points         ``SigmaPointFilter.relative_moments``
-                                                          and :func:`resloc.cl.tracking.joint_moments`
-==========================  ============================  ===================================
+======================  ======================  ==============================================
+function                paper                   numpy twin
+======================  ======================  ==============================================
+:func:`point_moments`   eq. (3), sigma points   ``SigmaPointFilter.relative_moments``,
+                                                :func:`resloc.cl.tracking.joint_moments`
+======================  ======================  ==============================================
 """
 
 from __future__ import annotations
