@@ -189,7 +189,7 @@ def test_compiled_valid_cross_shrinks_like_the_reference() -> None:
     a correlation above the cap (shrunk) and below it (kept), one matrix at a time in the
     kernel's twin. The runs above rarely need the shrink, so it is checked here."""
     from resloc.cl.factorized import valid_cross
-    from resloc.cl.kernels_joint import _valid_cross
+    from resloc.cl.kernels_joint_links import _valid_cross
     from resloc.linalg import JITTER_LEVELS
 
     rng = np.random.default_rng(3)
@@ -234,7 +234,7 @@ def test_compiled_clip_of_independent_parts_like_the_reference() -> None:
 def test_sylvester_certificate_of_eigenvalues_below_a_bound() -> None:
     """``scaled_unit_minus_is_pd(M, c)`` certifies every eigenvalue of ``M`` below ``c``
     (it decides when the kernels skip an eigenvalue computation): never wrongly."""
-    from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
+    from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 
     rng = np.random.default_rng(5)
     M = _random_spd(rng, 500)

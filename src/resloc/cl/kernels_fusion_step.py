@@ -12,7 +12,6 @@ function                           numpy twin
 =================================  ======================================================
 :func:`compiled_tracked_predict`   :meth:`resloc.cl.tracking.JointCovariance.predict`
 :func:`compiled_tracked_finish`    :meth:`resloc.cl.tracking.JointCovariance.finish`
-:func:`scatter_tracked_blocks`     the dense ``M`` of ``JointCovariance.update``
 :func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
 :func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
 :func:`compiled_propagate_independent`  :func:`resloc.cl.fusion.propagate_independent`
@@ -41,7 +40,6 @@ __all__ = [
     "compiled_propagate_independent",
     "compiled_tracked_finish",
     "compiled_tracked_predict",
-    "scatter_tracked_blocks",
     "unicycle_jacobian_into",
 ]
 
@@ -151,35 +149,6 @@ def _symmetrize_in_place(S):
             m = 0.5 * (S[p, q] + S[q, p])
             S[p, q] = m
             S[q, p] = m
-
-
-def scatter_tracked_blocks(joint, A, Bij, i, j, fused) -> None:
-    """The dense ``M`` of ``joint`` from the blocks of a correction: robot b's ``A_b`` at
-    its own column, each fused link's ``B_ij`` at j's (the reference's ``M`` after its
-    updates). ``joint.M`` must be as the step started it (no update recorded): the blocks
-    are written into it in place."""
-    joint.M = np.ascontiguousarray(joint.M, dtype=float)
-    _scatter(
-        joint.M, np.ascontiguousarray(A), np.ascontiguousarray(Bij),
-        np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64),
-        np.ascontiguousarray(fused, dtype=np.bool_), joint.N,
-    )  # fmt: skip
-
-
-@jit
-def _scatter(M, A, Bij, obs, nbr, fused, N):
-    for b in range(A.shape[0]):
-        c0 = 3 * (b % N)
-        for p in range(3):
-            for q in range(3):
-                M[b, p, c0 + q] = A[b, p, q]
-    for e in range(obs.shape[0]):
-        if not fused[e]:
-            continue
-        c0 = 3 * (nbr[e] % N)
-        for p in range(3):
-            for q in range(3):
-                M[obs[e], p, c0 + q] = Bij[e, p, q]
 
 
 def compiled_tracked_finish(joint) -> np.ndarray | None:

@@ -21,7 +21,7 @@ from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
-from resloc.cl import kernels_joint as _kernels_joint
+from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
@@ -30,7 +30,7 @@ from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
 from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
-from resloc.cl.kernels_joint import (
+from resloc.cl.kernels_joint_links import (
     NO_JOINT,
     correlated_linearized_moments,
     correlated_offsets,
@@ -197,7 +197,7 @@ def correct_links(
     Pinf = np.zeros((3, 3))
     defending = defence[0] or defence[5]
     fusion_code = fusion[0]
-    # tracked / factorized: moments under a correlated joint (kernels_joint)
+    # tracked / factorized: moments under a correlated joint (kernels_joint_links)
     joint = fusion[3]
     correlated = joint[0] != NO_JOINT
     std0 = noise_std[0]
@@ -408,7 +408,7 @@ stamp_with_pieces(
     _kernels_defence,
     _kernels_fusion,
     _kernels_gauge,
-    _kernels_joint,
+    _kernels_joint_links,
     _kernels_split,
     _kernels_tamper,
 )
