@@ -152,8 +152,8 @@ def _symmetrize_in_place(S):
 
 
 def compiled_tracked_finish(joint) -> np.ndarray | None:
-    """``JointCovariance.finish`` compiled: ``Sigma <- M Sigma M^T + blockdiag(N)`` per team
-    (skipping ``M``'s zero blocks), symmetrized, the step's bookkeeping started; returns the
+    """``JointCovariance.finish`` compiled: ``Sigma <- M Sigma M^T + blockdiag(N)`` per team,
+    symmetrized, the step's bookkeeping started; returns the
     diagonal blocks (B, 3, 3)."""
     if backend() != "numba" or not isinstance(joint, JointCovariance):
         return None
@@ -169,70 +169,22 @@ def compiled_tracked_finish(joint) -> np.ndarray | None:
 
 
 @jit
-def _nonzero_blocks(M, row, N, cols):
-    """The column blocks of robot ``row``'s ``M`` (3, 3N) with a non-zero entry into
-    ``cols``; returns how many."""
-    count = 0
-    for p in range(N):
-        found = False
-        for r in range(3):
-            for c in range(3):
-                if M[row, r, 3 * p + c] != 0.0:
-                    found = True
-        if found:
-            cols[count] = p
-            count += 1
-    return count
-
-
-@jit
-def _block_rows_times(M, row, cols, count, X, out, at):
-    """``out[at:at+3] = M_row X`` over ``M_row``'s non-zero column blocks ``cols[:count]``:
-    rows of ``X`` (3N, 3N) scaled and added, each a loop over contiguous columns (SIMD)."""
-    n3 = X.shape[1]
-    for r in range(3):
-        dst = out[at + r]
-        for c in range(n3):
-            dst[c] = 0.0
-        for k in range(count):
-            p = cols[k]
-            for d in range(3):
-                coef = M[row, r, 3 * p + d]
-                src = X[3 * p + d]
-                for c in range(n3):
-                    dst[c] += coef * src[c]
-
-
-@jit
 def _joint_finish(M, sigma, noise, N, out, diagonal):
     """``out[t] = sym(M_t sigma[t] M_t^T + blockdiag(noise))`` with ``M_t`` the team's rows of
-    ``M`` (B, 3, 3N), over its non-zero 3 x 3 blocks; the diagonal blocks into ``diagonal:
-    (B, 3, 3)``. ``W = M_t sigma`` and ``V = M_t W^T = (M_t sigma M_t^T)^T`` (sigma is
-    symmetric) are both sums of scaled rows (:func:`_block_rows_times`)."""
+    ``M`` (B, 3, 3N), by two BLAS products per team (measured at N = 17: about 5x the loop
+    over ``M``'s non-zero blocks, which are nearly all of them once every robot fused); the
+    diagonal blocks into ``diagonal: (B, 3, 3)``."""
     n3 = 3 * N
-    W = np.empty((n3, n3))
-    U = np.empty((n3, n3))
-    V = np.empty((n3, n3))
-    cols = np.zeros((N, N), dtype=np.int64)  # each robot's non-zero blocks of M
-    count = np.zeros(N, dtype=np.int64)
+    teams = M.reshape(sigma.shape[0], n3, n3)
     for t in range(sigma.shape[0]):
-        for a in range(N):
-            count[a] = _nonzero_blocks(M, t * N + a, N, cols[a])
-        S = sigma[t]
-        for a in range(N):  # W = M sigma
-            _block_rows_times(M, t * N + a, cols[a], count[a], S, W, 3 * a)
-        for p in range(n3):  # U = W^T
-            for q in range(n3):
-                U[q, p] = W[p, q]
-        for a in range(N):  # V = M W^T
-            _block_rows_times(M, t * N + a, cols[a], count[a], U, V, 3 * a)
+        Mt = teams[t]
+        V = np.dot(np.dot(Mt, sigma[t]), Mt.T)
         result = out[t]
-        for p in range(n3):  # out = sym(V^T + blockdiag(noise))
+        for p in range(n3):  # out = sym(V + blockdiag(noise))
             for q in range(p + 1):
                 a = p // 3
-                b = q // 3
-                v = 0.5 * (V[q, p] + V[p, q])
-                if a == b:
+                v = 0.5 * (V[p, q] + V[q, p])
+                if a == q // 3:
                     v += 0.5 * (noise[t * N + a, p % 3, q % 3] + noise[t * N + a, q % 3, p % 3])
                 result[p, q] = v
                 result[q, p] = v
