@@ -108,6 +108,34 @@ def test_compiled_method_matches_reference_over_a_run(method: str, name: str) ->
     assert fused > 0
 
 
+@pytest.mark.parametrize("method", ["tracked", "factorized"])
+def test_compiled_prediction_and_end_of_step_ran(method: str, monkeypatch) -> None:
+    """The lockstep's numba side ran the compiled prediction and end of step of the
+    method every step (their numpy twins are the other side)."""
+    from resloc.cl import kernels_fusion_step as step_kernels
+
+    ran: dict[str, int] = {}
+    names = {
+        "tracked": ("compiled_tracked_predict", "compiled_tracked_finish"),
+        "factorized": ("compiled_factorized_predict", "compiled_factorized_finish"),
+    }[method]
+    for name in names:
+        original = getattr(step_kernels, name)
+
+        def counted(*args, _original=original, _name=name, **kwargs):
+            out = _original(*args, **kwargs)
+            done = out is not None and out is not False
+            ran[_name] = ran.get(_name, 0) + done
+            return out
+
+        monkeypatch.setattr(step_kernels, name, counted)
+    params = replace(default_scenario().cl_params(), fusion=method)
+    steps = 20
+    fused, _ = lockstep(method, FILTERS["ckf"], params, steps, seed=14)
+    assert fused > 0
+    assert ran == dict.fromkeys(names, steps)
+
+
 @pytest.mark.parametrize("method", METHODS)
 def test_compiled_method_with_the_detector_recovery_and_jamming(method: str) -> None:
     """A tight NIS gate with the CUSUMs and the recovery stage (re-admissions on an
