@@ -29,7 +29,7 @@ from resloc.cl import kernels_predict as _kernels_predict
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.backend import backend
 from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.kernels_math import jit, jit_inline, stamp_with_pieces
+from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
 from resloc.cl.tracking import JointCovariance
@@ -55,12 +55,21 @@ def unicycle_jacobian_into(v, s, c, dt, F):
     F[1, 2] = v * c * dt
 
 
-def _odometry(params, dt: float, B: int):
+@per_params
+def _noise_variances(params):
+    """The odometry and floor standard deviations of ``params`` (their shapes as given) and
+    their squares as the kernels take them, kept for the run's one ``params``."""
     odometry = np.asarray(params.odometry_std, dtype=float)
     floor = np.asarray(params.process_floor_std, dtype=float)
-    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
+    variances = np.ascontiguousarray(np.atleast_2d(odometry**2)), floor**2
+    return odometry.shape, floor.shape, variances
+
+
+def _odometry(params, dt: float, B: int):
+    odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
+    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,):
         return None
-    return np.ascontiguousarray(np.atleast_2d(odometry**2)), np.ascontiguousarray(floor**2 * dt)
+    return odometry_var, floor_var * dt
 
 
 def _inputs_ok(x, u, B: int) -> bool:
