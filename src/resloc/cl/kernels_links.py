@@ -6,7 +6,9 @@ independent within a step (a link reads only robot ``i``'s running estimate and 
 transmitted estimate), so the row-order loop gives exactly the rounds of the reference
 path. Each piece of a link's work is a named function beside the numpy function it twins
 (``docs/algorithm.md`` maps every equation to both); the scalar primitives are in
-:mod:`resloc.cl.kernels_math`, the options' pieces in their own modules (detector stages:
+:mod:`resloc.cl.kernels_math`, the sigma points' range, bearing and moments (all points at
+once, in SIMD polynomials) in :mod:`resloc.cl.kernels_points`, the options' pieces in their
+own modules (detector stages:
 :mod:`resloc.cl.kernels_detection`, gauge bookkeeping: :mod:`resloc.cl.kernels_gauge`,
 the stealthy attacker: :mod:`resloc.cl.kernels_tamper`).
 """
@@ -170,9 +172,11 @@ def correct_links(
 
     The structures are unpacked once, here: a field read inside the loop would cost a
     reference-count update per field and link. For the same reason the pieces that would
-    take many arrays (the sigma-point moments, the gain, the Joseph update) are blocks of
-    this loop, each citing its twin; measured, as functions they cost 15-20% of the
-    correction. Returns the status; on a non-OK status the outputs are partial and must be
+    take many arrays (the gain, the Joseph update) are blocks of this loop, each citing its
+    twin; measured, as functions they cost 15-20% of the correction. The sigma points'
+    moments are the exception (:func:`~resloc.cl.kernels_points.point_moments`): compiled
+    for SIMD with IEEE division, they cannot be inlined into this loop, and their SIMD
+    evaluation outweighs the call. Returns the status; on a non-OK status the outputs are partial and must be
     discarded.
     """
     li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
