@@ -176,8 +176,8 @@ def correct_links(
     twin; measured, as functions they cost 15-20% of the correction. The sigma points'
     moments are the exception (:func:`~resloc.cl.kernels_points.point_moments`): compiled
     for SIMD with IEEE division, they cannot be inlined into this loop, and their SIMD
-    evaluation outweighs the call. Returns the status; on a non-OK status the outputs are partial and must be
-    discarded.
+    evaluation outweighs the call. Returns the status; on a non-OK status the outputs are
+    partial and must be discarded.
     """
     li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
