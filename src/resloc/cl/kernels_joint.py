@@ -28,20 +28,24 @@ differ in where ``C_ij`` comes from and what an update records:
 The per-link pieces are in :mod:`resloc.cl.kernels_joint_links`; this module holds the
 state the link loop works on and its hand-over to the numpy bookkeeping.
 
-=================================  ======================================================
-kernel function                    numpy twin
-=================================  ======================================================
-:func:`joint_commit`               the state ``JointCovariance.update`` /
-                                   ``FactorizedCovariance.update`` leave
-:func:`joint_cross`                ``JointCovariance.current`` / ``cross`` / ``_block``;
-                                   ``FactorizedCovariance.cross`` and
-                                   :func:`~resloc.cl.factorized.valid_cross`
-:func:`correlated_offsets`         :func:`resloc.cl.tracking.joint_moments` (points)
-:func:`correlated_linearized_moments`  :func:`resloc.cl.tracking.joint_moments` (EKF)
-:func:`joint_record`               ``JointCovariance.update`` /
-                                   ``FactorizedCovariance.update`` (with
-                                   :func:`~resloc.cl.tracking.update_map`)
-=================================  ======================================================
+====================================================  ===================================
+kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
+====================================================  ===================================
+:func:`joint_commit` (this module)                    the state ``JointCovariance.update``
+                                                      / ``FactorizedCovariance.update``
+                                                      leave
+``joint_cross``                                       ``JointCovariance.current`` /
+                                                      ``cross`` / ``_block``;
+                                                      ``FactorizedCovariance.cross``,
+                                                      :func:`~resloc.cl.factorized.valid_cross`
+``correlated_offsets``                                :func:`resloc.cl.tracking.joint_moments`
+                                                      (points)
+``correlated_linearized_moments``                     :func:`resloc.cl.tracking.joint_moments`
+                                                      (EKF)
+``joint_record``                                      ``JointCovariance.update`` /
+                                                      ``FactorizedCovariance.update`` (with
+                                                      :func:`~resloc.cl.tracking.update_map`)
+====================================================  ===================================
 """
 
 from __future__ import annotations
