@@ -271,3 +271,25 @@ def test_sylvester_certificate_of_eigenvalues_below_a_bound() -> None:
         got = np.array([scaled_unit_minus_is_pd(m, c) for m in M])
         assert not (got & (top >= c)).any()
         assert (got == (top < c * (1 - 1e-12))).mean() > 0.99
+
+
+@pytest.mark.parametrize("method", ["tracked", "factorized"])
+def test_links_across_teams_or_out_of_range_go_to_the_reference(method: str) -> None:
+    """The kernel state is refused (None: the reference decides) for a link across teams
+    or an index outside the batch, and built for links within a team."""
+    from resloc.cl.factorized import FactorizedCovariance
+    from resloc.cl.kernels_joint import FACTORIZED, TRACKED, joint_state
+    from resloc.cl.tracking import JointCovariance
+
+    memory = LinkMemory(6)  # two teams of three robots
+    P0 = np.broadcast_to(1e-2 * np.eye(3), (6, 3, 3)).copy()
+    if method == "tracked":
+        memory.joint, code = JointCovariance(P0, 3), TRACKED
+    else:
+        memory.joint, code = FactorizedCovariance(6, 3), FACTORIZED
+    within = joint_state(code, memory, np.array([0, 0, 4]), np.array([1, 2, 5]))
+    assert within is not None and within.code == code
+    np.testing.assert_array_equal(within.A, np.broadcast_to(np.eye(3), (6, 3, 3)))
+    assert joint_state(code, memory, np.array([0, 2]), np.array([1, 3])) is None
+    assert joint_state(code, memory, np.array([0]), np.array([6])) is None
+    assert joint_state(code, memory, np.array([0]), np.array([-1])) is None

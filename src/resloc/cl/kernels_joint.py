@@ -91,6 +91,7 @@ class KernelJoint(NamedTuple):
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
+_IDENTITY3 = np.eye(3)[None]
 _EMPTY4 = np.zeros((0, 0, 3, 3))
 
 
@@ -127,12 +128,9 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     else:
         return _NO_JOINT
     N = joint.N
-    if E and (max(int(np.max(i)), int(nbr.max())) >= B or nbr.min() < 0):
-        return None
-    if not np.array_equal(np.asarray(i) // N, nbr // N):
-        return None  # a link across teams: the reference's indexing decides
-    A = np.zeros((B, 3, 3))  # no update recorded yet: each A_i = I, every B_il = 0
-    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+    if not _links_within_teams(np.ascontiguousarray(i, dtype=np.int64), nbr, B, N):
+        return None  # an index out of range, or a link across teams: the reference decides
+    A = np.repeat(_IDENTITY3, B, axis=0)  # no update recorded yet: each A_i = I, B_il = 0
     work = np.zeros((5, 3, 3))
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
@@ -148,6 +146,15 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
         np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
         np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)),
     )  # fmt: skip
+
+
+@jit
+def _links_within_teams(i, nbr, B, N):
+    """Every link's observer and neighbour in ``[0, B)`` and in the same team of ``N``."""
+    for e in range(i.shape[0]):
+        if not (0 <= i[e] < B and 0 <= nbr[e] < B) or i[e] // N != nbr[e] // N:
+            return False
+    return True
 
 
 def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -> None:
