@@ -108,6 +108,34 @@ def test_compiled_method_matches_reference_over_a_run(method: str, name: str) ->
     assert fused > 0
 
 
+@pytest.mark.parametrize("method", ["tracked", "factorized"])
+def test_compiled_prediction_and_end_of_step_ran(method: str, monkeypatch) -> None:
+    """The lockstep's numba side ran the compiled prediction and end of step of the
+    method every step (their numpy twins are the other side)."""
+    from resloc.cl import kernels_fusion_step as step_kernels
+
+    ran: dict[str, int] = {}
+    names = {
+        "tracked": ("compiled_tracked_predict", "compiled_tracked_finish"),
+        "factorized": ("compiled_factorized_predict", "compiled_factorized_finish"),
+    }[method]
+    for name in names:
+        original = getattr(step_kernels, name)
+
+        def counted(*args, _original=original, _name=name, **kwargs):
+            out = _original(*args, **kwargs)
+            done = out is not None and out is not False
+            ran[_name] = ran.get(_name, 0) + done
+            return out
+
+        monkeypatch.setattr(step_kernels, name, counted)
+    params = replace(default_scenario().cl_params(), fusion=method)
+    steps = 20
+    fused, _ = lockstep(method, FILTERS["ckf"], params, steps, seed=14)
+    assert fused > 0
+    assert ran == dict.fromkeys(names, steps)
+
+
 @pytest.mark.parametrize("method", METHODS)
 def test_compiled_method_with_the_detector_recovery_and_jamming(method: str) -> None:
     """A tight NIS gate with the CUSUMs and the recovery stage (re-admissions on an
@@ -189,7 +217,7 @@ def test_compiled_valid_cross_shrinks_like_the_reference() -> None:
     a correlation above the cap (shrunk) and below it (kept), one matrix at a time in the
     kernel's twin. The runs above rarely need the shrink, so it is checked here."""
     from resloc.cl.factorized import valid_cross
-    from resloc.cl.kernels_joint import _valid_cross
+    from resloc.cl.kernels_joint_links import _valid_cross
     from resloc.linalg import JITTER_LEVELS
 
     rng = np.random.default_rng(3)
@@ -234,7 +262,7 @@ def test_compiled_clip_of_independent_parts_like_the_reference() -> None:
 def test_sylvester_certificate_of_eigenvalues_below_a_bound() -> None:
     """``scaled_unit_minus_is_pd(M, c)`` certifies every eigenvalue of ``M`` below ``c``
     (it decides when the kernels skip an eigenvalue computation): never wrongly."""
-    from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
+    from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 
     rng = np.random.default_rng(5)
     M = _random_spd(rng, 500)
@@ -243,3 +271,25 @@ def test_sylvester_certificate_of_eigenvalues_below_a_bound() -> None:
         got = np.array([scaled_unit_minus_is_pd(m, c) for m in M])
         assert not (got & (top >= c)).any()
         assert (got == (top < c * (1 - 1e-12))).mean() > 0.99
+
+
+@pytest.mark.parametrize("method", ["tracked", "factorized"])
+def test_links_across_teams_or_out_of_range_go_to_the_reference(method: str) -> None:
+    """The kernel state is refused (None: the reference decides) for a link across teams
+    or an index outside the batch, and built for links within a team."""
+    from resloc.cl.factorized import FactorizedCovariance
+    from resloc.cl.kernels_joint import FACTORIZED, TRACKED, joint_state
+    from resloc.cl.tracking import JointCovariance
+
+    memory = LinkMemory(6)  # two teams of three robots
+    P0 = np.broadcast_to(1e-2 * np.eye(3), (6, 3, 3)).copy()
+    if method == "tracked":
+        memory.joint, code = JointCovariance(P0, 3), TRACKED
+    else:
+        memory.joint, code = FactorizedCovariance(6, 3), FACTORIZED
+    within = joint_state(code, memory, np.array([0, 0, 4]), np.array([1, 2, 5]))
+    assert within is not None and within.code == code
+    np.testing.assert_array_equal(within.A, np.broadcast_to(np.eye(3), (6, 3, 3)))
+    assert joint_state(code, memory, np.array([0, 2]), np.array([1, 3])) is None
+    assert joint_state(code, memory, np.array([0]), np.array([6])) is None
+    assert joint_state(code, memory, np.array([0]), np.array([-1])) is None

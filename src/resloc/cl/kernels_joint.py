@@ -19,32 +19,44 @@ differ in where ``C_ij`` comes from and what an update records:
     ``C_ij = sigma_ij sigma_ji,pred^T`` shrunk to a valid joint
     (:func:`~resloc.cl.factorized.valid_cross`); an update left-multiplies every factor
     robot i holds, its ``A_i`` and ``B_i.`` by ``G = I - K H_i`` and records ``B_ij -= K
-    H_j``. The end-of-step pair exchange stays the reference's ``finish``.
+    H_j``. The kernel multiplies only ``A_i`` per link: a factor robot i holds is then
+    ``A_i sigma_il`` (``sigma_il`` as the step began), formed where a link reads it, and
+    :func:`joint_commit` applies the products once (the factors by ``A_i``, each ``B_ij``
+    by the gains of i's later links), not ``N`` matrix products per update. The
+    end-of-step pair exchange is :mod:`resloc.cl.kernels_fusion_step`'s.
 
-=================================  ======================================================
-kernel function                    numpy twin
-=================================  ======================================================
-:func:`joint_cross`                ``JointCovariance.current`` / ``cross`` / ``_block``;
-                                   ``FactorizedCovariance.cross`` and
-                                   :func:`~resloc.cl.factorized.valid_cross`
-:func:`correlated_offsets`         :func:`resloc.cl.tracking.joint_moments` (points)
-:func:`correlated_linearized_moments`  :func:`resloc.cl.tracking.joint_moments` (EKF)
-:func:`joint_record`               ``JointCovariance.update`` /
-                                   ``FactorizedCovariance.update`` (with
-                                   :func:`~resloc.cl.tracking.update_map`)
-=================================  ======================================================
+The per-link pieces are in :mod:`resloc.cl.kernels_joint_links`; this module holds the
+state the link loop works on and its hand-over to the numpy bookkeeping.
+
+====================================================  ===================================
+kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
+====================================================  ===================================
+:func:`joint_commit` (this module)                    the state ``JointCovariance.update``
+                                                      / ``FactorizedCovariance.update``
+                                                      leave
+``joint_cross``                                       ``JointCovariance.current`` /
+                                                      ``cross`` / ``_block``;
+                                                      ``FactorizedCovariance.cross``,
+                                                      :func:`~resloc.cl.factorized.valid_cross`
+``correlated_offsets``                                :func:`resloc.cl.tracking.joint_moments`
+                                                      (points)
+``correlated_linearized_moments``                     :func:`resloc.cl.tracking.joint_moments`
+                                                      (EKF)
+``joint_record``                                      ``JointCovariance.update`` /
+                                                      ``FactorizedCovariance.update`` (with
+                                                      :func:`~resloc.cl.tracking.update_map`)
+====================================================  ===================================
 """
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
 from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_math import chol3, jit, jit_inline, wrap
+from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
+from resloc.cl.kernels_math import jit
 from resloc.cl.tracking import JointCovariance
 
 __all__ = [
@@ -52,21 +64,10 @@ __all__ = [
     "NO_JOINT",
     "TRACKED",
     "KernelJoint",
-    "correlated_linearized_moments",
-    "correlated_offsets",
     "joint_commit",
-    "joint_cross",
-    "joint_record",
     "joint_state",
     "no_joint",
 ]
-
-#: Codes of the cross-covariance bookkeeping.
-NO_JOINT = 0
-TRACKED = 1
-FACTORIZED = 2
-
-_CAP = 1.0 - 1e-6  # valid_cross's default cap on the correlation's singular values
 
 
 class KernelJoint(NamedTuple):
@@ -86,16 +87,18 @@ class KernelJoint(NamedTuple):
     fused: np.ndarray  # (B, N) bool factorized: i fused l's estimate this step
     work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
+    gains: np.ndarray  # (E, 3, 3) factorized: each fused link's G = I - K H_i
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
+_IDENTITY3 = np.eye(3)[None]
 _EMPTY4 = np.zeros((0, 0, 3, 3))
 
 
 _NO_JOINT = KernelJoint(
     NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
     _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)),
-    np.zeros((2, 6, 6)),
+    np.zeros((2, 6, 6)), _EMPTY3,
 )  # fmt: skip
 
 
@@ -125,26 +128,33 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     else:
         return _NO_JOINT
     N = joint.N
-    if E and (max(int(np.max(i)), int(nbr.max())) >= B or nbr.min() < 0):
-        return None
-    if not np.array_equal(np.asarray(i) // N, nbr // N):
-        return None  # a link across teams: the reference's indexing decides
-    A = np.zeros((B, 3, 3))  # no update recorded yet: each A_i = I, every B_il = 0
-    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+    if not _links_within_teams(np.ascontiguousarray(i, dtype=np.int64), nbr, B, N):
+        return None  # an index out of range, or a link across teams: the reference decides
+    A = np.repeat(_IDENTITY3, B, axis=0)  # no update recorded yet: each A_i = I, B_il = 0
     work = np.zeros((5, 3, 3))
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
         return KernelJoint(
             code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.zeros((E, 3, 3)), _EMPTY4, _EMPTY4,
-            _EMPTY4, _NO_JOINT.fused, work, J6,
+            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3,
         )  # fmt: skip
+    # factorized: the kernel reads the factors as the step began (never writes them)
     return KernelJoint(
-        code, N, nbr, _NO_JOINT.sigma, _EMPTY3, A, _EMPTY3,
-        np.array(joint.sig, dtype=float, order="C", copy=True),
+        code, N, nbr, _NO_JOINT.sigma, _EMPTY3, A, np.zeros((E, 3, 3)),
+        np.ascontiguousarray(joint.sig, dtype=float),
         np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
-        np.zeros((B, N), dtype=np.bool_), work, J6,
+        np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)),
     )  # fmt: skip
+
+
+@jit
+def _links_within_teams(i, nbr, B, N):
+    """Every link's observer and neighbour in ``[0, B)`` and in the same team of ``N``."""
+    for e in range(i.shape[0]):
+        if not (0 <= i[e] < B and 0 <= nbr[e] < B) or i[e] // N != nbr[e] // N:
+            return False
+    return True
 
 
 def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -> None:
@@ -152,409 +162,85 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
     ``finish``: ``tracked``, the dense ``M`` (each robot's ``A_i`` at its own column and its
     fused links' ``B_ij`` at theirs) and the noise; ``factorized``, the factors, ``A``,
     ``B`` and the pairs that fused."""
+    li = np.ascontiguousarray(i, dtype=np.int64)
+    fused = np.ascontiguousarray(fused, dtype=np.bool_)
+    joint = memory.joint
     if state.code == TRACKED:
-        # (imported here: the once-per-step kernels import the CL kernel's modules)
-        from resloc.cl.kernels_fusion_step import scatter_tracked_blocks
-
-        joint = memory.joint
-        scatter_tracked_blocks(joint, state.A, state.Bij, i, state.nbr, fused)
+        # joint.M is as the step began (joint_state checked): the blocks go in place
+        joint.M = np.ascontiguousarray(joint.M, dtype=float)
+        _scatter_tracked_blocks(joint.M, state.A, state.Bij, li, state.nbr, fused, state.N)
         joint.noise = state.noise
         joint.updates = int(np.count_nonzero(fused))
     elif state.code == FACTORIZED:
-        joint = memory.joint
-        joint.sig = state.sig
+        sig = np.empty_like(state.sig)
+        _factorized_products(
+            state.A, state.sig, state.Bij, state.gains, li, state.nbr, fused, state.N, sig,
+            state.Bm,
+        )  # fmt: skip
+        joint.sig = sig
         joint.A = state.A
         joint.Bm = state.Bm
         joint.fused = state.fused
 
 
-# ---------------------------------------------------------------------------------------
-# Per-link pieces, inlined into the CL loop of resloc.cl.kernels_links.
-# ---------------------------------------------------------------------------------------
-@jit_inline
-def _mul_into(X, Y, out):
-    """``out = X Y`` of 3 x 3 matrices."""
-    for a in range(3):
-        for b in range(3):
-            out[a, b] = X[a, 0] * Y[0, b] + X[a, 1] * Y[1, b] + X[a, 2] * Y[2, b]
+@jit
+def _scatter_tracked_blocks(M, A, Bij, obs, nbr, fused, N):
+    """The dense ``M`` of ``tracked`` (B, 3, 3N) from the blocks of a correction: robot b's
+    ``A_b`` at its own column, each fused link's ``B_ij`` at j's (``M`` as the step began:
+    identity blocks, zeros elsewhere)."""
+    for b in range(A.shape[0]):
+        c0 = 3 * (b % N)
+        for p in range(3):
+            for q in range(3):
+                M[b, p, c0 + q] = A[b, p, q]
+    for e in range(obs.shape[0]):
+        if not fused[e]:
+            continue
+        c0 = 3 * (nbr[e] % N)
+        for p in range(3):
+            for q in range(3):
+                M[obs[e], p, c0 + q] = Bij[e, p, q]
 
 
-@jit_inline
-def _add_mul(X, Y, out):
-    """``out += X Y`` of 3 x 3 matrices."""
-    for a in range(3):
-        for b in range(3):
-            out[a, b] += X[a, 0] * Y[0, b] + X[a, 1] * Y[1, b] + X[a, 2] * Y[2, b]
-
-
-@jit_inline
-def _add_mul_t(X, Y, out):
-    """``out += X Y^T`` of 3 x 3 matrices."""
-    for a in range(3):
-        for b in range(3):
-            out[a, b] += X[a, 0] * Y[b, 0] + X[a, 1] * Y[b, 1] + X[a, 2] * Y[b, 2]
-
-
-@jit_inline
-def _tracked_row(joint, e, first, fused, i, col, out, T3):
-    """``out = (M_i Sigma)[:, col block]`` of robot ``i`` (its links from row ``first``,
-    ``fused``: the flags of the rows so far; ``T3``: scratch)."""
-    N = joint[1]
-    nbr = joint[2]
-    sigma = joint[3]
-    A = joint[5]
-    Bij = joint[6]
-    t = i // N
-    c0 = 3 * col
-    p0 = 3 * (i % N)
-    for a in range(3):
-        for b in range(3):
-            out[a, b] = (
-                A[i, a, 0] * sigma[t, p0, c0 + b]
-                + A[i, a, 1] * sigma[t, p0 + 1, c0 + b]
-                + A[i, a, 2] * sigma[t, p0 + 2, c0 + b]
-            )
-    for r in range(first, e):
-        if fused[r]:
-            q0 = 3 * (nbr[r] % N)
-            for a in range(3):
-                for b in range(3):
-                    out[a, b] += (
-                        Bij[r, a, 0] * sigma[t, q0, c0 + b]
-                        + Bij[r, a, 1] * sigma[t, q0 + 1, c0 + b]
-                        + Bij[r, a, 2] * sigma[t, q0 + 2, c0 + b]
+@jit
+def _factorized_products(A, sig, Bij, gains, obs, nbr, fused, N, sig_out, Bm):
+    """The products the ``factorized`` kernel deferred: every factor robot i holds,
+    ``sig_out[i, l] = A_i sig[i, l]``, and each fused link's ``B_ij`` (recorded as ``-K
+    H_j``) times the gains ``G`` of i's later fused links, added into ``Bm[i, j % N]``
+    (rows sorted by observer)."""
+    S = np.empty((3, 3))
+    T = np.empty((3, 3))
+    for b in range(sig.shape[0]):
+        for m in range(sig.shape[1]):
+            for p in range(3):
+                for q in range(3):
+                    sig_out[b, m, p, q] = (
+                        A[b, p, 0] * sig[b, m, 0, q]
+                        + A[b, p, 1] * sig[b, m, 1, q]
+                        + A[b, p, 2] * sig[b, m, 2, q]
                     )
-
-
-@jit_inline
-def _tracked_update(G, K, R, joint, e, Pn, T1, T2):
-    """Robot i's covariance after an update with gain ``K`` and ``G = I - K H_i``:
-    ``[G, D] [[P_i, C_ij], [C_ij^T, P_j]] [G, D]^T + K R K^T`` with ``D = -K H_j`` (the
-    link's ``Bij``) and the blocks of :func:`joint_cross` (``work``), symmetrized, into
-    ``Pn``. Twin: ``JointCovariance.current`` after ``update`` (``M_i Sigma M_i^T + N_i``
-    with the updated ``M_i``, ``N_i``; the same quantity)."""
-    work = joint[11]
-    Pm = work[0]
-    C = work[1]
-    Pr = work[2]
-    D = joint[6][e]
-    for a in range(3):  # T1 = G P_i + D C^T, T2 = G C + D P_j
-        for b in range(3):
-            T1[a, b] = (G[a, 0] * Pm[0, b] + G[a, 1] * Pm[1, b] + G[a, 2] * Pm[2, b]) + (
-                D[a, 0] * C[b, 0] + D[a, 1] * C[b, 1] + D[a, 2] * C[b, 2]
-            )
-            T2[a, b] = (G[a, 0] * C[0, b] + G[a, 1] * C[1, b] + G[a, 2] * C[2, b]) + (
-                D[a, 0] * Pr[0, b] + D[a, 1] * Pr[1, b] + D[a, 2] * Pr[2, b]
-            )
-    for a in range(3):
-        t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
-        t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
-        for b in range(3):
-            Pn[a, b] = (
-                (T1[a, 0] * G[b, 0] + T1[a, 1] * G[b, 1] + T1[a, 2] * G[b, 2])
-                + (T2[a, 0] * D[b, 0] + T2[a, 1] * D[b, 1] + T2[a, 2] * D[b, 2])
-                + (t0 * K[b, 0] + t1 * K[b, 1])
-            )
-    for a in range(3):
-        for b in range(a, 3):
-            m = 0.5 * (Pn[a, b] + Pn[b, a])
-            Pn[a, b] = m
-            Pn[b, a] = m
-            work[4, a, b] = m
-            work[4, b, a] = m
-
-
-@jit_inline
-def _solve_lower_into(L, X, out):
-    """``out = L^-1 X`` for lower-triangular 3 x 3 ``L`` (forward substitution)."""
-    for b in range(3):
-        y0 = X[0, b] / L[0, 0]
-        y1 = (X[1, b] - L[1, 0] * y0) / L[1, 1]
-        y2 = (X[2, b] - L[2, 0] * y0 - L[2, 1] * y1) / L[2, 2]
-        out[0, b] = y0
-        out[1, b] = y1
-        out[2, b] = y2
-
-
-@jit_inline
-def _valid_cross(Pi, Pj, C, Li, Lj, X, T3, jitter):
-    """Shrink ``C`` in place so that ``[[P_i, C], [C^T, P_j]]`` stays valid (``Li``, ``Lj``,
-    ``X``, ``T3``: scratch). False when a covariance has no Cholesky factor.
-    Twin: :func:`resloc.cl.factorized.valid_cross`."""
-    if not chol3(Pi, Li, jitter) or not chol3(Pj, Lj, jitter):
-        return False
-    for a in range(3):  # T3 = C^T, X = Lj^-1 C^T
-        for b in range(3):
-            T3[a, b] = C[b, a]
-    _solve_lower_into(Lj, T3, X)
-    for a in range(3):
-        for b in range(3):
-            T3[a, b] = X[b, a]
-    _solve_lower_into(Li, T3, X)  # the correlation L_i^-1 C L_j^-T
-    frob = 0.0
-    for a in range(3):
-        for b in range(3):
-            frob += X[a, b] * X[a, b]
-    if math.sqrt(frob) <= _CAP:  # sigma_max <= Frobenius norm: nothing to shrink
-        return True
-    for a in range(3):  # X^T X: its largest eigenvalue is sigma_max^2
-        for b in range(3):
-            T3[a, b] = X[0, a] * X[0, b] + X[1, a] * X[1, b] + X[2, a] * X[2, b]
-    if scaled_unit_minus_is_pd(T3, _CAP * _CAP):  # sigma_max < cap certified
-        return True
-    smax = math.sqrt(max(np.linalg.eigvalsh(T3)[2], 0.0))
-    if smax > _CAP:
-        scale = _CAP / max(smax, 1e-300)
-        for a in range(3):
-            for b in range(3):
-                C[a, b] = C[a, b] * scale
-    return True
-
-
-@jit_inline
-def scaled_unit_minus_is_pd(M, c):
-    """Sylvester's criterion on ``c I - M`` (symmetric 3 x 3 ``M``): every eigenvalue of
-    ``M`` below ``c``."""
-    n00 = c - M[0, 0]  # N = c I - M
-    n11 = c - M[1, 1]
-    n22 = c - M[2, 2]
-    n01 = -M[0, 1]
-    n02 = -M[0, 2]
-    n12 = -M[1, 2]
-    m2 = n00 * n11 - n01 * n01
-    det = (
-        n00 * (n11 * n22 - n12 * n12)
-        - n01 * (n01 * n22 - n12 * n02)
-        + n02 * (n01 * n12 - n11 * n02)
-    )
-    return n00 > 0.0 and m2 > 0.0 and det > 0.0
-
-
-@jit
-def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
-    """The blocks of the correlated joint for link ``e`` of robot ``i``: the observer's
-    covariance into ``work[0]``, ``C_ij`` into ``work[1]`` and j's covariance into
-    ``work[2]`` (``tracked``: from the joint; ``factorized``: ``Pi``, the factors' product
-    shrunk to a valid joint, ``Pj``). False when a covariance has no Cholesky factor."""
-    code = joint[0]
-    N = joint[1]
-    j = joint[2][e]
-    work = joint[11]
-    Pm = work[0]
-    C = work[1]
-    Pr = work[2]
-    T3 = work[3]
-    L6 = joint[12][1]
-    if code == TRACKED:
-        sigma = joint[3]
-        now = work[4]  # robot i's covariance now: Sigma_ii at its first link
-        if e == first:
-            t = i // N
-            c0 = 3 * (i % N)
-            for a in range(3):
-                for b in range(3):
-                    now[a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
-        for a in range(3):
-            for b in range(3):
-                Pm[a, b] = now[a, b]
-        _tracked_row(joint, e, first, fused, i, j % N, C, T3)
-        t = j // N
-        c0 = 3 * (j % N)
-        for a in range(3):
-            for b in range(3):
-                Pr[a, b] = sigma[t, c0 + a, c0 + b]
-        return True
-    sig = joint[7]
-    sig_pred = joint[8]
-    li = i % N
-    lj = j % N
-    for a in range(3):
-        for b in range(3):
-            Pm[a, b] = Pi[a, b]
-            Pr[a, b] = Pj[a, b]
-            C[a, b] = (
-                sig[i, lj, a, 0] * sig_pred[j, li, b, 0]
-                + sig[i, lj, a, 1] * sig_pred[j, li, b, 1]
-                + sig[i, lj, a, 2] * sig_pred[j, li, b, 2]
-            )
-    return _valid_cross(Pm, Pr, C, L6[:3, :3], L6[3:, 3:], L6[:3, 3:], T3, jitter)
-
-
-@jit_inline
-def _joint6(joint):
-    """``J = sym([[P_i, C], [C^T, P_j]])`` from ``work`` into ``J6[0]``."""
-    work = joint[11]
-    J = joint[12][0]
-    Pm = work[0]
-    C = work[1]
-    Pr = work[2]
-    for a in range(3):
-        for b in range(3):
-            J[a, b] = 0.5 * (Pm[a, b] + Pm[b, a])
-            J[3 + a, 3 + b] = 0.5 * (Pr[a, b] + Pr[b, a])
-            J[a, 3 + b] = C[a, b]
-            J[3 + b, a] = C[a, b]
-    return J
-
-
-@jit_inline
-def _chol6(A, L, jitter):
-    """Lower Cholesky factor of a 6 x 6 ``A`` into ``L`` with the escalating jitter of
-    :func:`resloc.linalg.cholesky_jitter`. False if none succeeds."""
-    n = 6
-    scale = 0.0
-    for c in range(n):
-        for r in range(n):
-            if not math.isfinite(A[r, c]):
-                return False
-        scale += abs(A[c, c])
-    scale = max(scale / n, 1e-300)
-    for level in jitter:
-        eps = level * scale
-        ok = True
-        for c in range(n):
-            s = A[c, c] + eps
-            for k in range(c):
-                s -= L[c, k] * L[c, k]
-            if not s > 0.0:
-                ok = False
-                break
-            d = math.sqrt(s)
-            L[c, c] = d
-            for r in range(c + 1, n):
-                t = A[r, c]
-                for k in range(c):
-                    t -= L[r, k] * L[c, k]
-                L[r, c] = t / d
-            for r in range(c):
-                L[r, c] = 0.0
-        if ok:
-            return True
-    return False
-
-
-@jit
-def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
-    """The filter's unit points times the Cholesky factor of the correlated joint
-    (:func:`joint_cross`'s blocks) into ``off: (m, 6)``. False when the joint has no
-    Cholesky factor. Twin: :func:`resloc.cl.tracking.joint_moments` (its offsets)."""
-    J = _joint6(joint)
-    L = joint[12][1]
-    if not _chol6(J, L, jitter):
-        return False
-    for k in range(off.shape[0]):
-        for a in range(6):
-            off[k, a] = 0.0
-        for t in range(nz_cnt[k]):
-            b = nz_idx[k, t]
-            u = nz_val[k, t]
-            for a in range(b, 6):  # L is lower triangular
-                off[k, a] += L[a, b] * u
-    return True
-
-
-@jit
-def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz):
-    """First-order moments of eq. (3) under the correlated joint (:func:`joint_cross`'s
-    blocks): ``S = H J H^T + R``, ``P^xz = J[:3] H^T`` with ``H = [H_i, H_j]`` at the means;
-    fills ``Hi``, ``Hj``, ``Pxz``. Returns ``(zh0, zh1, S00, S01, S11)``.
-    Twin: :func:`resloc.cl.tracking.joint_moments` (EKF)."""
-    J = _joint6(joint)
-    T = joint[12][1]  # (2, 6) of H J in its first rows
-    dx = xj0 - xi0
-    dy = xj1 - xi1
-    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
-    for a in range(2):
-        for b in range(6):
-            s = 0.0
-            for c in range(3):
-                s += Hi[a, c] * J[c, b]
-            for c in range(3):
-                s += Hj[a, c] * J[3 + c, b]
-            T[a, b] = s
-    q00 = 0.0
-    q01 = 0.0
-    q10 = 0.0
-    q11 = 0.0
-    for c in range(3):
-        q00 += T[0, c] * Hi[0, c]
-        q01 += T[0, c] * Hi[1, c]
-        q10 += T[1, c] * Hi[0, c]
-        q11 += T[1, c] * Hi[1, c]
-    for c in range(3):
-        q00 += T[0, 3 + c] * Hj[0, c]
-        q01 += T[0, 3 + c] * Hj[1, c]
-        q10 += T[1, 3 + c] * Hj[0, c]
-        q11 += T[1, 3 + c] * Hj[1, c]
-    for a in range(3):
-        for b in range(2):
-            s = 0.0
-            for c in range(3):
-                s += J[a, c] * Hi[b, c]
-            for c in range(3):
-                s += J[a, 3 + c] * Hj[b, c]
-            Pxz[a, b] = s
-    S00 = q00 + R[0, 0]
-    S01 = 0.5 * ((q01 + R[0, 1]) + (q10 + R[1, 0]))
-    S11 = q11 + R[1, 1]
-    return math.hypot(dx, dy), wrap(math.atan2(dy, dx) - xi2), S00, S01, S11
-
-
-@jit_inline
-def _left_multiply(G, M, T3):
-    """``M <- G M`` of 3 x 3 matrices in place (``T3``: scratch)."""
-    _mul_into(G, M, T3)
-    for a in range(3):
-        for b in range(3):
-            M[a, b] = T3[a, b]
-
-
-@jit
-def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
-    """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
-    before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
-    the update into ``Pn``. Twin: ``JointCovariance.update`` /
-    ``FactorizedCovariance.update``."""
-    code = joint[0]
-    N = joint[1]
-    j = joint[2][e]
-    A = joint[5]
-    range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
-    for a in range(3):  # G = I - K H_i
-        for b in range(3):
-            G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
-    _left_multiply(G, A[i], T3)
-    if code == TRACKED:  # the blocks of M_i, the noise, then P_i
-        noise = joint[4]
-        Bij = joint[6]
-        for r in range(first, e):
-            if fused[r]:
-                _left_multiply(G, Bij[r], T3)
-        for a in range(3):
-            for b in range(3):
-                Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
-        _mul_into(G, noise[i], T3)  # N_i <- G N_i G^T + K R K^T
-        for a in range(3):
-            t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
-            t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
-            for b in range(3):
-                s = 0.0
-                for c in range(3):
-                    s += T3[a, c] * G[b, c]
-                Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
-        for a in range(3):
-            for b in range(3):
-                noise[i, a, b] = Pn[a, b]
-        _tracked_update(G, K, R, joint, e, Pn, T3, joint[12][1][:3, :3])
-        return
-    sig = joint[7]  # FACTORIZED: every factor i holds, its B, then B_ij -= K H_j
-    Bm = joint[9]
-    lj = j % N
-    for m in range(N):
-        _left_multiply(G, sig[i, m], T3)
-        if joint[10][i, m]:
-            _left_multiply(G, Bm[i, m], T3)
-    for a in range(3):
-        for b in range(3):
-            Bm[i, lj, a, b] -= K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b]
-    joint[10][i, lj] = True
+    e = obs.shape[0] - 1
+    while e >= 0:  # robot by robot from the last row: S = the product of the later gains
+        i = obs[e]
+        for p in range(3):
+            for q in range(3):
+                S[p, q] = 1.0 if p == q else 0.0
+        while e >= 0 and obs[e] == i:
+            if fused[e]:
+                lj = nbr[e] % N
+                for p in range(3):
+                    for q in range(3):
+                        Bm[i, lj, p, q] += (
+                            S[p, 0] * Bij[e, 0, q] + S[p, 1] * Bij[e, 1, q] + S[p, 2] * Bij[e, 2, q]
+                        )
+                for p in range(3):
+                    for q in range(3):
+                        T[p, q] = (
+                            S[p, 0] * gains[e, 0, q]
+                            + S[p, 1] * gains[e, 1, q]
+                            + S[p, 2] * gains[e, 2, q]
+                        )
+                for p in range(3):
+                    for q in range(3):
+                        S[p, q] = T[p, q]
+            e -= 1

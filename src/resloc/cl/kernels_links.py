@@ -6,7 +6,9 @@ independent within a step (a link reads only robot ``i``'s running estimate and 
 transmitted estimate), so the row-order loop gives exactly the rounds of the reference
 path. Each piece of a link's work is a named function beside the numpy function it twins
 (``docs/algorithm.md`` maps every equation to both); the scalar primitives are in
-:mod:`resloc.cl.kernels_math`, the options' pieces in their own modules (detector stages:
+:mod:`resloc.cl.kernels_math`, the sigma points' range, bearing and moments (all points at
+once, in SIMD polynomials) in :mod:`resloc.cl.kernels_points`, the options' pieces in their
+own modules (detector stages:
 :mod:`resloc.cl.kernels_detection`, gauge bookkeeping: :mod:`resloc.cl.kernels_gauge`,
 the stealthy attacker: :mod:`resloc.cl.kernels_tamper`).
 """
@@ -21,15 +23,16 @@ from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
-from resloc.cl import kernels_joint as _kernels_joint
+from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
 from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
-from resloc.cl.kernels_joint import (
+from resloc.cl.kernels_joint_links import (
     NO_JOINT,
     correlated_linearized_moments,
     correlated_offsets,
@@ -48,6 +51,7 @@ from resloc.cl.kernels_math import (
     stamp_with_pieces,
     wrap,
 )
+from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 
@@ -168,10 +172,12 @@ def correct_links(
 
     The structures are unpacked once, here: a field read inside the loop would cost a
     reference-count update per field and link. For the same reason the pieces that would
-    take many arrays (the sigma-point moments, the gain, the Joseph update) are blocks of
-    this loop, each citing its twin; measured, as functions they cost 15-20% of the
-    correction. Returns the status; on a non-OK status the outputs are partial and must be
-    discarded.
+    take many arrays (the gain, the Joseph update) are blocks of this loop, each citing its
+    twin; measured, as functions they cost 15-20% of the correction. The sigma points'
+    moments are the exception (:func:`~resloc.cl.kernels_points.point_moments`): compiled
+    for SIMD with IEEE division, they cannot be inlined into this loop, and their SIMD
+    evaluation outweighs the call. Returns the status; on a non-OK status the outputs are
+    partial and must be discarded.
     """
     li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
@@ -182,9 +188,8 @@ def correct_links(
     m = Wm.shape[0]
     Li = np.zeros((3, 3))
     Lj = np.zeros((3, 3))
-    off = np.zeros((m, 6))
-    Z0 = np.zeros(m)
-    Z1 = np.zeros(m)
+    off = np.zeros((6, m))  # the points' offsets of [x_i; x_j], a row per coordinate
+    Zp = np.zeros((POINT_ROWS, m))
     Pxz = np.zeros((3, 2))
     K = np.zeros((3, 2))
     Hi = np.zeros((2, 3))
@@ -196,7 +201,7 @@ def correct_links(
     Pinf = np.zeros((3, 3))
     defending = defence[0] or defence[5]
     fusion_code = fusion[0]
-    # tracked / factorized: moments under a correlated joint (kernels_joint)
+    # tracked / factorized: moments under a correlated joint (kernels_joint_links)
     joint = fusion[3]
     correlated = joint[0] != NO_JOINT
     std0 = noise_std[0]
@@ -216,6 +221,11 @@ def correct_links(
         xi0 = x[i, 0]
         xi1 = x[i, 1]
         xi2 = x[i, 2]
+        sin_i = 0.0
+        cos_i = 1.0
+        if not linearized:  # the points' headings turn from robot i's (kernels_points)
+            sin_i = math.sin(xi2)
+            cos_i = math.cos(xi2)
         xj0 = x_nb[n, 0]
         xj1 = x_nb[n, 1]
         # The estimate of j the moments use: transmitted, or the last one received (cached;
@@ -254,83 +264,20 @@ def correct_links(
                 else:
                     for k in range(m):
                         for a in range(6):
-                            off[k, a] = 0.0
+                            off[a, k] = 0.0
                         for t in range(nz_cnt[k]):
                             b = nz_idx[k, t]
                             u = nz_val[k, t]
                             if b < 3:
                                 for a in range(3):
-                                    off[k, a] += Li[a, b] * u
+                                    off[a, k] += Li[a, b] * u
                             else:
                                 for a in range(3):
-                                    off[k, 3 + a] += Lj[a, b - 3] * u
-                zr = 0.0
-                ssin = 0.0
-                scos = 0.0
-                zb = 0.0
-                sin_i = 0.0
-                cos_i = 0.0
-                if circular:
-                    sin_i = math.sin(xi2)
-                    cos_i = math.cos(xi2)
-                for k in range(m):
-                    dx = (xr0 + off[k, 3]) - (xi0 + off[k, 0])
-                    dy = (xr1 + off[k, 4]) - (xi1 + off[k, 1])
-                    r = math.sqrt(dx * dx + dy * dy)
-                    th = xi2 + off[k, 2]
-                    Z0[k] = r
-                    Z1[k] = wrap(math.atan2(dy, dx) - th)
-                    zr += r * Wm[k]
-                    if circular:
-                        # sin and cos of the bearing atan2(dy, dx) - th, without sin/cos of it
-                        if r > 0.0:
-                            if off[k, 2] == 0.0:
-                                sn = sin_i
-                                cs = cos_i
-                            else:
-                                sn = math.sin(th)
-                                cs = math.cos(th)
-                            ssin += ((dy * cs - dx * sn) / r) * Wm[k]
-                            scos += ((dx * cs + dy * sn) / r) * Wm[k]
-                        else:
-                            ssin += math.sin(Z1[k]) * Wm[k]
-                            scos += math.cos(Z1[k]) * Wm[k]
-                    else:
-                        zb += Z1[k] * Wm[k]
-                zh0 = zr
-                zh1 = wrap(math.atan2(ssin, scos)) if circular else wrap(zb)
-                mx0 = 0.0
-                mx1 = 0.0
-                mx2 = 0.0
-                for k in range(m):
-                    mx0 += off[k, 0] * Wm[k]
-                    mx1 += off[k, 1] * Wm[k]
-                    mx2 += off[k, 2] * Wm[k]
-                s00 = 0.0
-                s01 = 0.0
-                s11 = 0.0
-                for a in range(3):
-                    Pxz[a, 0] = 0.0
-                    Pxz[a, 1] = 0.0
-                for k in range(m):
-                    d0 = Z0[k] - zh0
-                    d1 = wrap(Z1[k] - zh1)
-                    w = Wc[k]
-                    s00 += d0 * w * d0
-                    s01 += d0 * w * d1
-                    s11 += d1 * w * d1
-                    g0 = off[k, 0] - mx0
-                    g1 = off[k, 1] - mx1
-                    g2 = off[k, 2] - mx2
-                    Pxz[0, 0] += g0 * w * d0
-                    Pxz[0, 1] += g0 * w * d1
-                    Pxz[1, 0] += g1 * w * d0
-                    Pxz[1, 1] += g1 * w * d1
-                    Pxz[2, 0] += g2 * w * d0
-                    Pxz[2, 1] += g2 * w * d1
-                S00 = s00 + R[0, 0]
-                S01 = 0.5 * ((s01 + R[0, 1]) + (s01 + R[1, 0]))
-                S11 = s11 + R[1, 1]
+                                    off[3 + a, k] += Lj[a, b - 3] * u
+                # the points' range and bearing, all points at once (kernels_points)
+                zh0, zh1, S00, S01, S11 = point_moments(
+                    off, Wm, Wc, circular, xi0, xi1, xi2, xr0, xr1, sin_i, cos_i, R, Zp, Pxz
+                )
             # innovation, eq. (9)
             nu0 = zu0 - zh0
             nu1 = wrap(zu1 - zh1)
@@ -460,11 +407,12 @@ def correct_links(
 stamp_with_pieces(
     correct_links,
     _kernels_math,
+    _kernels_points,
     _kernels_detection,
     _kernels_defence,
     _kernels_fusion,
     _kernels_gauge,
-    _kernels_joint,
+    _kernels_joint_links,
     _kernels_split,
     _kernels_tamper,
 )

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl.kernels_fusion import ci_posterior, ci_weight
-from resloc.cl.kernels_joint import scaled_unit_minus_is_pd
+from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit, jit_inline
 
 __all__ = ["sandwich3", "split_ci_update"]

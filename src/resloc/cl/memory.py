@@ -69,10 +69,13 @@ class LinkMemory:
             Valid where ``found``.
         """
         k = np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
+        n = len(self.keys)
+        if n == 0:
+            return np.zeros(k.shape, dtype=bool), np.zeros(k.shape, dtype=np.intp)
         pos = np.searchsorted(self.keys, k)
-        found = pos < len(self.keys)
-        found[found] = self.keys[pos[found]] == k[found]
-        return found, np.minimum(pos, max(len(self.keys) - 1, 0))
+        # a key past the last one lands on the last position, whose key is smaller: not found
+        np.minimum(pos, n - 1, out=pos)
+        return self.keys[pos] == k, pos
 
     def store(
         self,
@@ -89,6 +92,11 @@ class LinkMemory:
         if len(i) == 0:
             return
         found, pos = self.lookup(i, j)
+        if found.all():  # every link known (a run's steady state): overwrite in place
+            self.x[pos] = x
+            self.P[pos] = P
+            self.last_norm[pos] = norm
+            return
         self.x[pos[found]] = x[found]
         self.P[pos[found]] = P[found]
         self.last_norm[pos[found]] = norm[found]

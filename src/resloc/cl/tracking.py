@@ -158,11 +158,17 @@ class JointCovariance:
 
     def _start_step(self) -> None:
         B, n3 = self.T * self.N, 3 * self.N
-        self.M = np.zeros((B, 3, n3))
-        b = np.arange(B)
-        local = b % self.N
-        for a in range(3):
-            self.M[b, a, 3 * local + a] = 1.0
+        identity = getattr(self, "_identity_M", None)
+        if identity is None or identity.shape != (B, 3, n3):
+            # every robot's M_b = E_b (its own block the identity), built once: a step
+            # starts from a copy
+            identity = np.zeros((B, 3, n3))
+            b = np.arange(B)
+            local = b % self.N
+            for a in range(3):
+                identity[b, a, 3 * local + a] = 1.0
+            self._identity_M = identity
+        self.M = identity.copy()
         self.noise = np.zeros((B, 3, 3))
         self.updates = 0  # updates recorded since (M, noise) were reset
 
@@ -206,9 +212,16 @@ class JointCovariance:
 
     def diagonal(self) -> np.ndarray:
         """The diagonal blocks ``P_i``, shape (B, 3, 3)."""
-        v = self.sigma.reshape(self.T, self.N, 3, self.N, 3)
-        r = np.arange(self.N)
-        return np.swapaxes(v[:, r, :, r, :], 0, 1).reshape(-1, 3, 3).copy()
+        n3 = 3 * self.N
+        index = getattr(self, "_diagonal_index", None)
+        if index is None or len(index) != 9 * self.N:
+            # flat positions of the diagonal blocks in a team's (3N, 3N) matrix, robot by
+            # robot, row-major within a block: one gather per call
+            block = 3 * np.arange(self.N)[:, None, None]
+            a = np.arange(3)
+            index = ((block + a[:, None]) * n3 + block + a[None, :]).ravel()
+            self._diagonal_index = index
+        return self.sigma.reshape(self.T, n3 * n3)[:, index].reshape(-1, 3, 3)
 
     def _m_sigma(self) -> np.ndarray:
         """``M_b Sigma`` of every robot, shape (B, 3, 3N) (one matrix product per team)."""
