@@ -30,6 +30,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from resloc.cl import kernels_defence as _kernels_defence
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_fusion as _kernels_fusion
+from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_joint as _kernels_joint
+from resloc.cl import kernels_lanes as _kernels_lanes
+from resloc.cl import kernels_link_stages as _kernels_link_stages
+from resloc.cl import kernels_links as _kernels_links
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_split as _kernels_split
+from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
@@ -54,7 +65,7 @@ from resloc.cl.kernels_link_stages import (
     points_lanes,
 )
 from resloc.cl.kernels_links import NOT_PD, OK, decide_link
-from resloc.cl.kernels_math import is_pd3, repair3, wrap
+from resloc.cl.kernels_math import is_pd3, repair3, stamp_with_pieces, wrap
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 
@@ -70,6 +81,7 @@ else:  # pragma: no cover - exercised only where numba is absent
 
 
 __all__ = [
+    "PIECE_MODULES",
     "gauge_lanes",
     "inflated_moments",
     "intersect_lanes",
@@ -397,3 +409,32 @@ def gauge_lanes(gauge, lane_e, lane_first, obs, n, xi, xr, update, decision, R, 
             gauge, lane_e[c], lane_first[c], fused, obs[c], xi[0, c], xi[1, c], xr[0, c],
             xr[1, c], K, R, Hi, Hj, G3, T3,
         )  # fmt: skip
+
+
+#: The modules whose pieces the stages inline or call: an edit of one must recompile them
+#: (and the rounds, which link them).
+PIECE_MODULES = (
+    _kernels_math,
+    _kernels_lanes,
+    _kernels_link_stages,
+    _kernels_links,
+    _kernels_detection,
+    _kernels_defence,
+    _kernels_fusion,
+    _kernels_split,
+    _kernels_joint,
+    _kernels_gauge,
+    _kernels_tamper,
+)
+for _dispatcher in (
+    save_state,
+    restore_state,
+    tamper_lanes,
+    screen_lanes,
+    retry_lanes,
+    inflated_moments,
+    link_scratch,
+    intersect_lanes,
+    gauge_lanes,
+):
+    stamp_with_pieces(_dispatcher, *PIECE_MODULES)

@@ -51,10 +51,6 @@ from collections import Counter
 
 import numpy as np
 
-from resloc.cl import kernels_lanes as _kernels_lanes
-from resloc.cl import kernels_link_stages as _kernels_link_stages
-from resloc.cl import kernels_links as _kernels_links
-from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA
@@ -305,13 +301,7 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
 
 for _dispatcher in (correct_rounds, _rounds):
     stamp_with_pieces(
-        _dispatcher,
-        _kernels_math,
-        _kernels_trig,
-        _kernels_lanes,
-        _kernels_links,
-        _kernels_link_stages,
-        _kernels_round_stages,
+        _dispatcher, _kernels_trig, _kernels_round_stages, *_kernels_round_stages.PIECE_MODULES
     )
 
 
