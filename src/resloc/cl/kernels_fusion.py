@@ -299,21 +299,40 @@ def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
     n = grid.shape[0]
     best = np.inf
     k = 0
+    # The parabola's three costs around the best are the grid's own: kept during the
+    # search rather than evaluated again (each inlined evaluation is compiled code).
+    prev = c0 = c1 = c2 = np.nan
+    head0 = head1 = head2 = tail0 = tail1 = tail2 = np.nan
+    take_next = False
     for t in range(n):
         cost = _ci_cost(
             grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r
         )
+        if take_next:
+            c2 = cost
+            take_next = False
         if cost < best or (t == 0 and not cost >= best):
             best = cost
             k = t
+            c0 = prev
+            c1 = cost
+            take_next = True
+        if t == 0:
+            head0 = cost
+        elif t == 1:
+            head1 = cost
+        elif t == 2:
+            head2 = cost
+        tail0 = tail1
+        tail1 = tail2
+        tail2 = cost
+        prev = cost
     kc = min(max(k, 1), n - 2)
-    c0 = _ci_cost(
-        grid[kc - 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r
-    )
-    c1 = _ci_cost(grid[kc], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r)
-    c2 = _ci_cost(
-        grid[kc + 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r
-    )
+    if kc != k:  # the best at an end of the grid: the first or the last three points
+        if k == 0:
+            c0, c1, c2 = head0, head1, head2
+        else:
+            c0, c1, c2 = tail0, tail1, tail2
     h = grid[1] - grid[0]
     denom = c0 - 2.0 * c1 + c2
     shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0

@@ -116,17 +116,39 @@ def save_state(detection, defence, fusion, gauge):
 
 @_jit
 def restore_state(saved, detection, defence, fusion, gauge):
-    """Put back the stores :func:`save_state` copied."""
-    detection[4][...] = saved[0]
-    detection[9][...] = saved[1]
-    defence[3][...] = saved[2]
-    defence[9][...] = saved[3]
-    defence[11][...] = saved[4]
-    defence[13][...] = saved[5]
-    fusion[4][...] = saved[6]
-    gauge[1][...] = saved[7]
-    gauge[2][...] = saved[8]
-    gauge[3][...] = saved[9]
+    """Put back the stores :func:`save_state` copied (element loops: numba's generic
+    array assignment costs seconds of compilation per array kind)."""
+    _put_back_1d(detection[4], saved[0])
+    _put_back_2d(detection[9], saved[1])
+    _put_back_1d(defence[3], saved[2])
+    _put_back_1d(defence[9], saved[3])
+    _put_back_1d(defence[11], saved[4])
+    _put_back_1d(defence[13], saved[5])
+    _put_back_3d(fusion[4], saved[6])
+    _put_back_3d(gauge[1], saved[7])
+    _put_back_3d(gauge[2], saved[8])
+    _put_back_3d(gauge[3], saved[9])
+
+
+@_jit
+def _put_back_1d(store, copy):
+    for a in range(store.shape[0]):
+        store[a] = copy[a]
+
+
+@_jit
+def _put_back_2d(store, copy):
+    for a in range(store.shape[0]):
+        for b in range(store.shape[1]):
+            store[a, b] = copy[a, b]
+
+
+@_jit
+def _put_back_3d(store, copy):
+    for a in range(store.shape[0]):
+        for b in range(store.shape[1]):
+            for c in range(store.shape[2]):
+                store[a, b, c] = copy[a, b, c]
 
 
 @_jit
@@ -429,6 +451,9 @@ PIECE_MODULES = (
 for _dispatcher in (
     save_state,
     restore_state,
+    _put_back_1d,
+    _put_back_2d,
+    _put_back_3d,
     tamper_lanes,
     screen_lanes,
     retry_lanes,
