@@ -3,7 +3,8 @@ the numpy reference: same estimates, covariances and decisions to 1e-9 on random
 with falsified measurements (detector rejections), failing channels (jamming), untriggered
 links, covariances that need Cholesky jitter and repairs, over multi-step runs, with the
 loop that ran asserted; its fallback to the row-order loop; the branch-free lane math
-(:mod:`resloc.cl.kernels_lanes`) against libm; the caller-owned state buffers."""
+(:mod:`resloc.cl.kernels_lanes`) against libm; the caller-owned state buffers. The options
+in the rounds: ``tests/test_kernels_round_options.py``."""
 
 from __future__ import annotations
 

@@ -31,15 +31,18 @@ function                 paper                                block of ``correct
 =======================  ===================================  ===========================
 
 Coverage (:func:`rounds_cover`): sigma-point filters whose 6-D points have at most one
-non-zero entry (the CKF and the UKF), the Kalman update (``naive``), the detector gate and
-the event trigger with any norms and either threshold innovation, transmitted neighbour
-estimates. The stateful options (CUSUM stages, robot defence, gauge bookkeeping, the
-stealthy attacker, cached estimates, covariance intersection) and the EKF run in the
-row-order loop. A lane that needs a special case of the row-order loop (the Cholesky
-jitter of ``P_i``, ``P_j`` is handled here; a point at the robot's own position, an ``S``
-that needs jitter, a measured bearing outside ``(-2 pi, 2 pi)``, non-finite values, rows
-not sorted by observer are not) makes :func:`correct_rounds` return ``FALLBACK`` and
-:func:`run_link_loop` runs the row-order loop from the start instead.
+non-zero entry (the CKF and the UKF), the Kalman update (``naive``, ``gauge`` with its
+bookkeeping), ``ci`` and ``split_ci``, the detector gate and the event trigger with any
+norms and either threshold innovation, the NIS and mean-shift CUSUMs, the robot CUSUM,
+the recovery (its second pass on ``f P_i`` too), the stealthy attacker, transmitted
+neighbour estimates. The options' per-link stages run lane by lane after the vectorized
+moments (:mod:`resloc.cl.kernels_round_stages`). The ``tracked`` and ``factorized``
+joints, cached estimates and the EKF run in the row-order loop. A lane that needs a
+special case of the row-order loop (the Cholesky jitter of ``P_i``, ``P_j`` is handled
+here; a point at the robot's own position, an ``S`` that needs jitter, a measured bearing
+outside ``(-2 pi, 2 pi)``, non-finite values, rows not sorted by observer are not) makes
+:func:`correct_rounds` return ``FALLBACK`` (with the options' stores put back as they
+were) and :func:`run_link_loop` runs the row-order loop from the start instead.
 
 :func:`run_link_loop` is the one place that chooses: the rounds for at least
 :data:`ROUNDS_MIN_LINKS` links of a covered configuration, else the row-order loop.
