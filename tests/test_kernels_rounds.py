@@ -3,7 +3,8 @@ the numpy reference: same estimates, covariances and decisions to 1e-9 on random
 with falsified measurements (detector rejections), failing channels (jamming), untriggered
 links, covariances that need Cholesky jitter and repairs, over multi-step runs, with the
 loop that ran asserted; its fallback to the row-order loop; the branch-free lane math
-(:mod:`resloc.cl.kernels_lanes`) against libm; the caller-owned state buffers."""
+(:mod:`resloc.cl.kernels_lanes`) against libm; the caller-owned state buffers. The options
+in the rounds: ``tests/test_kernels_round_options.py``."""
 
 from __future__ import annotations
 
@@ -54,7 +55,7 @@ def _reference(filt, x, P, links, params, memory=None):
         return correct(filt, x, P, links, params, memory)
 
 
-def _assert_same(a, b, tol: float = 1e-9) -> None:
+def assert_same_loops(a, b, tol: float = 1e-9) -> None:
     """Two compiled corrections agree (estimates, covariances, every decision)."""
     (xa, Pa, oa), (xb, Pb, ob) = a, b
     assert np.abs(xa - xb).max() <= tol
@@ -74,7 +75,7 @@ def test_rounds_equal_row_order_and_reference(name: str, case: str) -> None:
     for seed in range(3):
         x, P, links = random_batch(100 + seed, B=120, outliers=0.2, fail=0.3)
         by_rounds = _compiled(filt, x, P, links, params)
-        _assert_same(by_rounds, _compiled(filt, x, P, links, params, loop="row_order"))
+        assert_same_loops(by_rounds, _compiled(filt, x, P, links, params, loop="row_order"))
         ref = _reference(filt, x, P, links, params)
         assert_equivalent(by_rounds, ref)
         out = ref[2]
@@ -112,7 +113,7 @@ def test_rounds_with_jitter_and_repairs() -> None:
     links = replace(links, P_nb=P[links.j].copy())
     params = CLParams(range_std=1e-4, bearing_std=1e-4, rho=1e6, alpha=0.0)
     by_rounds = _compiled(FILTERS["ckf"], x, P, links, params)
-    _assert_same(by_rounds, _compiled(FILTERS["ckf"], x, P, links, params, loop="row_order"))
+    assert_same_loops(by_rounds, _compiled(FILTERS["ckf"], x, P, links, params, loop="row_order"))
     assert_equivalent(by_rounds, _reference(FILTERS["ckf"], x, P, links, params))
     assert by_rounds[2].fused.sum() > len(x) // 2
 
@@ -146,19 +147,18 @@ def test_rounds_give_way_on_rows_not_sorted_by_observer() -> None:
     with kernels.use_backend("numba"):
         got = correct(FILTERS["ckf"], x, P, shuffled, params)
     assert rounds.LOOP_RUNS - before == {"rounds_fallback": 1, "row_order": 1}
-    _assert_same(got, _compiled(FILTERS["ckf"], x, P, shuffled, params, loop="row_order"))
+    assert_same_loops(got, _compiled(FILTERS["ckf"], x, P, shuffled, params, loop="row_order"))
 
 
 @pytest.mark.parametrize(
     ("name", "changes"),
     [
         ("ekf", {}),
-        ("ckf", {"cusum": True}),
-        ("ckf", {"fusion": "ci"}),
-        ("ckf", {"fusion": "split_ci"}),
+        ("ekf", {"fusion": "ci", "cusum": True}),
         ("ckf", {"fusion": "tracked"}),
         ("ckf", {"fusion": "factorized"}),
         ("ckf", {"neighbour_estimate": "cached"}),
+        ("ckf", {"neighbour_estimate": "cached", "fusion": "split_ci"}),
     ],
 )
 def test_rounds_leave_what_they_do_not_cover_to_the_row_order_loop(name, changes) -> None:

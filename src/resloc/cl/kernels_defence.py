@@ -23,9 +23,9 @@ computes that link's moments a second time from ``f P_i`` and updates with them,
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`_robot_cusum`           :func:`resloc.cl.detection_robot.robot_cusum` and
+:func:`robot_cusum_step`       :func:`resloc.cl.detection_robot.robot_cusum` and
                                ``RobotCusum.discard``
-:func:`_recovery`              ``RejectionRecovery.discard`` (with
+:func:`recovery_step`          ``RejectionRecovery.discard`` (with
                                :func:`~resloc.cl.detection_recovery.recovery_inflation`,
                                :func:`~resloc.cl.detection_recovery.update_rejection_runs`)
 :func:`defend_link`            the per-robot stages of :func:`resloc.cl.detection.detect`
@@ -43,7 +43,13 @@ from resloc.cl.kernels_detection import DetectorState, gain_at, nis_of, store_sl
 from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
-__all__ = ["KernelDefence", "defence_state", "defend_link"]
+__all__ = [
+    "KernelDefence",
+    "defence_state",
+    "defend_link",
+    "recovery_step",
+    "robot_cusum_step",
+]
 
 
 class KernelDefence(NamedTuple):
@@ -138,20 +144,77 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
 # Per-link pieces, inlined into the CL loop of resloc.cl.kernels_links.
 # ---------------------------------------------------------------------------------------
 @jit_inline
-def _robot_cusum(g, slot, stat, k, h, passed):
-    """One step of the CUSUM of the NIS over all of robot i's links, ``g_i <- min(max(0,
-    g_i + (NIS - k)), 2 h)`` stored in place when the gate ``passed`` the measurement; the
-    stage discards while ``g_i > h`` a measurement with ``NIS > k``.
+def robot_cusum_step(g, stat, k, h, passed):
+    """One step of the CUSUM of the NIS over all of robot i's links from statistic ``g``:
+    ``(g', discard)`` with ``g' = min(max(0, g + (NIS - k)), 2 h)`` when the gate ``passed``
+    the measurement (else ``g``); the stage discards while ``g' > h`` a measurement with
+    ``NIS > k``. Scalars only (a loop over lanes calls it without passing arrays).
     Twin: :func:`resloc.cl.detection_robot.robot_cusum` and ``RobotCusum.discard``."""
     if passed:
-        v = g[slot] + (stat - k)
+        v = g + (stat - k)
         if v < 0.0:
             v = 0.0
         cap = 2.0 * h
         if v > cap:
             v = cap
-        g[slot] = v
-    return g[slot] > h and stat > k
+        g = v
+    return g, g > h and stat > k
+
+
+@jit_inline
+def _robot_cusum(g, slot, stat, k, h, passed):
+    """:func:`robot_cusum_step` on the statistic ``g[slot]``, stored in place."""
+    v, discard = robot_cusum_step(g[slot], stat, k, h, passed)
+    g[slot] = v
+    return discard
+
+
+@jit_inline
+def recovery_step(start, spread, applied, detected, stat, trace, after, gate, cap):
+    """Recovery after a run of rejections on one link of robot i, from its run count
+    ``start``, the spread at its last ordinary acceptance and ``A_i`` (``applied``):
+    ``(detected, inflation, runs', spread', applied')``.
+
+    ``f = min(2^((n - R) / R), f_max, max(G_i, 1), max(f_max^2 / A_i, 1))`` while ``n >= R``
+    (``G_i``: growth of ``tr P_i,pos`` since the last ordinary acceptance; ``A_i``: the
+    inflation re-admissions applied since then); a discarded measurement with ``NIS / f <=
+    gate`` is re-admitted with inflation ``f``. Scalars only. Twin:
+    ``RejectionRecovery.discard`` (with ``recovery_inflation``, ``remaining_inflation``,
+    ``_record_applied`` and ``update_rejection_runs``).
+    """
+    f = math.nan
+    if start >= after:
+        f = np.exp2((start - after) / after)
+        if f > cap:
+            f = cap
+    growth = trace / spread if spread > 0.0 else math.inf
+    if growth < 1.0:
+        growth = 1.0
+    if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
+        f = growth
+    remaining = (cap * cap) / (applied if applied > 1.0 else 1.0)
+    if remaining < 1.0:
+        remaining = 1.0
+    if f > remaining:
+        f = remaining
+    new_spread = spread
+    new_applied = applied
+    if not detected:
+        new_spread = trace
+        new_applied = 0.0
+    inflation = 1.0
+    readmitted = False
+    if detected and math.isfinite(f) and stat / f <= gate:
+        detected = False
+        readmitted = True
+        inflation = f
+        new_applied = (applied if applied > 1.0 else 1.0) * f
+    runs = start
+    if not detected and not readmitted:
+        runs = 0.0
+    elif not readmitted:
+        runs = start + 1.0
+    return detected, inflation, runs, new_spread, new_applied
 
 
 @jit_inline
@@ -159,47 +222,15 @@ def _recovery(
     runs, run_slot, spread, spread_slot, applied, applied_slot, detected, stat, trace,
     after, gate, cap,
 ):  # fmt: skip
-    """Recovery after a run of rejections on one link of robot i: ``(detected, inflation)``.
-
-    ``f = min(2^((n - R) / R), f_max, max(G_i, 1), max(f_max^2 / A_i, 1))`` while ``n >= R``
-    (``G_i``: growth of ``tr P_i,pos`` since the last ordinary acceptance; ``A_i``: the
-    inflation re-admissions applied since then); a discarded measurement with ``NIS / f <=
-    gate`` is re-admitted with inflation ``f``. Updates the run count ``n``, the spread and
-    ``A_i`` in place. Twin: ``RejectionRecovery.discard`` (with ``recovery_inflation``,
-    ``remaining_inflation``, ``_record_applied`` and ``update_rejection_runs``).
-    """
-    start = runs[run_slot]
-    f = math.nan
-    if start >= after:
-        f = np.exp2((start - after) / after)
-        if f > cap:
-            f = cap
-    before = spread[spread_slot]
-    growth = trace / before if before > 0.0 else math.inf
-    if growth < 1.0:
-        growth = 1.0
-    if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
-        f = growth
-    before = applied[applied_slot]
-    remaining = (cap * cap) / (before if before > 1.0 else 1.0)
-    if remaining < 1.0:
-        remaining = 1.0
-    if f > remaining:
-        f = remaining
-    if not detected:
-        spread[spread_slot] = trace
-        applied[applied_slot] = 0.0
-    inflation = 1.0
-    readmitted = False
-    if detected and math.isfinite(f) and stat / f <= gate:
-        detected = False
-        readmitted = True
-        inflation = f
-        applied[applied_slot] = (before if before > 1.0 else 1.0) * f
-    if not detected and not readmitted:
-        runs[run_slot] = 0.0
-    elif not readmitted:
-        runs[run_slot] = start + 1.0
+    """:func:`recovery_step` on the stores' values at the slots, stored in place:
+    ``(detected, inflation)``."""
+    detected, inflation, n, g, a = recovery_step(
+        runs[run_slot], spread[spread_slot], applied[applied_slot], detected, stat, trace,
+        after, gate, cap,
+    )  # fmt: skip
+    runs[run_slot] = n
+    spread[spread_slot] = g
+    applied[applied_slot] = a
     return detected, inflation
 
 

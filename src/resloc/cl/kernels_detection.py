@@ -15,10 +15,10 @@ reference path then starts from the same memory.
 kernel function                numpy twin
 =============================  ========================================================
 :func:`nis_of`                   :func:`resloc.cl.cusum.nis`
-:func:`_whiten`                :func:`resloc.cl.cusum.whiten`
-:func:`_link_cusum`            :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
+:func:`whiten_of`              :func:`resloc.cl.cusum.whiten`
+:func:`cusum_step`             :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``
-:func:`_link_mean_cusum`       :func:`resloc.cl.cusum.link_mean_cusum`
+:func:`mean_cusum_step`        :func:`resloc.cl.cusum.link_mean_cusum`
 :func:`detect_link`           :func:`resloc.cl.detection.detect` (every active stage)
 =============================  ========================================================
 """
@@ -33,7 +33,16 @@ from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
-__all__ = ["DetectorState", "KernelDetection", "detector_state", "store_slots"]
+__all__ = [
+    "DetectorState",
+    "KernelDetection",
+    "cusum_step",
+    "detect_link",
+    "detector_state",
+    "mean_cusum_step",
+    "store_slots",
+    "whiten_of",
+]
 
 
 class KernelDetection(NamedTuple):
@@ -185,44 +194,72 @@ def nis_of(nu0, nu1, l00, l10, l11):
 
 
 @jit_inline
-def _whiten(nu0, nu1, l00, l10, l11):
+def whiten_of(nu0, nu1, l00, l10, l11):
     """``w = L^-1 Lambda`` (twin: :func:`~resloc.cl.cusum.whiten`)."""
     w0 = nu0 / l00
     return w0, (nu1 - l10 * w0) / l11
 
 
 @jit_inline
-def _link_cusum(g, slot, stat, k, h, cap):
-    """One step of Page's CUSUM of the NIS on one link, ``g <- min(max(0, g + NIS - k),
-    cap)`` stored in place; the stage discards while ``g > h`` a measurement with
-    ``NIS > k``. Twin: :func:`~resloc.cl.cusum.link_cusum` and ``NISCusum.discard``."""
-    v = g[slot] + stat - k
+def cusum_step(g, stat, k, h, cap):
+    """One step of Page's CUSUM of the NIS on one link from statistic ``g``: ``(g', discard)``
+    with ``g' = min(max(0, g + NIS - k), cap)``; the stage discards while ``g' > h`` a
+    measurement with ``NIS > k``. Scalars only (a loop over lanes calls it without passing
+    arrays). Twin: :func:`~resloc.cl.cusum.link_cusum` and ``NISCusum.discard``."""
+    v = g + stat - k
     if v < 0.0:
         v = 0.0
     if v > cap:
         v = cap
+    return v, v > h and stat > k
+
+
+@jit_inline
+def _link_cusum(g, slot, stat, k, h, cap):
+    """:func:`cusum_step` on the statistic ``g[slot]``, stored in place."""
+    v, discard = cusum_step(g[slot], stat, k, h, cap)
     g[slot] = v
-    return v > h and stat > k
+    return discard
+
+
+@jit_inline
+def _signed_step(g, s, k, cap):
+    v = g + s - k
+    if v < 0.0:
+        v = 0.0
+    if v > cap:
+        v = cap
+    return v
+
+
+@jit_inline
+def mean_cusum_step(g0, g1, g2, g3, w0, w1, k, h, passed):
+    """The four signed CUSUMs ``(g+_r, g-_r, g+_b, g-_b)`` of the whitened innovation of one
+    link, updated only when the gate ``passed`` the measurement: ``(g0', g1', g2', g3',
+    discard)``; discard while a component alarms a measurement with ``|w_c| > k``. Scalars
+    only. Twin: :func:`~resloc.cl.cusum.link_mean_cusum`."""
+    cap = 2.0 * h
+    if passed:
+        g0 = _signed_step(g0, w0, k, cap)
+        g1 = _signed_step(g1, -w0, k, cap)
+        g2 = _signed_step(g2, w1, k, cap)
+        g3 = _signed_step(g3, -w1, k, cap)
+    alarm_r = g0 > h or g1 > h
+    alarm_b = g2 > h or g3 > h
+    return g0, g1, g2, g3, (alarm_r and abs(w0) > k) or (alarm_b and abs(w1) > k)
 
 
 @jit_inline
 def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
-    """The four signed CUSUMs of the whitened innovation of one link (updated in place only
-    when the gate ``passed`` the measurement); discard while a component alarms a
-    measurement with ``|w_c| > k``. Twin: :func:`~resloc.cl.cusum.link_mean_cusum`."""
-    cap = 2.0 * h
-    if passed:
-        for c in range(4):
-            s = w0 if c == 0 else (-w0 if c == 1 else (w1 if c == 2 else -w1))
-            v = g[slot, c] + s - k
-            if v < 0.0:
-                v = 0.0
-            if v > cap:
-                v = cap
-            g[slot, c] = v
-    alarm_r = g[slot, 0] > h or g[slot, 1] > h
-    alarm_b = g[slot, 2] > h or g[slot, 3] > h
-    return (alarm_r and abs(w0) > k) or (alarm_b and abs(w1) > k)
+    """:func:`mean_cusum_step` on the statistics ``g[slot]``, stored in place."""
+    g0, g1, g2, g3, discard = mean_cusum_step(
+        g[slot, 0], g[slot, 1], g[slot, 2], g[slot, 3], w0, w1, k, h, passed
+    )
+    g[slot, 0] = g0
+    g[slot, 1] = g1
+    g[slot, 2] = g2
+    g[slot, 3] = g3
+    return discard
 
 
 @jit_inline
@@ -239,7 +276,7 @@ def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
         if _link_cusum(cg, cslot[e], stat, gain_at(ck, i), gain_at(ch, i), gain_at(ccap, i)):
             detected = True
     if mean:
-        w0, w1 = _whiten(nu0, nu1, l00, l10, l11)
+        w0, w1 = whiten_of(nu0, nu1, l00, l10, l11)
         if _link_mean_cusum(mg, mslot[e], w0, w1, gain_at(mk, i), gain_at(mh, i), not gated):
             detected = True
     return detected

@@ -131,15 +131,17 @@ def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray
 
 
 @jit_inline
-def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, R):
+def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
     weight ``w`` from the link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
     ``a = H_i D_i H_i^T``, ``b = H_j D_j H_j^T``, ``g = C^T C`` with ``C = D_i H_i^T``
     (``D``: the covariances, or their dependent parts with ``split``), and with ``split``
     the independent parts' ``ai = H_i I_i H_i^T``, ``bi = H_j I_j H_j^T + R``, ``gdi =
-    C^T (I_i H_i^T)``, ``gii`` and the parts ``Dp``, ``Ip`` of ``P_i`` themselves
-    (``tr_i``: trace of ``Dp``, ``det_i``: its determinant, used without ``split``).
-    Twin: ``resloc.cl.fusion._posterior_cost``."""
+    C^T (I_i H_i^T)``, ``gii`` and the parts ``Dp``, ``Ip`` of ``P_i`` themselves (9-tuples
+    by row; ``tr_ip``: trace of ``Ip``; ``tr_i``: trace of ``Dp``, ``det_i``: its
+    determinant, used without ``split``; ``R``: a 4-tuple). Tuples of scalars, no arrays:
+    each array an inlined call receives costs a reference-count update, and the weight's
+    search calls this 37 times a link. Twin: ``resloc.cl.fusion._posterior_cost``."""
     u = 1.0 / w
     v = 1.0 / (1.0 - w)
     if split:
@@ -152,10 +154,10 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, R):
         s10 = a[2] * u + ai[2] + sj10
         s11 = a[3] * u + ai[3] + sj11
     else:
-        sj00 = b[0] * v + R[0, 0]
-        sj01 = b[1] * v + R[0, 1]
-        sj10 = b[2] * v + R[1, 0]
-        sj11 = b[3] * v + R[1, 1]
+        sj00 = b[0] * v + R[0]
+        sj01 = b[1] * v + R[1]
+        sj10 = b[2] * v + R[2]
+        sj11 = b[3] * v + R[3]
         s00 = a[0] * u + sj00
         s01 = a[1] * u + sj01
         s10 = a[2] * u + sj10
@@ -163,14 +165,14 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, R):
     det_s = s00 * s11 - s01 * s10
     if det:
         if split:  # det(D_i / w + I_i)
-            return _det3_scaled(Dp, u, Ip) * (sj00 * sj11 - sj01 * sj10) / det_s
+            return _det3_scaled_entries(Dp, u, Ip) * (sj00 * sj11 - sj01 * sj10) / det_s
         return det_i * u * u * u * (sj00 * sj11 - sj01 * sj10) / det_s
     if split:
         q00 = g[0] * u * u + (gdi[0] + gdi[0]) * u + gii[0]
         q01 = g[1] * u * u + (gdi[1] + gdi[2]) * u + gii[1]
         q10 = g[2] * u * u + (gdi[2] + gdi[1]) * u + gii[2]
         q11 = g[3] * u * u + (gdi[3] + gdi[3]) * u + gii[3]
-        tr_a = tr_i / w + (Ip[0, 0] + Ip[1, 1] + Ip[2, 2])
+        tr_a = tr_i / w + tr_ip
     else:
         q00 = g[0] * u * u
         q01 = g[1] * u * u
@@ -182,17 +184,31 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, R):
 
 
 @jit_inline
+def _entries(M):
+    """The nine entries of a 3 x 3 matrix by row, as a tuple."""
+    return (
+        M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2],
+    )  # fmt: skip
+
+
+@jit_inline
 def _det3_scaled(D, u, I3):
     """``det(D u + I3)`` of 3 x 3 matrices."""
-    m00 = D[0, 0] * u + I3[0, 0]
-    m01 = D[0, 1] * u + I3[0, 1]
-    m02 = D[0, 2] * u + I3[0, 2]
-    m10 = D[1, 0] * u + I3[1, 0]
-    m11 = D[1, 1] * u + I3[1, 1]
-    m12 = D[1, 2] * u + I3[1, 2]
-    m20 = D[2, 0] * u + I3[2, 0]
-    m21 = D[2, 1] * u + I3[2, 1]
-    m22 = D[2, 2] * u + I3[2, 2]
+    return _det3_scaled_entries(_entries(D), u, _entries(I3))
+
+
+@jit_inline
+def _det3_scaled_entries(D, u, I3):
+    """``det(D u + I3)`` of 3 x 3 matrices given as 9-tuples by row."""
+    m00 = D[0] * u + I3[0]
+    m01 = D[1] * u + I3[1]
+    m02 = D[2] * u + I3[2]
+    m10 = D[3] * u + I3[3]
+    m11 = D[4] * u + I3[4]
+    m12 = D[5] * u + I3[5]
+    m20 = D[6] * u + I3[6]
+    m21 = D[7] * u + I3[7]
+    m22 = D[8] * u + I3[8]
     return (
         m00 * (m11 * m22 - m12 * m21)
         - m01 * (m10 * m22 - m12 * m20)
@@ -275,18 +291,48 @@ def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
         - Di[0, 1] * (Di[1, 0] * Di[2, 2] - Di[1, 2] * Di[2, 0])
         + Di[0, 2] * (Di[1, 0] * Di[2, 1] - Di[1, 1] * Di[2, 0])
     )
+    # the matrices as tuples of scalars for the 37 evaluations of the cost (see _ci_cost)
+    dp = _entries(Di)
+    ip = _entries(Ii)
+    tr_ip = Ii[0, 0] + Ii[1, 1] + Ii[2, 2]
+    r = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
     n = grid.shape[0]
     best = np.inf
     k = 0
+    # The parabola's three costs around the best are the grid's own: kept during the
+    # search rather than evaluated again (each inlined evaluation is compiled code).
+    prev = c0 = c1 = c2 = np.nan
+    head0 = head1 = head2 = tail0 = tail1 = tail2 = np.nan
+    take_next = False
     for t in range(n):
-        cost = _ci_cost(grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
+        cost = _ci_cost(
+            grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r
+        )
+        if take_next:
+            c2 = cost
+            take_next = False
         if cost < best or (t == 0 and not cost >= best):
             best = cost
             k = t
+            c0 = prev
+            c1 = cost
+            take_next = True
+        if t == 0:
+            head0 = cost
+        elif t == 1:
+            head1 = cost
+        elif t == 2:
+            head2 = cost
+        tail0 = tail1
+        tail1 = tail2
+        tail2 = cost
+        prev = cost
     kc = min(max(k, 1), n - 2)
-    c0 = _ci_cost(grid[kc - 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
-    c1 = _ci_cost(grid[kc], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
-    c2 = _ci_cost(grid[kc + 1], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
+    if kc != k:  # the best at an end of the grid: the first or the last three points
+        if k == 0:
+            c0, c1, c2 = head0, head1, head2
+        else:
+            c0, c1, c2 = tail0, tail1, tail2
     h = grid[1] - grid[0]
     denom = c0 - 2.0 * c1 + c2
     shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
@@ -295,7 +341,7 @@ def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid):
         w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
     else:
         w = grid[k]
-    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Di, Ii, R)
+    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r)
     if refined <= best:
         best = refined
     else:

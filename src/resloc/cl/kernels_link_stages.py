@@ -34,6 +34,7 @@ else:  # pragma: no cover - exercised only where numba is absent
 
 
 __all__ = [
+    "UPDATE_ROWS",
     "apply_lanes",
     "chol_jitter_lanes",
     "chol_lanes",
@@ -48,6 +49,10 @@ __all__ = [
     "points_lanes",
     "robot_lanes",
 ]
+
+
+#: Rows of :func:`kalman_lanes`'s ``update``.
+UPDATE_ROWS = 22
 
 
 @_jit
@@ -282,9 +287,11 @@ def kalman_lanes(n, zl, R, moments, pxz, Pi, update):
     of ``S`` (its first level, no jitter), and the Kalman update the link would make if
     fused: the gain by the factor of ``S``, the change of ``x`` and ``P - K S K^T``
     symmetrized, and whether that is positive definite (Sylvester). ``update = (nu0, nu1,
-    l00, l10, l11, dx0, dx1, dx2, P00, P01, P02, P11, P12, P22, pd, bad)``; ``bad``: 1.0
-    where ``S`` needs jitter or the measured bearing is out of ``(-2 pi, 2 pi)``. The
-    arrays have CHUNK columns. Twin: the innovation, gain and Schur update blocks of
+    l00, l10, l11, dx0, dx1, dx2, P00, P01, P02, P11, P12, P22, pd, bad, K00, K01, K10,
+    K11, K20, K21)`` (:data:`UPDATE_ROWS` rows); ``bad``: 1.0 where ``S`` needs jitter or
+    the measured bearing is out of ``(-2 pi, 2 pi)``; the gain ``K`` for the stages that
+    change the innovation or record the update (:mod:`resloc.cl.kernels_round_stages`).
+    The arrays have CHUNK columns. Twin: the innovation, gain and Schur update blocks of
     ``correct_links`` (same operations, same order)."""
     # Flat views, rows CHUNK apart: with the row stride a compile-time constant, LLVM
     # proves the rows' stores independent and vectorizes the loop.
@@ -368,6 +375,12 @@ def kalman_lanes(n, zl, R, moments, pxz, Pi, update):
         uf[13 * CHUNK + c] = p22
         uf[14 * CHUNK + c] = 1.0 if pd else 0.0
         uf[15 * CHUNK + c] = 0.0 if good else 1.0
+        uf[16 * CHUNK + c] = k00
+        uf[17 * CHUNK + c] = k01
+        uf[18 * CHUNK + c] = k10
+        uf[19 * CHUNK + c] = k11
+        uf[20 * CHUNK + c] = k20
+        uf[21 * CHUNK + c] = k21
 
 
 @_jit
@@ -440,10 +453,11 @@ def decide_lanes(n, options, norms, inputs, decision):
 
 
 @_jit
-def apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3):
-    """The lanes' decisions into the outputs, and for a delivered measurement the update
-    :func:`kalman_lanes` prepared (repaired where not positive definite). Twin: the
-    outputs and the update of ``correct_links``."""
+def apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman):
+    """The lanes' decisions into the outputs and, with ``kalman``, for a delivered
+    measurement the update :func:`kalman_lanes` prepared (repaired where not positive
+    definite; without, the fusion method's stage updates). Twin: the outputs and the update
+    of ``correct_links``."""
     out_norm, out_threshold, flags = out
     for c in range(n):
         e = lane_e[c]
@@ -455,7 +469,7 @@ def apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3):
         flags[1, e] = decision[2, c] == 1.0
         flags[2, e] = delivered
         flags[3, e] = delivered
-        if not delivered:
+        if not (delivered and kalman):
             continue
         i = obs[c]
         x[i, 0] = xi[0, c] + update[5, c]

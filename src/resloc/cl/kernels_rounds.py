@@ -31,15 +31,18 @@ function                 paper                                block of ``correct
 =======================  ===================================  ===========================
 
 Coverage (:func:`rounds_cover`): sigma-point filters whose 6-D points have at most one
-non-zero entry (the CKF and the UKF), the Kalman update (``naive``), the detector gate and
-the event trigger with any norms and either threshold innovation, transmitted neighbour
-estimates. The stateful options (CUSUM stages, robot defence, gauge bookkeeping, the
-stealthy attacker, cached estimates, covariance intersection) and the EKF run in the
-row-order loop. A lane that needs a special case of the row-order loop (the Cholesky
-jitter of ``P_i``, ``P_j`` is handled here; a point at the robot's own position, an ``S``
-that needs jitter, a measured bearing outside ``(-2 pi, 2 pi)``, non-finite values, rows
-not sorted by observer are not) makes :func:`correct_rounds` return ``FALLBACK`` and
-:func:`run_link_loop` runs the row-order loop from the start instead.
+non-zero entry (the CKF and the UKF), the Kalman update (``naive``, ``gauge`` with its
+bookkeeping), ``ci`` and ``split_ci``, the detector gate and the event trigger with any
+norms and either threshold innovation, the NIS and mean-shift CUSUMs, the robot CUSUM,
+the recovery (its second pass on ``f P_i`` too), the stealthy attacker, transmitted
+neighbour estimates. The options' per-link stages run lane by lane after the vectorized
+moments (:mod:`resloc.cl.kernels_round_stages`). The ``tracked`` and ``factorized``
+joints, cached estimates and the EKF run in the row-order loop. A lane that needs a
+special case of the row-order loop (the Cholesky jitter of ``P_i``, ``P_j`` is handled
+here; a point at the robot's own position, an ``S`` that needs jitter, a measured bearing
+outside ``(-2 pi, 2 pi)``, non-finite values, rows not sorted by observer are not) makes
+:func:`correct_rounds` return ``FALLBACK`` (with the options' stores put back as they
+were) and :func:`run_link_loop` runs the row-order loop from the start instead.
 
 :func:`run_link_loop` is the one place that chooses: the rounds for at least
 :data:`ROUNDS_MIN_LINKS` links of a covered configuration, else the row-order loop.
@@ -51,15 +54,13 @@ from collections import Counter
 
 import numpy as np
 
-from resloc.cl import kernels_lanes as _kernels_lanes
-from resloc.cl import kernels_link_stages as _kernels_link_stages
-from resloc.cl import kernels_links as _kernels_links
-from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl.backend import HAVE_NUMBA
-from resloc.cl.kernels_fusion import NAIVE_UPDATE
+from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
+    UPDATE_ROWS,
     apply_lanes,
     chol_jitter_lanes,
     chol_lanes,
@@ -76,6 +77,17 @@ from resloc.cl.kernels_link_stages import (
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
 from resloc.cl.kernels_math import stamp_with_pieces
+from resloc.cl.kernels_round_stages import (
+    gauge_lanes,
+    inflated_moments,
+    intersect_lanes,
+    link_scratch,
+    restore_state,
+    retry_lanes,
+    save_state,
+    screen_lanes,
+    tamper_lanes,
+)
 from resloc.cl.links import LinkBatch
 
 if HAVE_NUMBA:  # the optional extra ``fast``
@@ -109,17 +121,12 @@ LOOP_RUNS: Counter = Counter()
 def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bool:
     """Whether :func:`correct_rounds` implements this configuration (arguments as those of
     :func:`~resloc.cl.kernels_links.correct_links`)."""
+    del detection, defence, gauge, tamper  # every stage of theirs is a stage of the rounds
     linearized, nz_cnt = filt[0], filt[3]
     return not (
         linearized
         or np.any(nz_cnt > 1)
-        or fusion[0] != NAIVE_UPDATE  # CI, split CI, the tracked / factorized joints
-        or gauge[0]
-        or tamper[0]
-        or detection[0]  # link CUSUM
-        or detection[6]  # mean-shift CUSUM
-        or defence[0]  # robot CUSUM
-        or defence[5]  # recovery
+        or fusion[0] not in (NAIVE_UPDATE, CI, SPLIT_CI)  # the tracked / factorized joints
         or options[9]  # cached neighbour estimates
     )
 
@@ -156,9 +163,21 @@ def correct_rounds(
     (round ``r``: every robot's ``r``-th link); updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in
     place. Arguments as :func:`~resloc.cl.kernels_links.correct_links` (the configuration
     must be one :func:`rounds_cover` accepts). Returns the status: ``OK``, ``NOT_PD`` or
-    ``FALLBACK`` (on both, the outputs are partial and must be discarded).
+    ``FALLBACK`` (on both, the outputs are partial and must be discarded; on ``FALLBACK``
+    the options' stores are as they were on entry).
     Twin: :func:`resloc.cl.kernels_links.correct_links`."""
-    # fusion, detection, defence, gauge, tamper: off (see rounds_cover)
+    saved = save_state(detection, defence, fusion, gauge)
+    status = _rounds(
+        x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+    )
+    if status == FALLBACK:
+        restore_state(saved, detection, defence, fusion, gauge)
+    return status
+
+
+@_jit
+def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out):
+    """The body of :func:`correct_rounds` (which puts the stores back on ``FALLBACK``)."""
     li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
         links[0],
         links[1],
@@ -169,13 +188,20 @@ def correct_rounds(
         links[8],
     )  # the transmitted rows x_nb, P_nb are x_ref, P_ref here (not cached)
     nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
-    jitter = options[8]
+    R, jitter = options[0], options[8]
+    tampered = tamper[0]
+    screening = detection[0] or detection[6] or defence[0] or defence[5]
+    recovering = defence[5]
+    kalman = fusion[0] == NAIVE_UPDATE
+    record_gauge = gauge[0]
     axis, value = point_axes(nz_idx, nz_val, nz_cnt)
+    points = (axis, value, Wm, Wc, circular)
     m = axis.shape[0]
     C = CHUNK
     block_start = np.empty(C, np.int64)
     block_count = np.empty(C, np.int64)
     lane_e = np.empty(C, np.int64)
+    lane_first = np.empty(C, np.int64)
     obs = np.empty(C, np.int64)
     src = np.empty(C, np.int64)
     xi = np.empty((3, C))
@@ -197,11 +223,14 @@ def correct_rounds(
     scratch_in = np.empty((3, 3))
     scratch_out = np.empty((3, 3))
     Pi = np.empty((9, C))
-    update = np.empty((16, C))
+    update = np.empty((UPDATE_ROWS, C))
     norms = np.empty((2, C))
     inputs = np.empty((10, C))
     decision = np.empty((4, C))
+    inflation = np.ones(C)
     T3 = np.empty((3, 3))
+    retry = retry_lanes(m, C if recovering else 1)
+    work = link_scratch()
     E = li.shape[0]
     p = 0
     while p < E:
@@ -223,6 +252,7 @@ def correct_rounds(
             for b in range(blocks):
                 if block_count[b] > r:
                     lane_e[n] = block_start[b] + r
+                    lane_first[n] = block_start[b]
                     n += 1
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             load_covariances(P, obs, n, cov)
@@ -238,25 +268,44 @@ def correct_rounds(
                 axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad
             )
             load_robot_covariances(P, obs, n, Pi)
-            kalman_lanes(n, zl, options[0], moments, pxz, Pi, update)
+            kalman_lanes(n, zl, R, moments, pxz, Pi, update)
             for c in range(n):
                 if bad[c] != 0.0 or update[15, c] != 0.0:
                     return FALLBACK
+            if tampered:
+                tamper_lanes(tamper, z, lane_e, obs, n, zl, moments, update)
             norms_lanes(n, update, options, norms)
             robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs)
             decide_lanes(n, options, norms, inputs, decision)
-            apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3)
+            if screening:
+                screen_lanes(
+                    P, lane_e, obs, n, channel_ok, options, detection, defence, update, norms,
+                    decision, inflation,
+                )  # fmt: skip
+            if recovering:
+                status = inflated_moments(
+                    P, obs, n, inflation, decision, xi, xr, zl, sin_cos, Lj, moments, pxz,
+                    update, retry, points, R, jitter,
+                )  # fmt: skip
+                if status != OK:
+                    return status
+            apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman)
+            if not kalman and not intersect_lanes(
+                x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
+                decision, options, fusion, out, work,
+            ):  # fmt: skip
+                return NOT_PD
+            if record_gauge:
+                gauge_lanes(
+                    gauge, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out, work
+                )
     return OK
 
 
-stamp_with_pieces(
-    correct_rounds,
-    _kernels_math,
-    _kernels_trig,
-    _kernels_lanes,
-    _kernels_links,
-    _kernels_link_stages,
-)
+for _dispatcher in (correct_rounds, _rounds):
+    stamp_with_pieces(
+        _dispatcher, _kernels_trig, _kernels_round_stages, *_kernels_round_stages.PIECE_MODULES
+    )
 
 
 def rounds_warm_up_batch():

@@ -1,0 +1,465 @@
+"""The options' stages of the link rounds (:func:`resloc.cl.kernels_rounds.correct_rounds`).
+
+The rounds compute every lane's moments, innovation and Kalman update in SIMD loops
+(:mod:`resloc.cl.kernels_link_stages`); what an option adds to a link is scalar, per-link
+code that runs lane by lane after them, with the same pieces as the row-order loop
+(:func:`resloc.cl.kernels_links.correct_links`). Within a round each robot holds one lane,
+and round ``r`` holds every robot's ``r``-th link, so state keyed by the link (the CUSUMs)
+or by the robot (the robot CUSUM, the recovery's runs, split CI's independent parts, the
+gauge bookkeeping) sees a robot's links in the row order's sequence.
+
+==========================  =================================  =============================
+function                    option                             piece of ``correct_links``
+==========================  =================================  =============================
+:func:`tamper_lanes`        stealthy attacker                  ``stealthy_measurement``
+:func:`screen_lanes`        CUSUMs, robot CUSUM, recovery      ``detect_link``,
+                                                               ``defend_link``
+:func:`inflated_moments`    recovery (re-admission, ``f > 1``)  the second pass
+:func:`intersect_lanes`     ``ci``, ``split_ci``               ``ci_update``,
+                                                               ``split_ci_update``
+:func:`gauge_lanes`         ``gauge``                          ``gauge_record``
+:func:`save_state`          (fallback)                         ``DetectorState.undo``
+==========================  =================================  =============================
+
+The stages write the per-link and per-robot stores in place; when the rounds give way to
+the row-order loop (``FALLBACK``), :func:`restore_state` puts back what :func:`save_state`
+copied, so that the row-order loop starts from the same state.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from resloc.cl import kernels_defence as _kernels_defence
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_fusion as _kernels_fusion
+from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_joint as _kernels_joint
+from resloc.cl import kernels_lanes as _kernels_lanes
+from resloc.cl import kernels_link_stages as _kernels_link_stages
+from resloc.cl import kernels_links as _kernels_links
+from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_split as _kernels_split
+from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl.backend import HAVE_NUMBA
+from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
+from resloc.cl.kernels_detection import (
+    NIS_CODE,
+    cusum_step,
+    gain_at,
+    mean_cusum_step,
+    nis_of,
+    whiten_of,
+)
+from resloc.cl.kernels_fusion import CI, ci_update
+from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
+from resloc.cl.kernels_lanes import FALLBACK
+from resloc.cl.kernels_link_stages import (
+    UPDATE_ROWS,
+    chol_jitter_lanes,
+    chol_lanes,
+    kalman_lanes,
+    load_covariances,
+    load_robot_covariances,
+    moments_lanes,
+    points_lanes,
+)
+from resloc.cl.kernels_links import NOT_PD, OK, decide_link
+from resloc.cl.kernels_math import is_pd3, repair3, stamp_with_pieces, wrap
+from resloc.cl.kernels_split import split_ci_update
+from resloc.cl.kernels_tamper import stealthy_measurement
+
+if HAVE_NUMBA:  # the optional extra ``fast``
+    import numba
+
+    # error_model="numpy" as the other stages of the rounds (IEEE float division).
+    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+else:  # pragma: no cover - exercised only where numba is absent
+
+    def _jit(func):
+        return func
+
+
+__all__ = [
+    "PIECE_MODULES",
+    "gauge_lanes",
+    "inflated_moments",
+    "intersect_lanes",
+    "link_scratch",
+    "restore_state",
+    "retry_lanes",
+    "save_state",
+    "screen_lanes",
+    "tamper_lanes",
+]
+
+
+@_jit
+def save_state(detection, defence, fusion, gauge):
+    """Copies of the stores the options' stages write in place: the CUSUMs' statistics,
+    the robot CUSUM's, the recovery's runs, spreads and applied inflations, split CI's
+    independent parts, the gauge's ``A``, ``N`` and ``B_ij`` (empty for an option that is
+    off)."""
+    return (
+        detection[4].copy(),
+        detection[9].copy(),
+        defence[3].copy(),
+        defence[9].copy(),
+        defence[11].copy(),
+        defence[13].copy(),
+        fusion[4].copy(),
+        gauge[1].copy(),
+        gauge[2].copy(),
+        gauge[3].copy(),
+    )
+
+
+@_jit
+def restore_state(saved, detection, defence, fusion, gauge):
+    """Put back the stores :func:`save_state` copied (element loops: numba's generic
+    array assignment costs seconds of compilation per array kind)."""
+    _put_back_1d(detection[4], saved[0])
+    _put_back_2d(detection[9], saved[1])
+    _put_back_1d(defence[3], saved[2])
+    _put_back_1d(defence[9], saved[3])
+    _put_back_1d(defence[11], saved[4])
+    _put_back_1d(defence[13], saved[5])
+    _put_back_3d(fusion[4], saved[6])
+    _put_back_3d(gauge[1], saved[7])
+    _put_back_3d(gauge[2], saved[8])
+    _put_back_3d(gauge[3], saved[9])
+
+
+@_jit
+def _put_back_1d(store, copy):
+    for a in range(store.shape[0]):
+        store[a] = copy[a]
+
+
+@_jit
+def _put_back_2d(store, copy):
+    for a in range(store.shape[0]):
+        for b in range(store.shape[1]):
+            store[a, b] = copy[a, b]
+
+
+@_jit
+def _put_back_3d(store, copy):
+    for a in range(store.shape[0]):
+        for b in range(store.shape[1]):
+            for c in range(store.shape[2]):
+                store[a, b, c] = copy[a, b, c]
+
+
+@_jit
+def tamper_lanes(tamper, z, lane_e, obs, n, zl, moments, update):
+    """The stealthy attacker on the lanes of the links it controls: it sees ``z_hat`` and
+    ``S`` (the lane's factor), and the lane's measurement, innovation and Kalman change of
+    ``x`` become the falsified measurement's. Twin: the ``tampered`` block of
+    ``correct_links`` (``z``: the honest measurements)."""
+    attacked = tamper[3]
+    for c in range(n):
+        e = lane_e[c]
+        if not attacked[e]:
+            continue
+        zt0, zt1 = stealthy_measurement(
+            tamper, obs[c], z[e, 0], z[e, 1], update[0, c], update[1, c], update[2, c],
+            update[3, c], update[4, c],
+        )  # fmt: skip
+        zu1 = wrap(zt1)
+        nu0 = zt0 - moments[0, c]
+        nu1 = wrap(zu1 - moments[1, c])
+        zl[0, c] = zt0
+        zl[1, c] = zu1
+        update[0, c] = nu0
+        update[1, c] = nu1
+        update[5, c] = update[16, c] * nu0 + update[17, c] * nu1
+        update[6, c] = update[18, c] * nu0 + update[19, c] * nu1
+        update[7, c] = update[20, c] * nu0 + update[21, c] * nu1
+
+
+@_jit
+def screen_lanes(
+    P, lane_e, obs, n, channel_ok, options, detection, defence, update, norms, decision,
+    inflation,
+):  # fmt: skip
+    """The detector stages with state after the gate (link CUSUM, mean-shift CUSUM, robot
+    CUSUM, recovery) per lane, then the trigger and channel again on their verdict:
+    rewrites ``decision``'s ``(detected, triggered, delivered)`` and gives each lane's
+    covariance ``inflation`` (1: none; the recovery's re-admission: ``f > 1``).
+
+    Twin: the ``detect_link``, ``defend_link`` and ``decide_link`` calls of
+    ``correct_links``, with the same scalar steps. The structures are unpacked once, here,
+    and the loop passes no array to a function: each array a piece receives costs a
+    reference-count update per link (measured: the pieces that take the structures, 0.5 us
+    a link for the full defence; this loop, 0.05 us)."""
+    trigger, det_norm = options[3], options[4]
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot = detection
+    robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
+    runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
+    for c in range(n):
+        e = lane_e[c]
+        i = obs[c]
+        gated = decision[1, c] == 1.0
+        nu0 = update[0, c]
+        nu1 = update[1, c]
+        l00 = update[2, c]
+        l10 = update[3, c]
+        l11 = update[4, c]
+        detected = gated
+        if cusum:  # detect_link: the NIS CUSUM of the link
+            if det_norm == NIS_CODE:
+                stat = norms[1, c] * norms[1, c]
+            else:
+                stat = nis_of(nu0, nu1, l00, l10, l11)
+            s = cslot[e]
+            cg[s], discard = cusum_step(
+                cg[s], stat, gain_at(ck, i), gain_at(ch, i), gain_at(ccap, i)
+            )
+            detected = detected or discard
+        if mean:  # detect_link: the signed CUSUMs of the link
+            w0, w1 = whiten_of(nu0, nu1, l00, l10, l11)
+            s = mslot[e]
+            mg[s, 0], mg[s, 1], mg[s, 2], mg[s, 3], discard = mean_cusum_step(
+                mg[s, 0], mg[s, 1], mg[s, 2], mg[s, 3], w0, w1, gain_at(mk, i),
+                gain_at(mh, i), not gated,
+            )  # fmt: skip
+            detected = detected or discard
+        f = 1.0
+        if robot or recovery:  # defend_link
+            stat = nis_of(nu0, nu1, l00, l10, l11)
+        if robot:
+            s = rslot[e]
+            rg[s], discard = robot_cusum_step(
+                rg[s], stat, gain_at(rk, i), gain_at(rh, i), not gated
+            )
+            detected = detected or discard
+        if recovery:
+            trace = P[i, 0, 0] + P[i, 1, 1]
+            a = runs_slot[e]
+            b = sslot[e]
+            d = aslot[e]
+            detected, f, runs[a], spread[b], applied[d] = recovery_step(
+                runs[a], spread[b], applied[d], detected, stat, trace, gain_at(after, i),
+                gain_at(gate, i), gain_at(cap, i),
+            )  # fmt: skip
+        triggered, delivered = decide_link(
+            detected, norms[0, c], decision[0, c], trigger, channel_ok[e]
+        )
+        decision[1, c] = 1.0 if detected else 0.0
+        decision[2, c] = 1.0 if triggered else 0.0
+        decision[3, c] = 1.0 if delivered else 0.0
+        inflation[c] = f
+
+
+@_jit
+def retry_lanes(m, columns):
+    """Working arrays of :func:`inflated_moments` for ``m`` sigma points (``columns``:
+    ``CHUNK`` where the recovery is on, else 1: never used)."""
+    return (
+        np.empty(columns, np.int64),  # the retried lane of each column
+        np.arange(columns),  # rows of the inflated covariances
+        np.empty((columns, 3, 3)),  # f P_i
+        np.empty((3, columns)),  # x_i
+        np.empty((2, columns)),  # x_j
+        np.empty((2, columns)),  # z
+        np.empty((2, columns)),  # sin, cos of the heading
+        np.zeros((3, 3, columns)),  # factor of f P_i
+        np.zeros((3, 3, columns)),  # factor of P_j
+        np.empty((7, columns)),  # chol_lanes's input
+        np.empty(columns),  # its success
+        np.empty(columns),  # bad
+        np.empty((m, columns)),  # the points' ranges
+        np.empty((m, columns)),  # the points' bearings
+        np.empty((4, columns)),  # sums
+        np.empty((5, columns)),  # moments
+        np.empty((6, columns)),  # P^xz
+        np.empty((3, columns)),  # mean offset of x_i
+        np.empty((9, columns)),  # f P_i by lane
+        np.empty((UPDATE_ROWS, columns)),  # update
+        np.empty((3, 3)),  # chol3's scratch
+        np.empty((3, 3)),
+    )
+
+
+@_jit
+def inflated_moments(
+    P, obs, n, inflation, decision, xi, xr, zl, sin_cos, Lj, moments, pxz, update, retry,
+    points, R, jitter,
+):  # fmt: skip
+    """The second pass of the lanes the recovery re-admitted with robot ``i``'s covariance
+    inflated (``f > 1``) and that are delivered: the moments, innovation and Kalman update
+    again from ``f P_i`` (the vectorized stages on those lanes only), written over the
+    lanes' ``moments``, ``pxz`` and ``update``. ``points = (axis, value, Wm, Wc,
+    circular)``. Returns ``OK``, ``NOT_PD`` (``f P_i`` has no factor) or ``FALLBACK`` (a
+    special case of the row-order loop). Twin: ``attempt == 1`` of ``correct_links``."""
+    lane, rows, Pf, xi_r, xr_r, zl_r, sc_r, Li_r, Lj_r, cov, ok, bad = retry[:12]
+    Z0, Z1, sums, mom_r, pxz_r, mean, Pi_r, upd_r, scratch_in, scratch_out = retry[12:]
+    axis, value, Wm, Wc, circular = points
+    k = 0
+    for c in range(n):
+        if not (inflation[c] > 1.0 and decision[3, c] == 1.0):
+            continue
+        lane[k] = c
+        i = obs[c]
+        f = inflation[c]
+        for a in range(3):
+            for b in range(3):
+                Pf[k, a, b] = P[i, a, b] * f
+                Lj_r[a, b, k] = Lj[a, b, c]
+        for a in range(3):
+            xi_r[a, k] = xi[a, c]
+        for a in range(2):
+            xr_r[a, k] = xr[a, c]
+            zl_r[a, k] = zl[a, c]
+            sc_r[a, k] = sin_cos[a, c]
+        k += 1
+    if k == 0:
+        return OK
+    load_covariances(Pf, rows, k, cov)
+    chol_lanes(cov, k, Li_r, ok)
+    if not chol_jitter_lanes(Pf, rows, k, Li_r, ok, jitter, scratch_in, scratch_out):
+        return NOT_PD
+    for c in range(k):
+        bad[c] = 0.0
+    points_lanes(axis, value, Wm, k, xi_r, xr_r, sc_r, Li_r, Lj_r, Z0, Z1, sums, bad)
+    moments_lanes(axis, value, Wm, Wc, circular, k, Li_r, Z0, Z1, sums, mom_r, pxz_r, mean, bad)
+    load_robot_covariances(Pf, rows, k, Pi_r)
+    kalman_lanes(k, zl_r, R, mom_r, pxz_r, Pi_r, upd_r)
+    for t in range(k):
+        if bad[t] != 0.0 or upd_r[15, t] != 0.0:
+            return FALLBACK
+        c = lane[t]
+        for a in range(5):
+            moments[a, c] = mom_r[a, t]
+        for a in range(6):
+            pxz[a, c] = pxz_r[a, t]
+        for a in range(UPDATE_ROWS):
+            update[a, c] = upd_r[a, t]
+    return OK
+
+
+@_jit
+def link_scratch():
+    """The 3 x 3 and 3 x 2 scratch matrices of the scalar update stages: ``(P_i, P^xz, K,
+    H_i, H_j, A3, T3, Pn, G3)``."""
+    return (
+        np.empty((3, 3)),
+        np.empty((3, 2)),
+        np.empty((3, 2)),
+        np.empty((2, 3)),
+        np.empty((2, 3)),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+        np.empty((3, 3)),
+    )
+
+
+@_jit
+def intersect_lanes(
+    x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation, decision,
+    options, fusion, out, work,
+):  # fmt: skip
+    """Covariance intersection (``ci``) or split CI of every delivered lane, with the
+    lane's moments (and robot ``i``'s covariance times the recovery's ``inflation``), then
+    the posterior symmetrized, repaired where not positive definite, stored. False when a
+    covariance has no Cholesky factor. Twin: the ``ci_update`` / ``split_ci_update`` calls
+    of ``correct_links`` and its tail."""
+    R, jitter = options[0], options[8]
+    flags = out[2]
+    Pi, Pxz, K, Hi, Hj, A3, T3, Pn = work[:8]
+    code = fusion[0]
+    for c in range(n):
+        if decision[3, c] != 1.0:
+            continue
+        e = lane_e[c]
+        i = obs[c]
+        f = inflation[c]
+        for a in range(3):
+            for b in range(3):
+                Pi[a, b] = P[i, a, b] * f  # f = 1: P_i itself
+        for a in range(3):
+            Pxz[a, 0] = pxz[2 * a, c]
+            Pxz[a, 1] = pxz[2 * a + 1, c]
+        S00 = moments[2, c] + R[0, 0]
+        S01 = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
+        S11 = moments[4, c] + R[1, 1]
+        xi0 = xi[0, c]
+        xi1 = xi[1, c]
+        range_bearing_jacobians_into(xi0, xi1, xr[0, c], xr[1, c], Hi, Hj)
+        if code == CI:
+            done = ci_update(
+                x, i, xi0, xi1, xi[2, c], Pi, P_ref[src[c]], update[0, c], update[1, c],
+                S00, S01, S11, Pxz, False, Hi, Hj, 0.0, 0.0, 0.0, R, fusion, jitter, K, A3,
+                T3, Pn,
+            )  # fmt: skip
+        else:
+            done = split_ci_update(
+                x, e, i, xi0, xi1, xi[2, c], Pi, P_ref[src[c]], update[0, c], update[1, c],
+                S00, S01, S11, Pxz, False, Hi, Hj, 0.0, 0.0, 0.0, R, fusion, jitter, K, A3,
+                T3, Pn,
+            )  # fmt: skip
+        if not done:
+            return False
+        for a in range(3):
+            for b in range(3):
+                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+        if not is_pd3(T3):
+            repair3(T3)
+            flags[4, e] = True
+        for a in range(3):
+            for b in range(3):
+                P[i, a, b] = T3[a, b]
+    return True
+
+
+@_jit
+def gauge_lanes(gauge, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out, work):
+    """The gauge bookkeeping of every delivered lane (its Kalman gain, robot ``i``'s
+    estimate before the update, ``j``'s transmitted one; ``lane_first``: the row of
+    robot ``i``'s first link). Twin: the ``gauge_record`` call of ``correct_links``."""
+    fused = out[2][3]
+    K, Hi, Hj, T3, G3 = work[2], work[3], work[4], work[6], work[8]
+    for c in range(n):
+        if decision[3, c] != 1.0:
+            continue
+        for a in range(3):
+            K[a, 0] = update[16 + 2 * a, c]
+            K[a, 1] = update[17 + 2 * a, c]
+        gauge_record(
+            gauge, lane_e[c], lane_first[c], fused, obs[c], xi[0, c], xi[1, c], xr[0, c],
+            xr[1, c], K, R, Hi, Hj, G3, T3,
+        )  # fmt: skip
+
+
+#: The modules whose pieces the stages inline or call: an edit of one must recompile them
+#: (and the rounds, which link them).
+PIECE_MODULES = (
+    _kernels_math,
+    _kernels_lanes,
+    _kernels_link_stages,
+    _kernels_links,
+    _kernels_detection,
+    _kernels_defence,
+    _kernels_fusion,
+    _kernels_split,
+    _kernels_joint,
+    _kernels_gauge,
+    _kernels_tamper,
+)
+for _dispatcher in (
+    save_state,
+    restore_state,
+    _put_back_1d,
+    _put_back_2d,
+    _put_back_3d,
+    tamper_lanes,
+    screen_lanes,
+    retry_lanes,
+    inflated_moments,
+    link_scratch,
+    intersect_lanes,
+    gauge_lanes,
+):
+    stamp_with_pieces(_dispatcher, *PIECE_MODULES)
