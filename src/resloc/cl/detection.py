@@ -19,6 +19,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     fixes of the step (leave-one-out, claimed covariances capped at a typical neighbour's:
     :mod:`resloc.cl.detection_redundancy`); against lies on one link of several, from the
     sensor or from a compromised neighbour's broadcast.
+``redundancy_sequence``
+    Sums each link's redundancy residuals over time (since the link was last admitted) and
+    holds a link out for a while when the sum is inconsistent with zero mean: a slow lie
+    inside every per-step gate accumulates evidence (:mod:`resloc.cl.detection_sequence`).
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -45,6 +49,7 @@ from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
+from resloc.cl.detection_sequence import RedundancySequence
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
@@ -95,6 +100,9 @@ class Evidence:
         redundancy stage, :func:`resloc.cl.detection_redundancy.fix_evidence`).
     fix_statistic : ndarray, shape (E,), optional
         Their leave-one-out statistics (``nan``: not judged).
+    fix_residual, fix_residual_cov : ndarray, shapes (E, 2), (E, 2, 2), optional
+        Each row's fix minus its leave-one-out reference (``nan``: not judged) and that
+        difference's covariance (the redundancy sequence test accumulates them).
     """
 
     nu: np.ndarray
@@ -110,6 +118,8 @@ class Evidence:
     zone_substituted: np.ndarray | None = None
     fix_excluded: np.ndarray | None = None
     fix_statistic: np.ndarray | None = None
+    fix_residual: np.ndarray | None = None
+    fix_residual_cov: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -236,6 +246,7 @@ DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     NORM_GATE,
     RedundancyCheck(),
+    RedundancySequence(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

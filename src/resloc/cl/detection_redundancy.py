@@ -254,7 +254,9 @@ def exclude_inconsistent(
     i: np.ndarray,
     gate: float | np.ndarray,
     min_peers: float | np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+    excluded: np.ndarray | None = None,
+    residuals: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Fault exclusion over each observer's fixes, one at a time.
 
     Every round, each observer's included fixes are tested against the mean of its other
@@ -270,6 +272,12 @@ def exclude_inconsistent(
     i : ndarray of int, shape (E,)
         Observer of each row.
     gate, min_peers : float or ndarray, shape (E,)
+    excluded : ndarray of bool, shape (E,), optional
+        Rows excluded before the first round (they never enter a reference; e.g. links a
+        sequence test holds out).
+    residuals : bool
+        Also return each row's residual against its reference and the residual's
+        covariance.
 
     Returns
     -------
@@ -277,13 +285,18 @@ def exclude_inconsistent(
     statistic : ndarray, shape (E,)
         Each row's statistic against the observer's included fixes at the end (``nan``:
         fewer than ``min_peers`` of them, not judged).
+    residual : ndarray, shape (E, 2)
+        With ``residuals``: ``d = fix - m_-j`` at the end (``nan`` where not judged).
+    residual_cov : ndarray, shape (E, 2, 2)
+        With ``residuals``: ``C_j + (sum_{k != j} C_k^-1)^-1``.
     """
     E = len(fix)
     gate = np.broadcast_to(np.asarray(gate, float), (E,))
     min_peers = np.broadcast_to(np.asarray(min_peers, float), (E,))
-    included = np.ones(E, bool)
+    included = np.ones(E, bool) if excluded is None else ~np.asarray(excluded, bool)
     if E == 0:
-        return ~included, np.zeros(0)
+        empty = (np.zeros((0, 2)), np.zeros((0, 2, 2))) if residuals else ()
+        return ~included, np.zeros(0), *empty
     robots, inverse = np.unique(i, return_inverse=True)
     n = len(robots)
     C3 = _sym2(C)
@@ -300,7 +313,11 @@ def exclude_inconsistent(
         first = np.r_[True, inverse[order][1:] != inverse[order][:-1]]
         included[order[first]] = False
     judged = peers >= min_peers
-    return ~included, np.where(judged, stat, np.nan)
+    if not residuals:
+        return ~included, np.where(judged, stat, np.nan)
+    residual = np.where(judged[:, None], fix - reference, np.nan)
+    residual_cov = _matrix(*(x + y for x, y in zip(C3, Q3, strict=True)))
+    return ~included, np.where(judged, stat, np.nan), residual, residual_cov
 
 
 def fix_evidence(
@@ -311,28 +328,43 @@ def fix_evidence(
     P_nb: np.ndarray,
     i: np.ndarray,
     params: CLParams,
+    j: np.ndarray | None = None,
+    memory: LinkMemory | None = None,
 ) -> dict[str, np.ndarray]:
     """The :class:`~resloc.cl.detection.Evidence` fields of this stage for a whole step.
 
     Rows are every link of the step (a robot's rows all present); shapes as
     :func:`position_fix`, ``P_nb: (E, 3, 3)`` the claimed covariances, ``i: (E,)`` the
     observers (batch indices: the per-robot gate and ``min_peers`` are read at them).
+    ``j: (E,)`` and the observers' ``memory``: links a sequence test holds out
+    (:func:`resloc.cl.detection_sequence.held_out`) enter no reference.
 
     Returns
     -------
     dict
         ``fix_excluded (E,)``: the rows :func:`exclude_inconsistent` excludes;
-        ``fix_statistic (E,)``: their final statistics.
+        ``fix_statistic (E,)``: their final statistics; ``fix_residual (E, 2)``,
+        ``fix_residual_cov (E, 2, 2)``: each row's residual against its reference and
+        the residual's covariance (what the sequence test accumulates).
     """
+    from resloc.cl.detection_sequence import held_out
+
     fix, C = position_fix(z, x_obs, P_obs, x_nb, weight_capped_covariance(P_nb, i), params.R)
-    excluded, stat = exclude_inconsistent(
+    excluded, stat, residual, residual_cov = exclude_inconsistent(
         fix,
         C,
         i,
         at_robots(params.redundancy_gate, i),
         at_robots(params.redundancy_min_peers, i),
+        excluded=held_out(params, memory, i, j),
+        residuals=True,
     )
-    return {"fix_excluded": excluded, "fix_statistic": stat}
+    return {
+        "fix_excluded": excluded,
+        "fix_statistic": stat,
+        "fix_residual": residual,
+        "fix_residual_cov": residual_cov,
+    }
 
 
 @dataclass
@@ -352,6 +384,11 @@ class FixContext:
         The victim's.
     rows : ndarray of int, shape (n,)
         The rows the candidates are for.
+    j : ndarray of int, shape (E,), optional
+        The neighbours (with ``memory``: the links a sequence test holds out enter no
+        reference, as in the victim's step).
+    memory : LinkMemory, optional
+        The victims' memory (read only).
     """
 
     z: np.ndarray
@@ -362,6 +399,8 @@ class FixContext:
     i: np.ndarray
     params: CLParams
     rows: np.ndarray
+    j: np.ndarray | None = None
+    memory: LinkMemory | None = None
 
     def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
         """Evidence fields for ``candidates``, shape (G, n, 2), flattened to (G n, ...).
@@ -404,9 +443,22 @@ class FixContext:
         fix[:, where] = cand_fix.reshape(G, n, 2)
         C[:, where] = cand_C.reshape(G, n, 2, 2)
         fix, C = fix.reshape(-1, 2), C.reshape(-1, 2, 2)
-        excluded, stat = exclude_inconsistent(fix, C, group, gate, peers)
+        held = None
+        if self.j is not None:
+            from resloc.cl.detection_sequence import held_out
+
+            held = held_out(params, self.memory, self.i[victims], self.j[victims])
+            held = None if held is None else np.tile(held, G)
+        excluded, stat, residual, residual_cov = exclude_inconsistent(
+            fix, C, group, gate, peers, excluded=held, residuals=True
+        )
         pick = (np.arange(G)[:, None] * V + where[None]).ravel()
-        return {"fix_excluded": excluded[pick], "fix_statistic": stat[pick]}
+        return {
+            "fix_excluded": excluded[pick],
+            "fix_statistic": stat[pick],
+            "fix_residual": residual[pick],
+            "fix_residual_cov": residual_cov[pick],
+        }
 
 
 class RedundancyCheck:

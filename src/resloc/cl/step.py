@@ -371,7 +371,15 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         # Every link's fix of its observer, judged against the observer's other fixes of
         # the step at the predicted estimates (the same verdict in either update mode).
         fixes = fix_evidence(
-            links.z, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, params
+            links.z,
+            x[links.i],
+            P[links.i],
+            links.x_nb,
+            links.P_nb,
+            links.i,
+            params,
+            links.j,
+            memory,
         )
     out = LinkOutcome.empty(E)
     x = x.copy()
