@@ -103,6 +103,9 @@ class Evidence:
     fix_residual, fix_residual_cov : ndarray, shapes (E, 2), (E, 2, 2), optional
         Each row's fix minus its leave-one-out reference (``nan``: not judged) and that
         difference's covariance (the redundancy sequence test accumulates them).
+    sequence_discard, sequence_state : ndarray, shapes (E,), (E, 6), optional
+        The sequence test's verdict on each row and its link's state after the step
+        (:func:`resloc.cl.detection_sequence.sequence_evidence`).
     """
 
     nu: np.ndarray
@@ -120,6 +123,8 @@ class Evidence:
     fix_statistic: np.ndarray | None = None
     fix_residual: np.ndarray | None = None
     fix_residual_cov: np.ndarray | None = None
+    sequence_discard: np.ndarray | None = None
+    sequence_state: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):

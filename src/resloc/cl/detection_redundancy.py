@@ -120,7 +120,8 @@ def position_fix(
     P_nb_pos: np.ndarray,
     R: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Observer i's position as link ``(i, j)`` says: ``f = p_j - r u(theta_i + b)``.
+    """Observer i's position as link ``(i, j)`` says: ``f = p_j - r u(theta_i + b)``
+    (``r`` corrected for the mean shortening the angle's noise causes).
 
     Parameters
     ----------
@@ -142,8 +143,22 @@ def position_fix(
     r = z[:, 0]
     a = x_obs[:, 2] + z[:, 1]
     c, s = np.cos(a), np.sin(a)
-    fix = x_nb[:, :2] - r[:, None] * np.stack([c, s], axis=1)
-    # d fix / d theta_i = d fix / d b = r [sin a, -cos a]; d fix / d r = -[cos a, sin a].
+    # A direction read with a zero-mean Gaussian angle error of variance s2 (the bearing
+    # noise and the heading's variance) is shortened on average by exp(-s2 / 2): undone,
+    # so that honest fixes are unbiased (a sequence test summing residuals over hundreds
+    # of steps would otherwise see that bias as a lead).
+    r_mean = r * np.exp(0.5 * (R[1, 1] + P_obs[:, 2, 2]))
+    fix = x_nb[:, :2] - r_mean[:, None] * np.stack([c, s], axis=1)
+    # d fix / d theta_i = d fix / d b = r [sin a, -cos a]; d fix / d r = -[cos a, sin a],
+    # taken at the predicted geometry (the estimates' relative position), not at the
+    # reading: weights that moved with the reading's own noise would bias the references
+    # the fixes are compared with.
+    rel = x_nb[:, :2] - x_obs[:, :2]
+    r_pred = np.hypot(rel[:, 0], rel[:, 1])
+    use = r_pred > 0.0
+    c = np.where(use, rel[:, 0] / np.where(use, r_pred, 1.0), c)
+    s = np.where(use, rel[:, 1] / np.where(use, r_pred, 1.0), s)
+    r = np.where(use, r_pred, r)
     J_a = r[:, None] * np.stack([s, -c], axis=1)
     J_z = np.stack([np.stack([-c, J_a[:, 0]], 1), np.stack([-s, J_a[:, 1]], 1)], 1)
     C = (
@@ -359,12 +374,17 @@ def fix_evidence(
         excluded=held_out(params, memory, i, j),
         residuals=True,
     )
-    return {
+    out = {
         "fix_excluded": excluded,
         "fix_statistic": stat,
         "fix_residual": residual,
         "fix_residual_cov": residual_cov,
     }
+    if params.redundancy_sequence and j is not None:
+        from resloc.cl.detection_sequence import sequence_evidence
+
+        out.update(sequence_evidence(residual, residual_cov, i, j, params, memory))
+    return out
 
 
 @dataclass
@@ -453,12 +473,26 @@ class FixContext:
             fix, C, group, gate, peers, excluded=held, residuals=True
         )
         pick = (np.arange(G)[:, None] * V + where[None]).ravel()
-        return {
+        out = {
             "fix_excluded": excluded[pick],
             "fix_statistic": stat[pick],
             "fix_residual": residual[pick],
             "fix_residual_cov": residual_cov[pick],
         }
+        if params.redundancy_sequence and self.j is not None:
+            from resloc.cl.detection_sequence import sequence_evidence
+
+            seq = sequence_evidence(
+                residual,
+                residual_cov,
+                i,
+                np.tile(self.j[victims], G),
+                params,
+                self.memory,
+                group=group,
+            )
+            out.update({k: v[pick] for k, v in seq.items()})
+        return out
 
 
 class RedundancyCheck:

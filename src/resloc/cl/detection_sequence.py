@@ -118,6 +118,78 @@ def sequence_step(
     return holding | alarm, stat, new
 
 
+def sequence_evidence(
+    residual: np.ndarray,
+    residual_cov: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    params: CLParams,
+    memory: LinkMemory | None,
+    group: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
+    """The stage's verdict for a whole step, from the redundancy residuals of every link.
+
+    Per observer, at most one link is flagged a step: the one with the largest statistic
+    above the gate (a liar's lead pulls the references of its observer's other fixes the
+    other way, so their sums drift too, less in their own units; the liar's is the largest,
+    as in the one-at-a-time exclusion of the redundancy stage). When a link is flagged, the
+    sums of the observer's other links are reset: they were accumulated against references
+    that held the flagged fix.
+
+    Parameters
+    ----------
+    residual, residual_cov : ndarray, shapes (E, 2), (E, 2, 2)
+        ``nan`` rows: not judged this step.
+    i, j : ndarray of int, shape (E,)
+        The links (their state is read from ``memory``, not modified).
+    params : CLParams
+    memory : LinkMemory or None
+        None: no state (every link fresh).
+    group : ndarray of int, shape (E,), optional
+        Observer of each row for the one-per-observer choice (default ``i``; an attacker's
+        stacked copies give each copy its own groups).
+
+    Returns
+    -------
+    dict
+        ``sequence_discard (E,)``: rows held out (before or by this step);
+        ``sequence_state (E, 6)``: each row's link state after the step.
+    """
+    E = len(i)
+    group = np.asarray(i if group is None else group)
+    if memory is None:
+        state = np.zeros((E, WIDTH))
+    else:
+        state = memory.stage_statistic(RedundancySequence.name, width=WIDTH).get(i, j)
+    judged = np.isfinite(residual).all(axis=1)
+
+    def per_row(value) -> np.ndarray:
+        return np.broadcast_to(at_robots(value, i), (E,)).astype(float)
+
+    gate = per_row(params.redundancy_sequence_gate)
+    _, stat, new = sequence_step(
+        state,
+        np.nan_to_num(residual),
+        np.nan_to_num(residual_cov),
+        judged,
+        np.full(E, np.inf),  # the alarm is chosen below, one per observer
+        per_row(params.redundancy_sequence_hold),
+        per_row(params.redundancy_sequence_forget),
+    )
+    over = np.flatnonzero(np.nan_to_num(stat, nan=-np.inf) > gate)
+    discard = state[:, _HOLD] > 0.0
+    if over.size:
+        order = over[np.lexsort((-stat[over], group[over]))]
+        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        alarm = order[first]
+        flagged_groups = np.isin(group, group[alarm])
+        reset = flagged_groups & judged & ~discard
+        new[reset, 0:5] = 0.0
+        new[alarm, _HOLD] = per_row(params.redundancy_sequence_hold)[alarm]
+        discard[alarm] = True
+    return {"sequence_discard": discard, "sequence_state": new}
+
+
 class RedundancySequence:
     """Per-link sequence test on the redundancy residuals; holds a flagged link out."""
 
@@ -145,34 +217,22 @@ class RedundancySequence:
                 "detector redundancy sequence (params.redundancy_sequence) needs a LinkMemory"
             )
         ev = evidence
-        if ev.fix_residual is None or ev.fix_residual_cov is None:
+        if ev.sequence_discard is None or ev.sequence_state is None:
             raise ValueError(
                 "detector redundancy sequence (params.redundancy_sequence) needs the step's "
-                "redundancy residuals (Evidence.fix_residual: "
-                "resloc.cl.detection_redundancy.fix_evidence; set params.redundancy)"
+                "verdict on the redundancy residuals (Evidence.sequence_discard: "
+                "resloc.cl.detection_redundancy.fix_evidence with a LinkMemory)"
             )
-        E = len(ev.i)
-        store = memory.stage_statistic(self.name, width=WIDTH)
-        state = store.get(ev.i, ev.j)
-        judged = np.isfinite(ev.fix_residual).all(axis=1)
+        keep = np.ones(len(ev.i), bool)
         if ev.zone_substituted is not None:
-            judged &= ~ev.zone_substituted  # fused as the partner's fix, not this reading
-
-        def per_row(value) -> np.ndarray:
-            return np.broadcast_to(at_robots(value, ev.i), (E,)).astype(float)
-
-        discard, _, new = sequence_step(
-            state,
-            np.nan_to_num(ev.fix_residual),
-            np.nan_to_num(ev.fix_residual_cov),
-            judged,
-            per_row(params.redundancy_sequence_gate),
-            per_row(params.redundancy_sequence_hold),
-            per_row(params.redundancy_sequence_forget),
-        )
+            # Fused as the partner's fix, not as this reading: neither judged nor counted.
+            keep = ~ev.zone_substituted
         # A link may repeat in one call (an attacker's stacked candidates, each judged
         # against the state before the call): store one row per link.
+        store = memory.stage_statistic(self.name, width=WIDTH)
         keys = np.asarray(ev.i, np.int64) * store.n_nodes + np.asarray(ev.j, np.int64)
-        _, first = np.unique(keys, return_index=True)
-        store.set(ev.i[first], ev.j[first], new[first])
-        return discard
+        rows = np.flatnonzero(keep)
+        _, first = np.unique(keys[rows], return_index=True)
+        rows = rows[first]
+        store.set(ev.i[rows], ev.j[rows], ev.sequence_state[rows])
+        return ev.sequence_discard & keep
