@@ -180,12 +180,13 @@ def test_the_defences_switch_it_on():
         assert params.redundancy_sequence_forget == 1.0
 
 
-@pytest.mark.parametrize("mode", ["sequential", "summed"])
-def test_robot_nodes_reproduce_the_batched_engine_with_the_sequence_test(mode):
+@pytest.mark.parametrize(("mode", "cap"), [("sequential", False), ("summed", True)])
+def test_robot_nodes_reproduce_the_batched_engine_with_the_sequence_test(mode, cap):
     scenario = hot_scenario(15)
     params = replace(
         scenario.replace(**DEFENCES["full+redundancy+sequence"]).cl_params(),
         update_mode=mode,
+        redundancy_cap_fusion=cap,
         redundancy_sequence_gate=1.0,  # strict: links are held out in the honest run too
         redundancy_sequence_hold=3.0,
     )
@@ -285,3 +286,47 @@ def test_the_compromised_robot_spends_the_sequence_tests_budget_and_no_more():
     out, _ = _sent_statistic(params, memory, more, links, tampered)
     assert out[liar]
     assert np.isfinite(stat0).all()
+
+
+def test_capped_claims_scale_the_whole_covariance_as_the_test_caps_it():
+    from resloc.cl.detection_redundancy import capped_claims, weight_capped_covariance
+
+    P = np.tile(np.diag([1e-4, 1e-4, 1e-5]), (4, 1, 1))
+    P[1] *= 0.01  # a neighbour claiming x0.01
+    P[3] *= 10.0
+    i = np.array([0, 0, 0, 1])
+    out = capped_claims(P, i)
+    np.testing.assert_allclose(out[:, :2, :2], weight_capped_covariance(P, i))
+    np.testing.assert_allclose(out[1], P[0])  # raised to the median, heading block too
+    np.testing.assert_allclose(out[[0, 2, 3]], P[[0, 2, 3]])  # at or above it: as claimed
+
+
+def test_the_cap_in_fusion_changes_what_a_tiny_claim_buys():
+    """A victim of one neighbour claiming x0.01 of its covariance: with the cap in fusion
+    the neighbour pulls the estimate no more than a typical one."""
+    import resloc
+
+    params = CLParams(detector=False, trigger=False, redundancy=True)
+    links, _, _, _ = _compromised_scene(params)
+    liar = 4
+    P_nb = links.P_nb.copy()
+    P_nb[liar] *= 0.01
+    x = links.neighbours.x.copy()
+    x_nb = links.x_nb.copy()
+    x_nb[liar, 0] += 0.05  # the claim comes with a false position
+    lied = replace(links, P_nb=P_nb, x_nb=x_nb)
+    P = links.neighbours.P
+    moved = {}
+    for cap in (False, True):
+        p = replace(params, redundancy_cap_fusion=cap)
+        xc, _, _ = resloc.cl.step.correct(make_filter("ekf"), x, P, lied, p)
+        moved[cap] = abs(xc[0, 0] - x[0, 0])
+    assert moved[True] < 0.5 * moved[False]
+    with pytest.raises(ConfigError, match=r"set detector\.redundancy = true"):
+        default_scenario().replace(**{"detector.redundancy_cap_fusion": True})
+    assert (
+        default_scenario()
+        .replace(**DEFENCES["zone+full+redundancy+sequence+cap"])
+        .cl_params()
+        .redundancy_cap_fusion
+    )

@@ -62,6 +62,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FixContext",
     "RedundancyCheck",
+    "capped_claims",
     "exclude_inconsistent",
     "fix_evidence",
     "leave_one_out",
@@ -90,6 +91,19 @@ def weight_capped_covariance(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
     ndarray, shape (E, 2, 2)
     """
     P = np.asarray(P_nb, float)[:, :2, :2]
+    trace = P[:, 0, 0] + P[:, 1, 1]
+    median = _group_median(trace, np.asarray(i))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
+    return P * scale[:, None, None]
+
+
+def capped_claims(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """The neighbours' claimed covariances ``(E, 3, 3)``, each scaled by the factor
+    :func:`weight_capped_covariance` puts on its position block: what a robot fuses when
+    ``redundancy_cap_fusion`` is on, so a neighbour weighs in the update no more than the
+    redundancy test credited it (shape (E, 3, 3))."""
+    P = np.asarray(P_nb, float)
     trace = P[:, 0, 0] + P[:, 1, 1]
     median = _group_median(trace, np.asarray(i))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -501,6 +515,15 @@ class RedundancyCheck:
     name: ClassVar[str] = "redundancy"
     compiled: ClassVar[bool] = False
     overrides: ClassVar[bool] = False
+
+    def problem(self, options) -> str | None:
+        """Why the scenario's ``[detector]`` ``options`` cannot run as set (names the fix)."""
+        if getattr(options, "redundancy_cap_fusion", False) and not options.redundancy:
+            return (
+                "redundancy_cap_fusion: true caps claimed covariances as the redundancy "
+                "stage does; set detector.redundancy = true or redundancy_cap_fusion = false"
+            )
+        return None
 
     def active(self, params: CLParams) -> bool:
         return bool(params.redundancy)

@@ -138,6 +138,10 @@ class CLParams:
         Chi-square gate (2 degrees of freedom) on the leave-one-out statistic.
     redundancy_min_peers : float or ndarray (B,)
         Other fixes a robot needs in a step for its links to be judged.
+    redundancy_cap_fusion : bool
+        Fuse each neighbour with its claimed covariance scaled up as the redundancy test
+        caps it (no neighbour weighs more than the observer's median one in the update
+        either: :func:`resloc.cl.detection_redundancy.capped_claims`).
     redundancy_sequence : bool
         Sum each link's redundancy residuals over time and hold a link out when the sum is
         inconsistent with zero mean (:mod:`resloc.cl.detection_sequence`).
@@ -188,6 +192,7 @@ class CLParams:
     redundancy: bool = False
     redundancy_gate: float | np.ndarray = 13.815510557964274
     redundancy_min_peers: float | np.ndarray = 2.0
+    redundancy_cap_fusion: bool = False
     redundancy_sequence: bool = False
     redundancy_sequence_gate: float | np.ndarray = 27.631021115928547
     redundancy_sequence_hold: float | np.ndarray = 100.0

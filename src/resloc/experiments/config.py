@@ -197,6 +197,11 @@ class DetectorSpec:
         min=1,
         max=1000,
     )
+    redundancy_cap_fusion: bool = option(
+        False,
+        "redundancy: also fuse each neighbour with its claimed covariance capped as the "
+        "test caps it (no neighbour weighs more than the median one in the update)",
+    )
     redundancy_sequence: bool = option(
         False,
         "redundancy: also sum each link's residuals over time and hold a link out for a "
@@ -307,6 +312,7 @@ class Scenario:
             redundancy=d.redundancy,
             **({"redundancy_gate": chi2_gate(d.redundancy_false_alarm)} if d.redundancy else {}),
             redundancy_min_peers=float(d.redundancy_min_peers),
+            redundancy_cap_fusion=d.redundancy_cap_fusion,
             redundancy_sequence=d.redundancy_sequence,
             **(
                 {"redundancy_sequence_gate": chi2_gate(d.redundancy_sequence_false_alarm)}

@@ -76,6 +76,13 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
             # every step accumulates evidence and is held out for a while.
             "full+redundancy+sequence": {**_FULL, **_SEQUENCE},
             "zone+full+redundancy+sequence": {**_FULL, **_ZONE, **_SEQUENCE},
+            # + each neighbour fused with its claimed covariance capped as the test caps it.
+            "zone+full+redundancy+sequence+cap": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+            },
         }.items()
     }
 )
