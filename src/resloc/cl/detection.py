@@ -59,6 +59,7 @@ __all__ = [
     "CHI_SQUARE_NORMS",
     "DETECTOR_STAGES",
     "NORM_GATE",
+    "OPTION_CHECKS",
     "DetectorStage",
     "Evidence",
     "active_stages",
@@ -247,11 +248,15 @@ class MeanShiftCusum:
 #: a policy on the sensor, not a test; the gate first among the tests: the others read its
 #: verdict; the recovery last: it overrides every verdict).
 NORM_GATE = NormGate()
+REDUNDANCY = RedundancyCheck()
+REDUNDANCY_SEQUENCE = RedundancySequence()
+#: The stages that check the scenario's ``[detector]`` options (``problem(options)``).
+OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     NORM_GATE,
-    RedundancyCheck(),
-    RedundancySequence(),
+    REDUNDANCY,
+    REDUNDANCY_SEQUENCE,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from resloc.cl.cusum import chi2_gate
-from resloc.cl.detection import DETECTOR_STAGES, NORM_GATE
+from resloc.cl.detection import NORM_GATE, OPTION_CHECKS
 from resloc.cl.detection_zone import zone_map
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
@@ -495,8 +495,8 @@ def _parse(data: dict) -> Scenario:
         )
     trig: TriggerSpec = parts["trigger"]
     det: DetectorSpec = parts["detector"]
-    for stage in DETECTOR_STAGES:
-        problem = stage.problem(det) if hasattr(stage, "problem") else None
+    for stage in OPTION_CHECKS:
+        problem = stage.problem(det)
         if problem is not None:
             raise ConfigError(f"detector.{problem}")
     est: EstimatorSpec = parts["estimator"]
