@@ -19,6 +19,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     fixes of the step (leave-one-out, claimed covariances capped at a typical neighbour's:
     :mod:`resloc.cl.detection_redundancy`); against lies on one link of several, from the
     sensor or from a compromised neighbour's broadcast.
+``redundancy_sequence``
+    Sums each link's redundancy residuals over time (since the link was last admitted) and
+    holds a link out for a while when the sum is inconsistent with zero mean: a slow lie
+    inside every per-step gate accumulates evidence (:mod:`resloc.cl.detection_sequence`).
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -45,6 +49,7 @@ from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
+from resloc.cl.detection_sequence import RedundancySequence
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
@@ -54,6 +59,7 @@ __all__ = [
     "CHI_SQUARE_NORMS",
     "DETECTOR_STAGES",
     "NORM_GATE",
+    "OPTION_CHECKS",
     "DetectorStage",
     "Evidence",
     "active_stages",
@@ -95,6 +101,12 @@ class Evidence:
         redundancy stage, :func:`resloc.cl.detection_redundancy.fix_evidence`).
     fix_statistic : ndarray, shape (E,), optional
         Their leave-one-out statistics (``nan``: not judged).
+    fix_residual, fix_residual_cov : ndarray, shapes (E, 2), (E, 2, 2), optional
+        Each row's fix minus its leave-one-out reference (``nan``: not judged) and that
+        difference's covariance (the redundancy sequence test accumulates them).
+    sequence_discard, sequence_state : ndarray, shapes (E,), (E, 6), optional
+        The sequence test's verdict on each row and its link's state after the step
+        (:func:`resloc.cl.detection_sequence.sequence_evidence`).
     """
 
     nu: np.ndarray
@@ -110,6 +122,10 @@ class Evidence:
     zone_substituted: np.ndarray | None = None
     fix_excluded: np.ndarray | None = None
     fix_statistic: np.ndarray | None = None
+    fix_residual: np.ndarray | None = None
+    fix_residual_cov: np.ndarray | None = None
+    sequence_discard: np.ndarray | None = None
+    sequence_state: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -232,10 +248,15 @@ class MeanShiftCusum:
 #: a policy on the sensor, not a test; the gate first among the tests: the others read its
 #: verdict; the recovery last: it overrides every verdict).
 NORM_GATE = NormGate()
+REDUNDANCY = RedundancyCheck()
+REDUNDANCY_SEQUENCE = RedundancySequence()
+#: The stages that check the scenario's ``[detector]`` options (``problem(options)``).
+OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     NORM_GATE,
-    RedundancyCheck(),
+    REDUNDANCY,
+    REDUNDANCY_SEQUENCE,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

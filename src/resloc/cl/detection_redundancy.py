@@ -62,6 +62,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FixContext",
     "RedundancyCheck",
+    "capped_claims",
     "exclude_inconsistent",
     "fix_evidence",
     "leave_one_out",
@@ -97,6 +98,19 @@ def weight_capped_covariance(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
     return P * scale[:, None, None]
 
 
+def capped_claims(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """The neighbours' claimed covariances ``(E, 3, 3)``, each scaled by the factor
+    :func:`weight_capped_covariance` puts on its position block: what a robot fuses when
+    ``redundancy_cap_fusion`` is on, so a neighbour weighs in the update no more than the
+    redundancy test credited it (shape (E, 3, 3))."""
+    P = np.asarray(P_nb, float)
+    trace = P[:, 0, 0] + P[:, 1, 1]
+    median = _group_median(trace, np.asarray(i))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
+    return P * scale[:, None, None]
+
+
 def _group_median(values: np.ndarray, group: np.ndarray) -> np.ndarray:
     """The median of ``values: (E,)`` over the rows of each row's ``group``, shape (E,)."""
     if not len(values):
@@ -120,7 +134,8 @@ def position_fix(
     P_nb_pos: np.ndarray,
     R: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Observer i's position as link ``(i, j)`` says: ``f = p_j - r u(theta_i + b)``.
+    """Observer i's position as link ``(i, j)`` says: ``f = p_j - r u(theta_i + b)``
+    (``r`` corrected for the mean shortening the angle's noise causes).
 
     Parameters
     ----------
@@ -142,8 +157,22 @@ def position_fix(
     r = z[:, 0]
     a = x_obs[:, 2] + z[:, 1]
     c, s = np.cos(a), np.sin(a)
-    fix = x_nb[:, :2] - r[:, None] * np.stack([c, s], axis=1)
-    # d fix / d theta_i = d fix / d b = r [sin a, -cos a]; d fix / d r = -[cos a, sin a].
+    # A direction read with a zero-mean Gaussian angle error of variance s2 (the bearing
+    # noise and the heading's variance) is shortened on average by exp(-s2 / 2): undone,
+    # so that honest fixes are unbiased (a sequence test summing residuals over hundreds
+    # of steps would otherwise see that bias as a lead).
+    r_mean = r * np.exp(0.5 * (R[1, 1] + P_obs[:, 2, 2]))
+    fix = x_nb[:, :2] - r_mean[:, None] * np.stack([c, s], axis=1)
+    # d fix / d theta_i = d fix / d b = r [sin a, -cos a]; d fix / d r = -[cos a, sin a],
+    # taken at the predicted geometry (the estimates' relative position), not at the
+    # reading: weights that moved with the reading's own noise would bias the references
+    # the fixes are compared with.
+    rel = x_nb[:, :2] - x_obs[:, :2]
+    r_pred = np.hypot(rel[:, 0], rel[:, 1])
+    use = r_pred > 0.0
+    c = np.where(use, rel[:, 0] / np.where(use, r_pred, 1.0), c)
+    s = np.where(use, rel[:, 1] / np.where(use, r_pred, 1.0), s)
+    r = np.where(use, r_pred, r)
     J_a = r[:, None] * np.stack([s, -c], axis=1)
     J_z = np.stack([np.stack([-c, J_a[:, 0]], 1), np.stack([-s, J_a[:, 1]], 1)], 1)
     C = (
@@ -254,7 +283,9 @@ def exclude_inconsistent(
     i: np.ndarray,
     gate: float | np.ndarray,
     min_peers: float | np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+    excluded: np.ndarray | None = None,
+    residuals: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Fault exclusion over each observer's fixes, one at a time.
 
     Every round, each observer's included fixes are tested against the mean of its other
@@ -270,6 +301,12 @@ def exclude_inconsistent(
     i : ndarray of int, shape (E,)
         Observer of each row.
     gate, min_peers : float or ndarray, shape (E,)
+    excluded : ndarray of bool, shape (E,), optional
+        Rows excluded before the first round (they never enter a reference; e.g. links a
+        sequence test holds out).
+    residuals : bool
+        Also return each row's residual against its reference and the residual's
+        covariance.
 
     Returns
     -------
@@ -277,13 +314,18 @@ def exclude_inconsistent(
     statistic : ndarray, shape (E,)
         Each row's statistic against the observer's included fixes at the end (``nan``:
         fewer than ``min_peers`` of them, not judged).
+    residual : ndarray, shape (E, 2)
+        With ``residuals``: ``d = fix - m_-j`` at the end (``nan`` where not judged).
+    residual_cov : ndarray, shape (E, 2, 2)
+        With ``residuals``: ``C_j + (sum_{k != j} C_k^-1)^-1``.
     """
     E = len(fix)
     gate = np.broadcast_to(np.asarray(gate, float), (E,))
     min_peers = np.broadcast_to(np.asarray(min_peers, float), (E,))
-    included = np.ones(E, bool)
+    included = np.ones(E, bool) if excluded is None else ~np.asarray(excluded, bool)
     if E == 0:
-        return ~included, np.zeros(0)
+        empty = (np.zeros((0, 2)), np.zeros((0, 2, 2))) if residuals else ()
+        return ~included, np.zeros(0), *empty
     robots, inverse = np.unique(i, return_inverse=True)
     n = len(robots)
     C3 = _sym2(C)
@@ -300,7 +342,11 @@ def exclude_inconsistent(
         first = np.r_[True, inverse[order][1:] != inverse[order][:-1]]
         included[order[first]] = False
     judged = peers >= min_peers
-    return ~included, np.where(judged, stat, np.nan)
+    if not residuals:
+        return ~included, np.where(judged, stat, np.nan)
+    residual = np.where(judged[:, None], fix - reference, np.nan)
+    residual_cov = _matrix(*(x + y for x, y in zip(C3, Q3, strict=True)))
+    return ~included, np.where(judged, stat, np.nan), residual, residual_cov
 
 
 def fix_evidence(
@@ -311,28 +357,48 @@ def fix_evidence(
     P_nb: np.ndarray,
     i: np.ndarray,
     params: CLParams,
+    j: np.ndarray | None = None,
+    memory: LinkMemory | None = None,
 ) -> dict[str, np.ndarray]:
     """The :class:`~resloc.cl.detection.Evidence` fields of this stage for a whole step.
 
     Rows are every link of the step (a robot's rows all present); shapes as
     :func:`position_fix`, ``P_nb: (E, 3, 3)`` the claimed covariances, ``i: (E,)`` the
     observers (batch indices: the per-robot gate and ``min_peers`` are read at them).
+    ``j: (E,)`` and the observers' ``memory``: links a sequence test holds out
+    (:func:`resloc.cl.detection_sequence.held_out`) enter no reference.
 
     Returns
     -------
     dict
         ``fix_excluded (E,)``: the rows :func:`exclude_inconsistent` excludes;
-        ``fix_statistic (E,)``: their final statistics.
+        ``fix_statistic (E,)``: their final statistics; ``fix_residual (E, 2)``,
+        ``fix_residual_cov (E, 2, 2)``: each row's residual against its reference and
+        the residual's covariance (what the sequence test accumulates).
     """
+    from resloc.cl.detection_sequence import held_out
+
     fix, C = position_fix(z, x_obs, P_obs, x_nb, weight_capped_covariance(P_nb, i), params.R)
-    excluded, stat = exclude_inconsistent(
+    excluded, stat, residual, residual_cov = exclude_inconsistent(
         fix,
         C,
         i,
         at_robots(params.redundancy_gate, i),
         at_robots(params.redundancy_min_peers, i),
+        excluded=held_out(params, memory, i, j),
+        residuals=True,
     )
-    return {"fix_excluded": excluded, "fix_statistic": stat}
+    out = {
+        "fix_excluded": excluded,
+        "fix_statistic": stat,
+        "fix_residual": residual,
+        "fix_residual_cov": residual_cov,
+    }
+    if params.redundancy_sequence and j is not None:
+        from resloc.cl.detection_sequence import sequence_evidence
+
+        out.update(sequence_evidence(residual, residual_cov, i, j, params, memory))
+    return out
 
 
 @dataclass
@@ -352,6 +418,11 @@ class FixContext:
         The victim's.
     rows : ndarray of int, shape (n,)
         The rows the candidates are for.
+    j : ndarray of int, shape (E,), optional
+        The neighbours (with ``memory``: the links a sequence test holds out enter no
+        reference, as in the victim's step).
+    memory : LinkMemory, optional
+        The victims' memory (read only).
     """
 
     z: np.ndarray
@@ -362,6 +433,8 @@ class FixContext:
     i: np.ndarray
     params: CLParams
     rows: np.ndarray
+    j: np.ndarray | None = None
+    memory: LinkMemory | None = None
 
     def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
         """Evidence fields for ``candidates``, shape (G, n, 2), flattened to (G n, ...).
@@ -404,9 +477,36 @@ class FixContext:
         fix[:, where] = cand_fix.reshape(G, n, 2)
         C[:, where] = cand_C.reshape(G, n, 2, 2)
         fix, C = fix.reshape(-1, 2), C.reshape(-1, 2, 2)
-        excluded, stat = exclude_inconsistent(fix, C, group, gate, peers)
+        held = None
+        if self.j is not None:
+            from resloc.cl.detection_sequence import held_out
+
+            held = held_out(params, self.memory, self.i[victims], self.j[victims])
+            held = None if held is None else np.tile(held, G)
+        excluded, stat, residual, residual_cov = exclude_inconsistent(
+            fix, C, group, gate, peers, excluded=held, residuals=True
+        )
         pick = (np.arange(G)[:, None] * V + where[None]).ravel()
-        return {"fix_excluded": excluded[pick], "fix_statistic": stat[pick]}
+        out = {
+            "fix_excluded": excluded[pick],
+            "fix_statistic": stat[pick],
+            "fix_residual": residual[pick],
+            "fix_residual_cov": residual_cov[pick],
+        }
+        if params.redundancy_sequence and self.j is not None:
+            from resloc.cl.detection_sequence import sequence_evidence
+
+            seq = sequence_evidence(
+                residual,
+                residual_cov,
+                i,
+                np.tile(self.j[victims], G),
+                params,
+                self.memory,
+                group=group,
+            )
+            out.update({k: v[pick] for k, v in seq.items()})
+        return out
 
 
 class RedundancyCheck:
@@ -415,6 +515,15 @@ class RedundancyCheck:
     name: ClassVar[str] = "redundancy"
     compiled: ClassVar[bool] = False
     overrides: ClassVar[bool] = False
+
+    def problem(self, options) -> str | None:
+        """Why the scenario's ``[detector]`` ``options`` cannot run as set (names the fix)."""
+        if getattr(options, "redundancy_cap_fusion", False) and not options.redundancy:
+            return (
+                "redundancy_cap_fusion: true caps claimed covariances as the redundancy "
+                "stage does; set detector.redundancy = true or redundancy_cap_fusion = false"
+            )
+        return None
 
     def active(self, params: CLParams) -> bool:
         return bool(params.redundancy)

@@ -138,6 +138,19 @@ class CLParams:
         Chi-square gate (2 degrees of freedom) on the leave-one-out statistic.
     redundancy_min_peers : float or ndarray (B,)
         Other fixes a robot needs in a step for its links to be judged.
+    redundancy_cap_fusion : bool
+        Fuse each neighbour with its claimed covariance scaled up as the redundancy test
+        caps it (no neighbour weighs more than the observer's median one in the update
+        either: :func:`resloc.cl.detection_redundancy.capped_claims`).
+    redundancy_sequence : bool
+        Sum each link's redundancy residuals over time and hold a link out when the sum is
+        inconsistent with zero mean (:mod:`resloc.cl.detection_sequence`).
+    redundancy_sequence_gate : float or ndarray (B,)
+        Chi-square gate (2 degrees of freedom) on the summed residual.
+    redundancy_sequence_hold : float or ndarray (B,)
+        Evaluations of a flagged link it is held out before it is re-admitted afresh.
+    redundancy_sequence_forget : float or ndarray (B,)
+        Discount ``lambda`` of the sums per evaluation (1: since the link was admitted).
     """
 
     range_std: float = 0.005
@@ -179,6 +192,11 @@ class CLParams:
     redundancy: bool = False
     redundancy_gate: float | np.ndarray = 13.815510557964274
     redundancy_min_peers: float | np.ndarray = 2.0
+    redundancy_cap_fusion: bool = False
+    redundancy_sequence: bool = False
+    redundancy_sequence_gate: float | np.ndarray = 27.631021115928547
+    redundancy_sequence_hold: float | np.ndarray = 100.0
+    redundancy_sequence_forget: float | np.ndarray = 1.0
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -9,11 +9,13 @@ that never steps an estimator (``--help``, a rejected argument) should not pay.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
-from resloc.cl.detection_redundancy import fix_evidence
+from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_zone import (
     materialize_with_reciprocal,
     reciprocal_position_fix,
@@ -358,6 +360,9 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     problem = fusion.problem(params)
     if problem is not None:
         raise ValueError(f"fusion {params.fusion.value!r} {problem}")
+    if params.redundancy and params.redundancy_cap_fusion:
+        # A neighbour weighs in the update no more than the redundancy test credited it.
+        links = dataclasses.replace(links, P_nb=capped_claims(links.P_nb, links.i))
     if (params.zone_trust and links.z_reciprocal is None) or (
         params.redundancy and links.tamper is not None
     ):
@@ -371,7 +376,15 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         # Every link's fix of its observer, judged against the observer's other fixes of
         # the step at the predicted estimates (the same verdict in either update mode).
         fixes = fix_evidence(
-            links.z, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, params
+            links.z,
+            x[links.i],
+            P[links.i],
+            links.x_nb,
+            links.P_nb,
+            links.i,
+            params,
+            links.j,
+            memory,
         )
     out = LinkOutcome.empty(E)
     x = x.copy()

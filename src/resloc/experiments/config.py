@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from resloc.cl.cusum import chi2_gate
-from resloc.cl.detection import NORM_GATE
+from resloc.cl.detection import NORM_GATE, OPTION_CHECKS
 from resloc.cl.detection_zone import zone_map
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.fusion import CICriterion, FusionMethod
@@ -197,6 +197,31 @@ class DetectorSpec:
         min=1,
         max=1000,
     )
+    redundancy_cap_fusion: bool = option(
+        False,
+        "redundancy: also fuse each neighbour with its claimed covariance capped as the "
+        "test caps it (no neighbour weighs more than the median one in the update)",
+    )
+    redundancy_sequence: bool = option(
+        False,
+        "redundancy: also sum each link's residuals over time and hold a link out for a "
+        "while when the sum is inconsistent with zero mean (a slow lie accumulates evidence)",
+    )
+    redundancy_sequence_false_alarm: float = option(
+        1e-6,
+        "redundancy sequence: chi-square gate at this false-alarm probability",
+        gt=0.0,
+        max=0.5,
+    )
+    redundancy_sequence_hold: int = option(
+        100, "redundancy sequence: evaluations a flagged link is held out", min=1, max=1_000_000
+    )
+    redundancy_sequence_forget: float = option(
+        1.0,
+        "redundancy sequence: discount of the sums per evaluation (1: none)",
+        gt=0.0,
+        max=1.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -287,6 +312,15 @@ class Scenario:
             redundancy=d.redundancy,
             **({"redundancy_gate": chi2_gate(d.redundancy_false_alarm)} if d.redundancy else {}),
             redundancy_min_peers=float(d.redundancy_min_peers),
+            redundancy_cap_fusion=d.redundancy_cap_fusion,
+            redundancy_sequence=d.redundancy_sequence,
+            **(
+                {"redundancy_sequence_gate": chi2_gate(d.redundancy_sequence_false_alarm)}
+                if d.redundancy_sequence
+                else {}
+            ),
+            redundancy_sequence_hold=float(d.redundancy_sequence_hold),
+            redundancy_sequence_forget=float(d.redundancy_sequence_forget),
         )
 
     def replace(self, **changes: Any) -> Scenario:
@@ -461,9 +495,10 @@ def _parse(data: dict) -> Scenario:
         )
     trig: TriggerSpec = parts["trigger"]
     det: DetectorSpec = parts["detector"]
-    problem = NORM_GATE.problem(det)
-    if problem is not None:
-        raise ConfigError(f"detector.{problem}")
+    for stage in OPTION_CHECKS:
+        problem = stage.problem(det)
+        if problem is not None:
+            raise ConfigError(f"detector.{problem}")
     est: EstimatorSpec = parts["estimator"]
     problem = fusion_strategy(est.fusion).problem(est)
     if problem is not None:

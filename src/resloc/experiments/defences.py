@@ -29,6 +29,7 @@ _PAPER = {"detector.enabled": True, "detector.norm": "euclidean"}
 _FULL = {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True, "detector.recovery": True}
 _ZONE = {"detector.zone_trust": True}
 _REDUNDANCY = {"detector.redundancy": True}
+_SEQUENCE = {**_REDUNDANCY, "detector.redundancy_sequence": True}
 
 #: Defence name -> dotted scenario overrides (read-only).
 DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
@@ -70,6 +71,18 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
             # covariances capped at a typical neighbour's. Needs no map.
             "full+redundancy": {**_FULL, **_REDUNDANCY},
             "zone+full+redundancy": {**_FULL, **_ZONE, **_REDUNDANCY},
+            # + the sequence test on each link's redundancy residuals over time
+            # (cl/detection_sequence.py): a neighbour whose fixes lead the others a little
+            # every step accumulates evidence and is held out for a while.
+            "full+redundancy+sequence": {**_FULL, **_SEQUENCE},
+            "zone+full+redundancy+sequence": {**_FULL, **_ZONE, **_SEQUENCE},
+            # + each neighbour fused with its claimed covariance capped as the test caps it.
+            "zone+full+redundancy+sequence+cap": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+            },
         }.items()
     }
 )

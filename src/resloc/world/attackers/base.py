@@ -193,7 +193,7 @@ class SensingLie(Strategy):
                 params,
                 memory,
                 self.gate_only,
-                None if self.gate_only else fix_context(links, r, params),
+                None if self.gate_only else fix_context(links, r, params, memory=memory),
             )
             z = out[hit] + a[:, None] * lie
             z[:, 0] = np.abs(z[:, 0])

@@ -114,7 +114,7 @@ class CompromisedRobot(Strategy):
                 cand[..., 1] = wrap_angle(cand[..., 1])
                 return cand
 
-            context = fix_context(links, r, params, P_nb)
+            context = fix_context(links, r, params, P_nb, memory)
             a = largest_accepted_along(
                 path, zh, S[hit], links.i[r], links.j[r], params, memory, context=context
             )

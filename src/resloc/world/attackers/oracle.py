@@ -47,18 +47,23 @@ ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
 #: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
 #: set in its own copy of the victims' links: stackable, and exact for lies told together).
-CONTEXT_STAGES = frozenset({"redundancy"})
+CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence"})
 
 
 def fix_context(
-    links: LinkBatch, rows: np.ndarray, params: CLParams, P_nb: np.ndarray | None = None
+    links: LinkBatch,
+    rows: np.ndarray,
+    params: CLParams,
+    P_nb: np.ndarray | None = None,
+    memory: LinkMemory | None = None,
 ) -> FixContext | None:
     """What the attacker's copy of the detector needs of the step's other links to judge
     candidates on ``rows`` (indices into ``links``), or None when no active stage reads them.
 
     The victims' predicted estimates are read from the batch (``links.neighbours``: the
     simulator's links reference the batch's predicted arrays; the attacker knows them).
-    ``P_nb``: the covariances the victims receive, when the attacker changes them.
+    ``P_nb``: the covariances the victims receive, when the attacker changes them;
+    ``memory``: the victims' (the links a sequence test holds out enter no reference).
     """
     if not any(s.name in CONTEXT_STAGES for s in active_stages(params)):
         return None
@@ -77,6 +82,8 @@ def fix_context(
         np.asarray(links.i),
         params,
         np.asarray(rows),
+        np.asarray(links.j),
+        memory,
     )
 
 
