@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_lanes import CHUNK, SINCOS_LANES_MAX, atan2_lanes, sincos_lanes, wrap_lanes
 from resloc.cl.kernels_links import (
     decide_link,
@@ -19,18 +18,9 @@ from resloc.cl.kernels_links import (
     gate_link,
     innovation_norm_of_link,
 )
-from resloc.cl.kernels_math import chol3, repair3, wrap
+from resloc.cl.kernels_math import chol3, jit_lanes, repair3, wrap
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    # error_model="numpy": a float division is IEEE (no ZeroDivisionError branch), which
-    # the loop vectorizer needs.
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit(func):
-        return func
+_jit = jit_lanes
 
 
 __all__ = [

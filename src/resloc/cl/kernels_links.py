@@ -42,13 +42,12 @@ from resloc.cl.kernels_joint_links import (
 from resloc.cl.kernels_math import (
     chol2,
     chol3,
-    is_pd3,
     jit,
     jit_inline,
-    repair3,
     sandwich,
     solve2,
     stamp_with_pieces,
+    store_covariance,
     wrap,
 )
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
@@ -390,15 +389,8 @@ def correct_links(
                 joint_record(
                     joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3, Pn
                 )
-        for a in range(3):
-            for b in range(3):
-                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-        if not is_pd3(T3):
-            repair3(T3)
+        if store_covariance(P, i, Pn, T3):
             flags[4, e] = True
-        for a in range(3):
-            for b in range(3):
-                P[i, a, b] = T3[a, b]
         if record_gauge:
             gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK

@@ -27,12 +27,16 @@ if HAVE_NUMBA:  # the optional extra ``fast``
     # The per-link pieces are inlined into the loop: a call that passes arrays (the named
     # structures hold ~20) costs a reference-count update per array, per link.
     jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+    # The SIMD stages (lanes, rounds, points): error_model="numpy" makes a float division
+    # IEEE (no ZeroDivisionError branch), which lets LLVM vectorize their loops.
+    jit_lanes = numba.njit(cache=True, nogil=True, error_model="numpy")
 else:  # pragma: no cover - exercised only where numba is absent
 
     def jit(func):
         return func
 
     jit_inline = jit
+    jit_lanes = jit
 
 
 _PI = math.pi
@@ -153,6 +157,23 @@ def repair3(P):
     for r in range(3):
         for c in range(3):
             P[r, c] = 0.5 * (A[r, c] + A[c, r])
+
+
+@jit_inline
+def store_covariance(P, i, Pn, T3):
+    """``P[i]`` = the symmetric part of the updated covariance ``Pn``, repaired when it is
+    not positive definite (``T3``: 3 x 3 scratch); returns whether it was repaired. Twin:
+    :func:`resloc.linalg.symmetrize` then :func:`resloc.filters.repair_covariance`."""
+    for a in range(3):
+        for b in range(3):
+            T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
+    repaired = not is_pd3(T3)
+    if repaired:
+        repair3(T3)
+    for a in range(3):
+        for b in range(3):
+            P[i, a, b] = T3[a, b]
+    return repaired
 
 
 @jit_inline

@@ -27,19 +27,11 @@ from __future__ import annotations
 
 import math
 
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_lanes import SINCOS_LANES_MAX, atan2_lanes, sincos_lanes, wrap_lanes
-from resloc.cl.kernels_math import wrap
+from resloc.cl.kernels_math import jit_lanes, wrap
 from resloc.cl.kernels_trig import fast_atan2
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit(func):
-        return func
+_jit = jit_lanes
 
 
 __all__ = ["POINT_ROWS", "point_moments"]

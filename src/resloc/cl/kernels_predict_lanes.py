@@ -23,7 +23,6 @@ import numpy as np
 
 from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl import kernels_math as _kernels_math
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_lanes import (
     CHUNK,
     FALLBACK,
@@ -34,16 +33,9 @@ from resloc.cl.kernels_lanes import (
     wrap_lanes,
 )
 from resloc.cl.kernels_links import NOT_PD, OK
-from resloc.cl.kernels_math import chol3, stamp_with_pieces
+from resloc.cl.kernels_math import chol3, jit_lanes, stamp_with_pieces
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit(func):
-        return func
+_jit = jit_lanes
 
 
 __all__ = ["predict_lanes"]

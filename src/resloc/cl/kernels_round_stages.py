@@ -41,7 +41,6 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
     NIS_CODE,
@@ -65,19 +64,16 @@ from resloc.cl.kernels_link_stages import (
     points_lanes,
 )
 from resloc.cl.kernels_links import NOT_PD, OK, decide_link
-from resloc.cl.kernels_math import is_pd3, repair3, stamp_with_pieces, wrap
+from resloc.cl.kernels_math import (
+    jit_lanes,
+    stamp_with_pieces,
+    store_covariance,
+    wrap,
+)
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    # error_model="numpy" as the other stages of the rounds (IEEE float division).
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit(func):
-        return func
+_jit = jit_lanes
 
 
 __all__ = [
@@ -402,15 +398,8 @@ def intersect_lanes(
             )  # fmt: skip
         if not done:
             return False
-        for a in range(3):
-            for b in range(3):
-                T3[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
-        if not is_pd3(T3):
-            repair3(T3)
+        if store_covariance(P, i, Pn, T3):
             flags[4, e] = True
-        for a in range(3):
-            for b in range(3):
-                P[i, a, b] = T3[a, b]
     return True
 
 

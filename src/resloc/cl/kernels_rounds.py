@@ -56,7 +56,6 @@ import numpy as np
 
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
-from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
@@ -76,7 +75,7 @@ from resloc.cl.kernels_link_stages import (
     robot_lanes,
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
-from resloc.cl.kernels_math import stamp_with_pieces
+from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
 from resloc.cl.kernels_round_stages import (
     gauge_lanes,
     inflated_moments,
@@ -90,16 +89,7 @@ from resloc.cl.kernels_round_stages import (
 )
 from resloc.cl.links import LinkBatch
 
-if HAVE_NUMBA:  # the optional extra ``fast``
-    import numba
-
-    # error_model="numpy": a float division is IEEE (no ZeroDivisionError branch), which
-    # the loop vectorizer needs.
-    _jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-else:  # pragma: no cover - exercised only where numba is absent
-
-    def _jit(func):
-        return func
+_jit = jit_lanes
 
 
 __all__ = [
