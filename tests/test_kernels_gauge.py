@@ -61,9 +61,9 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
         np.testing.assert_array_equal(fast.acks()[0], ref.acks()[0])
         np.testing.assert_allclose(fast.acks()[1], ref.acks()[1], rtol=0, atol=1e-9)
         x_f, x_r = state["numba"][0], state["numpy"][0]
-        np.testing.assert_allclose(
+        np.testing.assert_allclose(  # compiled (the strategy's dispatch) against the spec
             fusion.reported(state["numba"][2], x_f, state["numba"][1]),
-            fusion.reported(state["numpy"][2], x_r, state["numpy"][1]),
+            ref.reported(x_r, state["numpy"][1]),
             rtol=1e-9,
             atol=1e-12,
         )
@@ -73,6 +73,8 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
     # The once-per-step parts: compiled (prediction and finish of every step) with exact sums.
     assert state["numpy"][2].joint.compiled_steps == 0
     assert state["numba"][2].joint.compiled_steps == (2 * steps if rounds is None else 0)
+    assert state["numba"][2].joint.compiled_reports == steps  # consensus sums too
+    assert state["numpy"][2].joint.compiled_reports == 0
 
 
 @pytest.mark.parametrize("name", list(FILTERS))

@@ -388,7 +388,11 @@ class GaugeFusion(_Bookkept):
         self._joint(memory).exchange(i, j)
 
     def reported(self, memory, x, P) -> np.ndarray:
-        return self._joint(memory).reported(x, P)
+        from resloc.cl.kernels_gauge import compiled_gauge_reported
+
+        joint = self._joint(memory)
+        compiled = compiled_gauge_reported(joint, x, P)
+        return joint.reported(x, P) if compiled is None else compiled
 
 
 #: Every fusion method's strategy, by name.

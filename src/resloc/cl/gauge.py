@@ -136,6 +136,8 @@ class GaugeCovariance:
         self.messages = 0
         #: Prediction and finish steps run by the compiled twins (:mod:`resloc.cl.kernels_gauge`).
         self.compiled_steps = 0
+        #: Reported covariances formed by the compiled twin (:mod:`resloc.cl.kernels_gauge`).
+        self.compiled_reports = 0
         if self.rounds is None:
             self.G = np.zeros((self.T, 3, 3))
         else:  # per-robot consensus states: own value until the first exchange

@@ -26,6 +26,7 @@ kernel function                numpy twin
 :func:`_fit_and_add`          ``GaugeCovariance._fit`` and ``_add`` in
                                :meth:`~resloc.cl.gauge.GaugeCovariance.predict`
 :func:`_leak_and_add`         :meth:`resloc.cl.gauge.GaugeCovariance.finish` (``_close``)
+:func:`_reported_into`        :meth:`resloc.cl.gauge.GaugeCovariance.reported`
 =============================  ==========================================================
 """
 
@@ -220,6 +221,47 @@ def compiled_gauge_finish(joint) -> bool:
     joint.G = G
     joint.compiled_steps += 1
     return True
+
+
+def compiled_gauge_reported(joint, x: np.ndarray, P: np.ndarray) -> np.ndarray | None:
+    """:meth:`GaugeCovariance.reported <resloc.cl.gauge.GaugeCovariance.reported>` compiled
+    (``P_i + J_i G J_i^T``, symmetrized), or None when the numba backend is off."""
+    if backend() != "numba" or not isinstance(joint, GaugeCovariance):
+        return None
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    out = np.empty_like(P)
+    _reported_into(x, P, np.ascontiguousarray(joint.robot_G(), dtype=float), out)
+    joint.compiled_reports += 1
+    return out
+
+
+@jit
+def _reported_into(x, P, G, out):
+    """``out_b = sym(P_b + J_b G_b J_b^T)`` with ``J_b = [[1, 0, -y_b], [0, 1, x_b], [0, 0,
+    1]]`` (:func:`resloc.cl.gauge.gauge_jacobian`). Twin: ``GaugeCovariance.reported``."""
+    J = np.zeros((3, 3))
+    T = np.empty((3, 3))
+    S = np.empty((3, 3))
+    J[0, 0] = J[1, 1] = J[2, 2] = 1.0
+    for b in range(x.shape[0]):
+        J[0, 2] = -x[b, 1]
+        J[1, 2] = x[b, 0]
+        for r in range(3):
+            for c in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += J[r, k] * G[b, k, c]
+                T[r, c] = s
+        for r in range(3):
+            for c in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += T[r, k] * J[c, k]
+                S[r, c] = P[b, r, c] + s
+        for r in range(3):
+            for c in range(3):
+                out[b, r, c] = 0.5 * (S[r, c] + S[c, r])
 
 
 @jit_inline
