@@ -22,6 +22,17 @@ from resloc.experiments.store import ResultStore
 from resloc.experiments.sweep import METRICS, parse_sweep, run_sweep
 
 BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _kernels_compiled():
+    """The kernels compiled into numba's on-disk cache before any worker starts: a worker
+    that compiles them cold (about 2 minutes) would outlast the tests' bounded waits."""
+    from resloc.experiments.backends import warm_up_kernels
+
+    warm_up_kernels()
+
+
 SPEC = {
     "sweep": {
         "name": "cluster sweep",
