@@ -241,24 +241,13 @@ def _reported_into(x, P, G, out):
     """``out_b = sym(P_b + J_b G_b J_b^T)`` with ``J_b = [[1, 0, -y_b], [0, 1, x_b], [0, 0,
     1]]`` (:func:`resloc.cl.gauge.gauge_jacobian`). Twin: ``GaugeCovariance.reported``."""
     J = np.zeros((3, 3))
-    T = np.empty((3, 3))
     S = np.empty((3, 3))
     J[0, 0] = J[1, 1] = J[2, 2] = 1.0
     for b in range(x.shape[0]):
         J[0, 2] = -x[b, 1]
         J[1, 2] = x[b, 0]
-        for r in range(3):
-            for c in range(3):
-                s = 0.0
-                for k in range(3):
-                    s += J[r, k] * G[b, k, c]
-                T[r, c] = s
-        for r in range(3):
-            for c in range(3):
-                s = 0.0
-                for k in range(3):
-                    s += T[r, k] * J[c, k]
-                S[r, c] = P[b, r, c] + s
+        S[:, :] = P[b]
+        _add_sandwich(J, G[b], S)
         for r in range(3):
             for c in range(3):
                 out[b, r, c] = 0.5 * (S[r, c] + S[c, r])
