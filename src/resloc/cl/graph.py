@@ -209,9 +209,7 @@ def component_lambda2(
     if ncomp == 1:
         out[:] = algebraic_connectivity(L)
         return out
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
-    size = np.diff(bounds)
+    order, bounds, size = _component_extents(labels, ncomp)
     local = np.empty(n, dtype=np.int64)  # position of each node inside its component
     local[order] = np.arange(n) - bounds[labels[order]]
     # Small components: one batched dense eigensolve per distinct size.
@@ -248,6 +246,15 @@ def component_lambda2(
     if memo is not None:
         memo.values = values
     return out
+
+
+def _component_extents(labels: np.ndarray, ncomp: int):
+    """The nodes grouped by component: ``order`` (nodes sorted by component, stable, shape
+    (n,)), ``bounds`` (component ``c`` is ``order[bounds[c]:bounds[c + 1]]``, shape
+    (ncomp + 1,)) and ``size`` (nodes per component, shape (ncomp,))."""
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
+    return order, bounds, np.diff(bounds)
 
 
 def dense_laplacian(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
@@ -300,9 +307,7 @@ def _small_graph_lambda2(
     if ncomp == 1:
         out[:] = algebraic_connectivity(L)
         return out
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
-    size = np.diff(bounds)
+    order, bounds, size = _component_extents(labels, ncomp)
     for s in np.unique(size[size > 1]):
         comps = np.flatnonzero(size == s)
         nodes = order[bounds[comps][:, None] + np.arange(s)]  # (C, s), increasing per row
