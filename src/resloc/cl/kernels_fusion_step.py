@@ -29,7 +29,7 @@ from resloc.cl import kernels_predict as _kernels_predict
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.backend import backend
 from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
+from resloc.cl.kernels_math import jit, jit_inline, mul3, mul3_t, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
 from resloc.cl.tracking import JointCovariance
@@ -255,21 +255,6 @@ def compiled_factorized_finish(joint) -> bool:
 
 
 @jit
-def _mul(X, Y, out):
-    for p in range(3):
-        for q in range(3):
-            out[p, q] = X[p, 0] * Y[0, q] + X[p, 1] * Y[1, q] + X[p, 2] * Y[2, q]
-
-
-@jit
-def _mul_t(X, Y, out):
-    """``out = X Y^T``."""
-    for p in range(3):
-        for q in range(3):
-            out[p, q] = X[p, 0] * Y[q, 0] + X[p, 1] * Y[q, 1] + X[p, 2] * Y[q, 2]
-
-
-@jit
 def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
     """Twin of ``FactorizedCovariance.finish`` and ``_pair_cross``: ``[A_a, B_ac] [[P_a,
     P_ac], [P_ca, P_c]]_pred [B_ca, A_c]^T`` with ``P_ac = sigma_ac sigma_ca^T`` (pred)."""
@@ -284,21 +269,21 @@ def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
                 c = t * N + lc
                 if not (fused[a, lc] or fused[c, la]):
                     continue
-                _mul_t(sig_pred[a, lc], sig_pred[c, la], P_ac)
-                _mul(A[a], P_pred[a], T1)  # A_a P_a B_ca^T
-                _mul_t(T1, Bm[c, la], C)
-                _mul(A[a], P_ac, T1)  # + A_a P_ac A_c^T
-                _mul_t(T1, A[c], T2)
+                mul3_t(sig_pred[a, lc], sig_pred[c, la], P_ac)
+                mul3(A[a], P_pred[a], T1)  # A_a P_a B_ca^T
+                mul3_t(T1, Bm[c, la], C)
+                mul3(A[a], P_ac, T1)  # + A_a P_ac A_c^T
+                mul3_t(T1, A[c], T2)
                 for p in range(3):
                     for q in range(3):
                         C[p, q] += T2[p, q]
-                _mul_t(Bm[a, lc], P_ac, T1)  # + B_ac P_ac^T B_ca^T
-                _mul_t(T1, Bm[c, la], T2)
+                mul3_t(Bm[a, lc], P_ac, T1)  # + B_ac P_ac^T B_ca^T
+                mul3_t(T1, Bm[c, la], T2)
                 for p in range(3):
                     for q in range(3):
                         C[p, q] += T2[p, q]
-                _mul(Bm[a, lc], P_pred[c], T1)  # + B_ac P_c A_c^T
-                _mul_t(T1, A[c], T2)
+                mul3(Bm[a, lc], P_pred[c], T1)  # + B_ac P_c A_c^T
+                mul3_t(T1, A[c], T2)
                 for p in range(3):
                     for q in range(3):
                         sig[a, lc, p, q] = C[p, q] + T2[p, q]

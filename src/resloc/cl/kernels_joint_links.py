@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_math import chol3, jit, jit_inline, wrap
+from resloc.cl.kernels_math import chol3, jit, jit_inline, mul3, wrap
 
 __all__ = [
     "FACTORIZED",
@@ -30,14 +30,6 @@ TRACKED = 1
 FACTORIZED = 2
 
 _CAP = 1.0 - 1e-6  # valid_cross's default cap on the correlation's singular values
-
-
-@jit_inline
-def _mul_into(X, Y, out):
-    """``out = X Y`` of 3 x 3 matrices."""
-    for a in range(3):
-        for b in range(3):
-            out[a, b] = X[a, 0] * Y[0, b] + X[a, 1] * Y[1, b] + X[a, 2] * Y[2, b]
 
 
 @jit_inline
@@ -372,7 +364,7 @@ def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz
 @jit_inline
 def _left_multiply(G, M, T3):
     """``M <- G M`` of 3 x 3 matrices in place (``T3``: scratch)."""
-    _mul_into(G, M, T3)
+    mul3(G, M, T3)
     for a in range(3):
         for b in range(3):
             M[a, b] = T3[a, b]
@@ -402,7 +394,7 @@ def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
         for a in range(3):
             for b in range(3):
                 Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
-        _mul_into(G, noise[i], T3)  # N_i <- G N_i G^T + K R K^T
+        mul3(G, noise[i], T3)  # N_i <- G N_i G^T + K R K^T
         for a in range(3):
             t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
             t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]

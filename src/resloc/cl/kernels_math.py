@@ -177,6 +177,22 @@ def store_covariance(P, i, Pn, T3):
 
 
 @jit_inline
+def mul3(X, Y, out):
+    """``out = X Y`` of 3 x 3 matrices."""
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = X[a, 0] * Y[0, b] + X[a, 1] * Y[1, b] + X[a, 2] * Y[2, b]
+
+
+@jit_inline
+def mul3_t(X, Y, out):
+    """``out = X Y^T`` of 3 x 3 matrices."""
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = X[a, 0] * Y[b, 0] + X[a, 1] * Y[b, 1] + X[a, 2] * Y[b, 2]
+
+
+@jit_inline
 def sandwich(H, P, T):
     """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
     2 x 3 scratch)."""
