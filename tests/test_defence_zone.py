@@ -274,10 +274,12 @@ def test_robot_nodes_reproduce_the_batched_engine_with_zone_trust():
     assert fixes > 10
 
 
-def test_the_runtime_refuses_zone_trust_with_one_line():
+def test_the_runtime_runs_zone_trust_and_refuses_it_only_with_pulled_estimates():
     from resloc.runtime.team import check_supported
 
     scenario = default_scenario().replace(**{**DEFENCES["zone+full"], "run.trials": 1})
-    with pytest.raises(ConfigError, match=r"detector\.zone_trust: the runtime") as err:
-        check_supported(scenario)
+    check_supported(scenario)  # the readings ride on the estimates
+    pulled = scenario.replace(**{"estimator.neighbour_estimate": "cached"})
+    with pytest.raises(ConfigError, match=r"detector\.zone_trust: pulled estimates") as err:
+        check_supported(pulled)
     assert "\n" not in str(err.value)

@@ -103,6 +103,26 @@ def test_wire_bytes_match_the_runtime_encoder():
         Kind.CONSENSUS, 1, {"round": 2, "m": np.zeros((2, 3, 3)), "deg": 4}, "resloc/radio"
     )
     assert len(cons) == WIRE_BYTES["consensus"]
+    # zone trust: the sender's readings ride on its estimate frame (one reading, exactly)
+    body = {"x": np.zeros(3), "P": np.eye(3), "rj": np.arange(1), "rz": np.ones((1, 2))}
+    with_reading = codec.encode(Kind.ESTIMATE, 2, body, "resloc/radio")
+    assert len(with_reading) - len(est) == WIRE_BYTES["reading"]
+
+
+def test_zone_trust_counts_the_readings_on_the_estimates():
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.runner import run_scenario
+
+    sc = default_scenario().replace(
+        **{"team.robots": 6, "run.steps": 20, "run.filters": ["ekf"], "run.dead_reckoning": False}
+    )
+    plain = run_scenario(sc).estimators["ekf"]
+    zone = run_scenario(sc.replace(**{"detector.zone_trust": True})).estimators["ekf"]
+    assert plain.totals["readings"].sum() == 0
+    sent = zone.totals["triggered"]
+    assert sent.sum() > 0 and np.array_equal(zone.totals["readings"], sent)
+    extra = zone.bytes_per_trial() - sent * WIRE_BYTES["estimate"]
+    assert np.array_equal(extra, sent * WIRE_BYTES["reading"])
 
 
 def test_run_summary_reports_relative_nees_and_bytes():

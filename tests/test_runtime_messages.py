@@ -51,7 +51,12 @@ def sample_bodies(rng: np.random.Generator) -> dict[Kind, dict]:
             "rejoin": False,
             "rt": True,
         },
-        Kind.ESTIMATE: {"x": rng.normal(size=3), "P": np.eye(3) * 0.01},
+        Kind.ESTIMATE: {
+            "x": rng.normal(size=3),
+            "P": np.eye(3) * 0.01,
+            "rj": rng.integers(0, 9, E),  # the optional group (zone trust's readings)
+            "rz": rng.normal(size=(E, 2)),
+        },
         Kind.ACK: {"to": np.arange(E), "ack": rng.normal(size=(E, 3, 3))},
         Kind.CONSENSUS: {"round": 1, "m": rng.normal(size=(2, 3, 3)), "deg": 3},
         Kind.DELIVERY: {"to": 1, "phase": 5, "round": 0, "nb": np.arange(E), "msgs": [b"a", b"bc"]},
@@ -101,7 +106,7 @@ def test_every_kind_round_trips_exactly() -> None:
 def test_header_layout_is_the_documented_one() -> None:
     frame = Codec(KEY, 7).encode(Kind.ESTIMATE, 9, {"x": np.zeros(3), "P": np.eye(3)}, CH)
     magic, version, kind, sender, _, epoch, seq, ts, step = m.HEADER.unpack_from(frame)
-    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 2
+    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 3
     assert (kind, sender, seq, step) == (Kind.ESTIMATE, 7, 1, 9)
     assert abs(ts - time.time()) < 5 and epoch > 0
     assert len(frame) < 200  # compact: x, P and the header, tag
@@ -150,9 +155,14 @@ def test_schema_violations_are_malformed_even_when_signed() -> None:
         {"x": np.zeros(4).tobytes(), "P": np.eye(3).tobytes()},  # wrong shape
         {"x": "abc", "P": np.eye(3).tobytes()},  # wrong type
         {"x": np.array([np.nan, 0, 0]).tobytes(), "P": np.eye(3).tobytes()},  # non-finite
+        good | {"rj": np.arange(2).tobytes()},  # half of the optional readings group
+        good | {"rj": np.arange(2).tobytes(), "rz": np.ones((3, 2)).tobytes()},  # lengths
+        good | {"rj": np.arange(1).tobytes(), "rz": np.array([[np.inf, 0.0]]).tobytes()},
     ]
     for seq, fields in enumerate(bad_cases, start=2):
         assert ver.open(signed(Kind.ESTIMATE, fields, seq), CH) is None
+    readings = {"rj": np.arange(2).tobytes(), "rz": np.ones((2, 2)).tobytes()}
+    assert ver.open(signed(Kind.ESTIMATE, good | readings, 100), CH).body["rz"].shape == (2, 2)
     ack = {"to": np.arange(2).tobytes(), "ack": np.zeros((3, 3, 3)).tobytes()}
     assert ver.open(signed(Kind.ACK, ack, 1), CH) is None  # inconsistent lengths
     assert ver.open(signed(99, good, 1), CH) is None  # unknown kind

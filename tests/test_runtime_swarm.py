@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.metrics import WIRE_BYTES
 from resloc.experiments.runner import run_scenario
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.swarm import SwarmError, run_swarm, stop_process
@@ -100,6 +101,28 @@ def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process
         assert (Path(opts.out) / f).is_file()
     assert not any(n.startswith(".out.tmp") for n in os.listdir(tmp_path))
     assert all(code == 0 for code in result.exit_codes.values()), result.exit_codes
+
+
+def test_lockstep_swarm_with_zone_trust_carries_the_readings_and_equals_the_simulator(
+    tmp_path,
+) -> None:
+    """Zone trust fuses a neighbour's reading of the robot (the reverse link) while the robot
+    is inside the mapped SDZ: the readings ride on the estimates, and the wire's result is
+    the simulator's (which differs from a run without them on this scenario)."""
+    sc = hot_scenario(30, **{"run.filters": ["ekf"], "detector.zone_trust": True})
+    opts = swarm_options(tmp_path, sc, "ekf")
+    result = run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs")
+    assert result.end == "complete"
+    runtime, _, est = load_outputs(Path(opts.out))
+    sim = run_scenario(sc)
+    blind = run_scenario(sc.replace(**{"detector.zone_trust": False}))
+    track = sim.estimators["ekf"].track
+    assert np.abs(blind.estimators["ekf"].track - track).max() > 1e-3  # the readings matter
+    dx = np.abs(est["x"] - track)
+    dx[..., 2] = np.abs((dx[..., 2] + np.pi) % (2 * np.pi) - np.pi)
+    assert dx.max() <= TOL, f"estimates differ by {dx.max():.2e}"
+    wire = runtime["wire_by_kind"]["estimate"]
+    assert wire["messages"] == 5 * 30 and wire["bytes"] > 5 * 30 * WIRE_BYTES["estimate"]
 
 
 def test_radio_jamming_acknowledgements_leaves_estimates_and_changes_the_gauge(tmp_path) -> None:

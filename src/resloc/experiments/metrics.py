@@ -42,6 +42,10 @@ WIRE_BYTES: dict[str, int] = {
     "ack": 80,  # header, tag and the body's keys
     "ack_per_link": 80,  # one neighbour id (i8) and one 3x3 f8 block L_i B_ij
     "consensus": 229,  # one gauge consensus exchange [M_hat, C_hat] (2x3x3 f8)
+    # The sender's reading of the receiver (id i8, range and bearing 2 f8) and the keys of
+    # the two optional fields, on an estimate frame when the detector uses reciprocal
+    # readings (zone trust): counted once per transmission, as if each carried one reading.
+    "reading": 34,
 }
 
 #: ``chi2.ppf(0.95, 3)``: a consistent 3-DoF filter's NEES exceeds it 5 % of the time.
@@ -354,7 +358,8 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
     Parameters
     ----------
     totals : dict of str to ndarray, each shape (T,)
-        ``triggered`` (estimate transmissions), ``ack_frames`` and ``ack_links`` (gauge
+        ``triggered`` (estimate transmissions), ``readings`` (transmissions that carry
+        the sender's reading of the receiver), ``ack_frames`` and ``ack_links`` (gauge
         acknowledgements), ``consensus_messages`` (gauge consensus exchanges).
 
     Returns
@@ -370,7 +375,7 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
     est = get("triggered")
     ack, ack_links, cons = get("ack_frames"), get("ack_links"), get("consensus_messages")
     out = {
-        "estimate": (est, est * WIRE_BYTES["estimate"]),
+        "estimate": (est, est * WIRE_BYTES["estimate"] + get("readings") * WIRE_BYTES["reading"]),
         "ack": (ack, ack * WIRE_BYTES["ack"] + ack_links * WIRE_BYTES["ack_per_link"]),
         "consensus": (cons, cons * WIRE_BYTES["consensus"]),
     }

@@ -52,6 +52,7 @@ TOTALS = (
     "ack_links",
     "ack_frames",
     "consensus_messages",
+    "readings",
 )
 
 

@@ -225,6 +225,8 @@ def run_scenario(
     for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
         exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
+        if params.zone_trust:  # every estimate carries the sender's reading of the receiver
+            tr.totals["readings"] += tr.totals["triggered"]
     shared = link_columns(source.trial0_links)
     results = {}
     for tr in everyone:

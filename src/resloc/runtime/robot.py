@@ -65,6 +65,8 @@ class RobotAgent(PullingRobot):
         # per neighbour, its recent estimates by step (a lagging robot must not see a
         # neighbour's newer estimate replace the one of the step it is closing)
         self.estimates: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+        # (neighbour, step) -> the neighbour's reading of this robot that step (zone trust)
+        self.reciprocal: dict[tuple[int, int], np.ndarray] = {}
         self.acks: dict[int, np.ndarray] = {}
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
         self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
@@ -154,12 +156,18 @@ class RobotAgent(PullingRobot):
         self.sensors = b
         self.acks.clear()
         self.consensus.clear()
+        keep = self.step - self.options.max_age_steps - 2
+        for old in [key for key in self.reciprocal if key[1] < keep]:
+            del self.reciprocal[old]
         self.node.predict(b["u"], self.team.dt)
         x, P = self.node.estimate
         if self.team.pull:
             self.start_pull(x, P)
             return
-        self.send(Kind.ESTIMATE, {"x": x, "P": P})
+        body = {"x": x, "P": P}
+        if self.team.readings:  # the receivers' reverse-link measurements
+            body |= {"rj": b["j"], "rz": b["z"]}
+        self.send(Kind.ESTIMATE, body)
         self.wait(Kind.ESTIMATE, 0)
 
     def wait(self, kind: Kind, rnd: int) -> None:
@@ -230,6 +238,10 @@ class RobotAgent(PullingRobot):
             keep = m.step - self.options.max_age_steps - 2
             for old in [k for k in hist if k < keep]:
                 del hist[old]
+            if "rj" in m.body:
+                mine = np.flatnonzero(m.body["rj"] == self.id)
+                if len(mine):  # the sender measured this robot: the reverse link's reading
+                    self.reciprocal[(m.sender, m.step)] = m.body["rz"][mine[0]]
         elif m.kind is Kind.ACK:
             if (
                 m.step != self.step
@@ -330,6 +342,8 @@ class RobotAgent(PullingRobot):
         max_age = self.options.max_age_steps if self.realtime else 0
         x_nb = np.zeros((len(j), 3))
         P_nb = np.zeros((len(j), 3, 3))
+        # A reading describes its own step: a late estimate's is not this step's geometry.
+        z_reciprocal = np.full((len(j), 2), np.nan)
         for e, nb in enumerate(j):
             steps = [k for k in self.estimates.get(int(nb), {}) if k <= self.step]
             if not steps:
@@ -344,6 +358,8 @@ class RobotAgent(PullingRobot):
                 self.counts["estimates_late_used"] += 1
             heard[e] = True
             x_nb[e], P_nb[e] = self.estimates[int(nb)][newest]
+            if age == 0 and (int(nb), self.step) in self.reciprocal:
+                z_reciprocal[e] = self.reciprocal[(int(nb), self.step)]
         self.counts["unheard"] += int((~heard).sum())
         flags = np.where(heard, FLAG_HEARD, 0).astype(np.uint8)
         norm = np.full(len(j), np.nan)
@@ -362,6 +378,7 @@ class RobotAgent(PullingRobot):
                 s["rs"],
                 s["rc"],
                 s["l2"],
+                z_reciprocal=z_reciprocal[h] if self.team.readings else None,
             )
             flags[h] |= link_flags(out)
             norm[h] = out.norm

@@ -24,6 +24,7 @@ __all__ = [
     "FLAG_HEARD",
     "FLAG_REPAIRED",
     "FLAG_TRIGGERED",
+    "OPTIONAL",
     "ROBOT_TO_ROBOT",
     "Kind",
     "MalformedBodyError",
@@ -138,9 +139,18 @@ FIELDS: dict[Kind, dict[str, Any]] = {
     },
 }
 
+#: Optional field groups: a body carries every field of a group or none of them. An
+#: ESTIMATE carries its sender's readings of this step (``rj``: the robots it measured,
+#: ``rz``: range and bearing) when the team's detector uses reciprocal readings
+#: (``detector.zone_trust``); the receiver takes its own row.
+OPTIONAL: dict[Kind, dict[str, Any]] = {
+    Kind.ESTIMATE: {"rj": Array(I8, (-1,)), "rz": Array(F8, (-1, 2))},
+}
+
 #: Groups of fields whose leading dimension must be equal.
 _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
     Kind.SENSORS: (("j", "z"),),
+    Kind.ESTIMATE: (("rj", "rz"),),
     Kind.CHANNEL: (("i", "j", "ok"),),
     Kind.TRUTH: (("i", "j", "att"),),
     Kind.ACK: (("to", "ack"),),
@@ -243,11 +253,22 @@ def _decode_field(kind: Kind, name: str, spec: Any, value: Any) -> Any:
     raise TypeError(spec)
 
 
-def encode_body(kind: Kind, body: dict) -> bytes:
-    """The msgpack bytes of ``body`` (every field of ``FIELDS[kind]``, nothing else)."""
+def _schema_of(kind: Kind, names: set) -> dict | None:
+    """The fields a body with field ``names`` must match: ``FIELDS[kind]``, with the
+    optional group when any of its fields is present (None: no schema matches)."""
     spec = FIELDS[kind]
-    if set(body) != set(spec):
-        raise ValueError(f"{kind.name}: fields {sorted(body)} != schema {sorted(spec)}")
+    optional = OPTIONAL.get(kind, {})
+    if optional and names & set(optional):
+        spec = {**spec, **optional}
+    return spec if names == set(spec) else None
+
+
+def encode_body(kind: Kind, body: dict) -> bytes:
+    """The msgpack bytes of ``body`` (every field of ``FIELDS[kind]``, and the optional
+    group of :data:`OPTIONAL` entirely or not at all)."""
+    spec = _schema_of(kind, set(body))
+    if spec is None:
+        raise ValueError(f"{kind.name}: fields {sorted(body)} != schema {sorted(FIELDS[kind])}")
     return msgpack.packb({k: _encode_field(spec[k], body[k]) for k in spec}, use_bin_type=True)
 
 
@@ -257,11 +278,11 @@ def decode_body(kind: Kind, raw: bytes) -> dict:
         data = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=1 << 24)
     except Exception as exc:  # msgpack raises many types on garbage
         raise MalformedBodyError(f"undecodable body ({exc.__class__.__name__})") from None
-    spec = FIELDS[kind]
-    if not isinstance(data, dict) or set(data) != set(spec):
+    spec = _schema_of(kind, set(data)) if isinstance(data, dict) else None
+    if spec is None:
         raise MalformedBodyError("fields do not match the schema")
     body = {k: _decode_field(kind, k, spec[k], data[k]) for k in spec}
     for group in _ROWS.get(kind, ()):
-        if len({len(body[k]) for k in group}) != 1:
+        if group[0] in body and len({len(body[k]) for k in group}) != 1:
             raise MalformedBodyError(f"{'/'.join(group)}: lengths differ")
     return body

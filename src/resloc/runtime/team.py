@@ -84,6 +84,12 @@ class TeamSetup:
         return "consensus" in fusion_strategy(self.params.fusion).node_exchanges
 
     @property
+    def readings(self) -> bool:
+        """Estimates carry their sender's readings of this step (the receiver's row is the
+        reverse link's measurement, ``RobotNode.correct``'s ``z_reciprocal``)."""
+        return bool(self.params.zone_trust)
+
+    @property
     def pull(self) -> bool:
         """Estimates are pulled on trigger (``neighbour_estimate = "cached"``), not broadcast
         every step (``"current"``: the trigger needs j's current estimate)."""
@@ -108,10 +114,13 @@ def check_supported(scenario: Scenario) -> None:
         )
     if scenario.trigger.risk_source is not RiskSource.TRUE:
         raise ConfigError("trigger.risk_source: the runtime supports 'true' only")
-    if scenario.detector.zone_trust:
+    if (
+        scenario.detector.zone_trust
+        and scenario.estimator.neighbour_estimate is NeighbourEstimate.CACHED
+    ):
         raise ConfigError(
-            "detector.zone_trust: the runtime's messages do not carry a neighbour's reading of "
-            "the receiver yet (RobotNode.correct's z_reciprocal); set it false for a swarm"
+            "detector.zone_trust: pulled estimates (estimator.neighbour_estimate = 'cached') "
+            "do not carry the sender's readings; use 'current' with zone trust in a swarm"
         )
     if scenario.world.attack.kind is AttackKind.STEALTHY:
         raise ConfigError(
