@@ -107,6 +107,37 @@ def test_wire_bytes_match_the_runtime_encoder():
     body = {"x": np.zeros(3), "P": np.eye(3), "rj": np.arange(1), "rz": np.ones((1, 2))}
     with_reading = codec.encode(Kind.ESTIMATE, 2, body, "resloc/radio")
     assert len(with_reading) - len(est) == WIRE_BYTES["reading"]
+    # split CI: the independent part on the estimate, and acknowledgements of ids only
+    body = {"x": np.zeros(3), "P": np.eye(3), "Pi": np.eye(3)}
+    with_part = codec.encode(Kind.ESTIMATE, 3, body, "resloc/radio")
+    assert len(with_part) - len(est) == WIRE_BYTES["independent_part"]
+    for n in (0, 1, 5, 31):
+        ack = codec.encode(Kind.ACK, 10 + n, {"to": np.arange(n)}, "resloc/radio")
+        assert len(ack) == WIRE_BYTES["delivery_ack"] + n * WIRE_BYTES["delivery_ack_per_link"]
+
+
+def test_split_ci_counts_its_independent_parts_and_delivery_acknowledgements():
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.runner import run_scenario
+
+    sc = default_scenario().replace(
+        **{"team.robots": 6, "run.steps": 20, "run.filters": ["ekf"], "run.dead_reckoning": False}
+    )
+    naive = run_scenario(sc).estimators["ekf"].totals
+    split = run_scenario(sc.replace(**{"estimator.fusion": "split_ci"})).estimators["ekf"]
+    t = split.totals
+    assert naive["delivery_ack_links"].sum() == naive["independent_parts"].sum() == 0
+    assert np.array_equal(t["independent_parts"], t["triggered"])
+    assert np.array_equal(t["delivery_ack_links"], t["fused"]) and t["fused"].sum() > 0
+    assert 0 < t["delivery_ack_frames"].sum() <= t["fused"].sum()
+    assert t["ack_frames"].sum() == 0  # not gauge's blocks
+    comm = communication(t)
+    assert np.array_equal(comm["ack"][0], t["delivery_ack_frames"])
+    assert np.array_equal(
+        comm["ack"][1],
+        t["delivery_ack_frames"] * WIRE_BYTES["delivery_ack"]
+        + t["fused"] * WIRE_BYTES["delivery_ack_per_link"],
+    )
 
 
 def test_zone_trust_counts_the_readings_on_the_estimates():

@@ -66,7 +66,13 @@ def load_outputs(out: Path) -> tuple[dict, dict, dict]:
 
 @pytest.mark.parametrize(
     ("filt", "fusion", "per_process"),
-    [("ckf", "naive", 1), ("ukf", "naive", 5), ("ekf", "naive", 3), ("ekf", "gauge", 5)],
+    [
+        ("ckf", "naive", 1),
+        ("ukf", "naive", 5),
+        ("ekf", "naive", 3),
+        ("ekf", "gauge", 5),
+        ("ckf", "split_ci", 5),
+    ],
 )
 def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process) -> None:
     sc = hot_scenario(
@@ -97,6 +103,11 @@ def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process
         assert wire["ack"]["messages"] == 5 * 30 and wire["ack"]["copies_delivered"] > 0
         assert wire["consensus"]["messages"] == 5 * 30 * sc.estimator.gauge_rounds
         assert wire["ack"]["copies_lost"] == 0  # the simulator's semantics
+    if fusion == "split_ci":  # independent parts on the estimates, ids-only acknowledgements
+        assert wire["ack"]["messages"] == 5 * 30 and wire["ack"]["copies_delivered"] > 0
+        assert wire["estimate"]["bytes"] >= 5 * 30 * (
+            WIRE_BYTES["estimate"] + WIRE_BYTES["independent_part"]
+        )
     for f in ("scenario.toml", "timeseries.csv", "trajectories.csv", f"transmissions_{filt}.csv"):
         assert (Path(opts.out) / f).is_file()
     assert not any(n.startswith(".out.tmp") for n in os.listdir(tmp_path))

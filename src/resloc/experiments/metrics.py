@@ -46,6 +46,11 @@ WIRE_BYTES: dict[str, int] = {
     # the two optional fields, on an estimate frame when the detector uses reciprocal
     # readings (zone trust): counted once per transmission, as if each carried one reading.
     "reading": 34,
+    # split CI: the sender's independent part (3x3 f8 and its key) on an estimate frame, and
+    # the acknowledgement frame that tells each neighbour it was fused (ids only)
+    "independent_part": 77,
+    "delivery_ack": 74,
+    "delivery_ack_per_link": 8,
 }
 
 #: ``chi2.ppf(0.95, 3)``: a consistent 3-DoF filter's NEES exceeds it 5 % of the time.
@@ -358,9 +363,11 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
     Parameters
     ----------
     totals : dict of str to ndarray, each shape (T,)
-        ``triggered`` (estimate transmissions), ``readings`` (transmissions that carry
-        the sender's reading of the receiver), ``ack_frames`` and ``ack_links`` (gauge
-        acknowledgements), ``consensus_messages`` (gauge consensus exchanges).
+        ``triggered`` (estimate transmissions), ``readings`` and ``independent_parts``
+        (transmissions that carry the sender's reading of the receiver / its independent
+        part), ``ack_frames`` and ``ack_links`` (gauge acknowledgements),
+        ``delivery_ack_frames`` and ``delivery_ack_links`` (split CI's), and
+        ``consensus_messages`` (gauge consensus exchanges).
 
     Returns
     -------
@@ -372,11 +379,24 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
     def get(key: str) -> np.ndarray:
         return np.asarray(totals.get(key, 0), np.int64)
 
+    w = WIRE_BYTES
     est = get("triggered")
-    ack, ack_links, cons = get("ack_frames"), get("ack_links"), get("consensus_messages")
+    estimate_bytes = (
+        est * w["estimate"]
+        + get("readings") * w["reading"]
+        + get("independent_parts") * w["independent_part"]
+    )
+    gauge_acks, split_acks = get("ack_frames"), get("delivery_ack_frames")
+    ack_bytes = (
+        gauge_acks * w["ack"]
+        + get("ack_links") * w["ack_per_link"]
+        + split_acks * w["delivery_ack"]
+        + get("delivery_ack_links") * w["delivery_ack_per_link"]
+    )
+    cons = get("consensus_messages")
     out = {
-        "estimate": (est, est * WIRE_BYTES["estimate"] + get("readings") * WIRE_BYTES["reading"]),
-        "ack": (ack, ack * WIRE_BYTES["ack"] + ack_links * WIRE_BYTES["ack_per_link"]),
+        "estimate": (est, estimate_bytes),
+        "ack": (gauge_acks + split_acks, ack_bytes),
         "consensus": (cons, cons * WIRE_BYTES["consensus"]),
     }
     out["total"] = (

@@ -129,17 +129,18 @@ class OutcomeCounter:
         Receives trial 0's packed :data:`~resloc.experiments.recording.LINK_FLAGS`.
     trials, robots : int
         ``T`` and ``N``; robot ``b`` of a step's links is robot ``b % N`` of trial ``b // N``.
-    acks : bool
-        The fusion acknowledges every fusion (gauge): count ``ack_links`` and ``ack_frames``.
+    acks : str or None
+        The fusion acknowledges every fusion: count ``{acks}_links`` and ``{acks}_frames``
+        (``"ack"``: gauge's blocks; ``"delivery_ack"``: split CI's ids).
     """
 
     #: Most steps buffered (beyond it the fixed costs are already amortized).
     MAX_ROWS = 256
 
-    def __init__(self, series, totals, raster, link_flags, trials, robots, acks=False) -> None:
+    def __init__(self, series, totals, raster, link_flags, trials, robots, acks=None) -> None:
         self.series, self.totals, self.raster = series, totals, raster
         self.link_flags = link_flags
-        self.trials, self.robots, self.acks = int(trials), int(robots), bool(acks)
+        self.trials, self.robots, self.acks = int(trials), int(robots), acks
         self.last_row = len(series["candidates"]) - 1
         self.pending: list[tuple] = []
 
@@ -188,11 +189,11 @@ class OutcomeCounter:
             s[key][rows] = counted[key]
         for key, per_step in counted.items():
             tot[key] += per_step.sum(axis=0)
-        if self.acks:  # gauge: one acknowledgement per fusion, one frame per fusing robot
-            tot["ack_links"] += counted["fused"].sum(axis=0)
+        if self.acks:  # one acknowledgement per fusion, one frame per fusing robot
+            tot[f"{self.acks}_links"] += counted["fused"].sum(axis=0)
             B = T * N
             senders = np.unique(slot[fused] * B + i[fused]) % B
-            tot["ack_frames"] += np.bincount(senders // N, minlength=T)
+            tot[f"{self.acks}_frames"] += np.bincount(senders // N, minlength=T)
         own = i < N
         transmissions = np.bincount(
             slot[own] * N + i[own], weights=triggered[own], minlength=C * N

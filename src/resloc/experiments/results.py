@@ -53,6 +53,9 @@ TOTALS = (
     "ack_frames",
     "consensus_messages",
     "readings",
+    "delivery_ack_links",
+    "delivery_ack_frames",
+    "independent_parts",
 )
 
 

@@ -91,7 +91,15 @@ class EstimatorTrack(EstimatorState):
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed
         self.accuracy = AccuracyRecorder(self.series, self.totals, T, N, truth)
-        acks = fusion is not None and "acks" in fusion.node_exchanges
+        exchanges = () if fusion is None else fusion.node_exchanges
+        # gauge acknowledges every fusion with a 3x3 block; split CI with the id alone
+        acks = (
+            "ack"
+            if "acks" in exchanges
+            else "delivery_ack"
+            if "delivery_acks" in exchanges
+            else None
+        )
         self.outcome_counts = OutcomeCounter(
             self.series, self.totals, self.raster, self.link_flags, T, N, acks
         )
@@ -227,6 +235,8 @@ def run_scenario(
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
         if params.zone_trust:  # every estimate carries the sender's reading of the receiver
             tr.totals["readings"] += tr.totals["triggered"]
+        if "delivery_acks" in fusion.node_exchanges:  # split CI: and its independent part
+            tr.totals["independent_parts"] += tr.totals["triggered"]
     shared = link_columns(source.trial0_links)
     results = {}
     for tr in everyone:

@@ -8,7 +8,7 @@ sensed link, which is range-limited and jammed in a CDZ at the zone's rate), so 
 the in-process simulator see the same channel:
 
 * ESTIMATE from j reaches each robot i that sensed j this step if ``channel_ok(i, j)``;
-* ACK from i to j (gauge fusion) reaches j always, as in the simulator (default), or, with
+* ACK from i to j (gauge fusion, split CI) reaches j always, as in the simulator (default), or, with
   ``jam_acks``, only if ``channel_ok(j, i)`` (the link on which j is the receiver);
 * CONSENSUS from c reaches every communication neighbour a of c: ``channel_ok(a, c)`` or
   ``channel_ok(c, a)`` (the simulator's undirected communication graph). The radio also tells
@@ -85,8 +85,10 @@ class Radio:
         self.team = team_setup(options)
         self.realtime = options.mode is Mode.REALTIME
         phases = [(Kind.ESTIMATE, 0)]
+        if self.team.acks:
+            phases += [(Kind.ACK, 0)]
         if self.team.gauge:
-            phases += [(Kind.ACK, 0)] + [(Kind.CONSENSUS, r) for r in range(self.team.gauge_rounds)]
+            phases += [(Kind.CONSENSUS, r) for r in range(self.team.gauge_rounds)]
         self.phases = phases
         # Pulled estimates (cached): per step, the robots still correcting and the round.
         self.pull = self.team.pull

@@ -13,7 +13,9 @@ counters. A step of robot i:
 3. Gauge fusion: publish the acknowledgements ``node.gauge_acks()`` (one ACK frame to all the
    robots it fused), close the step with the acknowledgements received
    (``node.gauge_close``), then ``gauge_rounds`` consensus exchanges
-   (``node.gauge_message`` / ``node.gauge_mix``) with the communication neighbours.
+   (``node.gauge_message`` / ``node.gauge_mix``) with the communication neighbours. Split
+   CI: one ACK frame naming ``node.delivery_acks()``, then ``node.delivery_close`` with the
+   number of robots that named this one (its estimates carry ``node.independent``).
 4. Publish ``REPORT(k)``: corrected estimate, reported covariance, per-link decisions,
    counters.
 
@@ -67,6 +69,8 @@ class RobotAgent(PullingRobot):
         self.estimates: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
         # (neighbour, step) -> the neighbour's reading of this robot that step (zone trust)
         self.reciprocal: dict[tuple[int, int], np.ndarray] = {}
+        # (neighbour, step) -> the independent part its estimate carried (split CI)
+        self.independent: dict[tuple[int, int], np.ndarray] = {}
         self.acks: dict[int, np.ndarray] = {}
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
         self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
@@ -140,6 +144,7 @@ class RobotAgent(PullingRobot):
             0.0,
             0.0,
             1.0,
+            P_nb_ind=np.eye(3)[None] * 0.005 if team.split else None,
         )
         for key in (self.bus.key("radio", "in"), self.bus.key("report", self.id)):
             self.bus.declare(key)
@@ -157,8 +162,9 @@ class RobotAgent(PullingRobot):
         self.acks.clear()
         self.consensus.clear()
         keep = self.step - self.options.max_age_steps - 2
-        for old in [key for key in self.reciprocal if key[1] < keep]:
-            del self.reciprocal[old]
+        for store in (self.reciprocal, self.independent):
+            for old in [key for key in store if key[1] < keep]:
+                del store[old]
         self.node.predict(b["u"], self.team.dt)
         x, P = self.node.estimate
         if self.team.pull:
@@ -167,6 +173,8 @@ class RobotAgent(PullingRobot):
         body = {"x": x, "P": P}
         if self.team.readings:  # the receivers' reverse-link measurements
             body |= {"rj": b["j"], "rz": b["z"]}
+        if self.team.split:
+            body["Pi"] = self.node.independent
         self.send(Kind.ESTIMATE, body)
         self.wait(Kind.ESTIMATE, 0)
 
@@ -238,6 +246,8 @@ class RobotAgent(PullingRobot):
             keep = m.step - self.options.max_age_steps - 2
             for old in [k for k in hist if k < keep]:
                 del hist[old]
+            if "Pi" in m.body:
+                self.independent[(m.sender, m.step)] = m.body["Pi"]
             if "rj" in m.body:
                 mine = np.flatnonzero(m.body["rj"] == self.id)
                 if len(mine):  # the sender measured this robot: the reverse link's reading
@@ -255,8 +265,14 @@ class RobotAgent(PullingRobot):
                 self.counts["acks_late"] += 1  # the step closed without it
                 return
             mine = m.body["to"] == self.id
-            if mine.any():
+            if not mine.any():
+                return
+            if self.team.gauge != ("ack" in m.body):  # a key holder's frame of the wrong form
+                self.counts["acks_malformed"] += 1
+            elif self.team.gauge:
                 self.acks[m.sender] = m.body["ack"][mine].sum(axis=0)
+            else:  # split CI: the sender fused this robot's estimate
+                self.acks[m.sender] = None
         elif m.kind is Kind.CONSENSUS:
             rnd = int(m.body["round"])
             if (
@@ -292,30 +308,20 @@ class RobotAgent(PullingRobot):
             self.pull_next(self.replies)
         elif kind is Kind.ESTIMATE:
             self.correct()
-            if not self.team.gauge:
+            if not self.team.acks:
                 self.phase = None
                 self.finish_step()
                 return
-            to, ack = (
-                zip(*self.node.gauge_acks(), strict=True)
-                if self.node.gauge_acks()
-                else (
-                    (),
-                    (),
-                )
-            )
-            self.send(
-                Kind.ACK,
-                {
-                    "to": np.asarray(to, dtype=np.int64),
-                    "ack": np.asarray(ack, dtype=float).reshape(-1, 3, 3),
-                },
-            )
+            self.send(Kind.ACK, self.ack_body())
             self.wait(Kind.ACK, 0)
         elif kind is Kind.ACK:
-            self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
+            self.close_acks()
             self.counts["acks_received"] += len(self.acks)
-            self.start_round(0)
+            if self.team.gauge:
+                self.start_round(0)
+            else:
+                self.phase = None
+                self.finish_step()
         elif kind is Kind.CONSENSUS:
             mine = self.consensus.pop(rnd, {})
             got = [s for s in sorted(mine) if s in self.neighbours]
@@ -326,6 +332,25 @@ class RobotAgent(PullingRobot):
             else:
                 self.phase = None
                 self.finish_step()
+
+    def ack_body(self) -> dict:
+        """This step's ACK frame: gauge blocks ``L_i B_ij`` to the robots fused, or (split
+        CI) only their ids."""
+        if not self.team.gauge:
+            return {"to": np.asarray(self.node.delivery_acks(), dtype=np.int64)}
+        acks = self.node.gauge_acks()
+        to, ack = zip(*acks, strict=True) if acks else ((), ())
+        return {
+            "to": np.asarray(to, dtype=np.int64),
+            "ack": np.asarray(ack, dtype=float).reshape(-1, 3, 3),
+        }
+
+    def close_acks(self) -> None:
+        """Close the step with the acknowledgements received (a lost one: without it)."""
+        if self.team.gauge:
+            self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
+        else:
+            self.node.delivery_close(len(self.acks))
 
     def start_round(self, rnd: int) -> None:
         self.wait(Kind.CONSENSUS, rnd)
@@ -344,6 +369,7 @@ class RobotAgent(PullingRobot):
         P_nb = np.zeros((len(j), 3, 3))
         # A reading describes its own step: a late estimate's is not this step's geometry.
         z_reciprocal = np.full((len(j), 2), np.nan)
+        P_nb_ind = np.zeros((len(j), 3, 3))
         for e, nb in enumerate(j):
             steps = [k for k in self.estimates.get(int(nb), {}) if k <= self.step]
             if not steps:
@@ -358,6 +384,8 @@ class RobotAgent(PullingRobot):
                 self.counts["estimates_late_used"] += 1
             heard[e] = True
             x_nb[e], P_nb[e] = self.estimates[int(nb)][newest]
+            if self.team.split:
+                P_nb_ind[e] = self.independent.get((int(nb), newest), 0.0)
             if age == 0 and (int(nb), self.step) in self.reciprocal:
                 z_reciprocal[e] = self.reciprocal[(int(nb), self.step)]
         self.counts["unheard"] += int((~heard).sum())
@@ -378,6 +406,7 @@ class RobotAgent(PullingRobot):
                 s["rs"],
                 s["rc"],
                 s["l2"],
+                P_nb_ind=P_nb_ind[h] if self.team.split else None,
                 z_reciprocal=z_reciprocal[h] if self.team.readings else None,
             )
             flags[h] |= link_flags(out)
@@ -395,7 +424,7 @@ class RobotAgent(PullingRobot):
             if kind is Kind.ESTIMATE:
                 self.correct()
             elif kind is Kind.ACK:
-                self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
+                self.close_acks()
             self.phase = None
         j, flags, norm, repairs = self.outcome
         self.bus.send(

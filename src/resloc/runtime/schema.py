@@ -101,7 +101,7 @@ FIELDS: dict[Kind, dict[str, Any]] = {
         "rt": BOOL,
     },
     Kind.ESTIMATE: {"x": Array(F8, (3,)), "P": Array(F8, (3, 3))},
-    Kind.ACK: {"to": Array(I8, (-1,)), "ack": Array(F8, (-1, 3, 3))},
+    Kind.ACK: {"to": Array(I8, (-1,))},
     Kind.CONSENSUS: {"round": INT, "m": Array(F8, (2, 3, 3)), "deg": INT},
     Kind.DELIVERY: {
         "to": INT,
@@ -142,9 +142,15 @@ FIELDS: dict[Kind, dict[str, Any]] = {
 #: Optional field groups: a body carries every field of a group or none of them. An
 #: ESTIMATE carries its sender's readings of this step (``rj``: the robots it measured,
 #: ``rz``: range and bearing) when the team's detector uses reciprocal readings
-#: (``detector.zone_trust``); the receiver takes its own row.
-OPTIONAL: dict[Kind, dict[str, Any]] = {
-    Kind.ESTIMATE: {"rj": Array(I8, (-1,)), "rz": Array(F8, (-1, 2))},
+#: (``detector.zone_trust``; the receiver takes its own row), and the sender's independent
+#: part ``Pi`` with split covariance intersection. An ACK carries the gauge blocks ``ack``
+#: with gauge fusion; without them it is split CI's "your estimate was fused" to ``to``.
+OPTIONAL: dict[Kind, tuple[dict[str, Any], ...]] = {
+    Kind.ESTIMATE: (
+        {"rj": Array(I8, (-1,)), "rz": Array(F8, (-1, 2))},
+        {"Pi": Array(F8, (3, 3))},
+    ),
+    Kind.ACK: ({"ack": Array(F8, (-1, 3, 3))},),
 }
 
 #: Groups of fields whose leading dimension must be equal.
@@ -257,9 +263,9 @@ def _schema_of(kind: Kind, names: set) -> dict | None:
     """The fields a body with field ``names`` must match: ``FIELDS[kind]``, with the
     optional group when any of its fields is present (None: no schema matches)."""
     spec = FIELDS[kind]
-    optional = OPTIONAL.get(kind, {})
-    if optional and names & set(optional):
-        spec = {**spec, **optional}
+    for group in OPTIONAL.get(kind, ()):
+        if names & set(group):
+            spec = {**spec, **group}
     return spec if names == set(spec) else None
 
 
@@ -283,6 +289,6 @@ def decode_body(kind: Kind, raw: bytes) -> dict:
         raise MalformedBodyError("fields do not match the schema")
     body = {k: _decode_field(kind, k, spec[k], data[k]) for k in spec}
     for group in _ROWS.get(kind, ()):
-        if group[0] in body and len({len(body[k]) for k in group}) != 1:
+        if set(group) <= set(body) and len({len(body[k]) for k in group}) != 1:
             raise MalformedBodyError(f"{'/'.join(group)}: lengths differ")
     return body

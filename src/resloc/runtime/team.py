@@ -23,7 +23,7 @@ from resloc.world.attacks import AttackKind
 __all__ = ["TeamSetup", "check_supported", "team_setup"]
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) the runtime carries.
-RUNTIME_EXCHANGES = frozenset({"acks", "consensus"})
+RUNTIME_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks"})
 
 
 def runtime_refusal(strategy: FusionStrategy) -> str | None:
@@ -84,6 +84,17 @@ class TeamSetup:
         return "consensus" in fusion_strategy(self.params.fusion).node_exchanges
 
     @property
+    def split(self) -> bool:
+        """Split covariance intersection: estimates carry the sender's independent part and
+        a robot tells each neighbour it fused (an ACK frame without gauge blocks)."""
+        return "delivery_acks" in fusion_strategy(self.params.fusion).node_exchanges
+
+    @property
+    def acks(self) -> bool:
+        """The step has an acknowledgement phase (gauge or split CI)."""
+        return self.gauge or self.split
+
+    @property
     def readings(self) -> bool:
         """Estimates carry their sender's readings of this step (the receiver's row is the
         reverse link's measurement, ``RobotNode.correct``'s ``z_reciprocal``)."""
@@ -106,7 +117,7 @@ def check_supported(scenario: Scenario) -> None:
     if refusal is not None:
         raise ConfigError(
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
-            f"processes ({refusal}); use naive, gauge or ci"
+            f"processes ({refusal}); use naive, gauge, ci or split_ci"
         )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
