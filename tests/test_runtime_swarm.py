@@ -136,6 +136,23 @@ def test_lockstep_swarm_with_zone_trust_carries_the_readings_and_equals_the_simu
     assert wire["messages"] == 5 * 30 and wire["bytes"] > 5 * 30 * WIRE_BYTES["estimate"]
 
 
+def test_lockstep_swarm_with_estimated_risk_equals_the_simulator(tmp_path) -> None:
+    """``trigger.risk_source = "estimated"``: each robot evaluates the zone map at its own
+    predicted estimate, as the simulator does (which differs from the true-position risks
+    on this scenario)."""
+    sc = hot_scenario(30, **{"run.filters": ["ckf"], "trigger.risk_source": "estimated"})
+    opts = swarm_options(tmp_path, sc, "ckf")
+    result = run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs")
+    assert result.end == "complete"
+    _, _, est = load_outputs(Path(opts.out))
+    track = run_scenario(sc).estimators["ckf"].track
+    truth_risk = run_scenario(sc.replace(**{"trigger.risk_source": "true"}))
+    assert np.abs(truth_risk.estimators["ckf"].track - track).max() > 1e-3
+    dx = np.abs(est["x"] - track)
+    dx[..., 2] = np.abs((dx[..., 2] + np.pi) % (2 * np.pi) - np.pi)
+    assert dx.max() <= TOL, f"estimates differ by {dx.max():.2e}"
+
+
 def test_radio_jamming_acknowledgements_leaves_estimates_and_changes_the_gauge(tmp_path) -> None:
     """``jam_acks``: the radio's own semantics. A lost acknowledgement closes the step
     without that neighbour's share of the leak (the gauge covariance G); the estimates

@@ -37,7 +37,7 @@ class PullingRobot:
             self.node,
             s["j"].astype(np.int64),
             s["z"],
-            (s["rs"], s["rc"], s["l2"]),
+            (*self.step_risks(), s["l2"]),
             self.team.link_params(s["z"]),
             single_round=self.realtime,
         )

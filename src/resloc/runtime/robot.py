@@ -56,6 +56,7 @@ class RobotAgent(PullingRobot):
         self.bus = bus
         self.realtime = options.mode is Mode.REALTIME
         self.filt = team.make_filter()
+        self.risk_zones = team.risk_zones
         self.node: RobotNode | None = None
         self.inner = Verifier(key, options.max_age_s)  # robot-to-robot frames, own replay state
         self.counts: collections.Counter = collections.Counter()
@@ -389,6 +390,7 @@ class RobotAgent(PullingRobot):
             if age == 0 and (int(nb), self.step) in self.reciprocal:
                 z_reciprocal[e] = self.reciprocal[(int(nb), self.step)]
         self.counts["unheard"] += int((~heard).sum())
+        risk_s, risk_c = self.step_risks()
         flags = np.where(heard, FLAG_HEARD, 0).astype(np.uint8)
         norm = np.full(len(j), np.nan)
         repairs = 0
@@ -403,8 +405,8 @@ class RobotAgent(PullingRobot):
                 x_nb[h],
                 P_nb[h],
                 np.ones(len(h), dtype=bool),
-                s["rs"],
-                s["rc"],
+                risk_s,
+                risk_c,
                 s["l2"],
                 P_nb_ind=P_nb_ind[h] if self.team.split else None,
                 z_reciprocal=z_reciprocal[h] if self.team.readings else None,
@@ -414,6 +416,19 @@ class RobotAgent(PullingRobot):
             repairs += int(out.repairs)
         self.node.params = self.team.params
         self.outcome = (j, flags, norm, repairs)
+
+    def step_risks(self) -> tuple[float, float]:
+        """``Ds(i)``, ``Dc(i)`` for this step's trigger: the world's (at the true position) or,
+        with ``trigger.risk_source = "estimated"``, at this robot's predicted estimate."""
+        risk_s, risk_c = self.sensors["rs"], self.sensors["rc"]
+        if self.risk_zones is None:
+            return risk_s, risk_c
+        sdz, cdz = self.risk_zones
+        p = self.node.x[:, :2]
+        return (
+            float(sdz.risk(p)[0]) if sdz else risk_s,
+            float(cdz.risk(p)[0]) if cdz else risk_c,
+        )
 
     def finish_step(self) -> None:
         """Report the step (realtime overrun: first close what is still open)."""

@@ -84,6 +84,17 @@ class TeamSetup:
         return "consensus" in fusion_strategy(self.params.fusion).node_exchanges
 
     @property
+    def risk_zones(self) -> tuple | None:
+        """``(SDZ, CDZ)`` risk fields a robot evaluates at its own predicted estimate
+        (``trigger.risk_source = "estimated"``: the zone map is known, the true position is
+        not), or None: the world sends the risks at the true position."""
+        if self.scenario is None or self.scenario.trigger.risk_source is not RiskSource.ESTIMATED:
+            return None
+        from resloc.world.world import zone_field
+
+        return zone_field(self.scenario.world.sdz), zone_field(self.scenario.world.cdz)
+
+    @property
     def split(self) -> bool:
         """Split covariance intersection: estimates carry the sender's independent part and
         a robot tells each neighbour it fused (an ACK frame without gauge blocks)."""
@@ -123,8 +134,6 @@ def check_supported(scenario: Scenario) -> None:
         raise ConfigError(
             "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"
         )
-    if scenario.trigger.risk_source is not RiskSource.TRUE:
-        raise ConfigError("trigger.risk_source: the runtime supports 'true' only")
     if (
         scenario.detector.zone_trust
         and scenario.estimator.neighbour_estimate is NeighbourEstimate.CACHED
