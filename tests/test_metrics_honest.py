@@ -173,3 +173,20 @@ def test_run_summary_reports_relative_nees_and_bytes():
     assert s["bytes_total"] == s["bytes_estimate"] + s["bytes_ack"] + s["bytes_consensus"]
     assert s["messages_estimate"] == s["transmissions"]
     assert 0.0 <= s["nees_exceed_share"] <= 1.0
+
+
+def test_methods_whose_traffic_is_not_counted_report_no_bytes():
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.metrics import uncounted_traffic
+    from resloc.experiments.runner import run_scenario
+
+    assert uncounted_traffic("naive") is None and uncounted_traffic("gauge") is None
+    assert uncounted_traffic("split_ci") is None
+    assert "centralized" in uncounted_traffic("tracked")
+    assert "factors" in uncounted_traffic("factorized")
+    sc = default_scenario().replace(
+        **{"team.robots": 5, "run.steps": 10, "run.filters": ["ekf"], "run.dead_reckoning": False}
+    )
+    for fusion, counted in (("naive", True), ("tracked", False), ("factorized", False)):
+        est = run_scenario(sc.replace(**{"estimator.fusion": fusion})).estimators["ekf"]
+        assert np.isfinite(est.bytes_per_step(fusion)).all() == counted, fusion

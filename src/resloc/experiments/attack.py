@@ -80,7 +80,7 @@ def attack_cells(
         "tpr": tpr,
         "fpr": fpr,
         "comm_rate": est.per_trial("comm_rate"),
-        "bytes_per_step": est.bytes_per_trial() / est.series["msle"].shape[0],
+        "bytes_per_step": est.bytes_per_step(result.scenario.estimator.fusion),
     }
     return [{k: float(v[s]) for k, v in per_seed.items()} for s in range(scenario.run.trials)]
 

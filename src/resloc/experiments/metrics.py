@@ -53,6 +53,24 @@ WIRE_BYTES: dict[str, int] = {
     "delivery_ack_per_link": 8,
 }
 
+#: End-of-step exchanges (``FusionStrategy.node_exchanges``) whose frames are counted.
+COUNTED_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks"})
+
+
+def uncounted_traffic(fusion) -> str | None:
+    """Why a fusion method's robot-to-robot traffic is not in :func:`communication`'s bytes
+    (a reader must not compare it as counted), or None."""
+    from resloc.cl.fusion_methods import fusion_strategy
+
+    strategy = fusion_strategy(fusion)
+    if strategy.node_refusal is not None:
+        return f"centralized ({strategy.node_refusal})"
+    missing = sorted(set(strategy.node_exchanges) - COUNTED_EXCHANGES)
+    if missing:
+        return f"its {', '.join(missing)} messages are not counted"
+    return None
+
+
 #: ``chi2.ppf(0.95, 3)``: a consistent 3-DoF filter's NEES exceeds it 5 % of the time.
 NEES_EXCEED_3DOF = 7.814727903251178
 

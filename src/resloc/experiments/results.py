@@ -14,6 +14,7 @@ from resloc.experiments.metrics import (
     detector_rates,
     nees_consistency_counts,
     rate,
+    uncounted_traffic,
 )
 from resloc.experiments.recording import LinkLog
 
@@ -166,6 +167,13 @@ class EstimatorResult:
     def bytes_per_trial(self) -> np.ndarray:
         """Robot-to-robot bytes of every kind per trial, shape (T,) (``communication``)."""
         return communication(self.totals)["total"][1]
+
+    def bytes_per_step(self, fusion) -> np.ndarray:
+        """Robot-to-robot bytes per step and trial, shape (T,); ``nan`` for a fusion method
+        whose traffic is not counted (:func:`~resloc.experiments.metrics.uncounted_traffic`:
+        the centralized ``tracked``, ``factorized``'s factor messages)."""
+        per_step = self.bytes_per_trial() / self.series["msle"].shape[0]
+        return np.full(per_step.shape, np.nan) if uncounted_traffic(fusion) else per_step
 
     def per_trial(self, metric: str) -> np.ndarray:
         """A per-trial scalar, shape (T,): ``msle_mean``, ``msle_final``, ``rmse_mean``,

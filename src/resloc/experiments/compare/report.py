@@ -231,8 +231,9 @@ def _markdown(res: CompareResult) -> str:
             "### Method x scenario",
             "",
             "NEES rel.: the relative error's NEES (the team's least-squares rigid-body error "
-            "removed). Bytes/step: every robot-to-robot frame (estimates, gauge "
-            "acknowledgements, consensus) at the runtime's wire sizes.",
+            "removed). Bytes/step: every robot-to-robot frame (estimates, acknowledgements, "
+            "consensus) at the runtime's wire sizes; '-' where a method's traffic is not "
+            "counted (tracked is centralized; factorized's factor messages are not counted).",
             "",
             "| scenario | method | MSLE | RMSE (m) | NEES | NEES rel. | comm. rate | bytes/step "
             "| TPR | FPR |",

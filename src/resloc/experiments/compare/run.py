@@ -51,7 +51,7 @@ def _cell_metrics(result, name: str) -> dict[str, Any]:
         "nees": est.per_trial("nees_mean"),
         "nees_rel": est.per_trial("nees_rel_mean"),
         "comm_rate": est.per_trial("comm_rate"),
-        "bytes_per_step": est.bytes_per_trial() / est.series["msle"].shape[0],
+        "bytes_per_step": est.bytes_per_step(result.scenario.estimator.fusion),
         "tpr": tpr,
         "fpr": fpr,
         "attacked_fused": att_fused,
