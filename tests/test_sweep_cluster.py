@@ -238,12 +238,19 @@ def test_cluster_left_without_workers_stops_the_study(tmp_path):
             run_sweep(spec, study=Study(scheduler=address, cluster_timeout=2.0))
         worker = _start_worker(address, "only", tmp_path / "only.log")
         procs.append(worker)
-        with Client(address, timeout=30) as observer:
-            observer.wait_for_workers(1, timeout=60)
+        observer = Client(address, timeout=30)
+        observer.wait_for_workers(1, timeout=60)
         killed: list[float] = []
 
         def kill_after_first_cell(done: float, total: float) -> None:
+            # Kill once a second result sits finished on the worker, not yet fetched: the
+            # study must not wait forever to gather it (dask reschedules it, no worker).
             if done >= 1 and not killed:
+                deadline = time.monotonic() + 30
+                while time.monotonic() < deadline:
+                    if sum(bool(w) for w in observer.who_has().values()) >= 2:
+                        break
+                    time.sleep(0.05)
                 _kill_tree(worker.pid)
                 killed.append(time.monotonic())
 
@@ -251,8 +258,11 @@ def test_cluster_left_without_workers_stops_the_study(tmp_path):
         study = Study(
             scheduler=address, store=store, progress=kill_after_first_cell, cluster_timeout=3.0
         )
-        with pytest.raises(ClusterLostError, match="no worker for 3 s") as caught:
-            run_sweep(spec, study=study)
+        try:
+            with pytest.raises(ClusterLostError, match="no worker for 3 s") as caught:
+                run_sweep(spec, study=study)
+        finally:
+            observer.close()
         waited = time.monotonic() - killed[0]
     finally:
         signal.alarm(0)

@@ -187,6 +187,17 @@ class _DaskBackend(_Backend):
                     "in the store)"
                 )
 
+    def _gather(self, fut) -> tuple | None:
+        """A finished future's result, or None when it could not be fetched within the
+        workerless limit: its worker died after finishing it, so dask reschedules the task
+        and ``result()`` would wait for a worker forever, out of the watchdog's sight."""
+        if self.workerless_limit is None:
+            return fut.result()
+        try:
+            return fut.result(timeout=max(self.workerless_limit, 1.0))
+        except TimeoutError:
+            return None
+
     def run(self, tasks: list[Task]) -> Iterator[tuple[Task, tuple]]:
         from distributed import as_completed
 
@@ -222,7 +233,11 @@ class _DaskBackend(_Backend):
                 elif fut.status == "cancelled":
                     outcome = ("error", "CancelledError: the cluster cancelled the task", "")
                 else:
-                    outcome = fut.result()
+                    outcome = self._gather(fut)
+                    if outcome is None:  # lost with its worker: dask runs it again
+                        futures[fut] = n
+                        pending.add(fut)
+                        continue
                 fut.release()
                 yield tasks[n], outcome
         finally:
