@@ -38,6 +38,7 @@ def cached_scenario(filt: str, **changes):
         ("ukf", 5, {"estimator.update_without_transmission": True}),
         ("ekf", 2, {"estimator.fusion": "ci"}),
         ("ckf", 5, {"estimator.update_mode": "summed"}),
+        ("ekf", 5, {"trigger.risk_source": "estimated"}),
     ],
 )
 def test_lockstep_pull_equals_the_simulator(tmp_path, filt, per_process, changes) -> None:
