@@ -196,7 +196,10 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    if links.tamper is not None and getattr(links.tamper, "kernel_form", None) is None:
+    # (with the redundancy stage on, the hook is applied to every row before the kernel,
+    # as the reference does: resloc.cl.kernels_redundancy.capped_links)
+    hook = links.tamper is not None and not params.redundancy
+    if hook and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     split = fusion_strategy(params.fusion).kernel_update == "split_ci"
     if links.P_nb_ind is not None and not split:

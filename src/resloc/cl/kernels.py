@@ -45,6 +45,7 @@ import numpy as np
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
+    _params_refusal,
     backend,
     filter_kernel_spec,
     kernel_refusal,
@@ -320,6 +321,14 @@ def fast_correct(
     Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
     the outcome has ``compiled = True``.
     """
+    if params.redundancy and _params_refusal(params) is None:
+        # The redundancy stage judges the links as reported at the predicted estimates
+        # (claims capped, a tamper hook applied to every row: kernels_redundancy)
+        from resloc.cl.kernels_redundancy import capped_links  # compiled on first use
+
+        links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
+        if links is None:
+            return None
     if _refusal(filt, params, links) is not None:
         return None
     prepared = _prepared(params)
@@ -366,6 +375,17 @@ def fast_correct(
             x_nb, P_nb = x_nb[nb], P_nb[nb]
         nb = np.arange(E, dtype=np.int64)
     x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
+    detect = detection.kernel
+    fixes = None
+    if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
+        from resloc.cl.kernels_redundancy import redundancy_verdict
+
+        fixes = redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb)
+        if fixes is None:
+            defence.undo()
+            detection.undo()
+            return None  # the reference path raises the explanatory error
+        detect = detect._replace(fixes=fixes.discard)
     last = np.zeros(E if last_sent else 0)
     known = np.zeros(E, dtype=np.bool_)
     x_ref, P_ref = x_nb, P_nb
@@ -398,7 +418,6 @@ def fast_correct(
         x_out[...] = x
         P_out[...] = P
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    detect = detection.kernel
     status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
         x,
         P,
@@ -416,6 +435,8 @@ def fast_correct(
         out,
     )
     if status != OK:
+        if fixes is not None:
+            fixes.undo()
         defence.undo()
         detection.undo()
         return None
