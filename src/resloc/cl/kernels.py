@@ -16,6 +16,7 @@ kernel function               paper                   numpy twin
 ``_gate_link``                Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
 ``detect_link`` (CUSUMs)      beyond the paper        :func:`resloc.cl.detection.detect`
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
+``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
@@ -25,7 +26,8 @@ kernel function               paper                   numpy twin
 ============================  ======================  =============================================
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
-:mod:`resloc.cl.kernels_defence` and :mod:`resloc.cl.kernels_fusion`).
+:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion` and, imported only when
+the redundancy stage is on, :mod:`resloc.cl.kernels_redundancy`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
