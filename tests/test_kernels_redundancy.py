@@ -20,6 +20,7 @@ from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_sequence import WIDTH
+from resloc.cl.kernels_detection import detector_state
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
@@ -197,7 +198,8 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
         ev = fix_evidence(ws.z, x[ws.i], P[ws.i], x_nb, P_nb, ws.i, params, ws.j, ref_memory)
         spec = ev["fix_excluded"] | ev["sequence_discard"]
         nb = np.arange(len(li), dtype=np.int64)
-        verdict = redundancy_verdict(params, memory, li, lj, ws.z, x, P, x_nb, P_nb, nb)
+        detection = detector_state(params, memory, li, lj).kernel
+        verdict = redundancy_verdict(params, memory, li, lj, ws.z, x, P, x_nb, P_nb, nb, detection)
         np.testing.assert_array_equal(verdict.discard, spec)
         state = memory.stage_statistic(SEQUENCE, width=WIDTH).get(ws.i, ws.j)
         np.testing.assert_allclose(state, ev["sequence_state"], rtol=0, atol=1e-12)

@@ -382,7 +382,7 @@ def fast_correct(
     if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
         from resloc.cl.kernels_redundancy import redundancy_verdict
 
-        fixes = redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb)
+        fixes = redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detect)
         if fixes is None:
             defence.undo()
             detection.undo()

@@ -44,7 +44,13 @@ import numpy as np
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.detection_zone import materialize_with_reciprocal
-from resloc.cl.kernels_detection import DetectorState, gain_at, store_slots
+from resloc.cl.kernels_detection import (
+    DetectorState,
+    _same_keys,
+    _saved,
+    gain_at,
+    store_slots,
+)
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
@@ -436,12 +442,16 @@ def capped_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memor
     return links
 
 
-def redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb) -> FixVerdict | None:
+def redundancy_verdict(
+    params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detection
+) -> FixVerdict | None:
     """The pre-pass of one step (:func:`fix_verdicts`): ``li``, ``lj`` int64 ``(E,)``,
     ``z: (E, 2)`` the readings as reported, ``x``, ``P`` the predicted estimates, ``x_nb``,
-    ``P_nb`` the claimed estimates at rows ``nb`` (contiguous). None when the sequence test
-    has no memory to keep its state in or the rows are not sorted by observer (the reference
-    path then raises the explanatory error, or judges them)."""
+    ``P_nb`` the claimed estimates at rows ``nb`` (contiguous); ``detection``: the step's
+    :class:`~resloc.cl.kernels_detection.KernelDetection` (the NIS CUSUM's store holds the
+    same links as the sequence test's in a run's steady state: its slots are reused). None
+    when the sequence test has no memory to keep its state in or the rows are not sorted by
+    observer (the reference path then raises the explanatory error, or judges them)."""
     options = _fix_options(params)
     saved: list = []
     state, slots = _NO_STATE, _NO_SLOTS
@@ -449,7 +459,11 @@ def redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb) -> FixVe
         if memory is None:
             return None
         store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
-        slots = store_slots(store, li, lj, saved)
+        if detection.cusum and _same_keys(store, memory.cusum):
+            slots = detection.cusum_slot  # every link of every step in both stores
+            saved.append(_saved(store, slots))
+        else:
+            slots = store_slots(store, li, lj, saved)
         state = store.values
     verdict = FixVerdict(np.zeros(len(li), dtype=np.bool_), DetectorState(None, tuple(saved)))
     x = np.ascontiguousarray(x, dtype=float)
