@@ -209,6 +209,13 @@ class RedundancySequence:
     def active(self, params: CLParams) -> bool:
         return bool(params.redundancy_sequence)
 
+    def kernel_refusal(self, params: CLParams) -> str | None:
+        """Why the compiled twin does not run ``params`` (it judges the redundancy stage's
+        residuals: without the stage the reference raises the explanatory error)."""
+        if not params.redundancy:
+            return "the detector stage 'redundancy_sequence' needs redundancy = true"
+        return None
+
     def discard(
         self, evidence: Evidence, params: CLParams, memory: LinkMemory | None
     ) -> np.ndarray:

@@ -450,8 +450,11 @@ def redundancy_verdict(
     ``P_nb`` the claimed estimates at rows ``nb`` (contiguous); ``detection``: the step's
     :class:`~resloc.cl.kernels_detection.KernelDetection` (the NIS CUSUM's store holds the
     same links as the sequence test's in a run's steady state: its slots are reused). None
-    when the sequence test has no memory to keep its state in or the rows are not sorted by
-    observer (the reference path then raises the explanatory error, or judges them)."""
+    when the sequence test is on without the redundancy stage or has no memory to keep its
+    state in, or the rows are not sorted by observer (the reference path then raises the
+    explanatory error, or judges them)."""
+    if not params.redundancy:
+        return None  # the sequence test without its residuals: the reference explains
     options = _fix_options(params)
     saved: list = []
     state, slots = _NO_STATE, _NO_SLOTS
