@@ -228,3 +228,42 @@ def test_zone_trust_still_falls_back_with_a_reason() -> None:
     params = _params("zone+full+redundancy+sequence")
     refusal = kernel_refusal(FILTERS["ckf"], params, _links_of_one_step())
     assert refusal is not None and "zone_trust" in refusal
+
+
+def test_the_attack_suite_runs_the_redundancy_defence_compiled(monkeypatch) -> None:
+    """The adversary suite's compromised robot (a Python tamper hook, claimed covariance
+    x0.01) against ``full+redundancy+sequence`` with claims capped: every correction of the
+    run is compiled, and the run's metrics are the reference's."""
+    import resloc.experiments.lockstep as lockstep
+    from resloc.experiments.runner import run_scenario
+    from resloc.world.attackers import make_attacker
+
+    ran = []
+
+    def counted(*args, **kwargs):
+        out = correct(*args, **kwargs)
+        ran.append(out[2].compiled)
+        return out
+
+    monkeypatch.setattr(lockstep, "correct", counted)
+    adversary = make_attacker("compromised", robots=6, claimed_cov=0.01)
+    scenario = default_scenario().replace(
+        **DEFENCES["full+redundancy+sequence"],
+        **adversary.overrides,
+        **{"detector.redundancy_cap_fusion": True, "run.filters": ["ckf"]},
+        **{"run.steps": 12, "run.trials": 1, "run.dead_reckoning": False},
+    )
+    results = {}
+    for backend in ("numba", "numpy"):
+        ran.clear()
+        with kernels.use_backend(backend):
+            result = run_scenario(
+                scenario, adversary=make_attacker("compromised", robots=6, claimed_cov=0.01)
+            )
+        assert ran and all(ran) == (backend == "numba") and any(ran) == (backend == "numba")
+        results[backend] = result.estimators["ckf"]
+    for name in ("msle", "nees"):
+        np.testing.assert_allclose(
+            results["numba"].series[name], results["numpy"].series[name], rtol=1e-9, atol=1e-9
+        )
+    assert results["numba"].totals["tp"] > 0, "the defence caught nothing"
