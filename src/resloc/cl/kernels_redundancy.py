@@ -1,5 +1,4 @@
-"""Compiled twins of the redundancy stage and its sequence test (issue "every option at
-compiled speed").
+"""Compiled twins of the redundancy stage and its sequence test.
 
 The redundancy stage (:mod:`resloc.cl.detection_redundancy`) and the sequence test on its
 residuals (:mod:`resloc.cl.detection_sequence`) judge every link of a step once, at the
@@ -415,12 +414,15 @@ _NO_STATE = np.zeros((0, WIDTH))
 _NO_SLOTS = np.zeros(0, np.int64)
 
 
-def capped_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory) -> LinkBatch:
+def capped_links(
+    filt, x, P, links: LinkBatch, params: CLParams, strategy, memory
+) -> LinkBatch | None:
     """``links`` as the reference's correction judges them with the redundancy stage on:
     the claimed covariances capped (``redundancy_cap_fusion``, by :func:`claim_scales`),
     then an adversary's tamper hook applied to every row at the predicted estimates
     (:func:`~resloc.cl.detection_zone.materialize_with_reciprocal`, as the reference does:
-    the hook is Python). Twin: the head of ``resloc.cl.step._correct_reference``."""
+    the hook is Python). None when the rows are not sorted by observer (the reference path
+    then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
     if params.redundancy_cap_fusion:
         nb, _, P_src = links.neighbour_rows()
         li = np.ascontiguousarray(links.i, dtype=np.int64)
