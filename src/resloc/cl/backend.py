@@ -225,8 +225,9 @@ def _params_refusal(params: CLParams) -> str | None:
     for stage in active_stages(params):
         if refusal is None and not stage.compiled:
             refusal = f"the detector stage {stage.name!r} has no compiled twin"
-        if refusal is None and hasattr(stage, "kernel_refusal"):  # a combination it lacks
-            refusal = stage.kernel_refusal(params)
+        lacks = getattr(stage, "kernel_refusal", None)  # a combination its twin lacks
+        if refusal is None and lacks is not None:
+            refusal = lacks(params)
     for name, values in COMPILED_CHOICES.items():
         if refusal is None and getattr(params, name) not in values:
             refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"

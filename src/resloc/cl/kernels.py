@@ -47,7 +47,6 @@ import numpy as np
 from resloc.cl.backend import (  # backend choice re-exported for callers of this module
     HAVE_NUMBA,
     FilterKernelSpec,
-    _params_refusal,
     backend,
     filter_kernel_spec,
     kernel_refusal,
@@ -323,7 +322,9 @@ def fast_correct(
     Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
     the outcome has ``compiled = True``.
     """
-    if params.redundancy and _params_refusal(params) is None:
+    if _refusal(filt, params, links) is not None:
+        return None
+    if params.redundancy:
         # The redundancy stage judges the links as reported at the predicted estimates
         # (claims capped, a tamper hook applied to every row: kernels_redundancy)
         from resloc.cl.kernels_redundancy import capped_links  # compiled on first use
@@ -331,8 +332,6 @@ def fast_correct(
         links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
         if links is None:
             return None
-    if _refusal(filt, params, links) is not None:
-        return None
     prepared = _prepared(params)
     last_sent, cached, options = prepared.last_sent, prepared.cached, prepared.options
     need_memory = last_sent or cached

@@ -40,6 +40,7 @@ __all__ = [
     "detect_link",
     "detector_state",
     "mean_cusum_step",
+    "shared_slots",
     "store_slots",
     "whiten_of",
 ]
@@ -133,6 +134,16 @@ def _saved(store, slots: np.ndarray) -> tuple:
     return (store, store.keys, None, slots, store.values[slots].copy())
 
 
+def shared_slots(store, other, slots: np.ndarray, saved: list) -> np.ndarray | None:
+    """``slots``, the positions of the step's links in ``other``'s values, when ``store``
+    holds the same keys (stores that see every link of every step: then the same slots),
+    recording in ``saved`` what :meth:`DetectorState.undo` needs; None otherwise."""
+    if not _same_keys(store, other):
+        return None
+    saved.append(_saved(store, slots))
+    return slots
+
+
 def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> DetectorState | None:
     """The stateful stages of ``params`` for the links ``(i, j)`` of one step.
 
@@ -159,10 +170,8 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     else:
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
-        if cusum and _same_keys(memory.mean_cusum, memory.cusum):
-            mslot = slot  # both stores hold every link of every step: same slots
-            saved.append(_saved(memory.mean_cusum, slot))
-        else:
+        mslot = shared_slots(memory.mean_cusum, memory.cusum, slot, saved) if cusum else None
+        if mslot is None:
             mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values
     else:

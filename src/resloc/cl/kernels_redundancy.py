@@ -43,13 +43,7 @@ import numpy as np
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.detection_zone import materialize_with_reciprocal
-from resloc.cl.kernels_detection import (
-    DetectorState,
-    _same_keys,
-    _saved,
-    gain_at,
-    store_slots,
-)
+from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
@@ -464,10 +458,10 @@ def redundancy_verdict(
         if memory is None:
             return None
         store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
-        if detection.cusum and _same_keys(store, memory.cusum):
-            slots = detection.cusum_slot  # every link of every step in both stores
-            saved.append(_saved(store, slots))
-        else:
+        slots = None
+        if detection.cusum:  # both stores hold every link of every step
+            slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
+        if slots is None:
             slots = store_slots(store, li, lj, saved)
         state = store.values
     verdict = FixVerdict(np.zeros(len(li), dtype=np.bool_), DetectorState(None, tuple(saved)))
