@@ -63,6 +63,11 @@ OPTIONS: dict[str, dict | str] = {
     "neighbour cached": {"estimator.neighbour_estimate": "cached"},
     "attack stealthy": {"attack.kind": "stealthy", "attack.bias": [0.3, 0.6]},
     "defence full": dict(DEFENCES["full"]),
+    "defence full+redundancy+sequence": dict(DEFENCES["full+redundancy+sequence"]),
+    "defence zone+full+redundancy+sequence": dict(DEFENCES["zone+full+redundancy+sequence"]),
+    "defence zone+full+redundancy+sequence+cap": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 

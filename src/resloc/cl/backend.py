@@ -196,7 +196,10 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    if links.tamper is not None and getattr(links.tamper, "kernel_form", None) is None:
+    # (with the redundancy stage on, the hook is applied to every row before the kernel,
+    # as the reference does: resloc.cl.kernels_redundancy.capped_links)
+    hook = links.tamper is not None and not params.redundancy
+    if hook and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     split = fusion_strategy(params.fusion).kernel_update == "split_ci"
     if links.P_nb_ind is not None and not split:
@@ -222,6 +225,9 @@ def _params_refusal(params: CLParams) -> str | None:
     for stage in active_stages(params):
         if refusal is None and not stage.compiled:
             refusal = f"the detector stage {stage.name!r} has no compiled twin"
+        lacks = getattr(stage, "kernel_refusal", None)  # a combination its twin lacks
+        if refusal is None and lacks is not None:
+            refusal = lacks(params)
     for name, values in COMPILED_CHOICES.items():
         if refusal is None and getattr(params, name) not in values:
             refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"

@@ -194,7 +194,7 @@ class RedundancySequence:
     """Per-link sequence test on the redundancy residuals; holds a flagged link out."""
 
     name: ClassVar[str] = "redundancy_sequence"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True  # resloc.cl.kernels_redundancy.sequence_group
     overrides: ClassVar[bool] = False
 
     def problem(self, options: Any) -> str | None:
@@ -208,6 +208,13 @@ class RedundancySequence:
 
     def active(self, params: CLParams) -> bool:
         return bool(params.redundancy_sequence)
+
+    def kernel_refusal(self, params: CLParams) -> str | None:
+        """Why the compiled twin does not run ``params`` (it judges the redundancy stage's
+        residuals: without the stage the reference raises the explanatory error)."""
+        if not params.redundancy:
+            return "the detector stage 'redundancy_sequence' needs redundancy = true"
+        return None
 
     def discard(
         self, evidence: Evidence, params: CLParams, memory: LinkMemory | None

@@ -16,6 +16,7 @@ kernel function               paper                   numpy twin
 ``_gate_link``                Algorithm 1, detector   :func:`resloc.cl.detector.attack_detected`
 ``detect_link`` (CUSUMs)      beyond the paper        :func:`resloc.cl.detection.detect`
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
+``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
@@ -25,7 +26,8 @@ kernel function               paper                   numpy twin
 ============================  ======================  =============================================
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
-:mod:`resloc.cl.kernels_defence` and :mod:`resloc.cl.kernels_fusion`).
+:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion` and, imported only when
+the redundancy stage is on, :mod:`resloc.cl.kernels_redundancy`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
@@ -322,6 +324,14 @@ def fast_correct(
     """
     if _refusal(filt, params, links) is not None:
         return None
+    if params.redundancy:
+        # The redundancy stage judges the links as reported at the predicted estimates
+        # (claims capped, a tamper hook applied to every row: kernels_redundancy)
+        from resloc.cl.kernels_redundancy import capped_links  # compiled on first use
+
+        links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
+        if links is None:
+            return None
     prepared = _prepared(params)
     last_sent, cached, options = prepared.last_sent, prepared.cached, prepared.options
     need_memory = last_sent or cached
@@ -366,6 +376,17 @@ def fast_correct(
             x_nb, P_nb = x_nb[nb], P_nb[nb]
         nb = np.arange(E, dtype=np.int64)
     x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
+    detect = detection.kernel
+    fixes = None
+    if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
+        from resloc.cl.kernels_redundancy import redundancy_verdict
+
+        fixes = redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detect)
+        if fixes is None:
+            defence.undo()
+            detection.undo()
+            return None  # the reference path raises the explanatory error
+        detect = detect._replace(fixes=fixes.discard)
     last = np.zeros(E if last_sent else 0)
     known = np.zeros(E, dtype=np.bool_)
     x_ref, P_ref = x_nb, P_nb
@@ -398,7 +419,6 @@ def fast_correct(
         x_out[...] = x
         P_out[...] = P
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    detect = detection.kernel
     status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
         x,
         P,
@@ -416,6 +436,8 @@ def fast_correct(
         out,
     )
     if status != OK:
+        if fixes is not None:
+            fixes.undo()
         defence.undo()
         detection.undo()
         return None

@@ -40,6 +40,7 @@ __all__ = [
     "detect_link",
     "detector_state",
     "mean_cusum_step",
+    "shared_slots",
     "store_slots",
     "whiten_of",
 ]
@@ -63,6 +64,9 @@ class KernelDetection(NamedTuple):
     mean_h: np.ndarray
     mean_g: np.ndarray  # (n, 4): g+_r, g-_r, g+_b, g-_b, written in place
     mean_slot: np.ndarray  # (E,) int64
+    # (E,) bool: the links the step's redundancy pre-pass discards
+    # (resloc.cl.kernels_redundancy.fix_verdicts); empty when the stage is off
+    fixes: np.ndarray
 
 
 class DetectorState(NamedTuple):
@@ -87,6 +91,7 @@ def _gain(v) -> np.ndarray:
 
 _NO_GAIN = np.zeros(1)
 _NO_SLOTS = np.zeros(0, np.int64)
+_NO_FIXES = np.zeros(0, np.bool_)
 
 
 def store_slots(store, i, j, saved: list) -> np.ndarray:
@@ -129,6 +134,16 @@ def _saved(store, slots: np.ndarray) -> tuple:
     return (store, store.keys, None, slots, store.values[slots].copy())
 
 
+def shared_slots(store, other, slots: np.ndarray, saved: list) -> np.ndarray | None:
+    """``slots``, the positions of the step's links in ``other``'s values, when ``store``
+    holds the same keys (stores that see every link of every step: then the same slots),
+    recording in ``saved`` what :meth:`DetectorState.undo` needs; None otherwise."""
+    if not _same_keys(store, other):
+        return None
+    saved.append(_saved(store, slots))
+    return slots
+
+
 def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> DetectorState | None:
     """The stateful stages of ``params`` for the links ``(i, j)`` of one step.
 
@@ -155,15 +170,13 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     else:
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
-        if cusum and _same_keys(memory.mean_cusum, memory.cusum):
-            mslot = slot  # both stores hold every link of every step: same slots
-            saved.append(_saved(memory.mean_cusum, slot))
-        else:
+        mslot = shared_slots(memory.mean_cusum, memory.cusum, slot, saved) if cusum else None
+        if mslot is None:
             mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values
     else:
         mg, mslot = np.zeros((0, 4)), _NO_SLOTS
-    kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot)
+    kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES)
     return DetectorState(kernel, tuple(saved))
 
 
@@ -266,8 +279,9 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
 def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot = det
-    detected = gated
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes = det
+    # the redundancy stages' verdict, judged before the loop (kernels_redundancy)
+    detected = gated or (fixes.shape[0] > 0 and fixes[e])
     if cusum:
         if det_norm == NIS_CODE:
             stat = n_det * n_det

@@ -190,7 +190,8 @@ def screen_lanes(
     reference-count update per link (measured: the pieces that take the structures, 0.5 us
     a link for the full defence; this loop, 0.05 us)."""
     trigger, det_norm = options[3], options[4]
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot = detection
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes = detection
+    fixed = fixes.shape[0] > 0  # the redundancy pre-pass's verdict (kernels_redundancy)
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     for c in range(n):
@@ -202,7 +203,7 @@ def screen_lanes(
         l00 = update[2, c]
         l10 = update[3, c]
         l11 = update[4, c]
-        detected = gated
+        detected = gated or (fixed and fixes[e])
         if cusum:  # detect_link: the NIS CUSUM of the link
             if det_norm == NIS_CODE:
                 stat = norms[1, c] * norms[1, c]

@@ -180,7 +180,8 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
     nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
     R, jitter = options[0], options[8]
     tampered = tamper[0]
-    screening = detection[0] or detection[6] or defence[0] or defence[5]
+    screening = detection[0] or detection[6] or detection[11].shape[0] > 0 or defence[0]
+    screening = screening or defence[5]
     recovering = defence[5]
     kalman = fusion[0] == NAIVE_UPDATE
     record_gauge = gauge[0]

@@ -1,0 +1,474 @@
+"""Compiled twins of the redundancy stage and its sequence test.
+
+The redundancy stage (:mod:`resloc.cl.detection_redundancy`) and the sequence test on its
+residuals (:mod:`resloc.cl.detection_sequence`) judge every link of a step once, at the
+predicted estimates, before any update: their verdict does not depend on the order in which
+the links are fused. The compiled correction therefore runs them as a pre-pass,
+:func:`fix_verdicts`, one call over every observer's rows, which gives the link loops
+(:mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_rounds`) one flag per link
+(:attr:`KernelDetection.fixes <resloc.cl.kernels_detection.KernelDetection>`): discard.
+The sequence test's per-link state is the same store of the run's
+:class:`~resloc.cl.memory.LinkMemory` the numpy stage reads and writes
+(``stage_statistic("redundancy_sequence", width=6)``), updated in place; a run can switch
+paths between steps. :meth:`FixVerdict.undo` puts it back when the kernel gives up on a
+step.
+
+=============================  ==========================================================
+kernel function                numpy twin
+=============================  ==========================================================
+:func:`claim_scales`           the scale of :func:`~resloc.cl.detection_redundancy.
+                               weight_capped_covariance` and ``capped_claims``
+                               (``_group_median``)
+:func:`position_fix_of_link`   :func:`~resloc.cl.detection_redundancy.position_fix`
+:func:`exclude_group`          :func:`~resloc.cl.detection_redundancy.exclude_inconsistent`
+                               (``_reference``, ``_statistic``)
+:func:`sequence_group`         :func:`~resloc.cl.detection_sequence.sequence_evidence`
+                               (``sequence_step``)
+:func:`fix_verdicts`           :func:`~resloc.cl.detection_redundancy.fix_evidence` and the
+                               stages' ``discard``
+=============================  ==========================================================
+
+The kernels are compiled (or loaded from numba's cache) on the first step that switches
+the stage on: a run without it does not pay for them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl.detection_sequence import WIDTH, RedundancySequence
+from resloc.cl.detection_zone import materialize_with_reciprocal
+from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
+from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
+from resloc.cl.links import LinkBatch
+from resloc.cl.params import CLParams
+
+__all__ = [
+    "FixOptions",
+    "FixVerdict",
+    "capped_links",
+    "claim_scales",
+    "exclude_group",
+    "fix_verdicts",
+    "position_fix_of_link",
+    "redundancy_verdict",
+    "sequence_group",
+]
+
+#: A reference with no peer (twin: ``detection_redundancy._NO_PEER_COV``).
+_NO_PEER_COV = 1e12
+#: The sequence state's hold column (twin: ``detection_sequence._HOLD``).
+_HOLD = 5
+
+
+class FixOptions(NamedTuple):
+    """The stages' options as :func:`fix_verdicts` takes them; gains ``(1,)`` or ``(B,)``."""
+
+    R: np.ndarray  # (2, 2)
+    gate: np.ndarray  # redundancy_gate
+    min_peers: np.ndarray  # redundancy_min_peers
+    sequence: bool  # redundancy_sequence
+    sequence_gate: np.ndarray
+    sequence_hold: np.ndarray
+    sequence_forget: np.ndarray
+
+
+class FixVerdict(NamedTuple):
+    """The pre-pass's discards, shape (E,), and what :meth:`undo` needs."""
+
+    discard: np.ndarray
+    state: DetectorState
+
+    def undo(self) -> None:
+        """Put the sequence test's store back as it was before :func:`redundancy_verdict`."""
+        self.state.undo()
+
+
+def _gain(v) -> np.ndarray:
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
+
+
+_NO_GAIN = np.zeros(1)
+
+
+@per_params
+def _fix_options(params: CLParams) -> FixOptions:
+    sequence = bool(params.redundancy_sequence)
+    seq = (
+        tuple(
+            _gain(v)
+            for v in (
+                params.redundancy_sequence_gate,
+                params.redundancy_sequence_hold,
+                params.redundancy_sequence_forget,
+            )
+        )
+        if sequence
+        else (_NO_GAIN, _NO_GAIN, _NO_GAIN)
+    )
+    return FixOptions(
+        np.ascontiguousarray(params.R, dtype=float),
+        _gain(params.redundancy_gate),
+        _gain(params.redundancy_min_peers),
+        sequence,
+        *seq,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# Compiled pieces
+# ---------------------------------------------------------------------------------------
+@jit
+def claim_scales(li, P_nb, nb, scale, scratch):
+    """Per row ``e``: the factor ``max(m / t_e, 1)`` (1 where ``t_e <= 0``) with ``t_e``
+    the trace of the position block of ``P_nb[nb[e]]`` and ``m`` the median of those traces
+    over the rows of the same observer ``li[e]``, into ``scale: (E,)``. Rows must be sorted
+    by observer (False otherwise; ``scratch``: (E,)). Twin: the scale of
+    :func:`~resloc.cl.detection_redundancy.weight_capped_covariance` and
+    :func:`~resloc.cl.detection_redundancy.capped_claims` (``_group_median``)."""
+    E = li.shape[0]
+    start = 0
+    while start < E:
+        if start > 0 and li[start] < li[start - 1]:
+            return False
+        stop = start + 1
+        while stop < E and li[stop] == li[start]:
+            stop += 1
+        count = stop - start
+        for e in range(start, stop):  # insertion sort of the group's traces (a few rows)
+            t = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
+            k = e - start
+            while k > 0 and scratch[start + k - 1] > t:
+                scratch[start + k] = scratch[start + k - 1]
+                k -= 1
+            scratch[start + k] = t
+        median = 0.5 * (scratch[start + (count - 1) // 2] + scratch[start + count // 2])
+        for e in range(start, stop):
+            t = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
+            s = 1.0
+            if t > 0.0:
+                s = median / t
+                if s < 1.0:  # np.maximum: a NaN stays NaN
+                    s = 1.0
+            scale[e] = s
+        start = stop
+    return True
+
+
+@jit
+def _scaled_claims(P_nb, nb, scale, out):
+    """``out[e] = P_nb[nb[e]] * scale[e]`` (twin: ``capped_claims``'s product)."""
+    for e in range(nb.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                out[e, a, b] = P_nb[nb[e], a, b] * scale[e]
+
+
+@jit_inline
+def position_fix_of_link(z0, z1, xo0, xo1, xo2, var_heading, xn0, xn1, p00, p01, p10, p11, R):
+    """Observer i's position as link ``(i, j)`` says, ``f = p_j - r u(theta_i + b)``, and
+    its covariance ``C``, symmetrized, as the entries ``(a, b, c)`` of ``[[a, b], [b, c]]``
+    from j's credited position covariance ``[[p00, p01], [p10, p11]]``, i's heading variance
+    and the sensor noise ``R``: ``(f0, f1, C_a, C_b, C_c)``. Twin:
+    :func:`~resloc.cl.detection_redundancy.position_fix` (same operations, same order)."""
+    r = z0
+    ang = xo2 + z1
+    c = math.cos(ang)
+    s = math.sin(ang)
+    r_mean = r * math.exp(0.5 * (R[1, 1] + var_heading))
+    f0 = xn0 - r_mean * c
+    f1 = xn1 - r_mean * s
+    rel0 = xn0 - xo0
+    rel1 = xn1 - xo1
+    r_pred = math.hypot(rel0, rel1)
+    if r_pred > 0.0:
+        c = rel0 / r_pred
+        s = rel1 / r_pred
+        r = r_pred
+    ja0 = r * s
+    ja1 = r * -c
+    # J_z = [[-c, ja0], [-s, ja1]]; J_z R J_z^T as numpy's matmul of 2 x 2 matrices
+    t00 = -c * R[0, 0] + ja0 * R[1, 0]
+    t01 = -c * R[0, 1] + ja0 * R[1, 1]
+    t10 = -s * R[0, 0] + ja1 * R[1, 0]
+    t11 = -s * R[0, 1] + ja1 * R[1, 1]
+    n00 = t00 * -c + t01 * ja0
+    n01 = t00 * -s + t01 * ja1
+    n10 = t10 * -c + t11 * ja0
+    n11 = t10 * -s + t11 * ja1
+    c00 = p00 + ja0 * ja0 * var_heading + n00
+    c01 = p01 + ja0 * ja1 * var_heading + n01
+    c10 = p10 + ja1 * ja0 * var_heading + n10
+    c11 = p11 + ja1 * ja1 * var_heading + n11
+    return f0, f1, 0.5 * (c00 + c00), 0.5 * (c01 + c10), 0.5 * (c11 + c11)
+
+
+@jit_inline
+def _information(a, b, c):
+    """``[[a, b], [b, c]]^-1`` in closed form (twin: ``detection_redundancy._information``)."""
+    det = a * c - b * b
+    return c / det, -b / det, a / det
+
+
+@jit
+def exclude_group(start, stop, fix, cov, included, gate, min_peers, stat, residual, ref_cov):
+    """Fault exclusion over one observer's rows ``start:stop``: while a row with at least
+    ``min_peers`` included peers has a leave-one-out statistic above ``gate``, the worst such
+    row is excluded (``included`` updated). Then per row: ``stat`` (``nan``: not judged),
+    ``residual`` ``fix - m_-j`` (``nan``: not judged) and ``ref_cov``, the entries of
+    ``C_j + (sum_{k != j} C_k^-1)^-1``. ``fix: (E, 2)``, ``cov: (E, 3)`` (entries ``a, b,
+    c``). Twin: :func:`~resloc.cl.detection_redundancy.exclude_inconsistent` (``_reference``
+    and ``_statistic`` on one group; groups are independent there too)."""
+    while True:
+        Sa = 0.0
+        Sb = 0.0
+        Sc = 0.0
+        sa = 0.0
+        sb = 0.0
+        count = 0.0
+        for e in range(start, stop):  # the group's information sums, in row order
+            if included[e]:
+                Ya, Yb, Yc = _information(cov[e, 0], cov[e, 1], cov[e, 2])
+                Sa += Ya
+                Sb += Yb
+                Sc += Yc
+                sa += Ya * fix[e, 0] + Yb * fix[e, 1]
+                sb += Yb * fix[e, 0] + Yc * fix[e, 1]
+                count += 1.0
+        worst = -1
+        worst_stat = 0.0
+        for e in range(start, stop):
+            Ya = Yb = Yc = 0.0
+            w = 0.0
+            if included[e]:
+                Ya, Yb, Yc = _information(cov[e, 0], cov[e, 1], cov[e, 2])
+                w = 1.0
+            ra = Sa - Ya
+            rb = Sb - Yb
+            rc = Sc - Yc
+            ya = Ya * fix[e, 0] + Yb * fix[e, 1]
+            yb = Yb * fix[e, 0] + Yc * fix[e, 1]
+            peers = count - w
+            if peers > 0.0:
+                det = ra * rc - rb * rb
+                Qa = rc / det
+                Qb = -rb / det
+                Qc = ra / det
+                m0 = Qa * (sa - ya) + Qb * (sb - yb)
+                m1 = Qb * (sa - ya) + Qc * (sb - yb)
+            else:
+                Qa = _NO_PEER_COV
+                Qb = 0.0
+                Qc = _NO_PEER_COV
+                m0 = fix[e, 0]
+                m1 = fix[e, 1]
+            a = cov[e, 0] + Qa
+            b = cov[e, 1] + Qb
+            c = cov[e, 2] + Qc
+            d0 = fix[e, 0] - m0
+            d1 = fix[e, 1] - m1
+            t = (c * d0 * d0 - 2.0 * b * d0 * d1 + a * d1 * d1) / (a * c - b * b)
+            judged = peers >= min_peers
+            stat[e] = t if judged else math.nan
+            residual[e, 0] = d0 if judged else math.nan
+            residual[e, 1] = d1 if judged else math.nan
+            ref_cov[e, 0] = a
+            ref_cov[e, 1] = b
+            ref_cov[e, 2] = c
+            if included[e] and judged and t > gate and (worst < 0 or t > worst_stat):
+                worst = e
+                worst_stat = t
+        if worst < 0:
+            return
+        included[worst] = False
+
+
+@jit
+def sequence_group(start, stop, residual, ref_cov, state, slot, gate, hold, forget, discard):
+    """The sequence test on one observer's rows ``start:stop`` from the redundancy residuals
+    (``nan``: not judged) and their covariances (entries ``a, b, c``): each link's sums
+    ``s <- lambda s + d``, ``V <- lambda^2 V + C_d`` since its admission, the one link of
+    the observer with the largest ``s^T V^-1 s`` above ``gate`` held out for ``hold``
+    evaluations (the other links' sums reset), a held link's hold counted down. The links'
+    states ``state[slot[e]]`` (``[s_x, s_y, V_a, V_b, V_c, hold]``) are updated in place;
+    ``discard[e]`` set where the link is held out. Twin:
+    :func:`~resloc.cl.detection_sequence.sequence_evidence` (with ``sequence_step``) and
+    ``RedundancySequence.discard``'s store."""
+    alarm = -1
+    alarm_stat = 0.0
+    for e in range(start, stop):
+        k = slot[e]
+        d0 = residual[e, 0]
+        d1 = residual[e, 1]
+        holding = state[k, _HOLD] > 0.0
+        update = math.isfinite(d0) and math.isfinite(d1) and not holding
+        discard[e] = holding
+        if holding:
+            state[k, _HOLD] = state[k, _HOLD] - 1.0
+        if not update:
+            continue
+        lam = forget
+        s0 = lam * state[k, 0] + d0
+        s1 = lam * state[k, 1] + d1
+        Va = lam * lam * state[k, 2] + ref_cov[e, 0]
+        Vb = lam * lam * state[k, 3] + ref_cov[e, 1]
+        Vc = lam * lam * state[k, 4] + ref_cov[e, 2]
+        state[k, 0] = s0
+        state[k, 1] = s1
+        state[k, 2] = Va
+        state[k, 3] = Vb
+        state[k, 4] = Vc
+        det = Va * Vc - Vb * Vb
+        if det > 0.0:
+            t = (Vc * (s0 * s0) - 2.0 * Vb * s0 * s1 + Va * (s1 * s1)) / det
+            if t > gate and (alarm < 0 or t > alarm_stat):
+                alarm = e
+                alarm_stat = t
+    if alarm < 0:
+        return
+    for e in range(start, stop):  # sums accumulated against references that held the lie
+        if not discard[e] and math.isfinite(residual[e, 0]) and math.isfinite(residual[e, 1]):
+            for a in range(5):
+                state[slot[e], a] = 0.0
+    state[slot[alarm], _HOLD] = hold
+    discard[alarm] = True
+
+
+@jit
+def fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard):
+    """The redundancy stage (and, with ``options.sequence``, its sequence test) on every
+    link of one step at the predicted estimates ``x: (B, 3)``, ``P: (B, 3, 3)``: link
+    ``e`` reads ``z[e]``, observer ``li[e]`` and j's claimed estimate ``x_nb[nb[e]]``,
+    ``P_nb[nb[e]]``; ``discard: (E,)`` receives the verdict. ``seq_state[seq_slot[e]]``:
+    the sequence test's state of link ``e`` (updated in place). Rows sorted by observer
+    (False otherwise, nothing written). Twin: :func:`~resloc.cl.detection_redundancy.
+    fix_evidence` with ``RedundancyCheck.discard`` and ``RedundancySequence.discard``."""
+    R, gate, min_peers, sequence, seq_gate, seq_hold, seq_forget = options
+    E = li.shape[0]
+    scale = np.empty(E)
+    if not claim_scales(li, P_nb, nb, scale, np.empty(E)):
+        return False
+    fix = np.empty((E, 2))
+    cov = np.empty((E, 3))
+    included = np.empty(E, np.bool_)
+    for e in range(E):
+        i = li[e]
+        n = nb[e]
+        f = scale[e]
+        f0, f1, ca, cb, cc = position_fix_of_link(
+            z[e, 0], z[e, 1], x[i, 0], x[i, 1], x[i, 2], P[i, 2, 2], x_nb[n, 0], x_nb[n, 1],
+            P_nb[n, 0, 0] * f, P_nb[n, 0, 1] * f, P_nb[n, 1, 0] * f, P_nb[n, 1, 1] * f, R,
+        )  # fmt: skip
+        fix[e, 0] = f0
+        fix[e, 1] = f1
+        cov[e, 0] = ca
+        cov[e, 1] = cb
+        cov[e, 2] = cc
+        # a link the sequence test holds out enters no reference (held_out)
+        included[e] = not (sequence and seq_state[seq_slot[e], _HOLD] > 0.0)
+    stat = np.empty(E)
+    residual = np.empty((E, 2))
+    ref_cov = np.empty((E, 3))
+    start = 0
+    while start < E:
+        stop = start + 1
+        while stop < E and li[stop] == li[start]:
+            stop += 1
+        i = li[start]
+        exclude_group(
+            start, stop, fix, cov, included, gain_at(gate, i), gain_at(min_peers, i), stat,
+            residual, ref_cov,
+        )  # fmt: skip
+        if sequence:
+            sequence_group(
+                start, stop, residual, ref_cov, seq_state, seq_slot, gain_at(seq_gate, i),
+                gain_at(seq_hold, i), gain_at(seq_forget, i), discard,
+            )  # fmt: skip
+        else:
+            for e in range(start, stop):
+                discard[e] = False
+        for e in range(start, stop):
+            discard[e] = discard[e] or not included[e]
+        start = stop
+    return True
+
+
+stamp_with_pieces(fix_verdicts, _kernels_detection)
+
+
+# ---------------------------------------------------------------------------------------
+# The dispatch's side (called by resloc.cl.kernels.fast_correct)
+# ---------------------------------------------------------------------------------------
+_NO_STATE = np.zeros((0, WIDTH))
+_NO_SLOTS = np.zeros(0, np.int64)
+
+
+def capped_links(
+    filt, x, P, links: LinkBatch, params: CLParams, strategy, memory
+) -> LinkBatch | None:
+    """``links`` as the reference's correction judges them with the redundancy stage on:
+    the claimed covariances capped (``redundancy_cap_fusion``, by :func:`claim_scales`),
+    then an adversary's tamper hook applied to every row at the predicted estimates
+    (:func:`~resloc.cl.detection_zone.materialize_with_reciprocal`, as the reference does:
+    the hook is Python). None when the rows are not sorted by observer (the reference path
+    then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
+    if params.redundancy_cap_fusion:
+        nb, _, P_src = links.neighbour_rows()
+        li = np.ascontiguousarray(links.i, dtype=np.int64)
+        E = len(li)
+        rows = np.arange(E, dtype=np.int64) if nb is None else np.asarray(nb, np.int64)
+        P_src = np.ascontiguousarray(P_src, dtype=float)
+        scale = np.empty(E)
+        if not claim_scales(li, P_src, rows, scale, np.empty(E)):
+            return None
+        capped = np.empty((E, 3, 3))
+        _scaled_claims(P_src, rows, scale, capped)
+        links = dataclasses.replace(links, P_nb=capped)
+    if links.tamper is not None:
+        pre = strategy.moments(
+            filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j,
+            params.R,
+        )  # fmt: skip
+        links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+    return links
+
+
+def redundancy_verdict(
+    params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detection
+) -> FixVerdict | None:
+    """The pre-pass of one step (:func:`fix_verdicts`): ``li``, ``lj`` int64 ``(E,)``,
+    ``z: (E, 2)`` the readings as reported, ``x``, ``P`` the predicted estimates, ``x_nb``,
+    ``P_nb`` the claimed estimates at rows ``nb`` (contiguous); ``detection``: the step's
+    :class:`~resloc.cl.kernels_detection.KernelDetection` (the NIS CUSUM's store holds the
+    same links as the sequence test's in a run's steady state: its slots are reused). None
+    when the sequence test is on without the redundancy stage or has no memory to keep its
+    state in, or the rows are not sorted by observer (the reference path then raises the
+    explanatory error, or judges them)."""
+    if not params.redundancy:
+        return None  # the sequence test without its residuals: the reference explains
+    options = _fix_options(params)
+    saved: list = []
+    state, slots = _NO_STATE, _NO_SLOTS
+    if options.sequence:
+        if memory is None:
+            return None
+        store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
+        slots = None
+        if detection.cusum:  # both stores hold every link of every step
+            slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
+        if slots is None:
+            slots = store_slots(store, li, lj, saved)
+        state = store.values
+    verdict = FixVerdict(np.zeros(len(li), dtype=np.bool_), DetectorState(None, tuple(saved)))
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    if not fix_verdicts(li, np.ascontiguousarray(z, dtype=float), x, P, x_nb, P_nb, nb, options,
+                        state, slots, verdict.discard):  # fmt: skip
+        verdict.undo()
+        return None
+    return verdict
