@@ -138,6 +138,9 @@ class GaugeCovariance:
         self.compiled_steps = 0
         #: Reported covariances formed by the compiled twin (:mod:`resloc.cl.kernels_gauge`).
         self.compiled_reports = 0
+        #: The compiled twins' preallocated step arrays
+        #: (:class:`resloc.cl.kernels_gauge.GaugeBuffers`), made on their first step.
+        self.kernel_buffers = None
         if self.rounds is None:
             self.G = np.zeros((self.T, 3, 3))
         else:  # per-robot consensus states: own value until the first exchange
