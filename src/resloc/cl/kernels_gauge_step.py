@@ -109,10 +109,18 @@ def compiled_gauge_finish(joint) -> bool:
     sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T``. False when it does not apply."""
     if not _runs_compiled(joint):
         return False
+    buffers = buffers_of(joint)
+    if (
+        joint.L is buffers.L
+        and joint.A is buffers.A
+        and joint.noise is buffers.noise
+        and joint.D_pred is buffers.D_pred
+    ):
+        work = buffers.work  # the compiled prediction's arrays: no copy
+    else:  # a step the reference predicted
+        work = np.stack([joint.L, joint.A, joint.noise, joint.D_pred]).astype(float)
     _leak_and_add(
-        np.ascontiguousarray(joint.L), np.ascontiguousarray(joint.A),
-        np.ascontiguousarray(joint.D_pred), np.ascontiguousarray(joint.noise),
-        np.ascontiguousarray(joint.obs, dtype=np.int64),
+        work, np.ascontiguousarray(joint.obs, dtype=np.int64),
         np.ascontiguousarray(joint.nbr, dtype=np.int64),
         np.ascontiguousarray(joint.Bij, dtype=float).reshape(-1, 3, 3), joint.N, _own_G(joint),
     )  # fmt: skip
@@ -249,10 +257,16 @@ def _predict_step(x, P_pred, dt, odometry_var, floor_var, N, jitter, G, work):
 
 
 @jit
-def _leak_and_add(L, A, D, noise, obs, nbr, Bij, N, G):
+def _leak_and_add(work, obs, nbr, Bij, N, G):
     """Every robot's leak ``Delta_m = L_m (A_m - I) + sum_{links (i, m) fused} L_i B_im`` and
-    per team ``G[t] <- sym(G[t] + sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T)``.
+    per team ``G[t] <- sym(G[t] + sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T)``
+    (``work``: the step's ``L``, ``A``, ``N``, ``D``, shape (4, B, 3, 3), as
+    :class:`~resloc.cl.kernels_gauge.GaugeBuffers` holds them).
     Twin: :meth:`resloc.cl.gauge.GaugeCovariance.finish` and ``_close``."""
+    L = work[0]
+    A = work[1]
+    noise = work[2]
+    D = work[3]
     B = L.shape[0]
     leak = np.zeros((B, 3, 3))
     for b in range(B):
