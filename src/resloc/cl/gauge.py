@@ -53,7 +53,7 @@ import enum
 import numpy as np
 
 from resloc.cl.connectivity import MetropolisMixer, metropolis_mix_one
-from resloc.cl.tracking import update_map
+from resloc.cl.tracking import identity_stack, update_map
 from resloc.filters.base import Moments
 from resloc.linalg import solve_spd, symmetrize
 
@@ -207,7 +207,7 @@ class GaugeCovariance:
     def _start_step(self, L: np.ndarray, D_pred: np.ndarray) -> None:
         self.L = L
         self.D_pred = D_pred.copy()
-        self.A = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
+        self.A = identity_stack(self.B)
         self.noise = np.zeros((self.B, 3, 3))
         # This step's fused links: observer, neighbour, B_ij (kept current with i's gains).
         self.obs = np.empty(0, dtype=np.int64)
