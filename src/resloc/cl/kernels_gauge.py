@@ -91,6 +91,17 @@ class GaugeBuffers:
         self.L, self.A, self.noise, self.D_pred = self.work
         self._grow(0)
 
+    def __getstate__(self) -> dict:
+        # The step's arrays are views of ``work``: a pickle would copy them apart.
+        state = dict(self.__dict__)
+        for name in ("L", "A", "noise", "D_pred"):
+            del state[name]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.L, self.A, self.noise, self.D_pred = self.work
+
     def _grow(self, E: int) -> None:
         capacity = max(E, 64)
         self.rows = np.empty((capacity, 3, 3))
