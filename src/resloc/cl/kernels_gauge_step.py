@@ -39,7 +39,7 @@ from resloc.cl.backend import backend
 from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.kernels_gauge import NO_LINKS, buffers_of
 from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
-from resloc.cl.kernels_predict import _noise_variances, odometry_process_noise
+from resloc.cl.kernels_predict import noise_variances, odometry_process_noise
 from resloc.linalg import JITTER_LEVELS
 
 __all__ = ["compiled_gauge_finish", "compiled_gauge_predict", "compiled_gauge_reported"]
@@ -80,7 +80,7 @@ def compiled_gauge_predict(joint, x: np.ndarray, dt: float, params, P_pred: np.n
     if not _runs_compiled(joint):
         return False
     B = joint.B
-    odometry_shape, odometry_var, floor_var = _noise_variances(params, dt)
+    odometry_shape, odometry_var, floor_var = noise_variances(params, dt)
     if odometry_shape not in ((2,), (B, 2)) or floor_var.shape != (3,):
         return False
     if np.shape(x) != (B, 3) or np.shape(P_pred) != (B, 3, 3):
