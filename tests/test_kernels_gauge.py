@@ -4,6 +4,7 @@ estimates and decisions to 1e-9, same gauge covariance ``G`` and reported covari
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import replace
 
 import numpy as np
@@ -26,9 +27,12 @@ FILTERS = {
 }
 
 
-def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None) -> None:
+def run_gauge(
+    filt, params, steps: int, seed: int, trials: int = 2, rounds=None, pickle_at=None
+) -> None:
     """The default scenario (``trials`` batched) with gauge fusion by both paths; compares the
-    correction, ``G`` as every robot knows it and the reported covariances at every step."""
+    correction, ``G`` as every robot knows it and the reported covariances at every step
+    (``pickle_at``: the compiled path's memory goes through a pickle after that step)."""
     sc = default_scenario()
     world = World(sc.world, trials, seed, sc.trigger.lambda2)
     x0, P0 = world.initial_estimates()
@@ -39,7 +43,10 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
         fusion.init(memory, x0, P0, world.n, rounds=rounds)
         state[backend] = (x0.copy(), P0.copy(), memory)
     fused = 0
-    for _ in range(steps):
+    for k in range(steps):
+        if k == pickle_at:  # the compiled step arrays are views of one array: kept as such
+            x, P, memory = state["numba"]
+            state["numba"] = (x, P, pickle.loads(pickle.dumps(memory)))
         ws = world.step()
         res = {}
         for backend, (x, P, memory) in state.items():
@@ -81,6 +88,11 @@ def run_gauge(filt, params, steps: int, seed: int, trials: int = 2, rounds=None)
 def test_compiled_gauge_matches_reference_over_a_run(name: str) -> None:
     params = replace(default_scenario().cl_params(), fusion="gauge")
     run_gauge(FILTERS[name], params, 40, seed=7)
+
+
+def test_compiled_gauge_continues_exactly_after_a_pickle() -> None:
+    params = replace(default_scenario().cl_params(), fusion="gauge")
+    run_gauge(FILTERS["ckf"], params, 12, seed=3, trials=1, pickle_at=5)
 
 
 @pytest.mark.parametrize("seed", [1, 2])

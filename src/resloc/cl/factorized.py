@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.tracking import joint_moments, update_map
+from resloc.cl.tracking import identity_stack, joint_moments, update_map
 from resloc.filters.base import Moments
 from resloc.linalg import cholesky_jitter
 from resloc.models.motion import unicycle_state_jacobian
@@ -102,7 +102,7 @@ class FactorizedCovariance:
     def _start_step(self, P_pred: np.ndarray) -> None:
         self.sig_pred = self.sig.copy()  # what j's messages carry this step
         self.P_pred = P_pred.copy()
-        self.A = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
+        self.A = identity_stack(self.B)
         self.Bm = np.zeros((self.B, self.N, 3, 3))
         self.fused = np.zeros((self.B, self.N), dtype=bool)
 

@@ -364,20 +364,20 @@ class GaugeFusion(_Bookkept):
         )
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
-        # The compiled twin (resloc.cl.kernels_gauge) when the backend and the bookkeeping
+        # The compiled twin (resloc.cl.kernels_gauge_step) when the backend and the bookkeeping
         # allow it; imported here: the kernels import this module's registry.
-        from resloc.cl.kernels_gauge import compiled_gauge_predict
+        from resloc.cl.kernels_gauge_step import compiled_gauge_predict
 
         joint = self._joint(memory)
+        if compiled_gauge_predict(joint, x, dt, params, P_pred):
+            return P_pred
         Q = process_noise(
             x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
         )
-        if compiled_gauge_predict(joint, x, Q, P_pred):
-            return P_pred
         return joint.predict(x, u, dt, Q, P_pred)
 
     def finish(self, memory, P, j, delivered) -> np.ndarray:
-        from resloc.cl.kernels_gauge import compiled_gauge_finish
+        from resloc.cl.kernels_gauge_step import compiled_gauge_finish
 
         joint = self._joint(memory)
         if compiled_gauge_finish(joint):
@@ -388,7 +388,7 @@ class GaugeFusion(_Bookkept):
         self._joint(memory).exchange(i, j)
 
     def reported(self, memory, x, P) -> np.ndarray:
-        from resloc.cl.kernels_gauge import compiled_gauge_reported
+        from resloc.cl.kernels_gauge_step import compiled_gauge_reported
 
         joint = self._joint(memory)
         compiled = compiled_gauge_reported(joint, x, P)

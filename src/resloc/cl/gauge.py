@@ -53,7 +53,7 @@ import enum
 import numpy as np
 
 from resloc.cl.connectivity import MetropolisMixer, metropolis_mix_one
-from resloc.cl.tracking import update_map
+from resloc.cl.tracking import identity_stack, update_map
 from resloc.filters.base import Moments
 from resloc.linalg import solve_spd, symmetrize
 
@@ -138,6 +138,9 @@ class GaugeCovariance:
         self.compiled_steps = 0
         #: Reported covariances formed by the compiled twin (:mod:`resloc.cl.kernels_gauge`).
         self.compiled_reports = 0
+        #: The compiled twins' preallocated step arrays
+        #: (:class:`resloc.cl.kernels_gauge.GaugeBuffers`), made on their first step.
+        self.kernel_buffers = None
         if self.rounds is None:
             self.G = np.zeros((self.T, 3, 3))
         else:  # per-robot consensus states: own value until the first exchange
@@ -204,7 +207,7 @@ class GaugeCovariance:
     def _start_step(self, L: np.ndarray, D_pred: np.ndarray) -> None:
         self.L = L
         self.D_pred = D_pred.copy()
-        self.A = np.broadcast_to(np.eye(3), (self.B, 3, 3)).copy()
+        self.A = identity_stack(self.B)
         self.noise = np.zeros((self.B, 3, 3))
         # This step's fused links: observer, neighbour, B_ij (kept current with i's gains).
         self.obs = np.empty(0, dtype=np.int64)

@@ -58,8 +58,9 @@ from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import fusion_commit, fusion_state
-from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
+from resloc.cl.kernels_gauge import gauge_commit, gauge_state, gauge_undo, no_gauge
 from resloc.cl.kernels_links import OK
+from resloc.cl.kernels_math import jit
 from resloc.cl.kernels_rounds import rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
@@ -144,30 +145,67 @@ class CompiledBookkeeping(NamedTuple):
         The kernel's working arrays for ``E`` links (None: the kernel cannot run it).
     commit : callable ``(memory, state, i, j, fused) -> None``
         Hands the kernel's records to the method's state in ``memory``.
+    undo : callable ``(memory, state) -> None``
+        The kernel failed: puts back what it changed in place in ``memory``.
     """
 
     state: Callable
     commit: Callable
+    undo: Callable
 
 
 def _nothing_to_commit(memory, state, i, j, fused) -> None:
     del memory, state, i, j, fused
 
 
+def _nothing_to_undo(memory, state) -> None:
+    del memory, state
+
+
 def _gauge_commit(memory, state, i, j, fused) -> None:
     gauge_commit(memory.joint, state, i, j, fused)
+
+
+def _gauge_undo(memory, state) -> None:
+    gauge_undo(memory.joint, state)
 
 
 #: The per-link bookkeeping of a fusion method in the compiled path, by the name its strategy
 #: declares (:attr:`FusionStrategy.kernel_bookkeeping
 #: <resloc.cl.fusion_methods.FusionStrategy.kernel_bookkeeping>`).
 COMPILED_BOOKKEEPING: dict[str, CompiledBookkeeping] = {
-    "none": CompiledBookkeeping(lambda memory, E: no_gauge(E), _nothing_to_commit),
+    "none": CompiledBookkeeping(
+        lambda memory, E: no_gauge(E), _nothing_to_commit, _nothing_to_undo
+    ),
     "gauge": CompiledBookkeeping(
         lambda memory, E: None if memory is None else gauge_state(memory.joint, E),
         _gauge_commit,
+        _gauge_undo,
     ),
 }
+
+
+#: Per structure type: the positions of its fields that are structures themselves.
+_NESTED: dict[type, tuple[int, ...]] = {}
+
+
+def _plain(structure: tuple) -> tuple:
+    """A kernel input structure (a NamedTuple, nested ones too) as plain tuples, the form
+    the compiled loop is called with: numba types a NamedTuple argument in Python, a plain
+    tuple by its fast fingerprint (measured: the link loop's ten structures cost 16.5 us a
+    call as NamedTuples, 7 us as plain tuples). The structures keep their NamedTuple
+    classes as their documented layout; the kernels read their fields by position."""
+    nested = _NESTED.get(type(structure))
+    if nested is None:
+        nested = _NESTED[type(structure)] = tuple(
+            k for k, v in enumerate(structure) if isinstance(v, tuple)
+        )
+    if not nested:
+        return tuple(structure)
+    fields = list(structure)
+    for k in nested:
+        fields[k] = _plain(fields[k])
+    return tuple(fields)
 
 
 def _per_robot(v) -> np.ndarray:
@@ -190,6 +228,7 @@ class _Prepared(NamedTuple):
     bookkeeping: CompiledBookkeeping
     last_sent: bool
     cached: bool
+    plain_options: tuple  # options as the kernel is called with it (_plain)
 
 
 _last_prepared: tuple = (None, None)
@@ -227,6 +266,7 @@ def _prepared(params: CLParams) -> _Prepared:
         COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping],
         last_sent,
         cached,
+        _plain(options),
     )
     try:
         _last_prepared = (weakref.ref(params), prepared)
@@ -308,6 +348,60 @@ def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours)
     return True
 
 
+def _cached_rows(memory, li, lj, nb, x_nb, P_nb, last_sent: bool):
+    """The per-link inputs of ``cached`` neighbour estimates by one compiled pass
+    (:func:`_gather_cached`): the transmitted estimates per link ``(E, 3)``, ``(E, 3, 3)``,
+    the estimates the moments use (j's last received where robot i has one, else the
+    transmitted: twin ``resloc.cl.step._decide``), whether there is one ``(E,)`` and, with
+    ``last_sent``, the last delivered norms ``(E,)`` (else ``(0,)``)."""
+    E = len(li)
+    rows = np.arange(E, dtype=np.int64) if nb is None else _contiguous(nb, np.int64)
+    x_link, x_ref = np.empty((2, E, 3))
+    P_link, P_ref = np.empty((2, E, 3, 3))
+    known = np.empty(E, dtype=np.bool_)
+    last = np.empty(E if last_sent else 0)
+    _gather_cached(
+        memory.keys, memory.n_nodes, _contiguous(memory.x), _contiguous(memory.P),
+        _contiguous(memory.last_norm), li, lj, rows, _contiguous(x_nb), _contiguous(P_nb),
+        x_link, P_link, x_ref, P_ref, known, last,
+    )  # fmt: skip
+    return x_link, P_link, x_ref, P_ref, known, last
+
+
+@jit
+def _gather_cached(
+    keys, n_nodes, mem_x, mem_P, mem_last, li, lj, rows, x_nb, P_nb, x_link, P_link, x_ref,
+    P_ref, known, last,
+):  # fmt: skip
+    """Per link ``e``: ``x_link[e] = x_nb[rows[e]]`` (``P`` alike) and, by a binary search
+    of the key ``li[e] * n_nodes + lj[e]`` in the memory's sorted ``keys``, ``known[e]``,
+    ``x_ref[e]`` (the stored estimate, else the transmitted one; ``P`` alike) and, when
+    ``last`` is not empty, the stored last norm (else 0). Twin: ``LinkMemory.lookup`` and
+    the ``np.where`` of the stored and transmitted rows."""
+    K = keys.shape[0]
+    for e in range(li.shape[0]):
+        n = rows[e]
+        key = li[e] * n_nodes + lj[e]
+        lo = 0
+        hi = K
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if keys[mid] < key:
+                lo = mid + 1
+            else:
+                hi = mid
+        found = lo < K and keys[lo] == key
+        known[e] = found
+        for a in range(3):
+            x_link[e, a] = x_nb[n, a]
+            x_ref[e, a] = mem_x[lo, a] if found else x_nb[n, a]
+            for b in range(3):
+                P_link[e, a, b] = P_nb[n, a, b]
+                P_ref[e, a, b] = mem_P[lo, a, b] if found else P_nb[n, a, b]
+        if last.shape[0] > 0:
+            last[e] = mem_last[lo] if found else 0.0
+
+
 def fast_correct(
     filt, x, P, links: LinkBatch, params: CLParams, memory=None, buffers=None
 ) -> tuple[np.ndarray, np.ndarray, LinkOutcome] | None:
@@ -333,7 +427,7 @@ def fast_correct(
         if links is None:
             return None
     prepared = _prepared(params)
-    last_sent, cached, options = prepared.last_sent, prepared.cached, prepared.options
+    last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
     if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
@@ -371,11 +465,21 @@ def fast_correct(
         detection.undo()
         return None  # the reference path raises the explanatory error
     nb, x_nb, P_nb = neighbours
-    if nb is None or cached:  # per-link rows (cached estimates replace some of them below)
-        if nb is not None:
-            x_nb, P_nb = x_nb[nb], P_nb[nb]
+    if cached:  # per-link rows, j's last received estimate where there is one
+        x_nb, P_nb, x_ref, P_ref, known, last = _cached_rows(
+            memory, li, lj, nb, x_nb, P_nb, last_sent
+        )
         nb = np.arange(E, dtype=np.int64)
-    x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
+    else:
+        if nb is None:  # the per-link arrays themselves
+            nb = np.arange(E, dtype=np.int64)
+        x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
+        last = np.zeros(E if last_sent else 0)
+        known = np.zeros(E, dtype=np.bool_)
+        x_ref, P_ref = x_nb, P_nb
+        if last_sent and len(memory):
+            found, pos = memory.lookup(li, lj)
+            last = np.where(found, memory.last_norm[pos], 0.0)
     detect = detection.kernel
     fixes = None
     if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
@@ -383,21 +487,11 @@ def fast_correct(
 
         fixes = redundancy_verdict(params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detect)
         if fixes is None:
+            bookkeeping.undo(memory, gauge)
             defence.undo()
             detection.undo()
             return None  # the reference path raises the explanatory error
         detect = detect._replace(fixes=fixes.discard)
-    last = np.zeros(E if last_sent else 0)
-    known = np.zeros(E, dtype=np.bool_)
-    x_ref, P_ref = x_nb, P_nb
-    if need_memory and len(memory):
-        found, pos = memory.lookup(li, lj)
-        if last_sent:
-            last = np.where(found, memory.last_norm[pos], 0.0)
-        if cached:  # j's last received estimate where there is one (twin: step._decide)
-            known = found
-            x_ref = np.ascontiguousarray(np.where(found[:, None], memory.x[pos], x_nb))
-            P_ref = np.ascontiguousarray(np.where(found[:, None, None], memory.P[pos], P_nb))
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -424,20 +518,21 @@ def fast_correct(
         P,
         x_out,
         P_out,
-        kernel_links,
-        robots,
-        spec,
-        options,
-        fusion,
-        detect,
-        defence.kernel,
-        gauge,
-        tamper,
+        tuple(kernel_links),
+        tuple(robots),
+        tuple(spec),
+        prepared.plain_options,
+        _plain(fusion),
+        _plain(detect),
+        _plain(defence.kernel),
+        tuple(gauge),
+        _plain(tamper),
         out,
     )
     if status != OK:
         if fixes is not None:
             fixes.undo()
+        bookkeeping.undo(memory, gauge)
         defence.undo()
         detection.undo()
         return None

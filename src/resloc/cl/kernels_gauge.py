@@ -5,17 +5,18 @@ records every update's linear map for the team's gauge covariance ``G``:
 ``A_i <- (I - K H_i) A_i``, ``N_i <- (I - K H_i) N_i (I - K H_i)^T + K R K^T`` and, per fused
 link, ``B_ij = -K H_j`` left-multiplied by robot i's later gains of the step
 (:meth:`GaugeCovariance.update <resloc.cl.gauge.GaugeCovariance.update>`). The CL kernel
-(:mod:`resloc.cl.kernels`) does that in its link loop (:func:`gauge_record`) on copies of
-the step's ``A`` and ``N``; :func:`gauge_commit` then hands them, and the fused links' ``B_ij``
-in the reference's order, to the :class:`~resloc.cl.gauge.GaugeCovariance`, whose own
-``finish`` (the leak, the addition to ``G``) runs as in the reference path. The prediction
-and the consensus exchanges are once per step, vectorized, outside the correction.
+(:mod:`resloc.cl.kernels`) does that in its link loop (:func:`gauge_record`) on the step's
+``A`` and ``N``; :func:`gauge_commit` then hands them, and the fused links' ``B_ij``
+in the reference's order, to the :class:`~resloc.cl.gauge.GaugeCovariance`, whose
+``finish`` (the leak, the addition to ``G``) follows. The consensus exchanges are once per
+step, vectorized, outside the correction.
 
-The once-per-step parts have compiled twins too (exact team sums in a batch, the runner's
-case; a robot process's ``local`` gauge and the ``consensus`` sums stay numpy):
-:func:`compiled_gauge_predict` (the fit ``L_i`` and ``G += sum L Q L^T``) and
-:func:`compiled_gauge_finish` (the leak and ``G += sum Delta D Delta^T + L N L^T``), each
-counted in ``GaugeCovariance.compiled_steps``.
+The once-per-step parts (prediction, finish, reported covariances) are compiled in
+:mod:`resloc.cl.kernels_gauge_step`. A compiled step allocates no bookkeeping array: the
+step's ``L``, ``A``, ``N``, ``D`` and the fused links' records live in
+:class:`GaugeBuffers`, allocated once per batch (measured at 17 robots, the per-step Python
+and allocations around the kernels cost more than the kernels themselves:
+``docs/performance.md``).
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -23,10 +24,7 @@ kernel function                numpy twin
 :func:`range_bearing_jacobians_into`  :func:`resloc.models.measurement.range_bearing_jacobians`
 :func:`gauge_record`          :meth:`resloc.cl.gauge.GaugeCovariance.update` (with
                                :func:`resloc.cl.tracking.update_map`)
-:func:`_fit_and_add`          ``GaugeCovariance._fit`` and ``_add`` in
-                               :meth:`~resloc.cl.gauge.GaugeCovariance.predict`
-:func:`_leak_and_add`         :meth:`resloc.cl.gauge.GaugeCovariance.finish` (``_close``)
-:func:`_reported_into`        :meth:`resloc.cl.gauge.GaugeCovariance.reported`
+:func:`_fused_in_round_order`  the order of ``GaugeCovariance.update``'s records
 =============================  ==========================================================
 """
 
@@ -37,23 +35,20 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl import kernels_math as _kernels_math
-from resloc.cl.backend import backend
 from resloc.cl.gauge import GaugeCovariance
-from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
-from resloc.linalg import JITTER_LEVELS
+from resloc.cl.kernels_math import jit, jit_inline
 from resloc.models.measurement import MIN_RANGE
 
 __all__ = [
+    "NO_LINKS",
+    "GaugeBuffers",
     "KernelGauge",
-    "compiled_gauge_finish",
-    "compiled_gauge_predict",
+    "buffers_of",
     "gauge_commit",
     "gauge_state",
+    "gauge_undo",
     "no_gauge",
 ]
-
-_JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
 _MIN_R2 = MIN_RANGE**2
 
@@ -68,36 +63,140 @@ class KernelGauge(NamedTuple):
     Bij: np.ndarray  # (E, 3, 3) per fused link, -K H_j times i's later gains
 
 
+_NO_GAUGE = KernelGauge(False, np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
+#: The records of a step with no fused link yet (``obs``/``nbr``, ``Bij``; never written).
+NO_LINKS = (np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3)))
+_IDENTITY3 = np.eye(3)
+
+
 def no_gauge(E: int) -> KernelGauge:
-    """Nothing to record (every method but ``gauge``)."""
+    """Nothing to record (every method but ``gauge``; the kernel reads none of its arrays)."""
     del E
-    return KernelGauge(False, np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
+    return _NO_GAUGE
+
+
+class GaugeBuffers:
+    """The arrays the compiled twins keep a :class:`~resloc.cl.gauge.GaugeCovariance`'s
+    step in, allocated once per batch size (a step then creates no array of its own).
+
+    ``work`` (4, B, 3, 3) holds the step's fit ``L``, the products ``A``, the propagated
+    noise ``N`` and the predicted ``D``, which the compiled prediction hands to the
+    bookkeeping as views (``joint.L``, ``joint.A``, ``joint.noise``, ``joint.D_pred``);
+    ``rows`` (capacity, 3, 3) receives the kernel's ``B_ij`` in row order, and ``obs``,
+    ``nbr``, ``Bij`` the fused links in the reference's order (:func:`gauge_commit`).
+    """
+
+    def __init__(self, B: int) -> None:
+        self.work = np.zeros((4, B, 3, 3))
+        self.L, self.A, self.noise, self.D_pred = self.work
+        self._grow(0)
+
+    def __getstate__(self) -> dict:
+        # The step's arrays are views of ``work``: a pickle would copy them apart.
+        state = dict(self.__dict__)
+        for name in ("L", "A", "noise", "D_pred"):
+            del state[name]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.L, self.A, self.noise, self.D_pred = self.work
+
+    def _grow(self, E: int) -> None:
+        capacity = max(E, 64)
+        self.rows = np.empty((capacity, 3, 3))
+        self.obs = np.empty(capacity, dtype=np.int64)
+        self.nbr = np.empty(capacity, dtype=np.int64)
+        self.Bij = np.empty((capacity, 3, 3))
+
+    def links(self, E: int) -> np.ndarray:
+        """The kernel's ``B_ij`` rows for ``E`` links, shape (E, 3, 3) (uninitialised: the
+        kernel writes the row of every link it fuses and reads no other)."""
+        if len(self.rows) < E:
+            self._grow(E)
+        return self.rows[:E]
+
+
+def buffers_of(joint: GaugeCovariance) -> GaugeBuffers:
+    """``joint``'s :class:`GaugeBuffers`, made on first use (and for a new batch size)."""
+    buffers = joint.kernel_buffers
+    if buffers is None or buffers.work.shape[1] != joint.B:
+        buffers = joint.kernel_buffers = GaugeBuffers(joint.B)
+    return buffers
 
 
 def gauge_state(joint, E: int) -> KernelGauge | None:
-    """Working copies of the step's bookkeeping of ``joint`` for ``E`` links; None when the
-    kernel cannot reproduce the reference (no bookkeeping, or updates already recorded this
-    step by an earlier correction: their ``B_ij`` would have to see this call's gains)."""
+    """The step's bookkeeping of ``joint`` as the kernel takes it, for ``E`` links; None
+    when the kernel cannot reproduce the reference (no bookkeeping, or updates already
+    recorded this step by an earlier correction: their ``B_ij`` would have to see this
+    call's gains).
+
+    With no update recorded, ``A`` is the identity and ``N`` zero: when they are the
+    compiled prediction's arrays (:class:`GaugeBuffers`) the kernel works on them in place
+    and :func:`gauge_undo` puts them back if the kernel fails; otherwise on copies."""
     if not isinstance(joint, GaugeCovariance) or len(joint.obs):
         return None
-    A = np.ascontiguousarray(joint.A, dtype=float).copy()
-    noise = np.ascontiguousarray(joint.noise, dtype=float).copy()
-    return KernelGauge(True, A, noise, np.zeros((E, 3, 3)))
+    buffers = buffers_of(joint)
+    if joint.A is buffers.A and joint.noise is buffers.noise:
+        return KernelGauge(True, buffers.A, buffers.noise, buffers.links(E))
+    A = np.array(joint.A, dtype=float, order="C", copy=True)
+    noise = np.array(joint.noise, dtype=float, order="C", copy=True)
+    return KernelGauge(True, A, noise, buffers.links(E))
+
+
+def gauge_undo(joint: GaugeCovariance, state: KernelGauge) -> None:
+    """The kernel failed after :func:`gauge_state`: ``joint`` as it was (``A = I``,
+    ``N = 0``: no update was recorded when the state was made)."""
+    if state.A is joint.A:
+        state.A[...] = _IDENTITY3
+        state.noise[...] = 0.0
 
 
 def gauge_commit(joint: GaugeCovariance, state: KernelGauge, i, j, fused) -> None:
     """Hand the kernel's bookkeeping to ``joint`` as the reference leaves it: ``A``, ``N``,
     and the fused links' observers, neighbours and ``B_ij`` in the reference's order (round
-    r holds every robot's r-th link)."""
-    E = len(i)
-    rank = np.arange(E) - np.searchsorted(i, i, side="left")
-    rows = np.flatnonzero(fused)
-    rows = rows[np.argsort(rank[rows], kind="stable")]
+    r holds every robot's r-th link), gathered by one compiled call into
+    :class:`GaugeBuffers` (``i``, ``j``: int64 (E,), rows sorted by observer; ``fused``:
+    bool (E,))."""
+    buffers = buffers_of(joint)
+    count = _fused_in_round_order(i, j, fused, state.Bij, buffers.obs, buffers.nbr, buffers.Bij)
     joint.A = state.A
     joint.noise = state.noise
-    joint.obs = np.asarray(i, dtype=np.int64)[rows]
-    joint.nbr = np.asarray(j, dtype=np.int64)[rows]
-    joint.Bij = state.Bij[rows]
+    joint.obs = buffers.obs[:count]
+    joint.nbr = buffers.nbr[:count]
+    joint.Bij = buffers.Bij[:count]
+
+
+@jit
+def _fused_in_round_order(i, j, fused, rows, obs, nbr, Bij):
+    """The fused links ``(i[e], j[e], rows[e])`` into ``obs``, ``nbr``, ``Bij`` round by
+    round (round ``r``: every robot's ``r``-th row, robots in row order), the order of the
+    reference's updates; returns their number. Twin: the ``rank`` sort of the reference's
+    rounds (:meth:`GaugeCovariance.update <resloc.cl.gauge.GaugeCovariance.update>` called
+    once per round)."""
+    E = i.shape[0]
+    count = 0
+    rank = 0
+    more = E > 0
+    while more:
+        more = False
+        e = 0
+        while e < E:  # robot by robot: its row of this rank
+            first = e
+            while e < E and i[e] == i[first]:
+                e += 1
+            row = first + rank
+            if row < e:
+                more = more or row + 1 < e
+                if fused[row]:
+                    obs[count] = i[row]
+                    nbr[count] = j[row]
+                    for a in range(3):
+                        for b in range(3):
+                            Bij[count, a, b] = rows[row, a, b]
+                    count += 1
+        rank += 1
+    return count
 
 
 # ---------------------------------------------------------------------------------------
@@ -167,202 +266,3 @@ def _left_multiply(G, M, T3):
     for a in range(3):
         for b in range(3):
             M[a, b] = T3[a, b]
-
-
-# ---------------------------------------------------------------------------------------
-# The once-per-step parts (prediction and end of the correction), compiled.
-# ---------------------------------------------------------------------------------------
-def _runs_compiled(joint) -> bool:
-    """The compiled twins reproduce ``joint``: a batch with exact team sums."""
-    return (
-        backend() == "numba"
-        and isinstance(joint, GaugeCovariance)
-        and joint.rounds is None
-        and not joint.local
-    )
-
-
-def compiled_gauge_predict(joint, x: np.ndarray, Q: np.ndarray, P_pred: np.ndarray) -> bool:
-    """:meth:`GaugeCovariance.predict <resloc.cl.gauge.GaugeCovariance.predict>` compiled:
-    the fit ``L_i`` of every robot, ``G += sum_i L_i Q_i L_i^T``, the step's bookkeeping
-    started. Returns False (nothing changed) when the twin does not apply or a team's
-    ``sum J^T J`` is not positive definite (the reference then raises).
-
-    Shapes: ``x: (B, 3)``, ``Q: (B, 3, 3)``, ``P_pred: (B, 3, 3)``.
-    """
-    if not _runs_compiled(joint):
-        return False
-    L = np.empty((joint.B, 3, 3))
-    G = np.array(joint.G, dtype=float, order="C", copy=True)
-    x = np.ascontiguousarray(x, dtype=float)
-    Q = np.ascontiguousarray(Q, dtype=float)
-    if not _fit_and_add(x, Q, joint.N, _JITTER, L, G):
-        return False
-    joint.G = G
-    joint._start_step(L, P_pred)
-    joint.compiled_steps += 1
-    return True
-
-
-def compiled_gauge_finish(joint) -> bool:
-    """:meth:`GaugeCovariance.finish <resloc.cl.gauge.GaugeCovariance.finish>` compiled:
-    every robot's leak ``Delta_m = L_m (A_m - I) + sum_{i fused m} L_i B_im`` and ``G +=
-    sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T``. False when it does not apply."""
-    if not _runs_compiled(joint):
-        return False
-    G = np.array(joint.G, dtype=float, order="C", copy=True)
-    _leak_and_add(
-        np.ascontiguousarray(joint.L), np.ascontiguousarray(joint.A),
-        np.ascontiguousarray(joint.D_pred), np.ascontiguousarray(joint.noise),
-        np.ascontiguousarray(joint.obs, dtype=np.int64),
-        np.ascontiguousarray(joint.nbr, dtype=np.int64),
-        np.ascontiguousarray(joint.Bij, dtype=float).reshape(-1, 3, 3), joint.N, G,
-    )  # fmt: skip
-    joint.G = G
-    joint.compiled_steps += 1
-    return True
-
-
-def compiled_gauge_reported(joint, x: np.ndarray, P: np.ndarray) -> np.ndarray | None:
-    """:meth:`GaugeCovariance.reported <resloc.cl.gauge.GaugeCovariance.reported>` compiled
-    (``P_i + J_i G J_i^T``, symmetrized), or None when the numba backend is off."""
-    if backend() != "numba" or not isinstance(joint, GaugeCovariance):
-        return None
-    x = np.ascontiguousarray(x, dtype=float)
-    P = np.ascontiguousarray(P, dtype=float)
-    out = np.empty_like(P)
-    _reported_into(x, P, np.ascontiguousarray(joint.robot_G(), dtype=float), out)
-    joint.compiled_reports += 1
-    return out
-
-
-@jit
-def _reported_into(x, P, G, out):
-    """``out_b = sym(P_b + J_b G_b J_b^T)`` with ``J_b = [[1, 0, -y_b], [0, 1, x_b], [0, 0,
-    1]]`` (:func:`resloc.cl.gauge.gauge_jacobian`). Twin: ``GaugeCovariance.reported``."""
-    J = np.zeros((3, 3))
-    S = np.empty((3, 3))
-    J[0, 0] = J[1, 1] = J[2, 2] = 1.0
-    for b in range(x.shape[0]):
-        J[0, 2] = -x[b, 1]
-        J[1, 2] = x[b, 0]
-        S[:, :] = P[b]
-        _add_sandwich(J, G[b], S)
-        for r in range(3):
-            for c in range(3):
-                out[b, r, c] = 0.5 * (S[r, c] + S[c, r])
-
-
-@jit_inline
-def _add_sandwich(L, M, S):
-    """``S += L M L^T`` of 3 x 3 matrices."""
-    for a in range(3):
-        for b in range(3):
-            s = 0.0
-            for c in range(3):
-                t = 0.0
-                for d in range(3):
-                    t += L[a, d] * M[d, c]
-                s += t * L[b, c]
-            S[a, b] += s
-
-
-@jit_inline
-def _add_symmetrized(G, S):
-    """``G <- sym(G + S)`` (twin: ``GaugeCovariance._add`` with exact sums)."""
-    for a in range(3):
-        for b in range(3):
-            S[a, b] += G[a, b]
-    for a in range(3):
-        for b in range(3):
-            G[a, b] = 0.5 * (S[a, b] + S[b, a])
-
-
-@jit
-def _fit_and_add(x, Q, N, jitter, L, G):
-    """Per team ``t`` of ``N`` robots: ``M = sum_l J_l^T J_l``, ``L_i = M^-1 J_i^T`` into
-    ``L`` (B, 3, 3) by a Cholesky solve (twin: ``GaugeCovariance._fit``, :func:`gauge_jacobian
-    <resloc.cl.gauge.gauge_jacobian>`), then ``G[t] <- sym(G[t] + sum_i L_i Q_i L_i^T)``.
-    Returns False when a team's ``M`` has no Cholesky factor."""
-    M = np.zeros((3, 3))
-    C = np.zeros((3, 3))
-    Minv = np.zeros((3, 3))
-    S = np.zeros((3, 3))
-    for t in range(G.shape[0]):
-        for a in range(3):
-            for b in range(3):
-                M[a, b] = 0.0
-        for b in range(t * N, (t + 1) * N):
-            px = x[b, 0]
-            py = x[b, 1]
-            # J = [[1, 0, -y], [0, 1, x], [0, 0, 1]]: J^T J
-            M[0, 0] += 1.0
-            M[1, 1] += 1.0
-            M[0, 2] += -py
-            M[2, 0] += -py
-            M[1, 2] += px
-            M[2, 1] += px
-            M[2, 2] += py * py + px * px + 1.0
-        if not chol3(M, C, jitter):
-            return False
-        for col in range(3):  # M^-1 column by column: C C^T m = e_col
-            y0 = (1.0 if col == 0 else 0.0) / C[0, 0]
-            y1 = ((1.0 if col == 1 else 0.0) - C[1, 0] * y0) / C[1, 1]
-            y2 = ((1.0 if col == 2 else 0.0) - C[2, 0] * y0 - C[2, 1] * y1) / C[2, 2]
-            m2 = y2 / C[2, 2]
-            m1 = (y1 - C[2, 1] * m2) / C[1, 1]
-            m0 = (y0 - C[1, 0] * m1 - C[2, 0] * m2) / C[0, 0]
-            Minv[0, col] = m0
-            Minv[1, col] = m1
-            Minv[2, col] = m2
-        for a in range(3):
-            for b in range(3):
-                S[a, b] = 0.0
-        for b in range(t * N, (t + 1) * N):
-            px = x[b, 0]
-            py = x[b, 1]
-            for a in range(3):  # L_b = M^-1 J_b^T, J^T = [[1, 0, 0], [0, 1, 0], [-y, x, 1]]
-                L[b, a, 0] = Minv[a, 0] - Minv[a, 2] * py
-                L[b, a, 1] = Minv[a, 1] + Minv[a, 2] * px
-                L[b, a, 2] = Minv[a, 2]
-            _add_sandwich(L[b], Q[b], S)
-        _add_symmetrized(G[t], S)
-    return True
-
-
-@jit
-def _leak_and_add(L, A, D, noise, obs, nbr, Bij, N, G):
-    """Every robot's leak ``Delta_m = L_m (A_m - I) + sum_{links (i, m) fused} L_i B_im`` and
-    per team ``G[t] <- sym(G[t] + sum_m Delta_m D_m Delta_m^T + sum_i L_i N_i L_i^T)``.
-    Twin: :meth:`resloc.cl.gauge.GaugeCovariance.finish` and ``_close``."""
-    B = L.shape[0]
-    leak = np.zeros((B, 3, 3))
-    for b in range(B):
-        for a in range(3):
-            for c in range(3):
-                s = 0.0
-                for d in range(3):
-                    s += L[b, a, d] * (A[b, d, c] - (1.0 if d == c else 0.0))
-                leak[b, a, c] = s
-    for r in range(obs.shape[0]):
-        i = obs[r]
-        m = nbr[r]
-        for a in range(3):
-            for c in range(3):
-                s = 0.0
-                for d in range(3):
-                    s += L[i, a, d] * Bij[r, d, c]
-                leak[m, a, c] += s
-    S = np.zeros((3, 3))
-    for t in range(G.shape[0]):
-        for a in range(3):
-            for b in range(3):
-                S[a, b] = 0.0
-        for b in range(t * N, (t + 1) * N):
-            _add_sandwich(leak[b], D[b], S)
-            _add_sandwich(L[b], noise[b], S)
-        _add_symmetrized(G[t], S)
-
-
-stamp_with_pieces(_fit_and_add, _kernels_math)
-stamp_with_pieces(_leak_and_add, _kernels_math)

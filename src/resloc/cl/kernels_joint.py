@@ -57,7 +57,7 @@ import numpy as np
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
 from resloc.cl.kernels_math import jit
-from resloc.cl.tracking import JointCovariance
+from resloc.cl.tracking import JointCovariance, identity_stack
 
 __all__ = [
     "FACTORIZED",
@@ -91,7 +91,6 @@ class KernelJoint(NamedTuple):
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
-_IDENTITY3 = np.eye(3)[None]
 _EMPTY4 = np.zeros((0, 0, 3, 3))
 
 
@@ -130,7 +129,7 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     N = joint.N
     if not _links_within_teams(np.ascontiguousarray(i, dtype=np.int64), nbr, B, N):
         return None  # an index out of range, or a link across teams: the reference decides
-    A = np.repeat(_IDENTITY3, B, axis=0)  # no update recorded yet: each A_i = I, B_il = 0
+    A = identity_stack(B)  # no update recorded yet: each A_i = I, B_il = 0
     work = np.zeros((5, 3, 3))
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:

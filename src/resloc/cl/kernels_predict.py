@@ -56,6 +56,7 @@ __all__ = [
     "PREDICT_RUNS",
     "PredictKernelSpec",
     "fast_predict",
+    "noise_variances",
     "predict_kernel_spec",
 ]
 
@@ -124,7 +125,7 @@ predict_kernel_spec = per_filter(_build_spec)
 _last_variances: tuple = (None, None, None)
 
 
-def _noise_variances(params, dt: float) -> tuple[tuple, np.ndarray, np.ndarray]:
+def noise_variances(params, dt: float) -> tuple[tuple, np.ndarray, np.ndarray]:
     """The shape of ``params.odometry_std``, its variances as 2-D rows and the floor's
     ``floor^2 dt`` as the kernel takes them, kept for the last ``params`` object (frozen)
     and ``dt`` (the shapes are checked by the caller)."""
@@ -167,7 +168,7 @@ def fast_predict(filt, x, P, u, dt, params, buffers=None) -> tuple[np.ndarray, n
     B = x.shape[0] if x.ndim == 2 else -1
     if x.shape != (B, 3) or P.shape != (B, 3, 3) or u.shape != (B, 2):
         return None
-    odometry_shape, odometry_var, floor_var = _noise_variances(params, dt)
+    odometry_shape, odometry_var, floor_var = noise_variances(params, dt)
     if odometry_shape not in ((2,), (B, 2)) or floor_var.shape != (3,):
         return None
     if buffers is None:

@@ -38,7 +38,19 @@ from resloc.linalg import cholesky_jitter, symmetrize
 from resloc.models.measurement import range_bearing, range_bearing_jacobians
 from resloc.models.motion import unicycle_state_jacobian
 
-__all__ = ["JointCovariance", "joint_moments", "update_map"]
+__all__ = ["JointCovariance", "identity_stack", "joint_moments", "update_map"]
+
+_identity_template: list[np.ndarray] = [np.zeros((0, 3, 3))]
+
+
+def identity_stack(B: int) -> np.ndarray:
+    """``B`` 3 x 3 identities, shape (B, 3, 3): a new array, copied from a template kept
+    for the last ``B`` (a step's bookkeeping starts from one; ``np.broadcast_to(np.eye(3),
+    ...).copy()`` costs several times the copy at a team's size)."""
+    template = _identity_template[0]
+    if len(template) != B:
+        template = _identity_template[0] = np.repeat(np.eye(3)[None], B, axis=0)
+    return template.copy()
 
 
 def update_map(m: Moments, x_i: np.ndarray, x_j: np.ndarray):
