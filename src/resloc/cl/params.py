@@ -213,7 +213,7 @@ class CLParams:
     reciprocal_gate: float | np.ndarray = 10.827566170662733
     reciprocal_sequence_gate: float | np.ndarray = 23.928126976934827
     reciprocal_hold: float | np.ndarray = 100.0
-    reciprocal_forget: float | np.ndarray = 1.0
+    reciprocal_forget: float | np.ndarray = 0.995
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -240,7 +240,11 @@ class DetectorSpec:
         100, "reciprocal: evaluations a flagged link is held out", min=1, max=1_000_000
     )
     reciprocal_forget: float = option(
-        1.0, "reciprocal: discount of the sums per evaluation (1: none)", gt=0.0, max=1.0
+        0.995,
+        "reciprocal: discount of the sums per evaluation (1: none; 0.995: a window of about "
+        "200 evaluations, so a long honest history does not dilute a late liar's lead)",
+        gt=0.0,
+        max=1.0,
     )
 
 

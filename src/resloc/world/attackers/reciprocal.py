@@ -10,15 +10,18 @@ attacker spends that too:
 
 1. **Common part.** Every controlled link whose reverse link is also controlled gets the same
    range lie as its partner: the largest fraction of ``size`` that the whole detector of
-   *both* victims accepts (the acceptance oracle, :func:`largest_accepted_along`, judges each
-   candidate with the partner's candidate of the same set, so the pair moves together), the
+   *both* victims accepts (the acceptance oracle, :func:`largest_accepted_along`, with every
+   stage but the reciprocal check, which a common lie leaves at the honest difference), the
    pair's smaller one.
 2. **Slack.** Then one end of each pair (the observer with the smaller batch index), and every
    controlled link whose partner reading is honest or absent, is pushed further along the
    lie by the largest extra the victim's detector accepts with the partner fixed: the
    reciprocal check's one-step gate and the room left in its sum (and every other stage's).
-   The other end of the pair is checked again with the final readings (it sees the same
-   difference); an extra it would reject is halved until it passes.
+   The extra may be negative: a sum at its gate would be tripped by the next honest
+   difference, and the attacker, which knows both honest readings, pulls it back instead
+   of losing the pair to a hold. The other end of the pair is checked again with the final
+   readings (it sees the same difference); an extra it would reject is halved until it
+   passes.
 
 Everything the victims use is known to it (parameters, predictions, innovation covariances,
 every sequence test's state, the map). It is a range bias by design: ranges are what the
@@ -35,6 +38,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection_zone import reciprocal_rows
+from resloc.cl.params import at_robots
 from resloc.world.attackers.base import SensingLie
 from resloc.world.attackers.oracle import accepted, fix_context, largest_accepted_along
 from resloc.world.attackers.sensing import MAX_RANGE_LIE
@@ -99,49 +103,54 @@ class TwoEnded(SensingLie):
             context = fix_context(links, r, params, memory=memory, z=full)
             return accepted(sent, z_hat, S, i, j, params, memory, context=context)
 
-        # 1. The common part: both ends of a pair move together (the oracle compares each
-        #    candidate with its partner's candidate of the same set).
-        context = fix_context(links, r, params, memory=memory)
+        # 1. The common part: both ends of a pair move together, so their difference stays
+        #    honest; its size is what the victims' other stages accept (the reciprocal
+        #    check's room is the slack's, step 2: with its sum at the gate the honest
+        #    difference alone may fail it, and only the slack can pull it back).
+        others = dataclasses.replace(params, reciprocal=False)
         a = largest_accepted_along(
             lambda frac: z[None] + frac[..., None] * lie[None],
             z_hat,
             S,
             i,
             j,
-            params,
+            others,
             memory,
-            context=context,
+            context=fix_context(links, r, others, memory=memory),
         )
-        a = np.where(paired, np.minimum(a, a[np.maximum(partner, 0)]), 0.0)
+        alone = reverse < 0  # no partner reading: the reciprocal check cannot judge it
+        a = np.where(paired, np.minimum(a, a[np.maximum(partner, 0)]), np.where(alone, a, 0.0))
         sent = z + a[:, None] * lie
-        for _ in range(HALVINGS):
-            bad = ~judge_all(sent) & (a > 0.0)
-            bad |= paired & bad[np.maximum(partner, 0)]
-            if not bad.any():
-                break
-            a = np.where(bad, 0.5 * a, a)
-            a = np.where(bad & (a < 1e-6), 0.0, a)
-            sent = z + a[:, None] * lie
-        # 2. The slack: one end of each pair (the smaller observer) and every lone row.
-        spend = ~paired | (i < np.where(paired, i[np.maximum(partner, 0)], i))
+        # 2. The slack: one end of each pair (the smaller observer) and every lone row is
+        #    moved by an extra in [-size, size] along the lie, the largest the victim's
+        #    whole detector accepts with the partner fixed (a negative extra where the sum
+        #    is at its gate and the honest difference would trip it).
+        spend = ~alone & (~paired | (i < np.where(paired, i[np.maximum(partner, 0)], i)))
         rows = np.flatnonzero(spend)
         if not rows.size:
             return sent
         full = base.copy()
         full[r] = sent
         start = sent[rows]
-        extra = lie[rows]
-        slack_context = fix_context(links, r[rows], params, memory=memory, z=full)
-        e = largest_accepted_along(
-            lambda frac: start[None] + frac[..., None] * extra[None],
+        # The search spans the one-step gate's width on both sides of the honest
+        # difference, so its first grid already lands in the accepted interval.
+        difference = start[:, 0] - full[reverse[rows], 0]
+        gate = at_robots(params.reciprocal_gate, i[rows])
+        reach = np.abs(difference) + 2.0 * np.sqrt(gate * 2.0 * params.range_std**2)
+        unit = lie[rows] / np.maximum(np.abs(lie[rows, 0]), 1e-12)[:, None]
+        extra = unit * reach[:, None]
+        frac = largest_accepted_along(
+            lambda f: start[None] + (2.0 * f[..., None] - 1.0) * extra[None],
             z_hat[rows],
             S[rows],
             i[rows],
             j[rows],
             params,
             memory,
-            context=slack_context,
+            context=fix_context(links, r[rows], params, memory=memory, z=full),
         )
+        # nothing accepted (frac 0): send the common part alone
+        e = np.where(frac > 0.0, 2.0 * frac - 1.0, 0.0)
         for _ in range(HALVINGS):
             trial = sent.copy()
             trial[rows] = start + e[:, None] * extra
@@ -149,11 +158,11 @@ class TwoEnded(SensingLie):
             # a spent slack the pair's other end (or the spender itself, judged with
             # everything told together) rejects is halved
             bad_rows = ~ok[rows] | (paired[rows] & ~ok[np.maximum(partner[rows], 0)])
-            bad_rows &= e > 0.0
+            bad_rows &= e != 0.0
             if not bad_rows.any():
                 return trial
             e = np.where(bad_rows, 0.5 * e, e)
-            e = np.where(bad_rows & (e < 1e-6), 0.0, e)
+            e = np.where(bad_rows & (np.abs(e) < 1e-6), 0.0, e)
         trial = sent.copy()
         trial[rows] = start + e[:, None] * extra
         return trial
