@@ -15,7 +15,7 @@ from resloc.cl import kernels
 from resloc.cl.cusum import chi2_gate
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, detect
 from resloc.cl.detection_reciprocal import (
-    WIDTH,
+    STATE_WIDTH,
     ReciprocalCheck,
     judged_pairs,
     reciprocal_evidence,
@@ -79,7 +79,7 @@ def test_a_gross_one_ended_lie_is_discarded_at_once_on_both_ends_and_held():
     memory = LinkMemory(5)
     out = _step(rng, memory, bias=0.05)  # 10 sigma_r: over the one-step gate and the sum
     np.testing.assert_array_equal(out, [True, False, False, False, True, False, False, False])
-    state = memory.stage_statistic(NAME, width=WIDTH).get(np.array([0, 1]), np.array([1, 0]))
+    state = memory.stage_statistic(NAME, width=STATE_WIDTH).get(np.array([0, 1]), np.array([1, 0]))
     np.testing.assert_array_equal(state[:, 2], PARAMS.reciprocal_hold)  # both links held
 
 
@@ -92,7 +92,9 @@ def test_a_liar_under_the_one_step_gate_is_caught_by_the_sum_in_bounded_steps():
     for k in range(300):
         out = _step(rng, memory, bias=bias)
         if out[0]:
-            state = memory.stage_statistic(NAME, width=WIDTH).get(np.array([0]), np.array([1]))
+            state = memory.stage_statistic(NAME, width=STATE_WIDTH).get(
+                np.array([0]), np.array([1])
+            )
             if state[0, 2] > 0:  # held: the sum alarmed
                 caught = k
                 break
@@ -111,7 +113,7 @@ def test_a_liar_under_the_one_step_gate_is_caught_by_the_sum_in_bounded_steps():
 def test_1500_honest_steps_hold_nothing_and_a_held_link_is_readmitted():
     rng = np.random.default_rng(2)
     memory = LinkMemory(5)
-    store = memory.stage_statistic(NAME, width=WIDTH)
+    store = memory.stage_statistic(NAME, width=STATE_WIDTH)
     one_step = 0
     for _ in range(1500):
         out = _step(rng, memory)
@@ -133,7 +135,7 @@ def test_1500_honest_steps_hold_nothing_and_a_held_link_is_readmitted():
 
 
 def test_reciprocal_step_discounts_and_holds():
-    state = np.zeros((3, WIDTH))
+    state = np.zeros((3, STATE_WIDTH))
     d = np.array([0.01, 0.0, 1.0])
     judged = np.array([True, False, True])
     one = np.ones(3)

@@ -74,7 +74,7 @@ __all__ = [
 ]
 
 #: Per-link state: range-difference sum, its variance, evaluations left on hold.
-WIDTH = 3
+STATE_WIDTH = 3
 _SUM, _VAR, _HOLD = 0, 1, 2
 
 
@@ -188,9 +188,9 @@ def reciprocal_evidence(
     i = np.asarray(i)
     z_rec = np.full((E, 2), np.nan) if z_reciprocal is None else np.asarray(z_reciprocal, float)
     if memory is None:
-        state = np.zeros((E, WIDTH))
+        state = np.zeros((E, STATE_WIDTH))
     else:
-        state = memory.stage_statistic(ReciprocalCheck.name, width=WIDTH).get(i, j)
+        state = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH).get(i, j)
 
     def per_row(value) -> np.ndarray:
         return np.broadcast_to(at_robots(value, i), (E,)).astype(float)
@@ -315,7 +315,7 @@ class ReciprocalCheck:
             keep = ~ev.zone_substituted
         # A link may repeat in one call (an attacker's stacked candidates, each judged
         # against the state before the call): store one row per link.
-        store = memory.stage_statistic(self.name, width=WIDTH)
+        store = memory.stage_statistic(self.name, width=STATE_WIDTH)
         keys = np.asarray(ev.i, np.int64) * store.n_nodes + np.asarray(ev.j, np.int64)
         rows = np.flatnonzero(keep)
         _, first = np.unique(keys[rows], return_index=True)
