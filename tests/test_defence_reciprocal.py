@@ -368,3 +368,22 @@ def test_against_the_combination_in_a_short_run():
     assert alone["msle_ratio"]["mean"] > 3.0
     combined = rows["combination", "two_ended"]
     assert np.isfinite(combined["msle_ratio"]["mean"])
+
+
+def test_the_compromised_robot_reports_its_own_reading_to_match_its_lie():
+    """The compromised robot's lie is in its broadcast estimate (the victim's reading is
+    honest); the hook injects it as an equivalent reading, so with the reciprocal check on
+    the liar moves its own reported reading by the same range: the pair's difference stays
+    the honest one and the check is not credited with seeing a lie it physically cannot."""
+    params = CLParams(detector_norm="nis", rho=float(np.sqrt(chi2_gate(1e-3))), reciprocal=True)
+    links, i, j, z, z_hat, S = _pair_scene(params)
+    adv = make_attacker("compromised", robots=1)
+    liar = 2  # the suite's first compromised robot in a team of 5
+    sent = _sent(adv, params, links, j == liar, z_hat, S, LinkMemory(5))
+    reverse = reciprocal_rows(i, j)
+    victims = np.flatnonzero(j == liar)
+    assert np.abs(sent[victims] - z[victims]).max() > 1e-3  # it lies
+    d_sent = sent[victims, 0] - sent[reverse[victims], 0]
+    np.testing.assert_allclose(d_sent, z[victims, 0] - z[reverse[victims], 0], atol=1e-12)
+    untouched = (j != liar) & (i != liar)
+    np.testing.assert_array_equal(sent[untouched], z[untouched])
