@@ -111,8 +111,7 @@ def _rows(studies: list[Path]) -> tuple[list[dict], dict]:
 def report(studies: list[Path], name: str) -> None:
     rows, config = _rows(studies)
     seeds, steps = config["seeds"], config["steps"]
-    cost_path = DOCS / f"reciprocal_clean_cost_{steps}x{seeds}.json"
-    cost = json.loads(cost_path.read_text()) if cost_path.exists() else None
+    costs = [json.loads(p.read_text()) for p in sorted(DOCS.glob("reciprocal_clean_cost_*.json"))]
     defences = list(dict.fromkeys(r["defence"] for r in rows))
     lines = [
         f"# Reciprocal range check: {steps} steps x {seeds} seeds (computed)",
@@ -160,7 +159,7 @@ def report(studies: list[Path], name: str) -> None:
             f"{r['seeds_over_3x']} of {r['seeds']} | {tpr} | {r['fpr']:.4f} | "
             f"{r['nees_rel']:.3g} | {', '.join(f'{v:.3g}' for v in r['per_seed'])} |"
         )
-    if cost is not None:
+    for cost in costs:
         lines += [
             "",
             f"## False alarms in the clean run ({cost['steps']} steps x {cost['seeds']} seeds, "
