@@ -379,11 +379,20 @@ def test_the_compromised_robot_reports_its_own_reading_to_match_its_lie():
     links, i, j, z, z_hat, S = _pair_scene(params)
     adv = make_attacker("compromised", robots=1)
     liar = 2  # the suite's first compromised robot in a team of 5
-    sent = _sent(adv, params, links, j == liar, z_hat, S, LinkMemory(5))
+    i_, j_ = links.i, links.j
+    step = AttackStep(1, 0.033, POSE, i_, j_, links.z, j == liar, 5)
+    tampered = adv.attack(links, step, params, LinkMemory(5))
+    sent = tampered.tamper(np.arange(len(i)), z_hat, S)
     reverse = reciprocal_rows(i, j)
     victims = np.flatnonzero(j == liar)
     assert np.abs(sent[victims] - z[victims]).max() > 1e-3  # it lies
-    d_sent = sent[victims, 0] - sent[reverse[victims], 0]
+    partner = tampered.tamper.reported(sent[reverse])
+    # the victims compare their (lie-carrying) rows with the liar's matching report
+    d_sent = sent[victims, 0] - partner[victims, 0]
     np.testing.assert_allclose(d_sent, z[victims, 0] - z[reverse[victims], 0], atol=1e-12)
+    # the liar fuses its honest readings and receives the victims' physical readings
+    own = reverse[victims]
+    np.testing.assert_array_equal(sent[own], z[own])
+    np.testing.assert_allclose(partner[own, 0], z[victims, 0], atol=1e-12)
     untouched = (j != liar) & (i != liar)
     np.testing.assert_array_equal(sent[untouched], z[untouched])

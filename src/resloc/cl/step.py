@@ -373,7 +373,11 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         pre = fusion.moments(
             filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, params.R
         )
+        # An adversary's hook may also say what the partners report (``reported``).
+        reported = getattr(links.tamper, "reported", None)
         links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+        if reported is not None:
+            links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
     fixes = None
     if params.redundancy:
         # Every link's fix of its observer, judged against the observer's other fixes of

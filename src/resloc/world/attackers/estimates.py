@@ -103,11 +103,24 @@ class CompromisedRobot(Strategy):
         # The lie is in the broadcast estimate; the victim's reading is honest. The hook
         # injects it as the equivalent reading, so with the reciprocal range check on, the
         # liar also reports its own reading of each victim moved by the same range (it is
-        # compromised: it sends what it likes), which leaves the pair's difference honest,
-        # as it physically is; the oracle judges with every other stage.
+        # compromised: it sends what it likes; ``tamper.reported``, applied to the partner
+        # readings only: its own update fuses its honest reading), which leaves the pair's
+        # difference honest, as it physically is; the oracle judges with every other stage.
         reports_own = bool(params.reciprocal)
         judged = dataclasses.replace(params, reciprocal=False) if reports_own else params
-        reverse_of = reciprocal_rows(links.i, links.j) if reports_own else None
+        injected = np.zeros(len(z_all))  # the range each victim's row carries of the lie
+
+        def reported(z_reciprocal: np.ndarray) -> np.ndarray:
+            """The partner readings as the robots receive them: the liar reports its reading
+            of each victim moved by the range injected on that victim's row, and itself
+            receives the victim's physical (honest) reading."""
+            out = np.array(z_reciprocal, float)
+            rows = np.flatnonzero(injected)
+            reverse = reciprocal_rows(links.i, links.j)[rows]
+            out[rows, 0] += injected[rows]
+            ok = reverse >= 0
+            out[reverse[ok], 0] -= injected[rows[ok]]
+            return out
 
         def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
             out = z_all[rows].copy()
@@ -128,14 +141,11 @@ class CompromisedRobot(Strategy):
                 path, zh, S[hit], links.i[r], links.j[r], judged, memory, context=context
             )
             out[hit] = path(a[None])[0]
-            if reports_own:
-                position = np.full(len(z_all), -1)
-                position[rows] = np.arange(len(rows))
-                back = position[np.maximum(reverse_of[r], 0)]
-                ok = (reverse_of[r] >= 0) & (back >= 0)
-                out[back[ok], 0] += out[hit[ok], 0] - z[ok, 0]
+            injected[r] = out[hit, 0] - z[:, 0]
             return out
 
+        if reports_own:
+            tamper.reported = reported
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
 
