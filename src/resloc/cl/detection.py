@@ -23,6 +23,11 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     Sums each link's redundancy residuals over time (since the link was last admitted) and
     holds a link out for a while when the sum is inconsistent with zero mean: a slow lie
     inside every per-step gate accumulates evidence (:mod:`resloc.cl.detection_sequence`).
+``reciprocal``
+    Discards a reading whose range disagrees with the partner's reading of the same pair
+    (``|r_ij - r_ji|`` against ``sqrt(2) sigma_r``, one step and in sum since the link was
+    admitted; a flagged link is held out a while, then re-admitted:
+    :mod:`resloc.cl.detection_reciprocal`).
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -46,6 +51,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.detection_reciprocal import ReciprocalCheck
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
@@ -107,6 +113,9 @@ class Evidence:
     sequence_discard, sequence_state : ndarray, shapes (E,), (E, 6), optional
         The sequence test's verdict on each row and its link's state after the step
         (:func:`resloc.cl.detection_sequence.sequence_evidence`).
+    reciprocal_discard, reciprocal_state : ndarray, shapes (E,), (E, 3), optional
+        The reciprocal range check's verdict on each row and its link's state after the
+        step (:func:`resloc.cl.detection_reciprocal.reciprocal_evidence`).
     """
 
     nu: np.ndarray
@@ -126,6 +135,8 @@ class Evidence:
     fix_residual_cov: np.ndarray | None = None
     sequence_discard: np.ndarray | None = None
     sequence_state: np.ndarray | None = None
+    reciprocal_discard: np.ndarray | None = None
+    reciprocal_state: np.ndarray | None = None
 
 
 class DetectorStage(Protocol):
@@ -250,13 +261,15 @@ class MeanShiftCusum:
 NORM_GATE = NormGate()
 REDUNDANCY = RedundancyCheck()
 REDUNDANCY_SEQUENCE = RedundancySequence()
+RECIPROCAL = ReciprocalCheck()
 #: The stages that check the scenario's ``[detector]`` options (``problem(options)``).
-OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE)
+OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE, RECIPROCAL)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     NORM_GATE,
     REDUNDANCY,
     REDUNDANCY_SEQUENCE,
+    RECIPROCAL,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

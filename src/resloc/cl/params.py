@@ -151,6 +151,18 @@ class CLParams:
         Evaluations of a flagged link it is held out before it is re-admitted afresh.
     redundancy_sequence_forget : float or ndarray (B,)
         Discount ``lambda`` of the sums per evaluation (1: since the link was admitted).
+    reciprocal : bool
+        Discard a reading whose range disagrees with the partner's reading of the same pair
+        (:mod:`resloc.cl.detection_reciprocal`; needs the partners' readings and a
+        LinkMemory).
+    reciprocal_gate : float or ndarray (B,)
+        Chi-square gate (1 degree of freedom) on ``(r_ij - r_ji)^2 / (2 sigma_r^2)``.
+    reciprocal_sequence_gate : float or ndarray (B,)
+        Chi-square gate (1 degree of freedom) on the summed difference.
+    reciprocal_hold : float or ndarray (B,)
+        Evaluations of a flagged link it is held out before it is re-admitted afresh.
+    reciprocal_forget : float or ndarray (B,)
+        Discount ``lambda`` of the sums per evaluation (1: since the link was admitted).
     """
 
     range_std: float = 0.005
@@ -197,6 +209,11 @@ class CLParams:
     redundancy_sequence_gate: float | np.ndarray = 27.631021115928547
     redundancy_sequence_hold: float | np.ndarray = 100.0
     redundancy_sequence_forget: float | np.ndarray = 1.0
+    reciprocal: bool = False
+    reciprocal_gate: float | np.ndarray = 10.827566170662733
+    reciprocal_sequence_gate: float | np.ndarray = 23.928126976934827
+    reciprocal_hold: float | np.ndarray = 100.0
+    reciprocal_forget: float | np.ndarray = 0.995
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

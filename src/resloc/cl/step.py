@@ -15,6 +15,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
+from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_zone import (
     materialize_with_reciprocal,
@@ -363,14 +364,20 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     if params.redundancy and params.redundancy_cap_fusion:
         # A neighbour weighs in the update no more than the redundancy test credited it.
         links = dataclasses.replace(links, P_nb=capped_claims(links.P_nb, links.i))
-    if (params.zone_trust and links.z_reciprocal is None) or (
-        params.redundancy and links.tamper is not None
+    if (
+        ((params.zone_trust or params.reciprocal) and links.z_reciprocal is None)
+        or (params.redundancy and links.tamper is not None)
+        or (params.reciprocal and links.tamper is not None)
     ):
         # Every reading as reported (lies included) and its reverse link's range.
         pre = fusion.moments(
             filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, params.R
         )
+        # An adversary's hook may also say what the partners report (``reported``).
+        reported = getattr(links.tamper, "reported", None)
         links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+        if reported is not None:
+            links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
     fixes = None
     if params.redundancy:
         # Every link's fix of its observer, judged against the observer's other fixes of
@@ -386,6 +393,21 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
             links.j,
             memory,
         )
+    if params.reciprocal:
+        # Every link's range against its partner's reading of the pair, once per step.
+        fixes = {
+            **(fixes or {}),
+            **reciprocal_evidence(
+                links.z,
+                links.z_reciprocal,
+                links.i,
+                links.j,
+                params,
+                memory,
+                x[links.i],
+                links.x_nb,
+            ),
+        }
     out = LinkOutcome.empty(E)
     x = x.copy()
     P = P.copy()

@@ -222,6 +222,30 @@ class DetectorSpec:
         gt=0.0,
         max=1.0,
     )
+    reciprocal: bool = option(
+        False,
+        "discard a reading whose range disagrees with the partner's reading of the same "
+        "pair (one step, and in sum: a flagged link is held out, then re-admitted)",
+    )
+    reciprocal_false_alarm: float = option(
+        1e-3,
+        "reciprocal: one-step chi-square gate at this false-alarm probability",
+        gt=0.0,
+        max=0.5,
+    )
+    reciprocal_sequence_false_alarm: float = option(
+        1e-6, "reciprocal: summed chi-square gate at this false-alarm probability", gt=0.0, max=0.5
+    )
+    reciprocal_hold: int = option(
+        100, "reciprocal: evaluations a flagged link is held out", min=1, max=1_000_000
+    )
+    reciprocal_forget: float = option(
+        0.995,
+        "reciprocal: discount of the sums per evaluation (1: none; 0.995: a window of about "
+        "200 evaluations, so a long honest history does not dilute a late liar's lead)",
+        gt=0.0,
+        max=1.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -321,6 +345,17 @@ class Scenario:
             ),
             redundancy_sequence_hold=float(d.redundancy_sequence_hold),
             redundancy_sequence_forget=float(d.redundancy_sequence_forget),
+            reciprocal=d.reciprocal,
+            **(
+                {
+                    "reciprocal_gate": chi2_gate(d.reciprocal_false_alarm, dof=1),
+                    "reciprocal_sequence_gate": chi2_gate(d.reciprocal_sequence_false_alarm, dof=1),
+                }
+                if d.reciprocal
+                else {}
+            ),
+            reciprocal_hold=float(d.reciprocal_hold),
+            reciprocal_forget=float(d.reciprocal_forget),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -30,6 +30,7 @@ _FULL = {**_NIS, **_LINK_CUSUMS, "detector.robot_cusum": True, "detector.recover
 _ZONE = {"detector.zone_trust": True}
 _REDUNDANCY = {"detector.redundancy": True}
 _SEQUENCE = {**_REDUNDANCY, "detector.redundancy_sequence": True}
+_RECIPROCAL = {"detector.reciprocal": True}
 
 #: Defence name -> dotted scenario overrides (read-only).
 DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
@@ -76,6 +77,17 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
             # every step accumulates evidence and is held out for a while.
             "full+redundancy+sequence": {**_FULL, **_SEQUENCE},
             "zone+full+redundancy+sequence": {**_FULL, **_ZONE, **_SEQUENCE},
+            # + the reciprocal range check (cl/detection_reciprocal.py): the two ends of a
+            # pair must agree on their distance, one step and in sum (a flagged link is
+            # held out a while, then re-admitted).
+            "full+reciprocal": {**_FULL, **_RECIPROCAL},
+            "full+redundancy+sequence+reciprocal": {**_FULL, **_SEQUENCE, **_RECIPROCAL},
+            "zone+full+redundancy+sequence+reciprocal": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                **_RECIPROCAL,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

@@ -142,6 +142,11 @@ def check_supported(scenario: Scenario) -> None:
             "detector.zone_trust: pulled estimates (estimator.neighbour_estimate = 'cached') "
             "do not carry the sender's readings; use 'current' with zone trust in a swarm"
         )
+    if scenario.detector.reciprocal:
+        raise ConfigError(
+            "detector.reciprocal: the runtime's messages do not carry a neighbour's reading of "
+            "the receiver yet (RobotNode.correct's z_reciprocal); set it false for a swarm"
+        )
     if scenario.world.attack.kind is AttackKind.STEALTHY:
         raise ConfigError(
             "attack.kind: 'stealthy' needs the victim's filter inside the world; "

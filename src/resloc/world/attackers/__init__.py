@@ -19,6 +19,7 @@ from __future__ import annotations
 from resloc.world.attackers.base import Attacker, AttackStep, SensingLie
 from resloc.world.attackers.estimates import CompromisedRobot, Replay
 from resloc.world.attackers.oracle import accepted, largest_accepted, largest_accepted_along
+from resloc.world.attackers.reciprocal import TwoEnded
 from resloc.world.attackers.sensing import (
     BearingBias,
     CommonTranslation,
@@ -59,6 +60,7 @@ ATTACKERS: dict[str, Attacker] = {
         CompromisedRobot(),
         Replay(),
         ReviewerGateOnly(),
+        TwoEnded(),
     )
 }
 

@@ -8,6 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from resloc.angles import wrap_angle
+from resloc.cl.detection_zone import reciprocal_rows
 from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
 from resloc.world.attackers.oracle import fix_context, largest_accepted_along
@@ -99,6 +100,27 @@ class CompromisedRobot(Strategy):
         cos, sin = np.cos(heading), np.sin(heading)
         shift_body = float(self.reach) * np.column_stack([cos, -sin])  # R(-theta) (1, 0)
         z_all = links.z
+        # The lie is in the broadcast estimate; the victim's reading is honest. The hook
+        # injects it as the equivalent reading, so with the reciprocal range check on, the
+        # liar also reports its own reading of each victim moved by the same range (it is
+        # compromised: it sends what it likes; ``tamper.reported``, applied to the partner
+        # readings only: its own update fuses its honest reading), which leaves the pair's
+        # difference honest, as it physically is; the oracle judges with every other stage.
+        reports_own = bool(params.reciprocal)
+        judged = dataclasses.replace(params, reciprocal=False) if reports_own else params
+        injected = np.zeros(len(z_all))  # the range each victim's row carries of the lie
+
+        def reported(z_reciprocal: np.ndarray) -> np.ndarray:
+            """The partner readings as the robots receive them: the liar reports its reading
+            of each victim moved by the range injected on that victim's row, and itself
+            receives the victim's physical (honest) reading."""
+            out = np.array(z_reciprocal, float)
+            rows = np.flatnonzero(injected)
+            reverse = reciprocal_rows(links.i, links.j)[rows]
+            out[rows, 0] += injected[rows]
+            ok = reverse >= 0
+            out[reverse[ok], 0] -= injected[rows[ok]]
+            return out
 
         def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
             out = z_all[rows].copy()
@@ -114,13 +136,16 @@ class CompromisedRobot(Strategy):
                 cand[..., 1] = wrap_angle(cand[..., 1])
                 return cand
 
-            context = fix_context(links, r, params, P_nb, memory)
+            context = fix_context(links, r, judged, P_nb, memory)
             a = largest_accepted_along(
-                path, zh, S[hit], links.i[r], links.j[r], params, memory, context=context
+                path, zh, S[hit], links.i[r], links.j[r], judged, memory, context=context
             )
             out[hit] = path(a[None])[0]
+            injected[r] = out[hit, 0] - z[:, 0]
             return out
 
+        if reports_own:
+            tamper.reported = reported
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
 

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
+from resloc.cl.detection_reciprocal import ReciprocalContext
 from resloc.cl.detection_redundancy import FixContext
 from resloc.cl.detector import innovation_norm
 from resloc.cl.links import LinkBatch
@@ -27,6 +29,7 @@ from resloc.filters.update import innovation
 __all__ = [
     "CONTEXT_STAGES",
     "ROW_WISE_STAGES",
+    "StepContext",
     "accepted",
     "fix_context",
     "largest_accepted",
@@ -47,7 +50,26 @@ ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
 #: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
 #: set in its own copy of the victims' links: stackable, and exact for lies told together).
-CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence"})
+CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence", "reciprocal"})
+
+
+@dataclass
+class StepContext:
+    """The victims' other links this step, for every active stage that reads them: the
+    redundancy stages' :class:`~resloc.cl.detection_redundancy.FixContext` and the
+    reciprocal check's :class:`~resloc.cl.detection_reciprocal.ReciprocalContext` (either
+    None when its stage is off)."""
+
+    fix: FixContext | None = None
+    reciprocal: ReciprocalContext | None = None
+
+    def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
+        """Evidence fields for the stacked ``candidates``, shape (G, n, 2)."""
+        out: dict[str, np.ndarray] = {}
+        for part in (self.fix, self.reciprocal):
+            if part is not None:
+                out.update(part.fields(candidates))
+        return out
 
 
 def fix_context(
@@ -56,35 +78,56 @@ def fix_context(
     params: CLParams,
     P_nb: np.ndarray | None = None,
     memory: LinkMemory | None = None,
-) -> FixContext | None:
+    z: np.ndarray | None = None,
+) -> StepContext | None:
     """What the attacker's copy of the detector needs of the step's other links to judge
     candidates on ``rows`` (indices into ``links``), or None when no active stage reads them.
 
     The victims' predicted estimates are read from the batch (``links.neighbours``: the
     simulator's links reference the batch's predicted arrays; the attacker knows them).
     ``P_nb``: the covariances the victims receive, when the attacker changes them;
-    ``memory``: the victims' (the links a sequence test holds out enter no reference).
+    ``memory``: the victims' (the links a sequence test holds out enter no reference);
+    ``z``: the step's readings as the attacker leaves them outside ``rows`` (default
+    ``links.z``: what the reciprocal check compares a lone candidate with).
     """
-    if not any(s.name in CONTEXT_STAGES for s in active_stages(params)):
+    names = {s.name for s in active_stages(params)} & CONTEXT_STAGES
+    if not names:
         return None
     if links.neighbours is None:
         raise ValueError(
-            "the redundancy stage's oracle needs the victims' estimates: build the links "
-            "with LinkBatch.from_predicted"
+            "the redundancy and reciprocal stages' oracle needs the victims' estimates: "
+            "build the links with LinkBatch.from_predicted"
         )
     source = links.neighbours
-    return FixContext(
-        np.asarray(links.z, float),
-        source.x[links.i],
-        source.P[links.i],
-        links.x_nb,
-        links.P_nb if P_nb is None else P_nb,
-        np.asarray(links.i),
-        params,
-        np.asarray(rows),
-        np.asarray(links.j),
-        memory,
-    )
+    z = np.asarray(links.z if z is None else z, float)
+    x_obs = source.x[links.i]
+    fix = None
+    if names & {"redundancy", "redundancy_sequence"}:
+        fix = FixContext(
+            z,
+            x_obs,
+            source.P[links.i],
+            links.x_nb,
+            links.P_nb if P_nb is None else P_nb,
+            np.asarray(links.i),
+            params,
+            np.asarray(rows),
+            np.asarray(links.j),
+            memory,
+        )
+    reciprocal = None
+    if "reciprocal" in names:
+        reciprocal = ReciprocalContext(
+            z,
+            np.asarray(links.i),
+            np.asarray(links.j),
+            params,
+            np.asarray(rows),
+            memory,
+            x_obs,
+            links.x_nb,
+        )
+    return StepContext(fix, reciprocal)
 
 
 def _scratch(value):
@@ -126,7 +169,7 @@ def accepted(
     memory: LinkMemory | None,
     gate_only: bool = False,
     row_wise_only: bool = False,
-    context: FixContext | None = None,
+    context: StepContext | FixContext | None = None,
 ) -> np.ndarray:
     """Whether the victim's detector, in its current state, accepts measurements ``z``.
 
@@ -193,7 +236,7 @@ def largest_accepted(
     params: CLParams,
     memory: LinkMemory | None,
     gate_only: bool = False,
-    context: FixContext | None = None,
+    context: StepContext | FixContext | None = None,
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with ``z + a lie`` accepted by the victim.
 
@@ -235,7 +278,7 @@ def largest_accepted_along(
     params: CLParams,
     memory: LinkMemory | None,
     gate_only: bool = False,
-    context: FixContext | None = None,
+    context: StepContext | FixContext | None = None,
 ) -> np.ndarray:
     """Largest ``a`` in ``[0, 1]`` per row with the measurement ``path(a)`` accepted.
 
