@@ -265,12 +265,14 @@ def test_reciprocal_keys_fail_with_one_line(changes, message, tmp_path):
     assert len(text.splitlines()) == 1 and not out.exists()
 
 
-def test_the_runtime_refuses_the_reciprocal_check_with_one_line():
+def test_the_runtime_runs_the_reciprocal_check_and_refuses_it_only_with_pulled_estimates():
     from resloc.runtime.team import check_supported
 
     scenario = default_scenario().replace(**{"detector.reciprocal": True, "run.trials": 1})
-    with pytest.raises(ConfigError, match=r"detector\.reciprocal: the runtime") as err:
-        check_supported(scenario)
+    check_supported(scenario)  # the readings ride on the estimates
+    pulled = scenario.replace(**{"estimator.neighbour_estimate": "cached"})
+    with pytest.raises(ConfigError, match=r"detector\.reciprocal: pulled estimates") as err:
+        check_supported(pulled)
     assert "\n" not in str(err.value)
 
 

@@ -114,19 +114,24 @@ def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process
     assert all(code == 0 for code in result.exit_codes.values()), result.exit_codes
 
 
-def test_lockstep_swarm_with_zone_trust_carries_the_readings_and_equals_the_simulator(
-    tmp_path,
+@pytest.mark.parametrize("stage", ["zone_trust", "reciprocal"])
+def test_lockstep_swarm_with_reverse_readings_carries_them_and_equals_the_simulator(
+    tmp_path, stage
 ) -> None:
     """Zone trust fuses a neighbour's reading of the robot (the reverse link) while the robot
-    is inside the mapped SDZ: the readings ride on the estimates, and the wire's result is
-    the simulator's (which differs from a run without them on this scenario)."""
-    sc = hot_scenario(30, **{"run.filters": ["ekf"], "detector.zone_trust": True})
+    is inside the mapped SDZ; the reciprocal check compares the pair's ranges. The readings
+    ride on the estimates, and the wire's result is the simulator's (which differs from a
+    run without the stage on this scenario). The reciprocal check keeps per-link sums, which
+    the simulator also updates on links whose estimate is jammed and the wire cannot
+    (docs/runtime.md, "Differences"): its case has no CDZ."""
+    jam = {} if stage == "zone_trust" else {"cdz": []}
+    sc = hot_scenario(30, **{"run.filters": ["ekf"], f"detector.{stage}": True, **jam})
     opts = swarm_options(tmp_path, sc, "ekf")
     result = run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs")
     assert result.end == "complete"
     runtime, _, est = load_outputs(Path(opts.out))
     sim = run_scenario(sc)
-    blind = run_scenario(sc.replace(**{"detector.zone_trust": False}))
+    blind = run_scenario(sc.replace(**{f"detector.{stage}": False}))
     track = sim.estimators["ekf"].track
     assert np.abs(blind.estimators["ekf"].track - track).max() > 1e-3  # the readings matter
     dx = np.abs(est["x"] - track)

@@ -233,7 +233,7 @@ def run_scenario(
     for tr in tracks:  # consensus exchanges are counted by the fusion's bookkeeping
         exchanged = int(getattr(tr.memory.joint, "messages", 0) or 0)
         tr.totals["consensus_messages"] += exchanged // T + (np.arange(T) < exchanged % T)
-        if params.zone_trust:  # every estimate carries the sender's reading of the receiver
+        if params.zone_trust or params.reciprocal:  # estimates carry the sender's readings
             tr.totals["readings"] += tr.totals["triggered"]
         if "delivery_acks" in fusion.node_exchanges:  # split CI: and its independent part
             tr.totals["independent_parts"] += tr.totals["triggered"]

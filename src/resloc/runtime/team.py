@@ -109,7 +109,7 @@ class TeamSetup:
     def readings(self) -> bool:
         """Estimates carry their sender's readings of this step (the receiver's row is the
         reverse link's measurement, ``RobotNode.correct``'s ``z_reciprocal``)."""
-        return bool(self.params.zone_trust)
+        return bool(self.params.zone_trust or self.params.reciprocal)
 
     @property
     def pull(self) -> bool:
@@ -134,19 +134,13 @@ def check_supported(scenario: Scenario) -> None:
         raise ConfigError(
             "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"
         )
-    if (
-        scenario.detector.zone_trust
-        and scenario.estimator.neighbour_estimate is NeighbourEstimate.CACHED
-    ):
-        raise ConfigError(
-            "detector.zone_trust: pulled estimates (estimator.neighbour_estimate = 'cached') "
-            "do not carry the sender's readings; use 'current' with zone trust in a swarm"
-        )
-    if scenario.detector.reciprocal:
-        raise ConfigError(
-            "detector.reciprocal: the runtime's messages do not carry a neighbour's reading of "
-            "the receiver yet (RobotNode.correct's z_reciprocal); set it false for a swarm"
-        )
+    pulled = scenario.estimator.neighbour_estimate is NeighbourEstimate.CACHED
+    for name in ("zone_trust", "reciprocal"):
+        if pulled and getattr(scenario.detector, name):
+            raise ConfigError(
+                f"detector.{name}: pulled estimates (estimator.neighbour_estimate = 'cached') "
+                "do not carry the sender's readings; use 'current' with it in a swarm"
+            )
     if scenario.world.attack.kind is AttackKind.STEALTHY:
         raise ConfigError(
             "attack.kind: 'stealthy' needs the victim's filter inside the world; "
