@@ -238,7 +238,9 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
             blocks += 1
             p = q
         for r in range(rounds):
-            n = 0
+            # np.int64, not the literal 0: a call typed while n is still Literal[int](0)
+            # would compile every stage a second time, for that literal
+            n = np.int64(0)
             for b in range(blocks):
                 if block_count[b] > r:
                     lane_e[n] = block_start[b] + r
@@ -282,7 +284,7 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman)
             if not kalman and not intersect_lanes(
                 x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-                decision, options, fusion, out, work,
+                decision, options, fusion, out, work, filt[0],
             ):  # fmt: skip
                 return NOT_PD
             if record_gauge:
