@@ -36,6 +36,7 @@ stages that keep per-link state (the CUSUMs) are in :mod:`resloc.cl.kernels_dete
 
 from __future__ import annotations
 
+import contextlib
 import weakref
 from collections.abc import Callable
 from typing import NamedTuple
@@ -55,10 +56,10 @@ from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
-from resloc.cl.kernels_fusion import fusion_commit, fusion_state
+from resloc.cl.kernels_fusion import KERNEL_UPDATES, NAIVE_UPDATE, fusion_commit, fusion_state
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, no_gauge
 from resloc.cl.kernels_links import OK
-from resloc.cl.kernels_rounds import rounds_warm_up_batch, run_link_loop
+from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
@@ -72,6 +73,7 @@ __all__ = [
     "KernelRobots",
     "backend",
     "fast_correct",
+    "options_beyond_paper",
     "set_backend",
     "use_backend",
     "warm_up",
@@ -433,8 +435,35 @@ def fast_correct(
     return x_out, P_out, outcome
 
 
-def warm_up() -> bool:
+def options_beyond_paper(params: CLParams) -> bool:
+    """Whether corrections with ``params`` run an option's stage in the compiled loops
+    (:func:`~resloc.cl.kernels_rounds.beyond_paper` on the structures ``params`` give; an
+    adversary's tamper hook, which comes with the links, is the caller's to add)."""
+    prepared = _prepared(params)
+    strategy = prepared.strategy
+    if KERNEL_UPDATES[strategy.kernel_update] != NAIVE_UPDATE:
+        return True
+    if strategy.kernel_bookkeeping != "none" or prepared.cached:
+        return True
+    rows = np.zeros(1, np.int64)
+    detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
+    defence = defence_state(params, None, rows)
+    if detection is None or defence is None:
+        return True
+    kernel = detection.kernel
+    return bool(kernel[0] or kernel[6] or defence.kernel[0] or defence.kernel[5])
+
+
+def warm_up(every_option: bool = True) -> bool:
     """Compile (or load from the on-disk cache) the kernels outside any timed section.
+
+    Parameters
+    ----------
+    every_option : bool
+        Also the link loops' form with every option's stage
+        (:func:`~resloc.cl.kernels_rounds.beyond_paper`); False: the paper's method only
+        (a run whose options are all off, :func:`options_beyond_paper`, never runs the
+        other form, and a fresh clone's first run does not compile it).
 
     Returns
     -------
@@ -451,7 +480,10 @@ def warm_up() -> bool:
         np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
         x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
     )  # fmt: skip
-    for kind in ("ckf", "ekf"):
-        fast_correct(make_filter(kind), x, P, links, CLParams())
-    fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())  # kernels_rounds
+    forms = (contextlib.nullcontext, every_stage) if every_option else (contextlib.nullcontext,)
+    for form in forms:
+        with form():
+            for kind in ("ckf", "ekf"):
+                fast_correct(make_filter(kind), x, P, links, CLParams())
+            fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())  # rounds
     return True

@@ -134,6 +134,19 @@ def check_run_size(scenario: Scenario) -> None:
     )
 
 
+def _beyond_paper(params: CLParams, tampered: bool) -> bool:
+    """Whether the run's compiled corrections take the link loops' form with the options'
+    stages (:func:`resloc.cl.kernels.options_beyond_paper`; ``tampered``: an adversary may
+    hand the links a tamper hook), so that the warm-up compiles the form the run uses."""
+    if tampered:
+        return True
+    try:
+        from resloc.cl.kernels import options_beyond_paper
+    except ImportError:  # pragma: no cover - numba is optional
+        return True
+    return options_beyond_paper(params)
+
+
 def run_scenario(
     scenario: Scenario,
     filters: list[str] | None = None,
@@ -217,7 +230,7 @@ def run_scenario(
     tick = None if progress is None else (lambda k: progress(k, steps))
     # Load (or compile) the kernels before any estimator's timer starts: otherwise the first
     # estimator's wall time carries the cache load.
-    warm_up_kernels()
+    warm_up_kernels(_beyond_paper(params, source.stealthy or adversary is not None))
     run_lockstep(source, everyone, setup, tick)
     for tr in everyone:  # a stopped estimator's buffered steps keep their records
         tr.accuracy.flush()
