@@ -470,6 +470,7 @@ def warm_up(every_option: bool = True) -> bool:
     bool
         Whether the compiled kernels are in use.
     """
+    from resloc.cl.kernels_predict import fast_predict
     from resloc.filters.base import make_filter
 
     if backend() != "numba":
@@ -480,6 +481,8 @@ def warm_up(every_option: bool = True) -> bool:
         np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
         x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
     )  # fmt: skip
+    for kind in ("ckf", "ekf"):  # the prediction's robot-by-robot loop (kernels_predict)
+        fast_predict(make_filter(kind), x, P, np.array([[0.1, 0.0], [0.1, 0.1]]), 0.1, CLParams())
     forms = (contextlib.nullcontext, every_stage) if every_option else (contextlib.nullcontext,)
     for form in forms:
         with form():
