@@ -454,16 +454,16 @@ def options_beyond_paper(params: CLParams) -> bool:
     return bool(kernel[0] or kernel[6] or defence.kernel[0] or defence.kernel[5])
 
 
-def warm_up(every_option: bool = True) -> bool:
+def warm_up(paper: bool = True, options: bool = True) -> bool:
     """Compile (or load from the on-disk cache) the kernels outside any timed section.
 
     Parameters
     ----------
-    every_option : bool
-        Also the link loops' form with every option's stage
-        (:func:`~resloc.cl.kernels_rounds.beyond_paper`); False: the paper's method only
-        (a run whose options are all off, :func:`options_beyond_paper`, never runs the
-        other form, and a fresh clone's first run does not compile it).
+    paper, options : bool
+        Which forms of the link loops (:func:`~resloc.cl.kernels_rounds.beyond_paper`):
+        the paper's method's (without the options' stages), the options' (every stage).
+        A run uses one of them (:func:`options_beyond_paper`): a fresh clone's first run
+        of the paper's method does not compile the other.
 
     Returns
     -------
@@ -483,7 +483,9 @@ def warm_up(every_option: bool = True) -> bool:
     )  # fmt: skip
     for kind in ("ckf", "ekf"):  # the prediction's robot-by-robot loop (kernels_predict)
         fast_predict(make_filter(kind), x, P, np.array([[0.1, 0.0], [0.1, 0.1]]), 0.1, CLParams())
-    forms = (contextlib.nullcontext, every_stage) if every_option else (contextlib.nullcontext,)
+    forms = [contextlib.nullcontext] if paper else []
+    if options:
+        forms.append(every_stage)
     for form in forms:
         with form():
             for kind in ("ckf", "ekf"):

@@ -136,8 +136,9 @@ def check_run_size(scenario: Scenario) -> None:
 
 def _beyond_paper(params: CLParams, tampered: bool) -> bool:
     """Whether the run's compiled corrections take the link loops' form with the options'
-    stages (:func:`resloc.cl.kernels.options_beyond_paper`; ``tampered``: an adversary may
-    hand the links a tamper hook), so that the warm-up compiles the form the run uses."""
+    stages (:func:`resloc.cl.kernels.options_beyond_paper`; ``tampered``: the stealthy
+    attacker hands the links its tamper hook), so that the warm-up compiles the form the
+    run uses."""
     if tampered:
         return True
     try:
@@ -230,7 +231,9 @@ def run_scenario(
     tick = None if progress is None else (lambda k: progress(k, steps))
     # Load (or compile) the kernels before any estimator's timer starts: otherwise the first
     # estimator's wall time carries the cache load.
-    warm_up_kernels(_beyond_paper(params, source.stealthy or adversary is not None))
+    beyond = _beyond_paper(params, source.stealthy)
+    either = adversary is not None  # an attacker of the suite may hand the links a hook
+    warm_up_kernels(paper=either or not beyond, options=either or beyond)
     run_lockstep(source, everyone, setup, tick)
     for tr in everyone:  # a stopped estimator's buffered steps keep their records
         tr.accuracy.flush()
