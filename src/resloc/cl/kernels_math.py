@@ -41,7 +41,7 @@ def callee_modules(dispatcher) -> set:
         while codes:  # the function's code and the code objects nested in it
             code = codes.pop()
             names.update(code.co_names)
-            codes.extend(c for c in code.co_consts if hasattr(c, "co_names"))
+            codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
         scope = func.__globals__
         for name in names:
             value = scope.get(name)
