@@ -60,6 +60,24 @@ CASES = {
         True,
     ),
     "redundancy-ci": ("ckf", _params("full+redundancy", fusion="ci"), False),
+    # the redundancy stages beside the gate alone: no other option's stage is on, so the
+    # loops must still run their options' form (kernels_rounds.beyond_paper)
+    "gate-redundancy-sequence": (
+        "ckf",
+        replace(
+            default_scenario()
+            .replace(
+                **{
+                    "detector.enabled": True,
+                    "detector.norm": "nis",
+                    "detector.redundancy": True,
+                    "detector.redundancy_sequence": True,
+                }
+            )
+            .cl_params()
+        ),
+        False,
+    ),
 }
 
 

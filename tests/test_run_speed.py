@@ -92,7 +92,7 @@ def test_buffer_is_bounded_for_large_teams():
 
 def test_kernels_are_loaded_before_the_first_estimator_step(monkeypatch):
     events = []
-    monkeypatch.setattr(runner, "warm_up_kernels", lambda: events.append("warm"))
+    monkeypatch.setattr(runner, "warm_up_kernels", lambda **forms: events.append(forms))
     real_predict = lockstep.predict
 
     def predict(*args, **kwargs):
@@ -105,4 +105,5 @@ def test_kernels_are_loaded_before_the_first_estimator_step(monkeypatch):
             **{"run.steps": 2, "run.filters": ["ckf"], "run.dead_reckoning": False}
         )
     )
-    assert events == ["warm", "predict", "predict"]
+    # the paper's method: only the link loops' form without the options' stages
+    assert events == [{"paper": True, "options": False}, "predict", "predict"]

@@ -38,6 +38,7 @@ stages that keep per-link state (the CUSUMs) are in :mod:`resloc.cl.kernels_dete
 
 from __future__ import annotations
 
+import contextlib
 import weakref
 from collections.abc import Callable
 from typing import NamedTuple
@@ -57,11 +58,11 @@ from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import NORM_CODE, detector_state
-from resloc.cl.kernels_fusion import fusion_commit, fusion_state
+from resloc.cl.kernels_fusion import KERNEL_UPDATES, NAIVE_UPDATE, fusion_commit, fusion_state
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, gauge_undo, no_gauge
 from resloc.cl.kernels_links import OK
 from resloc.cl.kernels_math import jit
-from resloc.cl.kernels_rounds import rounds_warm_up_batch, run_link_loop
+from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
@@ -75,6 +76,7 @@ __all__ = [
     "KernelRobots",
     "backend",
     "fast_correct",
+    "options_beyond_paper",
     "set_backend",
     "use_backend",
     "warm_up",
@@ -550,14 +552,42 @@ def fast_correct(
     return x_out, P_out, outcome
 
 
-def warm_up() -> bool:
+def options_beyond_paper(params: CLParams) -> bool:
+    """Whether corrections with ``params`` run an option's stage in the compiled loops
+    (:func:`~resloc.cl.kernels_rounds.beyond_paper` on the structures ``params`` give; an
+    adversary's tamper hook, which comes with the links, is the caller's to add)."""
+    prepared = _prepared(params)
+    strategy = prepared.strategy
+    if KERNEL_UPDATES[strategy.kernel_update] != NAIVE_UPDATE:
+        return True
+    if strategy.kernel_bookkeeping != "none" or prepared.cached:
+        return True
+    rows = np.zeros(1, np.int64)
+    detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
+    defence = defence_state(params, None, rows)
+    if detection is None or defence is None:
+        return True
+    kernel = detection.kernel
+    return bool(kernel[0] or kernel[6] or defence.kernel[0] or defence.kernel[5])
+
+
+def warm_up(paper: bool = True, options: bool = True) -> bool:
     """Compile (or load from the on-disk cache) the kernels outside any timed section.
+
+    Parameters
+    ----------
+    paper, options : bool
+        Which forms of the link loops (:func:`~resloc.cl.kernels_rounds.beyond_paper`):
+        the paper's method's (without the options' stages), the options' (every stage).
+        A run uses one of them (:func:`options_beyond_paper`): a fresh clone's first run
+        of the paper's method does not compile the other.
 
     Returns
     -------
     bool
         Whether the compiled kernels are in use.
     """
+    from resloc.cl.kernels_predict import fast_predict
     from resloc.filters.base import make_filter
 
     if backend() != "numba":
@@ -568,7 +598,14 @@ def warm_up() -> bool:
         np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
         x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
     )  # fmt: skip
-    for kind in ("ckf", "ekf"):
-        fast_correct(make_filter(kind), x, P, links, CLParams())
-    fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())  # kernels_rounds
+    for kind in ("ckf", "ekf"):  # the prediction's robot-by-robot loop (kernels_predict)
+        fast_predict(make_filter(kind), x, P, np.array([[0.1, 0.0], [0.1, 0.1]]), 0.1, CLParams())
+    forms = [contextlib.nullcontext] if paper else []
+    if options:
+        forms.append(every_stage)
+    for form in forms:
+        with form():
+            for kind in ("ckf", "ekf"):
+                fast_correct(make_filter(kind), x, P, links, CLParams())
+            fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())  # rounds
     return True

@@ -164,10 +164,12 @@ def _schur_update(Pi, K, S00, S01, S11, Pn):
 
 @jit
 def correct_links(
-    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond
 ):
     """Every link of one step in row order (Algorithm 1's correction: eqs. (3), (8)-(11));
     updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in place. Twin: :func:`resloc.cl.step.correct`.
+    ``beyond``: :func:`resloc.cl.kernels_rounds.beyond_paper`'s switch; every option's
+    block sits behind ``beyond is not None`` (pruned before typing when it is None).
 
     The structures are unpacked once, here: a field read inside the loop would cost a
     reference-count update per field and link. For the same reason the pieces that would
@@ -242,9 +244,13 @@ def correct_links(
             re00 = 0.0
             re01 = 0.0
             re11 = 0.0
-            if correlated and not joint_cross(joint, e, first, fused, i, Pi, Pr, jitter):
+            if (
+                beyond is not None
+                and correlated
+                and not joint_cross(joint, e, first, fused, i, Pi, Pr, jitter)
+            ):
                 return NOT_PD
-            if linearized and correlated:
+            if beyond is not None and linearized and correlated:
                 zh0, zh1, S00, S01, S11 = correlated_linearized_moments(
                     joint, xi0, xi1, xi2, xr0, xr1, R, Hi, Hj, Pxz
                 )
@@ -255,7 +261,7 @@ def correct_links(
             else:
                 # Moments of z_ij (eq. 3) from the filter's sigma points over [x_i; x_j] with
                 # P = blockdiag(P_i, P_j) (twin: SigmaPointFilter.relative_moments).
-                if correlated:
+                if beyond is not None and correlated:
                     if not correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
                         return NOT_PD
                 elif not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
@@ -285,7 +291,8 @@ def correct_links(
                 return NOT_PD
             if attempt == 1:
                 break
-            if tampered and attacked[e]:  # the stealthy attacker sees z_hat and S (twin: tamper)
+            # the stealthy attacker sees z_hat and S (twin: tamper)
+            if beyond is not None and tampered and attacked[e]:
                 zt0, zt1 = stealthy_measurement(
                     tamper, i, z[e, 0], z[e, 1], nu0, nu1, l00, l10, l11
                 )
@@ -308,14 +315,19 @@ def correct_links(
                 zs_i, risk_s[i], zc_i, risk_c[i], risk_floor,
             )  # fmt: skip
             gated = _gate_link(n_det, detector, rho_i)
-            detected = detect_link(detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11)
-            if defending:  # the per-robot stages (robot CUSUM, recovery: kernels_defence)
+            detected = gated
+            if beyond is not None:  # the CUSUMs (kernels_detection)
+                detected = detect_link(
+                    detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11
+                )
+            # the per-robot stages (robot CUSUM, recovery: kernels_defence)
+            if beyond is not None and defending:
                 detected, inflation = defend_link(
                     defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11
                 )
             triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
             fuse = delivered
-            if cached:
+            if beyond is not None and cached:
                 triggered, delivered, fuse = _cached_decision(
                     detected, triggered, delivered, known[e], trigger, channel_ok[e],
                     update_without_transmission,
@@ -340,14 +352,14 @@ def correct_links(
                 Pr = Pj
         if not fuse:
             continue
-        if fusion_code == CI:  # covariance intersection (kernels_fusion)
+        if beyond is not None and fusion_code == CI:  # covariance intersection (kernels_fusion)
             range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
             if not ci_update(
                 x, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
                 re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
             ):  # fmt: skip
                 return NOT_PD
-        elif fusion_code == SPLIT_CI:  # split covariance intersection (kernels_fusion)
+        elif beyond is not None and fusion_code == SPLIT_CI:  # split CI (kernels_split)
             range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
             if not split_ci_update(
                 x, e, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
@@ -385,13 +397,13 @@ def correct_links(
                         Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
             else:  # (the correlated joint's moments carry no Jacobian: P - K S K^T)
                 _schur_update(Pi, K, S00, S01, S11, Pn)
-            if correlated:  # tracked: Pn becomes the joint's P_i after the update
+            if beyond is not None and correlated:  # tracked: Pn becomes the joint's P_i
                 joint_record(
                     joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3, Pn
                 )
         if store_covariance(P, i, Pn, T3):
             flags[4, e] = True
-        if record_gauge:
+        if beyond is not None and record_gauge:
             gauge_record(gauge, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3)
     return OK
 

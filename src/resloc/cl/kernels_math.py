@@ -12,6 +12,8 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
+import sys
+import types
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -20,16 +22,130 @@ import numpy as np
 
 from resloc.cl.backend import HAVE_NUMBA
 
+
+def callee_modules(dispatcher) -> set:
+    """The modules of every compiled function ``dispatcher`` calls or inlines, directly or
+    through its callees (by the global names its code reads: a function, or a module and
+    its attributes), its own module excluded unless reached through another one."""
+    seen: set = set()
+    modules: set = set()
+    pending = [dispatcher]
+    while pending:
+        current = pending.pop()
+        if id(current) in seen:
+            continue
+        seen.add(id(current))
+        func = current.py_func
+        names: set = set()
+        codes = [func.__code__]
+        while codes:  # the function's code and the code objects nested in it
+            code = codes.pop()
+            names.update(code.co_names)
+            codes.extend(c for c in code.co_consts if isinstance(c, types.CodeType))
+        scope = func.__globals__
+        for name in names:
+            value = scope.get(name)
+            found = [value]
+            if isinstance(value, types.ModuleType):  # ``module.function``
+                found = [getattr(value, attr, None) for attr in names]
+            for callee in found:
+                if _is_dispatcher(callee) and id(callee) not in seen:
+                    modules.add(sys.modules[callee.py_func.__module__])
+                    pending.append(callee)
+    return modules
+
+
+def _is_dispatcher(value) -> bool:
+    return HAVE_NUMBA and isinstance(value, numba.core.registry.CPUDispatcher)
+
+
+def stamp_with_pieces(dispatcher, *modules) -> None:
+    """Make ``dispatcher``'s on-disk cache stale when ``modules`` change, beside the modules
+    of its callees that every kernel of :data:`jit`, :data:`jit_inline` and
+    :data:`jit_lanes` is stamped with (for a module it reads data from, or a kernel made
+    by another decorator)."""
+    cache_file = _stamp_lazily(dispatcher)
+    if cache_file is not None:
+        cache_file._resloc_extra = (*cache_file._resloc_extra, *modules)
+        cache_file._resloc_stamp = None
+
+
+def _stamp_lazily(dispatcher):
+    """Stamp ``dispatcher``'s on-disk cache with the sources of the modules of every
+    compiled function it calls or inlines (:func:`callee_modules`), computed on the first
+    cache access (all modules are imported by then). numba stamps a cached kernel with its
+    own source file only, and a caller's cache holds its callees' code: an edited
+    :mod:`resloc.cl.kernels_fusion` would otherwise leave :mod:`resloc.cl.kernels_split`'s
+    cached kernel running the old code. Returns the cache file (None: numba absent, or a
+    numba whose cache we do not know)."""
+    cache = getattr(dispatcher, "_cache", None)
+    cache_file = getattr(cache, "_cache_file", None)
+    if getattr(cache_file, "_source_stamp", None) is None:
+        return None
+    cls = type(cache_file)
+    if not issubclass(cls, _LazyStamp):
+        cache_file.__class__ = _lazy_stamp_class(cls)
+        cache_file._resloc_dispatcher = dispatcher
+        cache_file._resloc_extra = ()
+        cache_file._resloc_stamp = None
+    return cache_file
+
+
+class _LazyStamp:
+    """Mixin of a numba cache file whose ``_source_stamp`` is numba's (the source file's)
+    plus a digest of the sources of the kernel's callee modules."""
+
+    @property
+    def _source_stamp(self):
+        own = self.__dict__["_source_stamp"]
+        stamp = self.__dict__.get("_resloc_stamp")
+        if stamp is None:
+            dispatcher = self.__dict__["_resloc_dispatcher"]
+            home = sys.modules[dispatcher.py_func.__module__]
+            pieces = ({*self._resloc_extra} | callee_modules(dispatcher)) - {home}
+            digest = hashlib.sha256()
+            for path in sorted(str(module.__file__) for module in pieces):
+                digest.update(Path(path).read_bytes())
+            dispatcher._resloc_pieces = frozenset(module.__name__ for module in pieces)
+            stamp = (own, digest.hexdigest())
+            self.__dict__["_resloc_stamp"] = stamp
+        return stamp
+
+    @_source_stamp.setter
+    def _source_stamp(self, value):
+        self.__dict__["_source_stamp"] = value
+
+
+_LAZY_CLASSES: dict = {}
+
+
+def _lazy_stamp_class(cls):
+    if cls not in _LAZY_CLASSES:
+        _LAZY_CLASSES[cls] = type(cls.__name__, (_LazyStamp, cls), {})
+    return _LAZY_CLASSES[cls]
+
+
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
 
-    jit = numba.njit(cache=True, nogil=True)
+    def _stamped(decorator):
+        """``decorator`` (a cached ``numba.njit``) whose kernels' cache stamps cover the
+        modules of their callees (:func:`stamp_with_pieces`)."""
+
+        def apply(func):
+            dispatcher = decorator(func)
+            _stamp_lazily(dispatcher)
+            return dispatcher
+
+        return apply
+
+    jit = _stamped(numba.njit(cache=True, nogil=True))
     # The per-link pieces are inlined into the loop: a call that passes arrays (the named
     # structures hold ~20) costs a reference-count update per array, per link.
-    jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+    jit_inline = _stamped(numba.njit(cache=True, nogil=True, inline="always"))
     # The SIMD stages (lanes, rounds, points): error_model="numpy" makes a float division
     # IEEE (no ZeroDivisionError branch), which lets LLVM vectorize their loops.
-    jit_lanes = numba.njit(cache=True, nogil=True, error_model="numpy")
+    jit_lanes = _stamped(numba.njit(cache=True, nogil=True, error_model="numpy"))
 else:  # pragma: no cover - exercised only where numba is absent
 
     def jit(func):
@@ -212,20 +328,6 @@ def sandwich(H, P, T):
         q10 += T[1, c] * H[0, c]
         q11 += T[1, c] * H[1, c]
     return q00, q01, q10, q11
-
-
-def stamp_with_pieces(dispatcher, *modules) -> None:
-    """Make ``dispatcher``'s on-disk cache stale when a module whose pieces it inlines
-    changes: numba stamps a cached kernel with its own source file only, so an edited
-    :mod:`resloc.cl.kernels_detection` would otherwise keep running the old compiled code."""
-    cache = getattr(dispatcher, "_cache", None)
-    cache_file = getattr(cache, "_cache_file", None)
-    if getattr(cache_file, "_source_stamp", None) is None:
-        return  # numba absent, or a numba whose cache we do not know: nothing to extend
-    digest = hashlib.sha256()
-    for module in modules:
-        digest.update(Path(module.__file__).read_bytes())
-    cache_file._source_stamp = (cache_file._source_stamp, digest.hexdigest())
 
 
 def per_params(func: Callable) -> Callable:

@@ -293,7 +293,7 @@ def inflated_moments(
     lane, rows, Pf, xi_r, xr_r, zl_r, sc_r, Li_r, Lj_r, cov, ok, bad = retry[:12]
     Z0, Z1, sums, mom_r, pxz_r, mean, Pi_r, upd_r, scratch_in, scratch_out = retry[12:]
     axis, value, Wm, Wc, circular = points
-    k = 0
+    k = np.int64(0)  # not the literal 0 (see _rounds): one compiled form of each stage
     for c in range(n):
         if not (inflation[c] > 1.0 and decision[3, c] == 1.0):
             continue
@@ -356,13 +356,17 @@ def link_scratch():
 @_jit
 def intersect_lanes(
     x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation, decision,
-    options, fusion, out, work,
+    options, fusion, out, work, linearized,
 ):  # fmt: skip
     """Covariance intersection (``ci``) or split CI of every delivered lane, with the
     lane's moments (and robot ``i``'s covariance times the recovery's ``inflation``), then
     the posterior symmetrized, repaired where not positive definite, stored. False when a
-    covariance has no Cholesky factor. Twin: the ``ci_update`` / ``split_ci_update`` calls
-    of ``correct_links`` and its tail."""
+    covariance has no Cholesky factor. ``linearized``: the filter's flag (``filt[0]``,
+    False wherever the rounds run), passed as the runtime bool it is so that
+    ``split_ci_update`` has the signature of the row-order loop's call and is compiled
+    once for both loops (a literal ``False`` would compile a second form of it).
+    Twin: the ``ci_update`` / ``split_ci_update`` calls of ``correct_links`` and its
+    tail."""
     R, jitter = options[0], options[8]
     flags = out[2]
     Pi, Pxz, K, Hi, Hj, A3, T3, Pn = work[:8]
@@ -394,8 +398,8 @@ def intersect_lanes(
         else:
             done = split_ci_update(
                 x, e, i, xi0, xi1, xi[2, c], Pi, P_ref[src[c]], update[0, c], update[1, c],
-                S00, S01, S11, Pxz, False, Hi, Hj, 0.0, 0.0, 0.0, R, fusion, jitter, K, A3,
-                T3, Pn,
+                S00, S01, S11, Pxz, linearized, Hi, Hj, 0.0, 0.0, 0.0, R, fusion, jitter, K,
+                A3, T3, Pn,
             )  # fmt: skip
         if not done:
             return False

@@ -50,6 +50,7 @@ were) and :func:`run_link_loop` runs the row-order loop from the start instead.
 
 from __future__ import annotations
 
+import contextlib
 from collections import Counter
 
 import numpy as np
@@ -95,7 +96,9 @@ _jit = jit_lanes
 __all__ = [
     "LOOP_RUNS",
     "ROUNDS_MIN_LINKS",
+    "beyond_paper",
     "correct_rounds",
+    "every_stage",
     "rounds_cover",
     "run_link_loop",
 ]
@@ -121,6 +124,47 @@ def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bo
     )
 
 
+def beyond_paper(options, fusion, detection, defence, gauge, tamper):
+    """The link loops' switch for the options' stages (arguments as those of
+    :func:`~resloc.cl.kernels_links.correct_links`): None when every option is off (the
+    paper's method), else True.
+
+    Both loops take it as their last argument, and every option's stage sits behind
+    ``beyond is not None``; numba prunes such a branch before typing when the argument is
+    None, so the paper's method runs a form of each loop compiled without the options'
+    stages (the first run of a fresh clone compiles only that), and any option runs the
+    form with every option's stage, each behind its own runtime flag as before (compiled
+    once for all options, on the first run that needs it)."""
+    on = (
+        tamper[0]  # the stealthy attacker
+        or detection[0]  # NIS CUSUM
+        or detection[6]  # mean-shift CUSUM
+        or detection[11].shape[0] > 0  # the redundancy pre-pass's verdicts
+        or defence[0]  # robot CUSUM
+        or defence[5]  # recovery
+        or fusion[0] != NAIVE_UPDATE  # ci, split_ci, the tracked / factorized joints
+        or gauge[0]  # gauge bookkeeping
+        or options[9]  # cached neighbour estimates
+    )
+    return True if on else None
+
+
+#: Set by :func:`every_stage` (the warm-up): the loops run the form with every option's
+#: stage whatever the options.
+_EVERY_STAGE = [False]
+
+
+@contextlib.contextmanager
+def every_stage():
+    """Within: :func:`run_link_loop` runs the loops' form with every option's stage (to
+    compile it, or load it from the cache, with the paper's structures)."""
+    _EVERY_STAGE[0] = True
+    try:
+        yield
+    finally:
+        _EVERY_STAGE[0] = False
+
+
 def run_link_loop(
     x, P, x_out, P_out, links, robots, filt, options, fusion, detection, defence, gauge, tamper,
     out,
@@ -128,8 +172,13 @@ def run_link_loop(
     """Every link of one step into ``x_out``, ``P_out`` (copies of ``x``, ``P`` on entry):
     by rounds (:func:`correct_rounds`) where they cover the configuration and there are at
     least :data:`ROUNDS_MIN_LINKS` links, else (or when the rounds fall back) in row order
-    (:func:`~resloc.cl.kernels_links.correct_links`). Returns the loop's status."""
-    args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out)
+    (:func:`~resloc.cl.kernels_links.correct_links`). Each loop runs in the form
+    :func:`beyond_paper` chooses (within :func:`every_stage`: the form with every option's
+    stage). Returns the loop's status."""
+    beyond = True if _EVERY_STAGE[0] else beyond_paper(
+        options, fusion, detection, defence, gauge, tamper
+    )  # fmt: skip
+    args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond)
     if len(links[0]) >= ROUNDS_MIN_LINKS and rounds_cover(
         filt, options, fusion, detection, defence, gauge, tamper
     ):
@@ -147,27 +196,34 @@ def run_link_loop(
 
 @_jit
 def correct_rounds(
-    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out,
+    beyond,
 ):  # fmt: skip
     """Every link of one step, robots in chunks of ``CHUNK`` and each chunk in rounds
     (round ``r``: every robot's ``r``-th link); updates ``x: (B, 3)``, ``P: (B, 3, 3)`` in
     place. Arguments as :func:`~resloc.cl.kernels_links.correct_links` (the configuration
-    must be one :func:`rounds_cover` accepts). Returns the status: ``OK``, ``NOT_PD`` or
-    ``FALLBACK`` (on both, the outputs are partial and must be discarded; on ``FALLBACK``
-    the options' stores are as they were on entry).
-    Twin: :func:`resloc.cl.kernels_links.correct_links`."""
-    saved = save_state(detection, defence, fusion, gauge)
+    must be one :func:`rounds_cover` accepts; ``beyond``: :func:`beyond_paper`'s switch).
+    Returns the status: ``OK``, ``NOT_PD`` or ``FALLBACK`` (on both, the outputs are
+    partial and must be discarded; on ``FALLBACK`` the options' stores are as they were on
+    entry). Twin: :func:`resloc.cl.kernels_links.correct_links`."""
+    if beyond is not None:  # the paper's method alone keeps no store to put back
+        saved = save_state(detection, defence, fusion, gauge)
     status = _rounds(
-        x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
-    )
-    if status == FALLBACK:
+        x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out,
+        beyond,
+    )  # fmt: skip
+    if beyond is not None and status == FALLBACK:
         restore_state(saved, detection, defence, fusion, gauge)
     return status
 
 
 @_jit
-def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out):
-    """The body of :func:`correct_rounds` (which puts the stores back on ``FALLBACK``)."""
+def _rounds(
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond
+):  # fmt: skip
+    """The body of :func:`correct_rounds` (which puts the stores back on ``FALLBACK``).
+    Every option's stage sits behind ``beyond is not None``: with ``beyond = None`` numba
+    prunes them before typing, and this form compiles the paper's stages only."""
     li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
         links[0],
         links[1],
@@ -220,8 +276,9 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
     decision = np.empty((4, C))
     inflation = np.ones(C)
     T3 = np.empty((3, 3))
-    retry = retry_lanes(m, C if recovering else 1)
-    work = link_scratch()
+    if beyond is not None:
+        retry = retry_lanes(m, C if recovering else 1)
+        work = link_scratch()
     E = li.shape[0]
     p = 0
     while p < E:
@@ -239,7 +296,9 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
             blocks += 1
             p = q
         for r in range(rounds):
-            n = 0
+            # np.int64, not the literal 0: a call typed while n is still Literal[int](0)
+            # would compile every stage a second time, for that literal
+            n = np.int64(0)
             for b in range(blocks):
                 if block_count[b] > r:
                     lane_e[n] = block_start[b] + r
@@ -263,17 +322,17 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
             for c in range(n):
                 if bad[c] != 0.0 or update[15, c] != 0.0:
                     return FALLBACK
-            if tampered:
+            if beyond is not None and tampered:
                 tamper_lanes(tamper, z, lane_e, obs, n, zl, moments, update)
             norms_lanes(n, update, options, norms)
             robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs)
             decide_lanes(n, options, norms, inputs, decision)
-            if screening:
+            if beyond is not None and screening:
                 screen_lanes(
                     P, lane_e, obs, n, channel_ok, options, detection, defence, update, norms,
                     decision, inflation,
                 )  # fmt: skip
-            if recovering:
+            if beyond is not None and recovering:
                 status = inflated_moments(
                     P, obs, n, inflation, decision, xi, xr, zl, sin_cos, Lj, moments, pxz,
                     update, retry, points, R, jitter,
@@ -281,12 +340,12 @@ def _rounds(x, P, links, robots, filt, options, fusion, detection, defence, gaug
                 if status != OK:
                     return status
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman)
-            if not kalman and not intersect_lanes(
+            if beyond is not None and not kalman and not intersect_lanes(
                 x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-                decision, options, fusion, out, work,
+                decision, options, fusion, out, work, filt[0],
             ):  # fmt: skip
                 return NOT_PD
-            if record_gauge:
+            if beyond is not None and record_gauge:
                 gauge_lanes(
                     gauge, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out, work
                 )

@@ -25,7 +25,7 @@ import numpy as np
 
 from resloc.cl.kernels_fusion import ci_posterior, ci_weight
 from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
-from resloc.cl.kernels_math import chol3, jit, jit_inline
+from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 
 __all__ = ["sandwich3", "split_ci_update"]
 
@@ -178,3 +178,8 @@ def split_ci_update(
             M[a, b] = 0.5 * (Ij[a, b] + Ij[b, a])
             Q[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
     return _clip_independent(Q, M, independent[i], L, Linv, Di, jitter)
+
+
+# split_ci_update inlines kernels_fusion's weight and posterior and kernels_joint_links'
+# bound check, and links kernels_math's chol3: its cache must go stale with them.
+stamp_with_pieces(split_ci_update)

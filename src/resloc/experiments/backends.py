@@ -83,15 +83,16 @@ def prepare_worker() -> None:
     warm_up_kernels()
 
 
-def warm_up_kernels() -> None:
+def warm_up_kernels(paper: bool = True, options: bool = True) -> None:
     """Compile the optional numba kernels once (here), so that workers load them from the
-    on-disk cache instead of compiling them again in parallel."""
+    on-disk cache instead of compiling them again in parallel (``paper``, ``options``: the
+    link loops' forms, :func:`resloc.cl.kernels.warm_up`)."""
     try:
         from resloc.cl import kernels
     except ImportError:  # pragma: no cover - numba is optional
         return
     warm = getattr(kernels, "warm_up", None)
-    if warm is not None and warm():
+    if warm is not None and warm(paper, options):
         from resloc.world import kernels as world_kernels  # the world step's twin
 
         world_kernels.warm_up()

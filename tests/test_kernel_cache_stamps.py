@@ -1,0 +1,66 @@
+"""The on-disk cache of every compiled kernel goes stale when a module of its callees
+changes (numba stamps a cached kernel with its own source file only)."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import pkgutil
+from pathlib import Path
+
+import pytest
+
+numba = pytest.importorskip("numba")
+
+import resloc.cl  # noqa: E402
+from resloc.cl.kernels_math import _is_dispatcher, callee_modules  # noqa: E402
+
+KERNEL_MODULES = [
+    *sorted(m.name for m in pkgutil.iter_modules(resloc.cl.__path__, "resloc.cl.")),
+    "resloc.world.kernels",
+]
+
+
+def _kernels():
+    for name in KERNEL_MODULES:
+        module = importlib.import_module(name)
+        for attr, value in sorted(vars(module).items()):
+            if "kernels" in name and _is_dispatcher(value) and value.py_func.__module__ == name:
+                yield name, attr, value
+
+
+def test_every_cached_kernel_is_stamped_with_its_callees_sources() -> None:
+    checked = 0
+    for name, attr, kernel in _kernels():
+        stamp = kernel._cache._cache_file._source_stamp
+        callees = set(callee_modules(kernel)) - {importlib.import_module(name)}
+        if not callees and not isinstance(stamp, tuple):
+            continue  # a kernel of its own module only (numba's own stamp covers it)
+        assert isinstance(stamp, tuple) and len(stamp) == 2, (name, attr)
+        missing = {m.__name__ for m in callees} - kernel._resloc_pieces
+        assert not missing, f"{name}.{attr}: its cache stamp misses {sorted(missing)}"
+        digest = hashlib.sha256()
+        stamped = [importlib.import_module(m) for m in kernel._resloc_pieces]
+        for path in sorted(str(m.__file__) for m in stamped):
+            digest.update(Path(path).read_bytes())
+        assert stamp[1] == digest.hexdigest(), (name, attr)
+        checked += 1
+    assert checked > 50  # every kernel module was found
+
+
+def test_split_ci_update_goes_stale_with_the_ci_pieces_it_inlines() -> None:
+    from resloc.cl.kernels_split import split_ci_update
+
+    split_ci_update._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
+    assert {"resloc.cl.kernels_fusion", "resloc.cl.kernels_joint_links"} <= (
+        split_ci_update._resloc_pieces
+    )
+
+
+def test_a_callee_reached_through_its_module_is_found() -> None:
+    from resloc.cl import kernels_rounds
+
+    names = {m.__name__ for m in callee_modules(kernels_rounds.correct_rounds)}
+    # _rounds reads the stages as module attributes and by name; both are followed
+    assert {"resloc.cl.kernels_round_stages", "resloc.cl.kernels_split"} <= names
+    assert "resloc.cl.kernels_fusion" in names  # through kernels_split (transitively)

@@ -1,0 +1,116 @@
+"""The two compiled forms of the link loops (:func:`resloc.cl.kernels_rounds.beyond_paper`):
+the paper's method runs the form compiled without the options' stages, any option the form
+with every stage; both forms give the paper's method the same result, and the warm-up's
+choice (:func:`resloc.cl.kernels.options_beyond_paper`) is the loops' own."""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl import kernels_rounds as rounds
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.experiments.config import default_scenario
+from resloc.filters import make_filter
+from resloc.world.world import World
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+PARAMS = default_scenario().cl_params()
+#: name -> (CLParams, whether the loops run the options' form)
+CASES = {
+    "paper": (PARAMS, False),
+    "nis gate": (replace(PARAMS, detector_norm="nis"), False),
+    "last sent": (replace(PARAMS, threshold_innovation="last_sent"), False),
+    "ci": (replace(PARAMS, fusion="ci"), True),
+    "split_ci": (replace(PARAMS, fusion="split_ci"), True),
+    "gauge": (replace(PARAMS, fusion="gauge"), True),
+    "tracked": (replace(PARAMS, fusion="tracked"), True),
+    "cusum": (replace(PARAMS, detector_norm="nis", cusum=True), True),
+    "mean cusum": (replace(PARAMS, mean_cusum=True), True),
+    "robot cusum": (replace(PARAMS, robot_cusum=True), True),
+    "recovery": (replace(PARAMS, recovery=True), True),
+    "cached": (replace(PARAMS, neighbour_estimate="cached"), True),
+}
+
+
+@contextmanager
+def _forms_seen():
+    """The ``beyond`` argument of every loop call within (the loops themselves run)."""
+    seen: list = []
+    loops = {"correct_links": rounds.correct_links, "correct_rounds": rounds.correct_rounds}
+
+    def spy(name):
+        def call(*args):
+            seen.append((name, args[-1]))
+            return loops[name](*args)
+
+        return call
+
+    for name in loops:
+        setattr(rounds, name, spy(name))
+    try:
+        yield seen
+    finally:
+        for name, loop in loops.items():
+            setattr(rounds, name, loop)
+
+
+def _steps(filt, params, steps: int, rounds_min: int):
+    """``steps`` corrections of the default scenario (two trials) with ``params``; yields
+    each step's result."""
+    sc = default_scenario()
+    world = World(sc.world, 2, 3, sc.trigger.lambda2)
+    fusion = fusion_strategy(params.fusion)
+    x, P = world.initial_estimates()
+    memory = LinkMemory(world.B)
+    fusion.init(memory, x, P, world.n)
+    saved = rounds.ROUNDS_MIN_LINKS
+    rounds.ROUNDS_MIN_LINKS = rounds_min
+    try:
+        for _ in range(steps):
+            ws = world.step()
+            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+            Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+            links = LinkBatch(
+                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
+                ws.lambda2, **fusion.link_fields(memory, ws.j),
+            )  # fmt: skip
+            x, P, out = correct(filt, xp, Pp, links, params, memory)
+            fusion.exchange(memory, ws.i, ws.j)
+            assert out.compiled
+            yield x, P, out
+    finally:
+        rounds.ROUNDS_MIN_LINKS = saved
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_the_loops_run_the_options_form_exactly_when_an_option_is_on(name: str) -> None:
+    params, beyond = CASES[name]
+    filt = make_filter("ckf")
+    for rounds_min in (1, 10**18):  # the rounds, then the row-order loop
+        with _forms_seen() as seen:
+            for _ in _steps(filt, params, 2, rounds_min):
+                pass
+        assert seen, "no compiled loop ran"
+        assert {form for _, form in seen} == {True if beyond else None}, seen
+    assert kernels.options_beyond_paper(params) is beyond  # the warm-up's choice
+
+
+@pytest.mark.parametrize("kind", ["ckf", "ekf"])
+def test_both_forms_give_the_paper_the_same_result(kind: str) -> None:
+    filt = make_filter(kind)
+    for rounds_min in (1, 10**18):
+        paper = list(_steps(filt, PARAMS, 4, rounds_min))
+        with rounds.every_stage(), _forms_seen() as seen:
+            every = list(_steps(filt, PARAMS, 4, rounds_min))
+        assert {form for _, form in seen} == {True}
+        for (xa, Pa, a), (xb, Pb, b) in zip(paper, every, strict=True):
+            np.testing.assert_allclose(xa, xb, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(Pa, Pb, rtol=0, atol=1e-12)
+            np.testing.assert_array_equal(a.delivered, b.delivered)
+            np.testing.assert_array_equal(a.detected, b.detected)
