@@ -35,6 +35,7 @@ CASES = {
     "robot cusum": (replace(PARAMS, robot_cusum=True), True),
     "recovery": (replace(PARAMS, recovery=True), True),
     "cached": (replace(PARAMS, neighbour_estimate="cached"), True),
+    "redundancy": (replace(PARAMS, redundancy=True, redundancy_sequence=True), True),
 }
 
 

@@ -560,8 +560,8 @@ def options_beyond_paper(params: CLParams) -> bool:
     strategy = prepared.strategy
     if KERNEL_UPDATES[strategy.kernel_update] != NAIVE_UPDATE:
         return True
-    if strategy.kernel_bookkeeping != "none" or prepared.cached:
-        return True
+    if strategy.kernel_bookkeeping != "none" or prepared.cached or params.redundancy:
+        return True  # (the redundancy pre-pass's verdicts enter the options' form)
     rows = np.zeros(1, np.int64)
     detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
     defence = defence_state(params, None, rows)
