@@ -116,6 +116,59 @@ def test_wire_bytes_match_the_runtime_encoder():
         assert len(ack) == WIRE_BYTES["delivery_ack"] + n * WIRE_BYTES["delivery_ack_per_link"]
 
 
+def test_wire_bytes_of_factorized_frames_as_the_codec_builds_them():
+    # The runtime does not carry factorized fusion: its frames as the codec would build them
+    # (the same header, msgpack body with arrays as bin fields, and HMAC tag).
+    import msgpack
+
+    from resloc.runtime.messages import HEADER, TAG_SIZE
+
+    def frame(body):
+        packed = {k: np.ascontiguousarray(v).tobytes() for k, v in body.items()}
+        return HEADER.size + len(msgpack.packb(packed, use_bin_type=True)) + TAG_SIZE
+
+    estimate = {"x": np.zeros(3), "P": np.eye(3)}
+    assert frame(estimate) == WIRE_BYTES["estimate"]
+    assert frame({**estimate, "fs": np.eye(3)}) - frame(estimate) == WIRE_BYTES["factor"]
+    for n in (1, 2, 16, 31):
+        pairs = {"to": np.arange(n, dtype=np.int64), "pair": np.zeros((n, 4, 3, 3))}
+        assert frame(pairs) == WIRE_BYTES["pair_frame"] + n * WIRE_BYTES["pair_per_link"]
+
+
+def test_factorized_counts_its_factors_and_pair_exchange():
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.runner import run_scenario
+
+    sc = default_scenario().replace(
+        **{"team.robots": 6, "run.steps": 30, "run.filters": ["ekf"], "run.dead_reckoning": False,
+           "estimator.fusion": "factorized"}
+    )  # fmt: skip
+    est = run_scenario(sc).estimators["ekf"]
+    t, log = est.totals, est.links
+    assert np.array_equal(t["factors"], t["triggered"]) and t["triggered"].sum() > 0
+    # the same counts from the link log, one step at a time
+    fused = log["fused"]
+    acks, ack_frames, pairs, pair_frames = 0, 0, 0, 0
+    for k in np.unique(log["step"][fused]):
+        on = fused & (log["step"] == k)
+        links = list(zip(log["i"][on].tolist(), log["j"][on].tolist(), strict=True))
+        told = [(i, j) for i, j in links if i < j]
+        acks += len(told)
+        ack_frames += len({i for i, _ in told})
+        closed = {(min(i, j), max(i, j)) for i, j in links}
+        pairs += len(closed)
+        pair_frames += len({high for _, high in closed})
+    assert pairs > 0 and 0 < acks < fused.sum()
+    got = [int(t[key][0]) for key in ("pair_ack_links", "pair_ack_frames")]
+    assert got == [acks, ack_frames]
+    assert [int(t["pair_messages"][0]), int(t["pair_frames"][0])] == [pairs, pair_frames]
+    comm = communication(t)
+    w = WIRE_BYTES
+    assert comm["pair"][1][0] == pair_frames * w["pair_frame"] + pairs * w["pair_per_link"]
+    assert comm["estimate"][1][0] == t["triggered"][0] * (w["estimate"] + w["factor"])
+    assert np.isfinite(est.bytes_per_step(sc.estimator.fusion)).all()
+
+
 def test_split_ci_counts_its_independent_parts_and_delivery_acknowledgements():
     from resloc.experiments.config import default_scenario
     from resloc.experiments.runner import run_scenario
@@ -170,7 +223,8 @@ def test_run_summary_reports_relative_nees_and_bytes():
     s = resloc.run_scenario(sc).summary()["ckf"]
     assert np.isfinite(s["nees_rel_mean"]) and s["nees_rel_mean"] >= 0
     assert s["messages_consensus"] > 0 and s["messages_ack"] > 0
-    assert s["bytes_total"] == s["bytes_estimate"] + s["bytes_ack"] + s["bytes_consensus"]
+    kinds = ("estimate", "ack", "consensus", "pair")
+    assert s["bytes_total"] == sum(s[f"bytes_{k}"] for k in kinds)
     assert s["messages_estimate"] == s["transmissions"]
     assert 0.0 <= s["nees_exceed_share"] <= 1.0
 
@@ -181,12 +235,11 @@ def test_methods_whose_traffic_is_not_counted_report_no_bytes():
     from resloc.experiments.runner import run_scenario
 
     assert uncounted_traffic("naive") is None and uncounted_traffic("gauge") is None
-    assert uncounted_traffic("split_ci") is None
+    assert uncounted_traffic("split_ci") is None and uncounted_traffic("factorized") is None
     assert "centralized" in uncounted_traffic("tracked")
-    assert "factors" in uncounted_traffic("factorized")
     sc = default_scenario().replace(
         **{"team.robots": 5, "run.steps": 10, "run.filters": ["ekf"], "run.dead_reckoning": False}
     )
-    for fusion, counted in (("naive", True), ("tracked", False), ("factorized", False)):
+    for fusion, counted in (("naive", True), ("tracked", False), ("factorized", True)):
         est = run_scenario(sc.replace(**{"estimator.fusion": fusion})).estimators["ekf"]
         assert np.isfinite(est.bytes_per_step(fusion)).all() == counted, fusion

@@ -51,10 +51,18 @@ WIRE_BYTES: dict[str, int] = {
     "independent_part": 77,
     "delivery_ack": 74,
     "delivery_ack_per_link": 8,
+    # factorized: the factor sigma_ji the sender keeps for the receiver (3x3 f8 and its
+    # key), per transmission as the estimates are counted (one receiving link each); the
+    # pair exchange at the end of the step: the lower id's "I fused you" (ids only, the
+    # delivery_ack frame above), then one frame from the higher id to each lower partner
+    # with [A, B, P_pred, sigma] (4x3x3 f8) per pair (exact up to 31 pairs per frame)
+    "factor": 77,
+    "pair_frame": 82,
+    "pair_per_link": 296,
 }
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) whose frames are counted.
-COUNTED_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks"})
+COUNTED_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks", "factors"})
 
 
 def uncounted_traffic(fusion) -> str | None:
@@ -384,14 +392,16 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         ``triggered`` (estimate transmissions), ``readings`` and ``independent_parts``
         (transmissions that carry the sender's reading of the receiver / its independent
         part), ``ack_frames`` and ``ack_links`` (gauge acknowledgements),
-        ``delivery_ack_frames`` and ``delivery_ack_links`` (split CI's), and
-        ``consensus_messages`` (gauge consensus exchanges).
+        ``delivery_ack_frames`` and ``delivery_ack_links`` (split CI's),
+        ``consensus_messages`` (gauge consensus exchanges), and factorized fusion's
+        ``factors`` (transmissions carrying a factor), ``pair_ack_frames`` /
+        ``pair_ack_links`` and ``pair_frames`` / ``pair_messages`` (its pair exchange).
 
     Returns
     -------
     dict
-        ``{kind: (messages (T,), bytes (T,))}`` for ``estimate``, ``ack``, ``consensus``
-        and ``total``, at :data:`WIRE_BYTES`.
+        ``{kind: (messages (T,), bytes (T,))}`` for ``estimate``, ``ack``, ``consensus``,
+        ``pair`` and ``total``, at :data:`WIRE_BYTES`.
     """
 
     def get(key: str) -> np.ndarray:
@@ -403,24 +413,24 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         est * w["estimate"]
         + get("readings") * w["reading"]
         + get("independent_parts") * w["independent_part"]
+        + get("factors") * w["factor"]
     )
-    gauge_acks, split_acks = get("ack_frames"), get("delivery_ack_frames")
+    gauge_acks = get("ack_frames")
+    id_acks = get("delivery_ack_frames") + get("pair_ack_frames")
     ack_bytes = (
         gauge_acks * w["ack"]
         + get("ack_links") * w["ack_per_link"]
-        + split_acks * w["delivery_ack"]
-        + get("delivery_ack_links") * w["delivery_ack_per_link"]
+        + id_acks * w["delivery_ack"]
+        + (get("delivery_ack_links") + get("pair_ack_links")) * w["delivery_ack_per_link"]
     )
-    cons = get("consensus_messages")
+    cons, pairs = get("consensus_messages"), get("pair_frames")
     out = {
         "estimate": (est, estimate_bytes),
-        "ack": (gauge_acks + split_acks, ack_bytes),
-        "consensus": (cons, cons * WIRE_BYTES["consensus"]),
+        "ack": (gauge_acks + id_acks, ack_bytes),
+        "consensus": (cons, cons * w["consensus"]),
+        "pair": (pairs, pairs * w["pair_frame"] + get("pair_messages") * w["pair_per_link"]),
     }
-    out["total"] = (
-        out["estimate"][0] + out["ack"][0] + out["consensus"][0],
-        out["estimate"][1] + out["ack"][1] + out["consensus"][1],
-    )
+    out["total"] = (sum(m for m, _ in out.values()), sum(b for _, b in out.values()))
     return out
 
 

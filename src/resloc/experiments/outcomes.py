@@ -108,6 +108,13 @@ def per_group_counts(masks: np.ndarray, group: np.ndarray, groups: int) -> np.nd
     return np.stack([np.bincount(group[m], minlength=groups) for m in masks]).astype(np.int64)
 
 
+def _distinct_per_trial(keys: np.ndarray, trial: np.ndarray, trials: int) -> np.ndarray:
+    """How many distinct ``keys`` (int64, (M,)) each trial has; ``trial`` (M,) is a
+    function of the key."""
+    _, first = np.unique(keys, return_index=True)
+    return np.bincount(trial[first], minlength=trials)
+
+
 class OutcomeCounter:
     """One estimator's per-step link outcomes, counted per trial in bulk.
 
@@ -132,28 +139,39 @@ class OutcomeCounter:
     acks : str or None
         The fusion acknowledges every fusion: count ``{acks}_links`` and ``{acks}_frames``
         (``"ack"``: gauge's blocks; ``"delivery_ack"``: split CI's ids).
+    pairs : bool
+        The fusion closes every pair that fused in either direction with a pair message
+        (``factorized``): count, per trial, ``pair_ack_links`` / ``pair_ack_frames`` (the
+        lower id tells the higher "I fused you", ids only) and ``pair_messages`` /
+        ``pair_frames`` (the higher id sends the lower its ``[A, B, P_pred, sigma]``; the
+        lower keeps the pair's cross-covariance: :meth:`resloc.cl.node.RobotNode.close_pairs`).
+        :meth:`add` then needs the links' partners ``j``.
     """
 
     #: Most steps buffered (beyond it the fixed costs are already amortized).
     MAX_ROWS = 256
 
-    def __init__(self, series, totals, raster, link_flags, trials, robots, acks=None) -> None:
+    def __init__(
+        self, series, totals, raster, link_flags, trials, robots, acks=None, pairs=False
+    ) -> None:
         self.series, self.totals, self.raster = series, totals, raster
         self.link_flags = link_flags
         self.trials, self.robots, self.acks = int(trials), int(robots), acks
+        self.pairs = bool(pairs)
         self.last_row = len(series["candidates"]) - 1
         self.pending: list[tuple] = []
 
-    def add(self, row, out, i, team_i, attacked, candidates, attacked_n) -> None:
+    def add(self, row, out, i, team_i, attacked, candidates, attacked_n, j=None) -> None:
         """Record step ``row``: ``out`` (a :class:`~resloc.cl.links.LinkOutcome`, or None
         when the estimator fuses nothing), the links' observers ``i``, their trials
-        ``team_i`` and ``attacked`` flags (each (E,)), and the step's per-trial
-        ``candidates`` and ``attacked_n`` (T,)."""
+        ``team_i`` and ``attacked`` flags (each (E,)), the step's per-trial
+        ``candidates`` and ``attacked_n`` (T,), and the links' partners ``j`` (E,) (read
+        only when counting ``pairs``)."""
         packed = None
         if out is not None:
             flags = (out.detected, out.triggered, out.delivered, out.fused, out.repaired)
             packed = pack_outcomes(*flags, attacked)
-        self.pending.append((row, packed, i, team_i, candidates, attacked_n))
+        self.pending.append((row, packed, i, team_i, candidates, attacked_n, j))
         if len(self.pending) >= self.MAX_ROWS or row == self.last_row:
             self.flush()
 
@@ -194,9 +212,26 @@ class OutcomeCounter:
             B = T * N
             senders = np.unique(slot[fused] * B + i[fused]) % B
             tot[f"{self.acks}_frames"] += np.bincount(senders // N, minlength=T)
+        if self.pairs:
+            j = np.concatenate([p[6] for p in linked])
+            self._count_pairs(slot[fused], i[fused], j[fused], team_i[fused])
         own = i < N
         transmissions = np.bincount(
             slot[own] * N + i[own], weights=triggered[own], minlength=C * N
         ).reshape(C, N)
         self.raster[rows] = transmissions
         self.link_flags.append(packed[own] & _LOG_MASK)
+
+    def _count_pairs(self, slot, i, j, trial) -> None:
+        """Count the pair exchange of the fused links ``(i, j)`` of buffered steps ``slot``
+        in trials ``trial`` (each (F,); ``i`` and ``j`` are in one trial, so their order is
+        their ids' order)."""
+        T = self.trials
+        B = T * self.robots
+        told = i < j  # the lower id fused the higher: the higher must hear of the pair
+        tot = self.totals
+        tot["pair_ack_links"] += np.bincount(trial[told], minlength=T)
+        tot["pair_ack_frames"] += _distinct_per_trial(slot[told] * B + i[told], trial[told], T)
+        low, high = np.minimum(i, j), np.maximum(i, j)
+        tot["pair_messages"] += _distinct_per_trial((slot * B + low) * B + high, trial, T)
+        tot["pair_frames"] += _distinct_per_trial(slot * B + high, trial, T)

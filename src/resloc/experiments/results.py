@@ -57,6 +57,11 @@ TOTALS = (
     "delivery_ack_links",
     "delivery_ack_frames",
     "independent_parts",
+    "factors",
+    "pair_ack_links",
+    "pair_ack_frames",
+    "pair_messages",
+    "pair_frames",
 )
 
 
@@ -171,7 +176,7 @@ class EstimatorResult:
     def bytes_per_step(self, fusion) -> np.ndarray:
         """Robot-to-robot bytes per step and trial, shape (T,); ``nan`` for a fusion method
         whose traffic is not counted (:func:`~resloc.experiments.metrics.uncounted_traffic`:
-        the centralized ``tracked``, ``factorized``'s factor messages)."""
+        the centralized ``tracked``)."""
         per_step = self.bytes_per_trial() / self.series["msle"].shape[0]
         return np.full(per_step.shape, np.nan) if uncounted_traffic(fusion) else per_step
 

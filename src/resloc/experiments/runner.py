@@ -101,8 +101,9 @@ class EstimatorTrack(EstimatorState):
             else None
         )
         self.outcome_counts = OutcomeCounter(
-            self.series, self.totals, self.raster, self.link_flags, T, N, acks
-        )
+            self.series, self.totals, self.raster, self.link_flags, T, N, acks,
+            pairs="factors" in exchanges,
+        )  # fmt: skip
 
 
 def expected_links(scenario: Scenario) -> float:
@@ -253,6 +254,8 @@ def run_scenario(
             tr.totals["readings"] += tr.totals["triggered"]
         if "delivery_acks" in fusion.node_exchanges:  # split CI: and its independent part
             tr.totals["independent_parts"] += tr.totals["triggered"]
+        if "factors" in fusion.node_exchanges:  # factorized: the factor kept for the receiver
+            tr.totals["factors"] += tr.totals["triggered"]
     shared = link_columns(source.trial0_links)
     results = {}
     for tr in everyone:
@@ -423,7 +426,7 @@ def record_step(tr, fusion, k, ws, out, team_i, candidates, attacked_n, T, N, re
     """Accumulate one step of one estimator (its link outcomes and accuracy are counted in
     bulk: :class:`~resloc.experiments.outcomes.OutcomeCounter`,
     :class:`~resloc.experiments.metrics.AccuracyRecorder`)."""
-    tr.outcome_counts.add(k, out, ws.i, team_i, ws.attacked, candidates, attacked_n)
+    tr.outcome_counts.add(k, out, ws.i, team_i, ws.attacked, candidates, attacked_n, ws.j)
     tr.track[k + 1] = tr.x[:N]
     P = tr.P if fusion is None else fusion.reported(tr.memory, tr.x, tr.P)
     tr.cov[k + 1] = P[:N]
