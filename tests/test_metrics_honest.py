@@ -116,23 +116,20 @@ def test_wire_bytes_match_the_runtime_encoder():
         assert len(ack) == WIRE_BYTES["delivery_ack"] + n * WIRE_BYTES["delivery_ack_per_link"]
 
 
-def test_wire_bytes_of_factorized_frames_as_the_codec_builds_them():
-    # The runtime does not carry factorized fusion: its frames as the codec would build them
-    # (the same header, msgpack body with arrays as bin fields, and HMAC tag).
-    import msgpack
+def test_wire_bytes_of_factorized_frames_match_the_runtime_encoder():
+    from resloc.runtime.messages import Codec
+    from resloc.runtime.schema import Kind
 
-    from resloc.runtime.messages import HEADER, TAG_SIZE
-
-    def frame(body):
-        packed = {k: np.ascontiguousarray(v).tobytes() for k, v in body.items()}
-        return HEADER.size + len(msgpack.packb(packed, use_bin_type=True)) + TAG_SIZE
-
+    codec = Codec(b"k" * 32, 3)
     estimate = {"x": np.zeros(3), "P": np.eye(3)}
-    assert frame(estimate) == WIRE_BYTES["estimate"]
-    assert frame({**estimate, "fs": np.eye(3)}) - frame(estimate) == WIRE_BYTES["factor"]
+    plain = codec.encode(Kind.ESTIMATE, 1, estimate, "resloc/radio")
+    factor = {"fj": np.arange(1), "fs": np.eye(3)[None]}
+    carried = codec.encode(Kind.ESTIMATE, 1, estimate | factor, "resloc/radio")
+    assert len(carried) - len(plain) == WIRE_BYTES["factor"]
     for n in (1, 2, 16, 31):
-        pairs = {"to": np.arange(n, dtype=np.int64), "pair": np.zeros((n, 4, 3, 3))}
-        assert frame(pairs) == WIRE_BYTES["pair_frame"] + n * WIRE_BYTES["pair_per_link"]
+        body = {"to": np.arange(n), "round": 1, "pair": np.zeros((n, 4, 3, 3))}
+        pairs = codec.encode(Kind.ACK, 1, body, "resloc/radio")
+        assert len(pairs) == WIRE_BYTES["pair_frame"] + n * WIRE_BYTES["pair_per_link"]
 
 
 def test_factorized_counts_its_factors_and_pair_exchange():

@@ -72,6 +72,7 @@ def load_outputs(out: Path) -> tuple[dict, dict, dict]:
         ("ekf", "naive", 3),
         ("ekf", "gauge", 5),
         ("ckf", "split_ci", 5),
+        ("ukf", "factorized", 5),
     ],
 )
 def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process) -> None:
@@ -108,6 +109,13 @@ def test_lockstep_swarm_equals_the_simulator(tmp_path, filt, fusion, per_process
         assert wire["estimate"]["bytes"] >= 5 * 30 * (
             WIRE_BYTES["estimate"] + WIRE_BYTES["independent_part"]
         )
+    if fusion == "factorized":  # factors on the estimates; ids, then pair messages
+        assert wire["ack"]["messages"] == 2 * 5 * 30 and wire["ack"]["copies_delivered"] > 0
+        counters = runtime["robot_counters"]
+        assert counters["pair_messages_received"] > 0
+        assert counters.get("pair_messages_missing", 0) == counters.get("factors_missing", 0) == 0
+        naive = run_scenario(sc.replace(**{"estimator.fusion": "naive"}))
+        assert np.abs(naive.estimators[filt].track - track).max() > 1e-3  # the factors matter
     for f in ("scenario.toml", "timeseries.csv", "trajectories.csv", f"transmissions_{filt}.csv"):
         assert (Path(opts.out) / f).is_file()
     assert not any(n.startswith(".out.tmp") for n in os.listdir(tmp_path))
@@ -184,8 +192,9 @@ def test_radio_jamming_acknowledgements_leaves_estimates_and_changes_the_gauge(t
     assert (np.linalg.eigvalsh(est["P"][1:]) > 0).all()  # still SPD
 
 
-def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
-    sc = hot_scenario(90, **{"run.filters": ["ckf"]})
+@pytest.mark.parametrize("fusion", ["naive", "factorized"])
+def test_realtime_swarm_completes_and_counts_late_messages(tmp_path, fusion) -> None:
+    sc = hot_scenario(90, **{"run.filters": ["ckf"], "estimator.fusion": fusion})
     opts = swarm_options(tmp_path, sc, "ckf", mode=Mode.REALTIME)
     result = run_swarm(opts, [free_endpoint()], 2, log_dir=tmp_path / "logs")
     assert result.end == "complete"
@@ -200,6 +209,9 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path) -> None:
     # realtime never waits: a step takes about dt of wall time
     assert runtime["wall_time_per_step_s"]["median"] == pytest.approx(sc.world.motion.dt, rel=0.5)
     assert runtime["wire_by_kind"]["estimate"]["messages"] > 0.9 * 5 * 90
+    if fusion == "factorized":  # both rounds of the pair exchange ran in their windows
+        assert runtime["wire_by_kind"]["ack"]["messages"] > 0.9 * 2 * 5 * 90
+        assert counters["pair_messages_received"] > 0
 
 
 def _robot_cli(tmp_path: Path, opts: SwarmOptions, rid: int) -> subprocess.Popen:

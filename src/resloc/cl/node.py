@@ -161,9 +161,11 @@ class RobotNode:
         of the step, shape (4, 3, 3)."""
         return self._factors().pair_message(partner)
 
-    def factor_close(self, messages: dict[int, np.ndarray]) -> None:
+    def factor_close(self, messages: dict[int, np.ndarray | None]) -> None:
         """With ``factorized`` fusion: end of the step with ``{partner id: its
-        factor_message(this robot)}`` from every partner."""
+        factor_message(this robot)}`` from every partner (a partner with a lower id than
+        this robot's needs not send it: the lower id keeps the pair's cross-covariance, the
+        higher the identity; give None)."""
         self._factors().close_pairs(self.robot_id, messages)
 
     def _factors(self) -> FactorizedCovariance:

@@ -51,13 +51,14 @@ WIRE_BYTES: dict[str, int] = {
     "independent_part": 77,
     "delivery_ack": 74,
     "delivery_ack_per_link": 8,
-    # factorized: the factor sigma_ji the sender keeps for the receiver (3x3 f8 and its
-    # key), per transmission as the estimates are counted (one receiving link each); the
-    # pair exchange at the end of the step: the lower id's "I fused you" (ids only, the
-    # delivery_ack frame above), then one frame from the higher id to each lower partner
-    # with [A, B, P_pred, sigma] (4x3x3 f8) per pair (exact up to 31 pairs per frame)
-    "factor": 77,
-    "pair_frame": 82,
+    # factorized: the factor sigma_ji the sender keeps for the receiver (its id i8, 3x3 f8
+    # and the two keys) on the estimate, per transmission as the estimates are counted (one
+    # receiving link each); the pair exchange at the end of the step: the lower id's "I
+    # fused you" (ids only, the delivery_ack frame above), then from the higher id one
+    # frame (round 1) to its lower partners with [A, B, P_pred, sigma] (4x3x3 f8) for each
+    # (exact from 1 up to 31 pairs per frame)
+    "factor": 90,
+    "pair_frame": 89,
     "pair_per_link": 296,
 }
 

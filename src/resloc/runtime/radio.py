@@ -8,7 +8,8 @@ sensed link, which is range-limited and jammed in a CDZ at the zone's rate), so 
 the in-process simulator see the same channel:
 
 * ESTIMATE from j reaches each robot i that sensed j this step if ``channel_ok(i, j)``;
-* ACK from i to j (gauge fusion, split CI) reaches j always, as in the simulator (default), or, with
+* ACK from i to j (gauge fusion, split CI, factorized fusion's ids and pair messages)
+  reaches j always, as in the simulator (default), or, with
   ``jam_acks``, only if ``channel_ok(j, i)`` (the link on which j is the receiver);
 * CONSENSUS from c reaches every communication neighbour a of c: ``channel_ok(a, c)`` or
   ``channel_ok(c, a)`` (the simulator's undirected communication graph). The radio also tells
@@ -87,6 +88,8 @@ class Radio:
         phases = [(Kind.ESTIMATE, 0)]
         if self.team.acks:
             phases += [(Kind.ACK, 0)]
+        if self.team.factors:  # the pair messages
+            phases += [(Kind.ACK, 1)]
         if self.team.gauge:
             phases += [(Kind.CONSENSUS, r) for r in range(self.team.gauge_rounds)]
         self.phases = phases

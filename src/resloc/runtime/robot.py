@@ -16,6 +16,10 @@ counters. A step of robot i:
    (``node.gauge_message`` / ``node.gauge_mix``) with the communication neighbours. Split
    CI: one ACK frame naming ``node.delivery_acks()``, then ``node.delivery_close`` with the
    number of robots that named this one (its estimates carry ``node.independent``).
+   Factorized: its estimates carry ``node.factor_for(j)`` for each robot j it measured; one
+   ACK frame naming the higher ids it fused, then one ACK frame of round 1 with
+   ``node.factor_message(p)`` for each lower partner p of the step (a robot it fused or that
+   named it), then ``node.factor_close`` with the messages of its higher partners.
 4. Publish ``REPORT(k)``: corrected estimate, reported covariance, per-link decisions,
    counters.
 
@@ -72,7 +76,10 @@ class RobotAgent(PullingRobot):
         self.reciprocal: dict[tuple[int, int], np.ndarray] = {}
         # (neighbour, step) -> the independent part its estimate carried (split CI)
         self.independent: dict[tuple[int, int], np.ndarray] = {}
+        # (neighbour, step) -> the factor it keeps for this robot (factorized)
+        self.factors_in: dict[tuple[int, int], np.ndarray] = {}
         self.acks: dict[int, np.ndarray] = {}
+        self.pair_messages: dict[int, np.ndarray] = {}  # higher partner -> its message
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
         self.outcome: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None
         self.cpu0 = 0.0
@@ -98,7 +105,7 @@ class RobotAgent(PullingRobot):
             b["x"],
             b["P"],
             n_ids=team.robots,
-            team_size=team.robots if team.gauge else None,
+            team_size=team.team_size,
         )
         self.phase = None
         self.estimates.clear()
@@ -132,7 +139,7 @@ class RobotAgent(PullingRobot):
             np.zeros(3),
             np.eye(3) * 0.01,
             n_ids=team.robots,
-            team_size=team.robots if team.gauge else None,
+            team_size=team.team_size,
         )
         scratch.predict(np.array([0.1, 0.0]), team.dt)
         other = (self.id + 1) % team.robots
@@ -146,6 +153,7 @@ class RobotAgent(PullingRobot):
             0.0,
             1.0,
             P_nb_ind=np.eye(3)[None] * 0.005 if team.split else None,
+            factor_nb=np.zeros((1, 3, 3)) if team.factors else None,
         )
         for key in (self.bus.key("radio", "in"), self.bus.key("report", self.id)):
             self.bus.declare(key)
@@ -161,9 +169,10 @@ class RobotAgent(PullingRobot):
         self.step = msg.step
         self.sensors = b
         self.acks.clear()
+        self.pair_messages.clear()
         self.consensus.clear()
         keep = self.step - self.options.max_age_steps - 2
-        for store in (self.reciprocal, self.independent):
+        for store in (self.reciprocal, self.independent, self.factors_in):
             for old in [key for key in store if key[1] < keep]:
                 del store[old]
         self.node.predict(b["u"], self.team.dt)
@@ -176,6 +185,9 @@ class RobotAgent(PullingRobot):
             body |= {"rj": b["j"], "rz": b["z"]}
         if self.team.split:
             body["Pi"] = self.node.independent
+        if self.team.factors:  # sigma_ji for each robot j that may fuse this estimate
+            fj = b["j"].astype(np.int64)
+            body |= {"fj": fj, "fs": [self.node.factor_for(int(j)) for j in fj]}
         self.send(Kind.ESTIMATE, body)
         self.wait(Kind.ESTIMATE, 0)
 
@@ -249,6 +261,10 @@ class RobotAgent(PullingRobot):
                 del hist[old]
             if "Pi" in m.body:
                 self.independent[(m.sender, m.step)] = m.body["Pi"]
+            if "fj" in m.body:
+                mine = np.flatnonzero(m.body["fj"] == self.id)
+                if len(mine):  # the factor the sender keeps for this robot
+                    self.factors_in[(m.sender, m.step)] = m.body["fs"][mine[0]]
             if "rj" in m.body:
                 mine = np.flatnonzero(m.body["rj"] == self.id)
                 if len(mine):  # the sender measured this robot: the reverse link's reading
@@ -268,11 +284,14 @@ class RobotAgent(PullingRobot):
             mine = m.body["to"] == self.id
             if not mine.any():
                 return
-            if self.team.gauge != ("ack" in m.body):  # a key holder's frame of the wrong form
+            form = "gauge" if "ack" in m.body else "pair" if "pair" in m.body else "ids"
+            if form not in self.team_ack_forms:  # a key holder's frame of the wrong form
                 self.counts["acks_malformed"] += 1
-            elif self.team.gauge:
+            elif form == "gauge":
                 self.acks[m.sender] = m.body["ack"][mine].sum(axis=0)
-            else:  # split CI: the sender fused this robot's estimate
+            elif form == "pair":  # factorized: a higher partner's pair message
+                self.pair_messages[m.sender] = m.body["pair"][np.flatnonzero(mine)[0]]
+            else:  # the sender fused this robot's estimate
                 self.acks[m.sender] = None
         elif m.kind is Kind.CONSENSUS:
             rnd = int(m.body["round"])
@@ -284,6 +303,13 @@ class RobotAgent(PullingRobot):
                 self.counts["consensus_late"] += 1
                 return
             self.consensus.setdefault(rnd, {})[m.sender] = (m.body["m"], int(m.body["deg"]))
+
+    @property
+    def team_ack_forms(self) -> frozenset[str]:
+        """The ACK frames this team's fusion sends: gauge blocks, ids, or ids and pairs."""
+        if self.team.gauge:
+            return frozenset({"gauge"})
+        return frozenset({"ids", "pair"}) if self.team.factors else frozenset({"ids"})
 
     def complete(self) -> bool:
         """Realtime: everything this phase can expect has arrived (go on before the window
@@ -315,14 +341,21 @@ class RobotAgent(PullingRobot):
                 return
             self.send(Kind.ACK, self.ack_body())
             self.wait(Kind.ACK, 0)
-        elif kind is Kind.ACK:
+        elif kind is Kind.ACK and rnd == 0:
             self.close_acks()
             self.counts["acks_received"] += len(self.acks)
             if self.team.gauge:
                 self.start_round(0)
+            elif self.team.factors:
+                self.send(Kind.ACK, self.pair_body())
+                self.wait(Kind.ACK, 1)
             else:
                 self.phase = None
                 self.finish_step()
+        elif kind is Kind.ACK:
+            self.close_pairs()
+            self.phase = None
+            self.finish_step()
         elif kind is Kind.CONSENSUS:
             mine = self.consensus.pop(rnd, {})
             got = [s for s in sorted(mine) if s in self.neighbours]
@@ -335,10 +368,12 @@ class RobotAgent(PullingRobot):
                 self.finish_step()
 
     def ack_body(self) -> dict:
-        """This step's ACK frame: gauge blocks ``L_i B_ij`` to the robots fused, or (split
-        CI) only their ids."""
+        """This step's ACK frame: gauge blocks ``L_i B_ij`` to the robots fused, or only their
+        ids (split CI; factorized: the higher ids, which must hear of the pair)."""
         if not self.team.gauge:
-            return {"to": np.asarray(self.node.delivery_acks(), dtype=np.int64)}
+            fused = self.node.delivery_acks()
+            to = [j for j in fused if j > self.id] if self.team.factors else fused
+            return {"to": np.asarray(to, dtype=np.int64)}
         acks = self.node.gauge_acks()
         to, ack = zip(*acks, strict=True) if acks else ((), ())
         return {
@@ -350,8 +385,37 @@ class RobotAgent(PullingRobot):
         """Close the step with the acknowledgements received (a lost one: without it)."""
         if self.team.gauge:
             self.node.gauge_close([self.acks[s] for s in sorted(self.acks)])
-        else:
+        elif self.team.split:
             self.node.delivery_close(len(self.acks))
+
+    def partners(self) -> list[int]:
+        """Factorized: the step's partners, the robots this one fused or that named it."""
+        return sorted(set(self.node.delivery_acks()) | set(self.acks))
+
+    def pair_body(self) -> dict:
+        """Factorized, round 1: this robot's pair message to each lower partner (the lower
+        id keeps the pair's cross-covariance)."""
+        lower = [p for p in self.partners() if p < self.id]
+        pair = [self.node.factor_message(p) for p in lower]
+        return {
+            "to": np.asarray(lower, dtype=np.int64),
+            "round": 1,
+            "pair": np.asarray(pair, dtype=float).reshape(-1, 4, 3, 3),
+        }
+
+    def close_pairs(self) -> None:
+        """Factorized: end the step's pairs with the higher partners' messages (a lower
+        partner sends none; a lost message: the pair stays as this robot's updates left it,
+        counted)."""
+        higher = {p for p in self.partners() if p > self.id} | set(self.pair_messages)
+        messages: dict[int, np.ndarray | None] = {p: None for p in self.partners() if p < self.id}
+        for p in sorted(higher):
+            if p in self.pair_messages:
+                messages[p] = self.pair_messages[p]
+            else:
+                self.counts["pair_messages_missing"] += 1
+        self.counts["pair_messages_received"] += len(self.pair_messages)
+        self.node.factor_close(messages)
 
     def start_round(self, rnd: int) -> None:
         self.wait(Kind.CONSENSUS, rnd)
@@ -371,6 +435,7 @@ class RobotAgent(PullingRobot):
         # A reading describes its own step: a late estimate's is not this step's geometry.
         z_reciprocal = np.full((len(j), 2), np.nan)
         P_nb_ind = np.zeros((len(j), 3, 3))
+        factor_nb = np.zeros((len(j), 3, 3))
         for e, nb in enumerate(j):
             steps = [k for k in self.estimates.get(int(nb), {}) if k <= self.step]
             if not steps:
@@ -387,6 +452,13 @@ class RobotAgent(PullingRobot):
             x_nb[e], P_nb[e] = self.estimates[int(nb)][newest]
             if self.team.split:
                 P_nb_ind[e] = self.independent.get((int(nb), newest), 0.0)
+            if self.team.factors:
+                factor = self.factors_in.get((int(nb), newest))
+                if factor is None:  # the sender did not measure this robot: no factor
+                    # came, the cross-covariance is taken as zero (counted)
+                    self.counts["factors_missing"] += 1
+                else:
+                    factor_nb[e] = factor
             if age == 0 and (int(nb), self.step) in self.reciprocal:
                 z_reciprocal[e] = self.reciprocal[(int(nb), self.step)]
         self.counts["unheard"] += int((~heard).sum())
@@ -409,6 +481,7 @@ class RobotAgent(PullingRobot):
                 risk_c,
                 s["l2"],
                 P_nb_ind=P_nb_ind[h] if self.team.split else None,
+                factor_nb=factor_nb[h] if self.team.factors else None,
                 z_reciprocal=z_reciprocal[h] if self.team.readings else None,
             )
             flags[h] |= link_flags(out)
@@ -438,8 +511,12 @@ class RobotAgent(PullingRobot):
             kind, _ = self.phase
             if kind is Kind.ESTIMATE:
                 self.correct()
-            elif kind is Kind.ACK:
+            elif kind is Kind.ACK and self.phase[1] == 0:
                 self.close_acks()
+                if self.team.factors:
+                    self.close_pairs()
+            elif kind is Kind.ACK:
+                self.close_pairs()
             self.phase = None
         j, flags, norm, repairs = self.outcome
         self.bus.send(

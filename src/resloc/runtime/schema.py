@@ -1,6 +1,6 @@
 """The bodies of the wire format: each message kind's fields, their types and shapes.
 
-``FIELDS[kind]`` is the schema of one kind (version 2, ``docs/runtime.md``); arrays travel as
+``FIELDS[kind]`` is the schema of one kind (version 4, ``docs/runtime.md``); arrays travel as
 raw little-endian bytes whose dtype and shape the schema fixes, so a decoder never trusts a
 shape from the wire. :func:`decode_body` validates everything and raises
 :class:`MalformedBodyError` naming the field.
@@ -142,24 +142,29 @@ FIELDS: dict[Kind, dict[str, Any]] = {
 #: Optional field groups: a body carries every field of a group or none of them. An
 #: ESTIMATE carries its sender's readings of this step (``rj``: the robots it measured,
 #: ``rz``: range and bearing) when the team's detector uses reciprocal readings
-#: (``detector.zone_trust``; the receiver takes its own row), and the sender's independent
-#: part ``Pi`` with split covariance intersection. An ACK carries the gauge blocks ``ack``
-#: with gauge fusion; without them it is split CI's "your estimate was fused" to ``to``.
+#: (``detector.zone_trust``; the receiver takes its own row), the sender's independent
+#: part ``Pi`` with split covariance intersection, and with factorized fusion the factors
+#: it keeps for the robots it measured (``fj``: their ids, ``fs``: ``sigma_ji``; the
+#: receiver takes its own row). An ACK carries the gauge blocks ``ack`` with gauge fusion;
+#: without them it is "your estimate was fused" to ``to`` (split CI; factorized fusion's
+#: round 0); factorized fusion's round 1 (``round``, ``pair``) carries the sender's pair
+#: message ``[A, B, P_pred, sigma]`` for each (lower) partner in ``to``.
 OPTIONAL: dict[Kind, tuple[dict[str, Any], ...]] = {
     Kind.ESTIMATE: (
         {"rj": Array(I8, (-1,)), "rz": Array(F8, (-1, 2))},
         {"Pi": Array(F8, (3, 3))},
+        {"fj": Array(I8, (-1,)), "fs": Array(F8, (-1, 3, 3))},
     ),
-    Kind.ACK: ({"ack": Array(F8, (-1, 3, 3))},),
+    Kind.ACK: ({"ack": Array(F8, (-1, 3, 3))}, {"round": INT, "pair": Array(F8, (-1, 4, 3, 3))}),
 }
 
 #: Groups of fields whose leading dimension must be equal.
 _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
     Kind.SENSORS: (("j", "z"),),
-    Kind.ESTIMATE: (("rj", "rz"),),
+    Kind.ESTIMATE: (("rj", "rz"), ("fj", "fs")),
     Kind.CHANNEL: (("i", "j", "ok"),),
     Kind.TRUTH: (("i", "j", "att"),),
-    Kind.ACK: (("to", "ack"),),
+    Kind.ACK: (("to", "ack"), ("to", "pair")),
     Kind.REPORT: (("j", "flags", "norm"),),
     Kind.STATS: (("robot", "kind", "msgs", "bytes", "copies", "jammed"),),
 }

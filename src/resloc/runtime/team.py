@@ -23,7 +23,7 @@ from resloc.world.attacks import AttackKind
 __all__ = ["TeamSetup", "check_supported", "team_setup"]
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) the runtime carries.
-RUNTIME_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks"})
+RUNTIME_EXCHANGES = frozenset({"acks", "consensus", "delivery_acks", "factors"})
 
 
 def runtime_refusal(strategy: FusionStrategy) -> str | None:
@@ -101,9 +101,22 @@ class TeamSetup:
         return "delivery_acks" in fusion_strategy(self.params.fusion).node_exchanges
 
     @property
+    def factors(self) -> bool:
+        """Factorized fusion: estimates carry the factors their sender keeps for the robots
+        it measured; after the correction a robot tells each higher id it fused so (an ACK
+        frame of ids), then each robot sends its lower partners its pair messages (an ACK
+        frame of round 1)."""
+        return "factors" in fusion_strategy(self.params.fusion).node_exchanges
+
+    @property
+    def team_size(self) -> int | None:
+        """The team size a robot's node needs (gauge and factorized fusion), else None."""
+        return self.robots if self.gauge or self.factors else None
+
+    @property
     def acks(self) -> bool:
-        """The step has an acknowledgement phase (gauge or split CI)."""
-        return self.gauge or self.split
+        """The step has an acknowledgement phase (gauge, split CI or factorized)."""
+        return self.gauge or self.split or self.factors
 
     @property
     def readings(self) -> bool:
@@ -128,7 +141,7 @@ def check_supported(scenario: Scenario) -> None:
     if refusal is not None:
         raise ConfigError(
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
-            f"processes ({refusal}); use naive, gauge, ci or split_ci"
+            f"processes ({refusal}); use naive, gauge, ci, split_ci or factorized"
         )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
