@@ -166,6 +166,33 @@ def test_factorized_counts_its_factors_and_pair_exchange():
     assert np.isfinite(est.bytes_per_step(sc.estimator.fusion)).all()
 
 
+def test_distributed_lambda2_counts_its_exchanges_per_trial_in_bytes():
+    import msgpack
+
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.runner import run_scenario
+    from resloc.runtime.messages import HEADER, TAG_SIZE
+
+    body = {"round": 2, "y": np.zeros(4).tobytes(), "deg": 4}  # a CONSENSUS-like frame
+    frame = HEADER.size + len(msgpack.packb(body, use_bin_type=True)) + TAG_SIZE
+    assert frame == WIRE_BYTES["connectivity"]
+    sc = default_scenario().replace(
+        **{"team.robots": 6, "run.steps": 20, "run.trials": 2, "run.filters": ["ekf"],
+           "run.dead_reckoning": False, "trigger.lambda2": "distributed"}
+    )  # fmt: skip
+    run = run_scenario(sc)
+    t = run.estimators["ekf"].totals
+    messages = run.meta["lambda2"]["messages"]
+    assert messages > 0 and t["connectivity_messages"].sum() == messages
+    assert (t["connectivity_messages"] > 0).all()  # both trials, each its own
+    comm = communication(t)
+    np.testing.assert_array_equal(
+        comm["connectivity"][1], t["connectivity_messages"] * WIRE_BYTES["connectivity"]
+    )
+    plain = run_scenario(sc.replace(**{"trigger.lambda2": "component"})).estimators["ekf"]
+    assert plain.totals["connectivity_messages"].sum() == 0
+
+
 def test_split_ci_counts_its_independent_parts_and_delivery_acknowledgements():
     from resloc.experiments.config import default_scenario
     from resloc.experiments.runner import run_scenario
@@ -220,7 +247,7 @@ def test_run_summary_reports_relative_nees_and_bytes():
     s = resloc.run_scenario(sc).summary()["ckf"]
     assert np.isfinite(s["nees_rel_mean"]) and s["nees_rel_mean"] >= 0
     assert s["messages_consensus"] > 0 and s["messages_ack"] > 0
-    kinds = ("estimate", "ack", "consensus", "pair")
+    kinds = ("estimate", "ack", "consensus", "pair", "connectivity")
     assert s["bytes_total"] == sum(s[f"bytes_{k}"] for k in kinds)
     assert s["messages_estimate"] == s["transmissions"]
     assert 0.0 <= s["nees_exceed_share"] <= 1.0

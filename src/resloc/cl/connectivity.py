@@ -159,6 +159,11 @@ class DistributedLambda2:
         self.phi: np.ndarray | None = None  # (n, 3) last local signals
         self.estimate = np.zeros(self.n)
         self.messages = 0  # neighbour messages sent so far (one per directed edge per round)
+        # ... and per team: robot b is in team b // N when every team has N = n_max robots
+        size = int(self.n_max[0]) if self.n else 1
+        uniform = size >= 1 and self.n % size == 0 and bool(np.all(self.n_max == size))
+        self.team_size = size if uniform else max(self.n, 1)
+        self.messages_per_team = np.zeros(max(self.n // self.team_size, 1), np.int64)
         #: Steps run by the compiled twin (:mod:`resloc.cl.kernels_consensus`).
         self.compiled_steps = 0
 
@@ -205,5 +210,12 @@ class DistributedLambda2:
                 est = np.where(var > 1e-12, mean_yly / var, 0.0)
             est = np.where(np.isfinite(est), np.clip(est, 0.0, self.n_max), 0.0)
             self.estimate = np.where(deg > 0, est, 0.0)
-            self.messages += graph.messages
+        self.count_messages(graph.a)
         return self.estimate.copy()
+
+    def count_messages(self, a: np.ndarray) -> None:
+        """Count one step's exchanges: ``rounds`` messages on each directed edge ``a <- b``
+        (``a``: the receivers, shape (M,)), in total and per team."""
+        self.messages += self.rounds * int(a.size)
+        teams = len(self.messages_per_team)
+        self.messages_per_team += self.rounds * np.bincount(a // self.team_size, minlength=teams)

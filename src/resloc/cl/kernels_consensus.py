@@ -56,7 +56,7 @@ def compiled_lambda2_step(estimator, i: np.ndarray, j: np.ndarray) -> np.ndarray
         estimator.leak, first,
     )  # fmt: skip
     estimator.y, estimator.s, estimator.phi, estimator.estimate = y, s, phi, estimate
-    estimator.messages += estimator.rounds * int(a.size)
+    estimator.count_messages(a)
     estimator.compiled_steps += 1
     return estimate.copy()
 

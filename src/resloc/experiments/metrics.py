@@ -60,6 +60,10 @@ WIRE_BYTES: dict[str, int] = {
     "factor": 90,
     "pair_frame": 89,
     "pair_per_link": 296,
+    # trigger.lambda2 = "distributed": one exchange (round, [y, s] as 4 f8, degree) per
+    # directed communication link and round, framed like a CONSENSUS message (the runtime
+    # does not carry it: a test builds the frame with the codec's header, msgpack and tag)
+    "connectivity": 117,
 }
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) whose frames are counted.
@@ -396,13 +400,14 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         ``delivery_ack_frames`` and ``delivery_ack_links`` (split CI's),
         ``consensus_messages`` (gauge consensus exchanges), and factorized fusion's
         ``factors`` (transmissions carrying a factor), ``pair_ack_frames`` /
-        ``pair_ack_links`` and ``pair_frames`` / ``pair_messages`` (its pair exchange).
+        ``pair_ack_links`` and ``pair_frames`` / ``pair_messages`` (its pair exchange), and
+        ``connectivity_messages`` (the distributed ``lambda2``'s exchanges).
 
     Returns
     -------
     dict
         ``{kind: (messages (T,), bytes (T,))}`` for ``estimate``, ``ack``, ``consensus``,
-        ``pair`` and ``total``, at :data:`WIRE_BYTES`.
+        ``pair``, ``connectivity`` and ``total``, at :data:`WIRE_BYTES`.
     """
 
     def get(key: str) -> np.ndarray:
@@ -425,11 +430,13 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         + (get("delivery_ack_links") + get("pair_ack_links")) * w["delivery_ack_per_link"]
     )
     cons, pairs = get("consensus_messages"), get("pair_frames")
+    lam = get("connectivity_messages")
     out = {
         "estimate": (est, estimate_bytes),
         "ack": (gauge_acks + id_acks, ack_bytes),
         "consensus": (cons, cons * w["consensus"]),
         "pair": (pairs, pairs * w["pair_frame"] + get("pair_messages") * w["pair_per_link"]),
+        "connectivity": (lam, lam * w["connectivity"]),
     }
     out["total"] = (sum(m for m, _ in out.values()), sum(b for _, b in out.values()))
     return out

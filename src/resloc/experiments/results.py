@@ -62,6 +62,7 @@ TOTALS = (
     "pair_ack_frames",
     "pair_messages",
     "pair_frames",
+    "connectivity_messages",
 )
 
 

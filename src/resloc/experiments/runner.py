@@ -256,6 +256,8 @@ def run_scenario(
             tr.totals["independent_parts"] += tr.totals["triggered"]
         if "factors" in fusion.node_exchanges:  # factorized: the factor kept for the receiver
             tr.totals["factors"] += tr.totals["triggered"]
+        if source.dl2 is not None:  # the distributed lambda2's exchanges, per trial
+            tr.totals["connectivity_messages"] += source.dl2.messages_per_team
     shared = link_columns(source.trial0_links)
     results = {}
     for tr in everyone:
