@@ -57,6 +57,19 @@ def test_put_get_roundtrip_and_atomic_layout(tmp_path):
     assert ResultStore(tmp_path / "st", read=False).get(key) == (False, None)  # --fresh
 
 
+def test_an_interrupted_write_leaves_no_entry_and_no_temporary_file(tmp_path, monkeypatch):
+    st = ResultStore(tmp_path / "st")
+    key = cell_key("test", x=2)
+
+    def interrupted(fd):
+        raise KeyboardInterrupt  # Ctrl-C while the payload is being flushed to disk
+
+    monkeypatch.setattr(store_mod.os, "fsync", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        st.put(key, {"n": 1})
+    assert key not in st and not list((tmp_path / "st").rglob("*.tmp"))
+
+
 @pytest.mark.parametrize("damage", ["flip", "truncate", "garbage"])
 def test_corrupt_entry_is_detected_with_a_warning(tmp_path, damage):
     st = ResultStore(tmp_path)

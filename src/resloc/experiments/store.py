@@ -20,7 +20,7 @@ import json
 import math
 import os
 import pickle
-import tempfile
+import secrets
 import warnings
 from pathlib import Path
 from typing import Any
@@ -141,15 +141,18 @@ class ResultStore:
         digest = hashlib.sha256(payload).hexdigest().encode()
         p = self.path(key)
         p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{key[:12]}.", suffix=".tmp", dir=p.parent)
+        # The temporary file is named before it is created and created inside the ``try``:
+        # an interrupt (Ctrl-C) at any moment after its creation removes it (with
+        # ``tempfile.mkstemp`` the file existed before its name was known to this frame).
+        tmp = p.parent / f".{key[:12]}.{secrets.token_hex(8)}.tmp"
         try:
-            with os.fdopen(fd, "wb") as fh:
+            with open(tmp, "xb") as fh:
                 fh.write(_MAGIC + digest + b"\n" + payload)
                 fh.flush()
                 os.fsync(fh.fileno())
             os.replace(tmp, p)
         except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
         return p
 
