@@ -196,9 +196,10 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    # (with the redundancy stage on, the hook is applied to every row before the kernel,
-    # as the reference does: resloc.cl.kernels_redundancy.capped_links)
-    hook = links.tamper is not None and not params.redundancy
+    # (with the redundancy stage or the reciprocal check on, the hook is applied to every
+    # row before the kernel, as the reference does: resloc.cl.kernels_redundancy.
+    # capped_links, resloc.cl.kernels_reciprocal.partner_readings)
+    hook = links.tamper is not None and not (params.redundancy or params.reciprocal)
     if hook and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     split = fusion_strategy(params.fusion).kernel_update == "split_ci"
