@@ -53,7 +53,7 @@ _backend = "auto"
 
 #: The compiled twin implements these values of the choices that are not strategies.
 COMPILED_CHOICES = {
-    "update_mode": frozenset({UpdateMode.SEQUENTIAL}),
+    "update_mode": frozenset({UpdateMode.SEQUENTIAL, UpdateMode.SUMMED}),
     "neighbour_estimate": frozenset({NeighbourEstimate.CURRENT, NeighbourEstimate.CACHED}),
 }
 
@@ -213,6 +213,19 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
 _last_params: tuple = (None, None)
 
 
+def _summed_refusal(params: CLParams) -> str | None:
+    """The combinations the compiled summed update (:mod:`resloc.cl.kernels_summed`) lacks:
+    it fuses with the Kalman update alone, from the transmitted neighbour estimates."""
+    if params.update_mode is not UpdateMode.SUMMED:
+        return None
+    strategy = fusion_strategy(params.fusion)
+    if strategy.kernel_update != "kalman" or strategy.kernel_bookkeeping != "none":
+        return f"update_mode 'summed' with fusion {params.fusion.value!r} has no compiled twin"
+    if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
+        return "update_mode 'summed' with cached neighbour estimates has no compiled twin"
+    return None
+
+
 def _params_refusal(params: CLParams) -> str | None:
     """The options' part of :func:`kernel_refusal`, kept for the last ``params`` object (a
     frozen dataclass: a run passes the same one every step)."""
@@ -232,6 +245,8 @@ def _params_refusal(params: CLParams) -> str | None:
     for name, values in COMPILED_CHOICES.items():
         if refusal is None and getattr(params, name) not in values:
             refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"
+    if refusal is None:
+        refusal = _summed_refusal(params)
     try:
         _last_params = (weakref.ref(params), refusal)
     except TypeError:  # not weakly referenceable: no cache

@@ -66,7 +66,7 @@ from resloc.cl.kernels_math import jit
 from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
-from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
+from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.linalg import JITTER_LEVELS
 
 __all__ = [
@@ -539,7 +539,10 @@ def fast_correct(
         x_out[...] = x
         P_out[...] = P
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
+    loop = run_link_loop  # the rounds where they pay (kernels_rounds), else row order
+    if params.update_mode is UpdateMode.SUMMED:  # every gain from the prediction
+        from resloc.cl.kernels_summed import run_summed_loop as loop  # compiled on first use
+    status = loop(
         x,
         P,
         x_out,
