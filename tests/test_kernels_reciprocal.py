@@ -272,6 +272,20 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
         verdicts.append(verdict.discard)
         verdict.undo()
         np.testing.assert_array_equal(_store(memory).get(li, lj), held)
+        # the partner readings found in the batch (none given): the same verdict
+        found = reciprocal_verdict(params, memory, li, lj, z, None, x, x_nb, nb, detection)
+        np.testing.assert_array_equal(found.discard, ev["reciprocal_discard"])
+        np.testing.assert_allclose(
+            _store(memory).get(li, lj), ev["reciprocal_state"], rtol=0, atol=1e-15
+        )
+        found.undo()
+    unsorted = np.r_[1 : len(li), 0]
+    assert (
+        reciprocal_verdict(
+            params, memory, li[unsorted], lj[unsorted], z, None, x, x_nb, nb, detection
+        )
+        is None
+    )
     assert verdicts[0].any() and not verdicts[0].all()
     inside = inside_zone_map(x[li, :2], _mapped("full+reciprocal").zone_trust_map)
     assert (inside != inside_zone_map(x_nb[:, :2], _mapped("full+reciprocal").zone_trust_map)).any()

@@ -21,8 +21,10 @@ kernel function                 numpy twin
 :func:`reciprocal_verdicts`     :func:`~resloc.cl.detection_reciprocal.reciprocal_evidence`
                                 (``judged_pairs``, ``reciprocal_step``) and
                                 ``ReciprocalCheck.discard``'s store
-:func:`partner_readings`        the head of ``resloc.cl.step._correct_reference`` (the
-                                readings as reported and the partners')
+:func:`partner_range`           :func:`~resloc.cl.detection_zone.reciprocal_rows`
+                                (``materialize_with_reciprocal``'s partner readings)
+:func:`partner_readings`        the head of ``resloc.cl.step._correct_reference`` (a
+                                tamper hook's readings and the partners')
 ==============================  =========================================================
 
 With zone trust on, the zone stage withholds or substitutes rows round by round and the
@@ -51,6 +53,7 @@ __all__ = [
     "ReciprocalOptions",
     "ReciprocalVerdict",
     "inside_discs",
+    "partner_range",
     "partner_readings",
     "reciprocal_verdict",
     "reciprocal_verdicts",
@@ -113,40 +116,73 @@ def inside_discs(px, py, discs):
     return False
 
 
+@jit_inline
+def partner_range(li, lj, z, first, stop, e):
+    """The range the reverse link ``(lj[e], li[e])`` reads (``nan``: the batch holds none),
+    from the rows ``first[o]:stop[o]`` of each observer ``o``. Twin:
+    :func:`~resloc.cl.detection_zone.reciprocal_rows` and ``materialize_with_reciprocal``
+    (links distinct)."""
+    j = lj[e]
+    if j < 0 or j >= first.shape[0]:
+        return math.nan
+    for r in range(first[j], stop[j]):
+        if lj[r] == li[e]:
+            return z[r, 0]
+    return math.nan
+
+
 # IEEE division (jit_lanes' error model): ``d^2 / (2 sigma_r^2)`` as numpy divides, even
 # with a zero range noise.
 @jit_lanes
-def reciprocal_verdicts(li, z, z_rec, x, x_nb, nb, options, state, slot, discard):
+def reciprocal_verdicts(
+    li, lj, z, z_rec, x, x_nb, nb, variance, gate, sequence_gate, hold, forget, discs, state,
+    slot, discard,
+):  # fmt: skip
     """The reciprocal range check on every link of one step: link ``e`` compares its range
-    ``z[e, 0]`` with its partner's ``z_rec[e, 0]`` (``nan``: none) and, with a map, is left
-    to it when exactly one of the observer's predicted position ``x[li[e]]`` and the
-    neighbour's transmitted one ``x_nb[nb[e]]`` is inside. ``state[slot[e]]``: the link's
-    ``[s, V, hold]``, updated in place; ``discard: (E,)`` receives the verdict (held out,
-    flagged by the sum, or over the one-step gate). Twin:
+    ``z[e, 0]`` with its partner's, ``z_rec[e, 0]`` (``nan``: none; ``z_rec`` of shape
+    ``(0, 2)``: the reverse link's reading in ``z``, found here) and, with a map
+    (``discs: (Z, 3)``), is left to it when exactly one of the observer's predicted position
+    ``x[li[e]]`` and the neighbour's transmitted one ``x_nb[nb[e]]`` is inside.
+    ``state[slot[e]]``: the link's ``[s, V, hold]``, updated in place; ``discard: (E,)``
+    receives the verdict (held out, flagged by the sum, or over the one-step gate). Rows
+    sorted by observer (False otherwise, nothing written). Twin:
     :func:`~resloc.cl.detection_reciprocal.reciprocal_evidence` with
     ``ReciprocalCheck.discard``."""
-    variance, gate, sequence_gate, hold, forget, discs = options
+    E = li.shape[0]
+    found = z_rec.shape[0] == 0
+    B = 0
+    for e in range(E):
+        if e > 0 and li[e] < li[e - 1]:
+            return False
+        if li[e] + 1 > B:
+            B = li[e] + 1
+    first = np.zeros(B if found else 0, np.int64)
+    stop = np.zeros(B if found else 0, np.int64)
+    if found:  # each observer's rows (contiguous: sorted)
+        for e in range(E - 1, -1, -1):
+            first[li[e]] = e
+        for e in range(E):
+            stop[li[e]] = e + 1
     mapped = discs.shape[0] > 0
-    for e in range(li.shape[0]):
+    for e in range(E):
         i = li[e]
         k = slot[e]
-        judged = math.isfinite(z_rec[e, 0])
+        partner = partner_range(li, lj, z, first, stop, e) if found else z_rec[e, 0]
+        judged = math.isfinite(partner)
         if judged and mapped:
             n = nb[e]
             judged = inside_discs(x[i, 0], x[i, 1], discs) == inside_discs(
                 x_nb[n, 0], x_nb[n, 1], discs
             )
-        holding = state[k, _HOLD] > 0.0
-        update = judged and not holding
-        if holding:
+        if state[k, _HOLD] > 0.0:  # held out: counted down, the sums untouched
             state[k, _HOLD] = state[k, _HOLD] - 1.0
             discard[e] = True
             continue
-        if not update:  # nothing to compare: the sums stay as they are
+        if not judged:  # nothing to compare: the sums stay as they are
             discard[e] = False
             continue
         lam = gain_at(forget, i)
-        d = z[e, 0] - z_rec[e, 0]
+        d = z[e, 0] - partner
         s = lam * state[k, _SUM] + d
         V = lam * lam * state[k, _VAR] + variance
         one_step = d * d / variance > gain_at(gate, i)
@@ -159,6 +195,7 @@ def reciprocal_verdicts(li, z, z_rec, x, x_nb, nb, options, state, slot, discard
             state[k, _SUM] = s
             state[k, _VAR] = V
         discard[e] = alarm or one_step
+    return True
 
 
 stamp_with_pieces(reciprocal_verdicts, _kernels_detection)
@@ -168,24 +205,24 @@ stamp_with_pieces(reciprocal_verdicts, _kernels_detection)
 # The dispatch's side (called by resloc.cl.kernels.fast_correct)
 # ---------------------------------------------------------------------------------------
 def partner_readings(filt, x, P, links: LinkBatch, strategy, memory, R) -> LinkBatch:
-    """``links`` with every reading as reported and its partner's (``z_reciprocal``), as
-    the reference's correction judges them: an adversary's tamper hook is applied to every
-    row at the predicted estimates (the hook is Python) and its ``reported`` partner
-    readings taken. ``links`` unchanged when they already carry the partner readings and
-    no hook. Twin: the head of ``resloc.cl.step._correct_reference``."""
-    if links.z_reciprocal is not None and links.tamper is None:
+    """``links`` as the reference's correction judges them with an adversary's tamper hook:
+    the hook applied to every row at the predicted estimates (it is Python), the partner
+    readings taken from the result (and the hook's ``reported`` ones). ``links`` unchanged
+    without a hook (:func:`reciprocal_verdicts` finds the partner readings in the batch when
+    it carries none). Twin: the head of ``resloc.cl.step._correct_reference``."""
+    if links.tamper is None:
         return links
-    z_hat = S = None
-    if links.tamper is not None:  # the hook judges its lies by the victims' moments
-        pre = strategy.moments(
-            filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, R
-        )
-        z_hat, S = pre.z_hat, pre.S
+    pre = strategy.moments(
+        filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j, R
+    )
     reported = getattr(links.tamper, "reported", None)
-    links = materialize_with_reciprocal(links, z_hat, S)
+    links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
     if reported is not None:
         links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
     return links
+
+
+_IN_BATCH = np.zeros((0, 2))
 
 
 def reciprocal_verdict(
@@ -197,12 +234,14 @@ def reciprocal_verdict(
     (contiguous); ``detection``: the step's
     :class:`~resloc.cl.kernels_detection.KernelDetection` (the NIS CUSUM's store holds the
     same links as this stage's in a run's steady state: its slots are reused). None
-    without a memory to keep the state in or partner readings (the reference path then
-    raises the explanatory error)."""
-    if memory is None or z_rec is None:
+    without a memory to keep the state in (the reference path then raises the explanatory
+    error) or when the rows are not sorted by observer."""
+    if memory is None:
         return None
     E = len(li)
-    if np.shape(z_rec) != (E, 2):
+    if z_rec is None:
+        z_rec = _IN_BATCH  # the reverse links' readings, found in the batch
+    elif np.shape(z_rec) != (E, 2):
         return None
     saved: list = []
     store = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH)
@@ -212,9 +251,11 @@ def reciprocal_verdict(
     if slots is None:
         slots = store_slots(store, li, lj, saved)
     verdict = ReciprocalVerdict(np.empty(E, dtype=np.bool_), DetectorState(None, tuple(saved)))
-    reciprocal_verdicts(
-        li, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(z_rec, dtype=float),
-        np.ascontiguousarray(x, dtype=float), x_nb, nb, tuple(_options(params)), store.values,
-        slots, verdict.discard,
-    )  # fmt: skip
+    if not reciprocal_verdicts(
+        li, lj, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(z_rec, dtype=float),
+        np.ascontiguousarray(x, dtype=float), x_nb, nb, *_options(params), store.values, slots,
+        verdict.discard,
+    ):  # fmt: skip
+        verdict.undo()
+        return None  # rows not sorted by observer: the reference judges them
     return verdict
