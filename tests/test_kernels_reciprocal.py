@@ -279,6 +279,17 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
             _store(memory).get(li, lj), ev["reciprocal_state"], rtol=0, atol=1e-15
         )
         found.undo()
+        # each observer's neighbours descending (the scan instead of the binary search)
+        o = np.lexsort((-lj, li))
+        ev = reciprocal_evidence(
+            z[o], partner[o], li[o], lj[o], params, ref_memory, x[li[o]], x_nb[o]
+        )
+        detection = detector_state(params, memory, li[o], lj[o]).kernel
+        found = reciprocal_verdict(
+            params, memory, li[o], lj[o], z[o], None, x, x_nb[o], nb, detection
+        )
+        np.testing.assert_array_equal(found.discard, ev["reciprocal_discard"])
+        found.undo()
     unsorted = np.r_[1 : len(li), 0]
     assert (
         reciprocal_verdict(
