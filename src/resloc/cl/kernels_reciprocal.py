@@ -21,7 +21,7 @@ kernel function                 numpy twin
 :func:`reciprocal_verdicts`     :func:`~resloc.cl.detection_reciprocal.reciprocal_evidence`
                                 (``judged_pairs``, ``reciprocal_step``) and
                                 ``ReciprocalCheck.discard``'s store
-:func:`partner_range`           :func:`~resloc.cl.detection_zone.reciprocal_rows`
+:func:`partner_rows`            :func:`~resloc.cl.detection_zone.reciprocal_rows`
                                 (``materialize_with_reciprocal``'s partner readings)
 :func:`partner_readings`        the head of ``resloc.cl.step._correct_reference`` (a
                                 tamper hook's readings and the partners')
@@ -53,8 +53,8 @@ __all__ = [
     "ReciprocalOptions",
     "ReciprocalVerdict",
     "inside_discs",
-    "partner_range",
     "partner_readings",
+    "partner_rows",
     "reciprocal_verdict",
     "reciprocal_verdicts",
 ]
@@ -116,19 +116,51 @@ def inside_discs(px, py, discs):
     return False
 
 
-@jit_inline
-def partner_range(li, lj, z, first, stop, e):
-    """The range the reverse link ``(lj[e], li[e])`` reads (``nan``: the batch holds none),
-    from the rows ``first[o]:stop[o]`` of each observer ``o``. Twin:
-    :func:`~resloc.cl.detection_zone.reciprocal_rows` and ``materialize_with_reciprocal``
-    (links distinct)."""
-    j = lj[e]
-    if j < 0 or j >= first.shape[0]:
-        return math.nan
-    for r in range(first[j], stop[j]):
-        if lj[r] == li[e]:
-            return z[r, 0]
-    return math.nan
+@jit_lanes
+def partner_rows(li, lj, row):
+    """Per row ``e``: the row of the reverse link ``(lj[e], li[e])``, -1 where the batch holds
+    none, into ``row: (E,)`` (a binary search in the neighbour's rows when every observer's
+    neighbours ascend, else a scan). Rows must be sorted by observer (False otherwise).
+    Twin: :func:`~resloc.cl.detection_zone.reciprocal_rows` (links distinct)."""
+    E = li.shape[0]
+    B = 0
+    ascending = True  # each observer's neighbours in ascending order (the usual batch)
+    for e in range(E):
+        if e > 0 and li[e] < li[e - 1]:
+            return False
+        if e > 0 and li[e] == li[e - 1] and lj[e] <= lj[e - 1]:
+            ascending = False
+        if li[e] + 1 > B:
+            B = li[e] + 1
+    first = np.zeros(B, np.int64)
+    stop = np.zeros(B, np.int64)
+    for e in range(E - 1, -1, -1):  # each observer's rows (contiguous: sorted)
+        first[li[e]] = e
+    for e in range(E):
+        stop[li[e]] = e + 1
+    for e in range(E):
+        j = lj[e]
+        want = li[e]
+        row[e] = -1
+        if j < 0 or j >= B:
+            continue
+        lo = first[j]
+        hi = stop[j]
+        if ascending:
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if lj[mid] < want:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo < stop[j] and lj[lo] == want:
+                row[e] = lo
+        else:
+            for r in range(lo, hi):
+                if lj[r] == want:
+                    row[e] = r
+                    break
+    return True
 
 
 # IEEE division (jit_lanes' error model): ``d^2 / (2 sigma_r^2)`` as numpy divides, even
@@ -145,29 +177,26 @@ def reciprocal_verdicts(
     ``x[li[e]]`` and the neighbour's transmitted one ``x_nb[nb[e]]`` is inside.
     ``state[slot[e]]``: the link's ``[s, V, hold]``, updated in place; ``discard: (E,)``
     receives the verdict (held out, flagged by the sum, or over the one-step gate). Rows
-    sorted by observer (False otherwise, nothing written). Twin:
+    sorted by observer (False otherwise). Twin:
     :func:`~resloc.cl.detection_reciprocal.reciprocal_evidence` with
     ``ReciprocalCheck.discard``."""
     E = li.shape[0]
     found = z_rec.shape[0] == 0
-    B = 0
-    for e in range(E):
-        if e > 0 and li[e] < li[e - 1]:
+    row = np.empty(E, np.int64)
+    if found:
+        if not partner_rows(li, lj, row):
             return False
-        if li[e] + 1 > B:
-            B = li[e] + 1
-    first = np.zeros(B if found else 0, np.int64)
-    stop = np.zeros(B if found else 0, np.int64)
-    if found:  # each observer's rows (contiguous: sorted)
-        for e in range(E - 1, -1, -1):
-            first[li[e]] = e
+    else:
         for e in range(E):
-            stop[li[e]] = e + 1
+            if e > 0 and li[e] < li[e - 1]:
+                return False
     mapped = discs.shape[0] > 0
     for e in range(E):
         i = li[e]
         k = slot[e]
-        partner = partner_range(li, lj, z, first, stop, e) if found else z_rec[e, 0]
+        partner = z_rec[e, 0]
+        if found:
+            partner = z[row[e], 0] if row[e] >= 0 else math.nan
         judged = math.isfinite(partner)
         if judged and mapped:
             n = nb[e]
