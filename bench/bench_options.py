@@ -61,9 +61,14 @@ OPTIONS: dict[str, dict | str] = {
     "fusion ci": {"estimator.fusion": "ci"},
     "fusion split_ci": {"estimator.fusion": "split_ci"},
     "neighbour cached": {"estimator.neighbour_estimate": "cached"},
+    "update summed": {"estimator.update_mode": "summed"},
     "attack stealthy": {"attack.kind": "stealthy", "attack.bias": [0.3, 0.6]},
     "defence full": dict(DEFENCES["full"]),
     "defence full+redundancy+sequence": dict(DEFENCES["full+redundancy+sequence"]),
+    "defence full+reciprocal": dict(DEFENCES["full+reciprocal"]),
+    "defence full+redundancy+sequence+reciprocal": dict(
+        DEFENCES["full+redundancy+sequence+reciprocal"]
+    ),
     "defence zone+full+redundancy+sequence": dict(DEFENCES["zone+full+redundancy+sequence"]),
     "defence zone+full+redundancy+sequence+cap": dict(
         DEFENCES["zone+full+redundancy+sequence+cap"]

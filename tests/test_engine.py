@@ -258,7 +258,8 @@ def test_uncovered_options_fall_back_to_the_reference() -> None:
     base = PARAM_CASES["paper"]
     with kernels.use_backend("numba"):
         assert kernels.fast_correct(FILTERS["ckf"], x, P, links, base) is not None
-        summed = replace(base, update_mode=UpdateMode.SUMMED)
+        # the summed update with a fusion method its twin lacks (kernels_summed: naive only)
+        summed = replace(base, update_mode=UpdateMode.SUMMED, fusion="ci")
         assert kernels.fast_correct(FILTERS["ckf"], x, P, links, summed, LinkMemory(40)) is None
 
         # A filter class the kernel does not know.

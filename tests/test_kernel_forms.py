@@ -36,6 +36,8 @@ CASES = {
     "recovery": (replace(PARAMS, recovery=True), True),
     "cached": (replace(PARAMS, neighbour_estimate="cached"), True),
     "redundancy": (replace(PARAMS, redundancy=True, redundancy_sequence=True), True),
+    # the reciprocal check's pre-pass verdicts alone (kernels_reciprocal): the options' form
+    "reciprocal": (replace(PARAMS, reciprocal=True), True),
 }
 
 

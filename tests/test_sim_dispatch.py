@@ -89,7 +89,7 @@ def test_the_kept_refusal_follows_the_backend_filter_and_params():
     with use_backend("numba"):
         for filt in (ckf, ekf, ckf):  # estimators alternate
             assert kernels._refusal(filt, params, links) is None
-        summed = dataclasses.replace(params, update_mode=UpdateMode.SUMMED)
+        summed = dataclasses.replace(params, update_mode=UpdateMode.SUMMED, fusion="ci")
         assert kernels._refusal(ckf, summed, links) == kernel_refusal(ckf, summed, links)
         assert kernels._refusal(ckf, summed, links) is not None
 

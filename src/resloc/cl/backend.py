@@ -53,7 +53,7 @@ _backend = "auto"
 
 #: The compiled twin implements these values of the choices that are not strategies.
 COMPILED_CHOICES = {
-    "update_mode": frozenset({UpdateMode.SEQUENTIAL}),
+    "update_mode": frozenset({UpdateMode.SEQUENTIAL, UpdateMode.SUMMED}),
     "neighbour_estimate": frozenset({NeighbourEstimate.CURRENT, NeighbourEstimate.CACHED}),
 }
 
@@ -196,9 +196,10 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    # (with the redundancy stage on, the hook is applied to every row before the kernel,
-    # as the reference does: resloc.cl.kernels_redundancy.capped_links)
-    hook = links.tamper is not None and not params.redundancy
+    # (with the redundancy stage or the reciprocal check on, the hook is applied to every
+    # row before the kernel, as the reference does: resloc.cl.kernels_redundancy.
+    # capped_links, resloc.cl.kernels_reciprocal.partner_readings)
+    hook = links.tamper is not None and not (params.redundancy or params.reciprocal)
     if hook and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     split = fusion_strategy(params.fusion).kernel_update == "split_ci"
@@ -210,6 +211,19 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
 
 
 _last_params: tuple = (None, None)
+
+
+def _summed_refusal(params: CLParams) -> str | None:
+    """The combinations the compiled summed update (:mod:`resloc.cl.kernels_summed`) lacks:
+    it fuses with the Kalman update alone, from the transmitted neighbour estimates."""
+    if params.update_mode is not UpdateMode.SUMMED:
+        return None
+    strategy = fusion_strategy(params.fusion)
+    if strategy.kernel_update != "kalman" or strategy.kernel_bookkeeping != "none":
+        return f"update_mode 'summed' with fusion {params.fusion.value!r} has no compiled twin"
+    if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
+        return "update_mode 'summed' with cached neighbour estimates has no compiled twin"
+    return None
 
 
 def _params_refusal(params: CLParams) -> str | None:
@@ -231,6 +245,8 @@ def _params_refusal(params: CLParams) -> str | None:
     for name, values in COMPILED_CHOICES.items():
         if refusal is None and getattr(params, name) not in values:
             refusal = f"{name} {getattr(params, name).value!r} has no compiled twin"
+    if refusal is None:
+        refusal = _summed_refusal(params)
     try:
         _last_params = (weakref.ref(params), refusal)
     except TypeError:  # not weakly referenceable: no cache

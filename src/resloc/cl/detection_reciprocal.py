@@ -47,8 +47,10 @@ use them).
 
 The correction computes the verdict once per step over all links
 (:func:`reciprocal_evidence`), so it is the same in either update mode and in one robot's
-process (``RobotNode.correct``'s ``z_reciprocal``). numpy only: the stage has no compiled
-twin (``compiled = False``: the correction falls back to the numpy path).
+process (``RobotNode.correct``'s ``z_reciprocal``). Its compiled twin is the same pre-pass,
+:func:`resloc.cl.kernels_reciprocal.reciprocal_verdicts`; with zone trust on (which withholds
+and substitutes rows round by round, and then no state is stored for them) the correction
+runs this numpy stage (:meth:`ReciprocalCheck.kernel_refusal`).
 """
 
 from __future__ import annotations
@@ -277,8 +279,17 @@ class ReciprocalCheck:
     step or in sum since the link was admitted (held out a while, then re-admitted)."""
 
     name: ClassVar[str] = "reciprocal"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
+
+    def kernel_refusal(self, params: CLParams) -> str | None:
+        """The combination the compiled pre-pass lacks (None: it runs this stage)."""
+        if params.zone_trust:
+            return (
+                "the detector stage 'reciprocal' with zone_trust: the zone stage's withheld "
+                "and substituted rows keep no reciprocal state (numpy only)"
+            )
+        return None
 
     def problem(self, options: Any) -> str | None:
         """Why the scenario's ``[detector]`` ``options`` cannot run as set (names the fix)."""

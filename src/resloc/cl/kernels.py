@@ -17,6 +17,7 @@ kernel function               paper                   numpy twin
 ``detect_link`` (CUSUMs)      beyond the paper        :func:`resloc.cl.detection.detect`
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
+``reciprocal_verdicts``       beyond the paper        ``reciprocal_evidence`` (pre-pass)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
@@ -27,7 +28,7 @@ kernel function               paper                   numpy twin
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
 :mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion` and, imported only when
-the redundancy stage is on, :mod:`resloc.cl.kernels_redundancy`).
+their stages are on, :mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
@@ -65,7 +66,7 @@ from resloc.cl.kernels_math import jit
 from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
-from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
+from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
 from resloc.linalg import JITTER_LEVELS
 
 __all__ = [
@@ -428,6 +429,13 @@ def fast_correct(
         links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
         if links is None:
             return None
+    if params.reciprocal:
+        # The reciprocal check compares the readings as reported with the partners'
+        # (a tamper hook applied to every row: kernels_reciprocal)
+        from resloc.cl.kernels_reciprocal import partner_readings  # compiled on first use
+
+        strategy = fusion_strategy(params.fusion)  # (the prepared one, before shapes)
+        links = partner_readings(filt, x, P, links, strategy, memory, params.R)
     prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
@@ -494,6 +502,22 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         detect = detect._replace(fixes=fixes.discard)
+    paired = None
+    if params.reciprocal:  # every link's range against its partner's (kernels_reciprocal)
+        from resloc.cl.kernels_reciprocal import reciprocal_verdict
+
+        paired = reciprocal_verdict(
+            params, memory, li, lj, z, links.z_reciprocal, x, x_nb, nb, detect
+        )
+        if paired is None:
+            if fixes is not None:
+                fixes.undo()
+            bookkeeping.undo(memory, gauge)
+            defence.undo()
+            detection.undo()
+            return None  # the reference path raises the explanatory error
+        both = paired.discard if fixes is None else fixes.discard | paired.discard
+        detect = detect._replace(fixes=both)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -515,7 +539,10 @@ def fast_correct(
         x_out[...] = x
         P_out[...] = P
     spec: FilterKernelSpec = filter_kernel_spec(filt)
-    status = run_link_loop(  # the rounds where they pay (kernels_rounds), else row order
+    loop = run_link_loop  # the rounds where they pay (kernels_rounds), else row order
+    if params.update_mode is UpdateMode.SUMMED:  # every gain from the prediction
+        from resloc.cl.kernels_summed import run_summed_loop as loop  # compiled on first use
+    status = loop(
         x,
         P,
         x_out,
@@ -532,6 +559,8 @@ def fast_correct(
         out,
     )
     if status != OK:
+        if paired is not None:
+            paired.undo()
         if fixes is not None:
             fixes.undo()
         bookkeeping.undo(memory, gauge)
@@ -560,8 +589,10 @@ def options_beyond_paper(params: CLParams) -> bool:
     strategy = prepared.strategy
     if KERNEL_UPDATES[strategy.kernel_update] != NAIVE_UPDATE:
         return True
-    if strategy.kernel_bookkeeping != "none" or prepared.cached or params.redundancy:
-        return True  # (the redundancy pre-pass's verdicts enter the options' form)
+    if strategy.kernel_bookkeeping != "none" or prepared.cached:
+        return True
+    if params.redundancy or params.reciprocal:
+        return True  # (the pre-passes' verdicts enter the options' form)
     rows = np.zeros(1, np.int64)
     detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
     defence = defence_state(params, None, rows)

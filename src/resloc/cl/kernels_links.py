@@ -428,3 +428,4 @@ event_threshold_of_link = _event_threshold
 gate_link = _gate_link
 decide_link = _decide_link
 schur_update = _schur_update
+linearized_moments = _linearized_moments  # (and for the summed update, kernels_summed)

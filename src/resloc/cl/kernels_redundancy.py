@@ -42,9 +42,9 @@ import numpy as np
 
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
-from resloc.cl.detection_zone import materialize_with_reciprocal
 from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
+from resloc.cl.kernels_reciprocal import partner_readings
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -414,8 +414,8 @@ def capped_links(
     """``links`` as the reference's correction judges them with the redundancy stage on:
     the claimed covariances capped (``redundancy_cap_fusion``, by :func:`claim_scales`),
     then an adversary's tamper hook applied to every row at the predicted estimates
-    (:func:`~resloc.cl.detection_zone.materialize_with_reciprocal`, as the reference does:
-    the hook is Python). None when the rows are not sorted by observer (the reference path
+    (:func:`~resloc.cl.kernels_reciprocal.partner_readings`, as the reference does: the
+    hook is Python). None when the rows are not sorted by observer (the reference path
     then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
     if params.redundancy_cap_fusion:
         nb, _, P_src = links.neighbour_rows()
@@ -429,12 +429,8 @@ def capped_links(
         capped = np.empty((E, 3, 3))
         _scaled_claims(P_src, rows, scale, capped)
         links = dataclasses.replace(links, P_nb=capped)
-    if links.tamper is not None:
-        pre = strategy.moments(
-            filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j,
-            params.R,
-        )  # fmt: skip
-        links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+    if links.tamper is not None:  # (with the hook's ``reported`` partner readings)
+        links = partner_readings(filt, x, P, links, strategy, memory, params.R)
     return links
 
 

@@ -1,0 +1,149 @@
+"""The compiled summed update (:mod:`resloc.cl.kernels_summed`).
+
+Each case runs the default scenario (two trials batched, 34 robots) with the full defence
+and the summed update through the compiled path and the numpy reference in lockstep, each
+with its own estimates and memory, and a compromised robot (a lead on its broadcast
+position growing every step, a jump every tenth step, a claimed covariance 100 times too
+small) whose victims' measurements the detector discards in runs: the robot CUSUM alarms and
+the recovery re-admits measurements with inflated covariances (both asserted). At every step
+the compiled summed loop must have run, and the two agree to 1e-9 with identical decisions
+(repairs included) and the same detector state."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.angles import wrap_angle
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl.backend import kernel_refusal
+from resloc.experiments.config import default_scenario
+from resloc.experiments.defences import DEFENCES
+from resloc.filters import make_filter
+from resloc.world.world import World
+from test_kernels_defence import assert_same_stage_statistics
+from test_kernels_detection import assert_same_statistics
+from test_kernels_round_options import _path
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+FILTERS = {
+    "ckf": make_filter("ckf"),
+    "ukf": make_filter("ukf", 0.8, 2.0, 1.0),
+    "ekf": make_filter("ekf"),
+}
+#: The compromised robot (batch index: one in each of the two trials).
+LIARS = (5, 17 + 9)
+
+
+def _params(defence: str, **changes):
+    sc = default_scenario().replace(**DEFENCES[defence], **{"estimator.update_mode": "summed"})
+    return replace(sc.cl_params(), recovery_after=4.0, **changes)
+
+
+#: name -> (filter, CLParams, world seed). Seeds where no robot's estimate diverges: Algorithm
+#: 1's summed update over-counts a robot's information when it fuses several links (every
+#: touched covariance is repaired in the first steps), and with the liar some seeds (51, 53
+#: for the CKF) drive a victim's covariance to 1e3..1e5, where the paths' rounding, ~1e-16
+#: relative, is amplified past 1e-9 absolute (decisions stay identical).
+CASES = {
+    "ckf-full": ("ckf", _params("full"), 50),
+    "ekf-full": ("ekf", _params("full"), 52),
+    "ukf-every-stage": ("ukf", _params("full+redundancy+sequence+reciprocal"), 51),
+    "ckf-paper": ("ckf", replace(_params("paper"), recovery=False), 54),
+}
+
+
+def _lie(k: int, rows: np.ndarray, x_nb: np.ndarray, P_nb: np.ndarray) -> None:
+    x_nb[rows, 0] += 0.002 * k + (0.4 if k % 10 == 3 else 0.0)
+    P_nb[rows] *= 0.01
+
+
+def assert_summed_equal(fast, ref, tol: float = 1e-9) -> None:
+    (xf, Pf, of), (xr, Pr, orf) = fast, ref
+    assert of.compiled and not orf.compiled, "compared the wrong paths"
+    d = xf - xr
+    d[:, 2] = wrap_angle(d[:, 2])
+    assert np.abs(d).max() <= tol
+    assert np.abs(Pf - Pr).max() <= tol
+    for name in ("norm", "threshold"):
+        np.testing.assert_allclose(
+            getattr(of, name), getattr(orf, name), rtol=tol, atol=tol, equal_nan=True
+        )
+    for name in ("detected", "triggered", "delivered", "fused", "repaired"):
+        np.testing.assert_array_equal(getattr(of, name), getattr(orf, name), err_msg=name)
+
+
+def lockstep(filt, params, steps: int, seed: int):
+    """``steps`` steps through the compiled path and the reference; checks every step and
+    yields the reference's outcome and memory."""
+    from resloc.cl.kernels_summed import SUMMED_RUNS
+
+    sc = default_scenario()
+    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    x0, P0 = world.initial_estimates()
+    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("row_order", "numpy")}
+    for k in range(steps):
+        ws = world.step()
+        lied = np.isin(ws.j, LIARS)
+        res = {}
+        for path, (x, P, memory) in state.items():
+            with _path(path):
+                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                x_nb, P_nb = xp[ws.j].copy(), Pp[ws.j].copy()
+                _lie(k, lied, x_nb, P_nb)
+                links = LinkBatch(
+                    ws.i, ws.j, ws.z, x_nb, P_nb, ws.channel_ok, ws.risk_s, ws.risk_c,
+                    ws.lambda2,
+                )  # fmt: skip
+                before = SUMMED_RUNS["summed"]
+                res[path] = correct(filt, xp, Pp, links, params, memory)
+                ran = SUMMED_RUNS["summed"] - before
+            assert ran == (path != "numpy"), "the compiled summed loop did not run"
+            state[path] = (res[path][0], res[path][1], memory)
+        assert_summed_equal(res["row_order"], res["numpy"])
+        a, b = state["row_order"][2], state["numpy"][2]
+        assert_same_statistics(a, b)
+        assert_same_stage_statistics(a, b)
+        yield res["numpy"][2], b
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_compiled_summed_update_equals_the_reference(case: str) -> None:
+    name, params, seed = CASES[case]
+    links = _one_step_links()
+    assert kernel_refusal(FILTERS[name], params, links) is None
+    detected = fused = 0
+    alarmed = readmitted = False
+    for out, memory in lockstep(FILTERS[name], params, 60, seed):
+        detected += int(out.detected.sum())
+        fused += int(out.fused.sum())
+        if params.robot_cusum:
+            g = memory.stage_statistic("robot_cusum").values
+            alarmed |= bool((g > params.robot_cusum_h).any())
+        if params.recovery:
+            readmitted |= bool((memory.stage_statistic("recovery_applied").values > 1.0).any())
+    assert fused > 0 and detected > 0
+    if params.robot_cusum:
+        assert alarmed, "the robot CUSUM never alarmed"
+    if params.recovery:
+        assert readmitted, "the recovery never re-admitted a measurement"
+
+
+def _one_step_links(seed: int = 4):
+    sc = default_scenario()
+    world = World(sc.world, 1, seed, sc.trigger.lambda2)
+    x, P = world.initial_estimates()
+    ws = world.step()
+    return LinkBatch(
+        ws.i, ws.j, ws.z, x[ws.j], P[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
+    )
+
+
+def test_summed_with_other_fusions_or_cached_estimates_falls_back_with_a_reason() -> None:
+    links = _one_step_links()
+    for changes, word in (({"fusion": "ci"}, "'ci'"), ({"neighbour_estimate": "cached"}, "cached")):
+        refusal = kernel_refusal(FILTERS["ckf"], replace(_params("full"), **changes), links)
+        assert refusal is not None and "summed" in refusal and word in refusal
