@@ -196,9 +196,11 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    # (with the redundancy stage on, the hook is applied to every row before the kernel,
-    # as the reference does: resloc.cl.kernels_redundancy.capped_links)
-    hook = links.tamper is not None and not params.redundancy
+    # (with the redundancy stage on, or zone trust without the partners' readings, the hook
+    # is applied to every row before the kernel, as the reference does:
+    # resloc.cl.kernels_redundancy.capped_links, resloc.cl.kernels_zone.zone_links)
+    materialized = params.redundancy or (params.zone_trust and links.z_reciprocal is None)
+    hook = links.tamper is not None and not materialized
     if hook and getattr(links.tamper, "kernel_form", None) is None:
         return "an adversary's tamper hook without a compiled form (kernel_form) runs in Python"
     split = fusion_strategy(params.fusion).kernel_update == "split_ci"

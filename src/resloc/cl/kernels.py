@@ -287,7 +287,7 @@ def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
     whether it has a compiled form, whether there are transmitted independent parts)."""
     tamper = links.tamper
     form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
-    key = (backend(), form, links.P_nb_ind is None)
+    key = (backend(), form, links.P_nb_ind is None, links.z_reciprocal is None)
     try:
         params_ref, last_key, refusal = _refusals[filt]
         if last_key == key and params_ref() is params:
@@ -428,6 +428,14 @@ def fast_correct(
         links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
         if links is None:
             return None
+    zone = None
+    if params.zone_trust:  # the partners' readings attached (kernels_zone)
+        from resloc.cl.kernels_zone import zone_links, zone_state
+
+        links = zone_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
+        zone = zone_state(params, links, memory)
+        if zone is None:
+            return None  # the reference path raises the explanatory error
     prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
@@ -494,6 +502,8 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         detect = detect._replace(fixes=fixes.discard)
+    if zone is not None:
+        detect = detect._replace(zone=zone.kernel)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -538,6 +548,10 @@ def fast_correct(
         defence.undo()
         detection.undo()
         return None
+    if zone is not None:  # the sequence test keeps no state of the rows it did not judge
+        from resloc.cl.kernels_zone import keep_sequence_state
+
+        keep_sequence_state(zone, memory, li, lj)
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     fusion_commit(fusion, memory, li, fused)
@@ -562,6 +576,8 @@ def options_beyond_paper(params: CLParams) -> bool:
         return True
     if strategy.kernel_bookkeeping != "none" or prepared.cached or params.redundancy:
         return True  # (the redundancy pre-pass's verdicts enter the options' form)
+    if params.zone_trust:
+        return True
     rows = np.zeros(1, np.int64)
     detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
     defence = defence_state(params, None, rows)

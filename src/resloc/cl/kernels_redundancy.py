@@ -434,7 +434,10 @@ def capped_links(
             filt, memory, x[links.i], P[links.i], links.x_nb, links.P_nb, links.i, links.j,
             params.R,
         )  # fmt: skip
+        reported = getattr(links.tamper, "reported", None)
         links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
+        if reported is not None:  # what the hook says the partners report
+            links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
     return links
 
 
