@@ -22,6 +22,7 @@ from resloc.angles import wrap_angle
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_zone, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
+from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.memory import LinkStatistic
 from resloc.experiments.config import default_scenario
@@ -48,9 +49,9 @@ def _params(defence: str, overrides: dict | None = None, **changes):
     return replace(sc.cl_params(), **changes)
 
 
-#: A tight gate and an early recovery: re-admissions with an inflated covariance, some of
-#: them of substituted rows (the fix again from ``f P_i``).
-STRICT = dict(rho=1.2, recovery_after=2.0, recovery_gate=3.0)
+#: A tight NIS gate and an early recovery: re-admissions with an inflated covariance, many
+#: of them of substituted rows (the fix again from ``f P_i``).
+STRICT = dict(rho=1.0, recovery_after=1.0, recovery_gate=6.0)
 
 #: name -> (filter, CLParams, a Python tamper hook on the readings)
 CASES = {
@@ -80,11 +81,7 @@ CASES = {
         ),
         True,
     ),
-    "zone-strict-recovery": (
-        "ckf",
-        _params("zone+full", detector_norm="euclidean", **STRICT),
-        False,
-    ),
+    "zone-strict-recovery": ("ckf", _params("zone+full", **STRICT), False),
     "zone-ekf": ("ekf", _params("zone+full+redundancy+sequence"), False),
     "zone-gate-only-ekf": ("ekf", _params("zone"), False),
 }
@@ -119,8 +116,17 @@ class Verdicts:
     def __init__(self, monkeypatch) -> None:
         self.reference: list = []
         self.compiled: list = []
+        self.readmitted_substituted = 0  # by the reference's recovery, with f > 1
         discard = ZoneTrust.discard
         keep = kernels_zone.keep_sequence_state
+        recover = RejectionRecovery.discard
+
+        def recovered(stage, evidence, params, memory):
+            detected = recover(stage, evidence, params, memory)
+            if evidence.inflation is not None and evidence.zone_substituted is not None:
+                again = (evidence.inflation > 1.0) & ~detected & evidence.zone_substituted
+                self.readmitted_substituted += int(again.sum())
+            return detected
 
         def judged(stage, evidence, params, memory):
             withheld = discard(stage, evidence, params, memory)
@@ -135,6 +141,7 @@ class Verdicts:
             return keep(state, memory, li, lj)
 
         monkeypatch.setattr(ZoneTrust, "discard", judged)
+        monkeypatch.setattr(RejectionRecovery, "discard", recovered)
         monkeypatch.setattr(kernels_zone, "keep_sequence_state", kept)
 
     def reference_rows(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -248,6 +255,8 @@ def test_compiled_zone_trust_equals_the_reference(case: str, monkeypatch) -> Non
     outside, withheld, substituted = count
     assert outside > 0 and withheld > 0, "no robot inside the map without a partner reading"
     assert substituted > 0 and fused_substituted > 0, "no partner's position fix fused"
+    if params.recovery_after <= 1.0:
+        assert verdicts.readmitted_substituted > 0, "no fix re-admitted with f P_i"
 
 
 def _links_of_one_step(seed: int = 4):
