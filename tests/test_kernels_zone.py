@@ -23,7 +23,7 @@ from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_zone, pre
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.detection_recovery import RejectionRecovery
-from resloc.cl.detection_zone import ZoneTrust
+from resloc.cl.detection_zone import ZoneTrust, materialize_with_reciprocal
 from resloc.cl.memory import LinkStatistic
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
@@ -289,3 +289,26 @@ def test_what_the_twin_does_not_cover_falls_back_with_a_reason(changes, reason) 
     params = _params("zone+full", **changes)
     refusal = kernel_refusal(FILTERS["ckf"], params, _links_of_one_step())
     assert refusal is not None and "zone_trust" in refusal and reason in refusal
+
+
+def test_partner_readings_equal_the_reference_pairing() -> None:
+    """The compiled gathering of the partners' readings is the reference's
+    (``materialize_with_reciprocal`` without a hook), with links whose reverse is missing;
+    rows not sorted by observer are refused."""
+    links = _links_of_one_step()
+    keep = np.ones(len(links), bool)
+    keep[::7] = False  # some pairs lose one direction
+    li = links.i[keep].astype(np.int64)
+    lj = links.j[keep].astype(np.int64)
+    z = np.ascontiguousarray(links.z[keep])
+    sub = LinkBatch(
+        li, lj, z, links.x_nb[keep], links.P_nb[keep], links.channel_ok[keep],
+        links.risk_s, links.risk_c, links.lambda2,
+    )  # fmt: skip
+    E = len(li)
+    want = materialize_with_reciprocal(sub, np.zeros((E, 2)), np.zeros((E, 2, 2))).z_reciprocal
+    got = np.empty((E, 2))
+    assert kernels_zone.partner_readings(li, lj, z, got)
+    np.testing.assert_array_equal(got, want)
+    assert np.isnan(got[:, 0]).any() and np.isfinite(got[:, 0]).any()
+    assert not kernels_zone.partner_readings(li[::-1].copy(), lj[::-1].copy(), z, got)

@@ -430,12 +430,12 @@ def fast_correct(
             return None
     zone = None
     if params.zone_trust:  # the partners' readings attached (kernels_zone)
-        from resloc.cl.kernels_zone import zone_links, zone_state
+        from resloc.cl.kernels_zone import zone_state
 
-        links = zone_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
-        zone = zone_state(params, links, memory)
-        if zone is None:
+        zoned = zone_state(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
+        if zoned is None:
             return None  # the reference path raises the explanatory error
+        links, zone = zoned
     prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached

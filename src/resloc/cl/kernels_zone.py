@@ -36,6 +36,8 @@ kernel function                numpy twin
 :func:`withhold_lanes`         :func:`resloc.cl.detection.detect` (the withheld rows)
 :func:`zone_links`             the head of ``resloc.cl.step._correct_reference`` (the
                                partners' readings)
+:func:`partner_readings`       the same without a tamper hook
+                               (:func:`~resloc.cl.detection_zone.reciprocal_rows`)
 =============================  ==========================================================
 
 The fix is a linear measurement of the observer's position, so the kernels cover it for the
@@ -53,7 +55,7 @@ import numpy as np
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.detection_zone import materialize_with_reciprocal
 from resloc.cl.kernels_lanes import FALLBACK
-from resloc.cl.kernels_math import jit_inline, jit_lanes
+from resloc.cl.kernels_math import jit, jit_inline, jit_lanes
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -65,6 +67,7 @@ __all__ = [
     "inside_map",
     "keep_sequence_state",
     "no_zone",
+    "partner_readings",
     "position_fix_of_link",
     "withhold_lanes",
     "zone_lanes",
@@ -115,12 +118,27 @@ def _discs(params: CLParams) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(params.zone_trust_map, float).reshape(-1, 3))
 
 
-def zone_state(params: CLParams, links: LinkBatch, memory) -> ZoneState | None:
-    """The stage for the links of one step (their partners' readings already attached:
-    :func:`zone_links`). None when the readings are not ``(E, 2)`` (the reference path then
-    raises the explanatory error)."""
+def zone_state(
+    filt, x, P, links: LinkBatch, params: CLParams, strategy, memory
+) -> tuple[LinkBatch, ZoneState] | None:
+    """The stage for the links of one step: ``links`` as the kernel reads them (an
+    adversary's hook applied, :func:`zone_links`) and the stage's state. Without a hook and
+    without the partners' readings, these are gathered by one compiled pass
+    (:func:`partner_readings`). None when the readings are not ``(E, 2)`` (the reference
+    path then raises the explanatory error)."""
     E = len(links)
-    z_rec = links.z_reciprocal
+    z_rec = None
+    if links.z_reciprocal is None and links.tamper is None:
+        z_rec = np.empty((E, 2))
+        li = np.ascontiguousarray(links.i, dtype=np.int64)
+        lj = np.ascontiguousarray(links.j, dtype=np.int64)
+        if np.shape(links.z) != (E, 2) or not partner_readings(
+            li, lj, np.ascontiguousarray(links.z, dtype=float), z_rec
+        ):
+            z_rec = None  # rows not sorted by observer: the reference's way
+    if z_rec is None:
+        links = zone_links(filt, x, P, links, params, strategy, memory)
+        z_rec = links.z_reciprocal
     if z_rec is None or np.shape(z_rec) != (E, 2):
         return None
     kernel = KernelZone(
@@ -133,7 +151,7 @@ def zone_state(params: CLParams, links: LinkBatch, memory) -> ZoneState | None:
     if params.redundancy and params.redundancy_sequence and memory is not None:
         store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
         before = store.get(links.i, links.j)
-    return ZoneState(kernel, before)
+    return links, ZoneState(kernel, before)
 
 
 def zone_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory) -> LinkBatch:
@@ -175,6 +193,38 @@ def keep_sequence_state(state: ZoneState, memory, li, lj) -> None:
 # ---------------------------------------------------------------------------------------
 # Compiled pieces
 # ---------------------------------------------------------------------------------------
+@jit
+def partner_readings(li, lj, z, out):
+    """Per row ``e`` of link ``(i, j)``: the reading ``z`` of the row of link ``(j, i)`` into
+    ``out[e]`` (``nan`` where the batch holds none; the first such row where several).
+    Rows sorted by observer (False otherwise, ``out`` then partial). Twin:
+    :func:`~resloc.cl.detection_zone.reciprocal_rows` and the partner's reading of
+    :func:`~resloc.cl.detection_zone.materialize_with_reciprocal` (no tamper hook)."""
+    E = li.shape[0]
+    for e in range(1, E):
+        if li[e] < li[e - 1]:
+            return False
+    for e in range(E):
+        j = lj[e]
+        lo = 0  # the first row of observer j (binary search of the sorted observers)
+        hi = E
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if li[mid] < j:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[e, 0] = math.nan
+        out[e, 1] = math.nan
+        while lo < E and li[lo] == j:
+            if lj[lo] == li[e]:
+                out[e, 0] = z[lo, 0]
+                out[e, 1] = z[lo, 1]
+                break
+            lo += 1
+    return True
+
+
 @jit_inline
 def inside_map(discs, px, py):
     """Whether ``(px, py)`` lies inside (or on) a disc of ``discs: (Z, 3)``.
