@@ -36,6 +36,8 @@ CASES = {
     "recovery": (replace(PARAMS, recovery=True), True),
     "cached": (replace(PARAMS, neighbour_estimate="cached"), True),
     "redundancy": (replace(PARAMS, redundancy=True, redundancy_sequence=True), True),
+    # zone trust alone beside the paper's gate: the verdicts are in the options' form
+    "zone": (default_scenario().replace(**{"detector.zone_trust": True}).cl_params(), True),
 }
 
 

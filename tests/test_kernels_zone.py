@@ -136,9 +136,9 @@ class Verdicts:
             self.reference.append((evidence.i.copy(), evidence.j.copy(), verdict))
             return withheld
 
-        def kept(state, memory, li, lj):
+        def kept(state, fixes, li, lj):
             self.compiled.append(state.kernel.verdict.copy())
-            return keep(state, memory, li, lj)
+            return keep(state, fixes, li, lj)
 
         monkeypatch.setattr(ZoneTrust, "discard", judged)
         monkeypatch.setattr(RejectionRecovery, "discard", recovered)

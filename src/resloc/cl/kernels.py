@@ -551,7 +551,7 @@ def fast_correct(
     if zone is not None:  # the sequence test keeps no state of the rows it did not judge
         from resloc.cl.kernels_zone import keep_sequence_state
 
-        keep_sequence_state(zone, memory, li, lj)
+        keep_sequence_state(zone, fixes, li, lj)
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     fusion_commit(fusion, memory, li, fused)

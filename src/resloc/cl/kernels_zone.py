@@ -52,10 +52,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.detection_zone import materialize_with_reciprocal
 from resloc.cl.kernels_lanes import FALLBACK
-from resloc.cl.kernels_math import jit, jit_inline, jit_lanes
+from resloc.cl.kernels_math import jit, jit_inline, jit_lanes, per_params
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -107,13 +106,12 @@ def no_zone() -> KernelZone:
 
 
 class ZoneState(NamedTuple):
-    """:func:`zone_state`'s result: the loops' :class:`KernelZone` and the sequence test's
-    stored state of the step's links before the redundancy pre-pass (None: no test)."""
+    """:func:`zone_state`'s result: the loops' :class:`KernelZone`."""
 
     kernel: KernelZone
-    sequence_before: np.ndarray | None
 
 
+@per_params
 def _discs(params: CLParams) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(params.zone_trust_map, float).reshape(-1, 3))
 
@@ -147,11 +145,7 @@ def zone_state(
         np.ascontiguousarray(z_rec, dtype=float),
         np.zeros(E, np.int64),
     )
-    before = None
-    if params.redundancy and params.redundancy_sequence and memory is not None:
-        store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
-        before = store.get(links.i, links.j)
-    return links, ZoneState(kernel, before)
+    return links, ZoneState(kernel)
 
 
 def zone_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory) -> LinkBatch:
@@ -178,16 +172,32 @@ def zone_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory)
     return links
 
 
-def keep_sequence_state(state: ZoneState, memory, li, lj) -> None:
+def keep_sequence_state(state: ZoneState, fixes, li, lj) -> None:
     """After a compiled step: the sequence test's state of the withheld and substituted
     links back to what it was before the step's pre-pass (the reference stores the state of
-    the rows its stages judged only: ``RedundancySequence.discard``)."""
-    if state.sequence_before is None:
-        return
+    the rows its stages judged only: ``RedundancySequence.discard``). ``fixes``: the
+    pre-pass's :class:`~resloc.cl.kernels_redundancy.FixVerdict` (None: no pre-pass),
+    whose saved store entry (:func:`~resloc.cl.kernels_detection.store_slots`) holds the
+    state before it: the old values at the links' slots, or, when the step inserted links,
+    the old keys and values."""
+    saved = () if fixes is None else fixes.state.saved
+    if not saved:
+        return  # no sequence test
     rows = np.flatnonzero(state.kernel.verdict != OUTSIDE)
-    if rows.size:
-        store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
-        store.set(li[rows], lj[rows], state.sequence_before[rows])
+    if not rows.size:
+        return
+    store, keys, values, slots, old = saved[0]
+    if old is not None:  # the steady state: every link known, values kept in place
+        store.values[slots[rows]] = old[rows]
+        return
+    # links inserted this step: their old values from the old arrays (0: never stored)
+    wanted = li[rows] * store.n_nodes + lj[rows]
+    before = np.zeros((rows.size, *store.values.shape[1:]))
+    if len(keys):
+        pos = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+        hit = keys[pos] == wanted
+        before[hit] = values[pos[hit]]
+    store.values[slots[rows]] = before
 
 
 # ---------------------------------------------------------------------------------------
