@@ -17,6 +17,8 @@ kernel function               paper                   numpy twin
 ``detect_link`` (CUSUMs)      beyond the paper        :func:`resloc.cl.detection.detect`
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
+``zone_verdict`` (+ fix)      beyond the paper        zone trust (``substitute_reciprocal``,
+                                                      ``reciprocal_position_fix``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
@@ -26,7 +28,8 @@ kernel function               paper                   numpy twin
 ============================  ======================  =============================================
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
-:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion` and, imported only when
+:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion`,
+:mod:`resloc.cl.kernels_zone` and, imported only when
 the redundancy stage is on, :mod:`resloc.cl.kernels_redundancy`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
