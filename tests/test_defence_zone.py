@@ -241,7 +241,7 @@ def test_robot_nodes_reproduce_the_batched_engine_with_zone_trust():
                 ws.lambda2,
             )
             x, P, out = correct(filt, xp, Pp, links, params, memory)
-            assert not out.compiled  # the kernel refuses zone trust: the numpy path ran
+            assert out.compiled  # zone trust's compiled twin (resloc.cl.kernels_zone)
             reverse = reciprocal_rows(ws.i, ws.j)
             partner = materialize_with_reciprocal(links, None, None).z_reciprocal
             fixes += int(
@@ -266,6 +266,7 @@ def test_robot_nodes_reproduce_the_batched_engine_with_zone_trust():
                         (reverse[rows] >= 0)[:, None], ws.z[np.maximum(reverse[rows], 0)], np.nan
                     ),
                 )
+                assert got.compiled  # with the readings it was sent
                 for name in FLAGS:
                     np.testing.assert_array_equal(getattr(got, name), getattr(out, name)[rows])
             xn = np.concatenate([node.x for node in nodes])

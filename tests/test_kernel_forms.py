@@ -38,6 +38,8 @@ CASES = {
     "redundancy": (replace(PARAMS, redundancy=True, redundancy_sequence=True), True),
     # the reciprocal check's pre-pass verdicts alone (kernels_reciprocal): the options' form
     "reciprocal": (replace(PARAMS, reciprocal=True), True),
+    # zone trust alone beside the paper's gate: the verdicts are in the options' form
+    "zone": (default_scenario().replace(**{"detector.zone_trust": True}).cl_params(), True),
 }
 
 

@@ -242,12 +242,6 @@ def test_capped_claims_twin() -> None:
     assert not claim_scales(li[::-1].copy(), P_nb, nb, scale, np.empty(len(li)))
 
 
-def test_zone_trust_still_falls_back_with_a_reason() -> None:
-    params = _params("zone+full+redundancy+sequence")
-    refusal = kernel_refusal(FILTERS["ckf"], params, _links_of_one_step())
-    assert refusal is not None and "zone_trust" in refusal
-
-
 def test_the_attack_suite_runs_the_redundancy_defence_compiled(monkeypatch) -> None:
     """The adversary suite's compromised robot (a Python tamper hook, claimed covariance
     x0.01) against ``full+redundancy+sequence`` with claims capped: every correction of the

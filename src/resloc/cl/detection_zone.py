@@ -47,9 +47,10 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
+from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
-from resloc.cl.params import CLParams
+from resloc.cl.params import CLParams, NeighbourEstimate
 from resloc.filters.base import Moments
 
 if TYPE_CHECKING:
@@ -129,16 +130,34 @@ class ZoneTrust:
     the per-link statistics and the recovery never see them) and needs the observers'
     estimates (``Evidence.x_obs``); without them (an attacker's scratch copy of the
     detector) it discards nothing.
+
+    Its compiled twin (:mod:`resloc.cl.kernels_zone`) decides in the link loops and fuses
+    the partner's position fix with the Kalman update of the naive fusion
+    (:meth:`kernel_refusal` names what it does not cover).
     """
 
     name: ClassVar[str] = "zone_trust"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
     #: Its rows are withheld from every other stage (:func:`resloc.cl.detection.detect`).
     withholds: ClassVar[bool] = True
 
     def active(self, params: CLParams) -> bool:
         return bool(params.zone_trust)
+
+    def kernel_refusal(self, params: CLParams) -> str | None:
+        """Why the compiled twin does not run with ``params`` (None: it does)."""
+        strategy = fusion_strategy(params.fusion)
+        if strategy.kernel_update != "kalman" or strategy.kernel_bookkeeping != "none":
+            return (
+                f"the detector stage 'zone_trust' has a compiled twin for the naive fusion "
+                f"only (fusion {params.fusion.value!r} updates with the position fix in Python)"
+            )
+        if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
+            return "the detector stage 'zone_trust' has no compiled twin with cached estimates"
+        if params.reciprocal:
+            return "the detector stage 'zone_trust' has no compiled twin beside 'reciprocal'"
+        return None
 
     def discard(
         self, evidence: Evidence, params: CLParams, memory: LinkMemory | None

@@ -18,6 +18,8 @@ kernel function               paper                   numpy twin
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
 ``reciprocal_verdicts``       beyond the paper        ``reciprocal_evidence`` (pre-pass)
+``zone_verdict`` (+ fix)      beyond the paper        zone trust (``substitute_reciprocal``,
+                                                      ``reciprocal_position_fix``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
@@ -27,8 +29,9 @@ kernel function               paper                   numpy twin
 ============================  ======================  =============================================
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
-:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion` and, imported only when
-their stages are on, :mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`).
+:mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion`,
+:mod:`resloc.cl.kernels_zone` and, imported only when their stages are on,
+:mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
@@ -288,7 +291,7 @@ def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
     whether it has a compiled form, whether there are transmitted independent parts)."""
     tamper = links.tamper
     form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
-    key = (backend(), form, links.P_nb_ind is None)
+    key = (backend(), form, links.P_nb_ind is None, links.z_reciprocal is None)
     try:
         params_ref, last_key, refusal = _refusals[filt]
         if last_key == key and params_ref() is params:
@@ -436,6 +439,14 @@ def fast_correct(
 
         strategy = fusion_strategy(params.fusion)  # (the prepared one, before shapes)
         links = partner_readings(filt, x, P, links, strategy, memory, params.R)
+    zone = None
+    if params.zone_trust:  # the partners' readings attached (kernels_zone)
+        from resloc.cl.kernels_zone import zone_state
+
+        zoned = zone_state(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
+        if zoned is None:
+            return None  # the reference path raises the explanatory error
+        links, zone = zoned
     prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
@@ -518,6 +529,8 @@ def fast_correct(
             return None  # the reference path raises the explanatory error
         both = paired.discard if fixes is None else fixes.discard | paired.discard
         detect = detect._replace(fixes=both)
+    if zone is not None:
+        detect = detect._replace(zone=zone.kernel)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -567,6 +580,10 @@ def fast_correct(
         defence.undo()
         detection.undo()
         return None
+    if zone is not None:  # the sequence test keeps no state of the rows it did not judge
+        from resloc.cl.kernels_zone import keep_sequence_state
+
+        keep_sequence_state(zone, fixes, li, lj)
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     fusion_commit(fusion, memory, li, fused)
@@ -591,8 +608,8 @@ def options_beyond_paper(params: CLParams) -> bool:
         return True
     if strategy.kernel_bookkeeping != "none" or prepared.cached:
         return True
-    if params.redundancy or params.reciprocal:
-        return True  # (the pre-passes' verdicts enter the options' form)
+    if params.redundancy or params.reciprocal or params.zone_trust:
+        return True  # (the pre-passes' verdicts and zone trust's enter the options' form)
     rows = np.zeros(1, np.int64)
     detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory
     defence = defence_state(params, None, rows)

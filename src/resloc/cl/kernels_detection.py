@@ -31,6 +31,7 @@ import numpy as np
 
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import jit_inline, per_params
+from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
 
 __all__ = [
@@ -67,6 +68,9 @@ class KernelDetection(NamedTuple):
     # (E,) bool: the links the step's redundancy pre-pass discards
     # (resloc.cl.kernels_redundancy.fix_verdicts); empty when the stage is off
     fixes: np.ndarray
+    # zone-aware trust (resloc.cl.kernels_zone): its map, the partners' readings and each
+    # row's verdict, written by the loop (KernelZone.on False when the stage is off)
+    zone: KernelZone
 
 
 class DetectorState(NamedTuple):
@@ -176,7 +180,9 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
         mg = memory.mean_cusum.values
     else:
         mg, mslot = np.zeros((0, 4)), _NO_SLOTS
-    kernel = KernelDetection(cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES)
+    kernel = KernelDetection(
+        cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES, no_zone()
+    )
     return DetectorState(kernel, tuple(saved))
 
 
@@ -279,9 +285,11 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
 def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes = det
-    # the redundancy stages' verdict, judged before the loop (kernels_redundancy)
-    detected = gated or (fixes.shape[0] > 0 and fixes[e])
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone = det
+    # the redundancy stages' verdict, judged before the loop (kernels_redundancy); not on
+    # a row zone trust substituted (fused as the partner's fix, not as this reading)
+    fixed = fixes.shape[0] > 0 and fixes[e]
+    detected = gated or (fixed and not (zone[0] and zone[3][e] == SUBSTITUTED))
     if cusum:
         if det_norm == NIS_CODE:
             stat = n_det * n_det

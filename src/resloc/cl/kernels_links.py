@@ -28,6 +28,7 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
 from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
@@ -53,6 +54,7 @@ from resloc.cl.kernels_math import (
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
+from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
 
 #: Kernel status codes.
 OK = 0
@@ -210,6 +212,8 @@ def correct_links(
     record_gauge = gauge[0]
     tampered = tamper[0]
     attacked = tamper[3]
+    zone = detection[12]  # zone-aware trust (kernels_zone)
+    zoned = zone[0]
     fused = flags[3]
     first = 0  # robot i's first row
     for e in range(li.shape[0]):
@@ -237,6 +241,10 @@ def correct_links(
         zu0 = z[e, 0]
         zu1 = z[e, 1]
         inflation = 1.0
+        verdict = 0
+        if beyond is not None and zoned:  # at robot i's running estimate
+            verdict = zone_verdict(zone, e, xi0, xi1, xj0, xj1)
+        substituted = verdict == SUBSTITUTED
         # A second pass only for a fused measurement whose update uses other moments (twin:
         # _decide): the recovery re-admitted it with robot i's covariance inflated, or it was
         # delivered while the first pass used j's cached estimate.
@@ -289,6 +297,14 @@ def correct_links(
             l00, l10, l11 = chol2(S00, S01, S11, jitter)
             if l00 == 0.0:
                 return NOT_PD
+            if beyond is not None and substituted and attempt == 1:  # the fix, from f P_i
+                nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                    xi0, xi1, Pi, 1.0, xj0, xj1, x_nb[n, 2], Pj, zone[2][e, 0], zone[2][e, 1],
+                    R, Pxz, Hi,
+                )  # fmt: skip
+                l00, l10, l11 = chol2(S00, S01, S11, jitter)
+                if l00 == 0.0:
+                    return NOT_PD
             if attempt == 1:
                 break
             # the stealthy attacker sees z_hat and S (twin: tamper)
@@ -300,6 +316,14 @@ def correct_links(
                 zu1 = wrap(zt1)
                 nu0 = zu0 - zh0
                 nu1 = wrap(zu1 - zh1)
+            if beyond is not None and substituted:  # the partner's position fix of i
+                nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                    xi0, xi1, Pi, 1.0, xj0, xj1, x_nb[n, 2], Pj, zone[2][e, 0], zone[2][e, 1],
+                    R, Pxz, Hi,
+                )  # fmt: skip
+                l00, l10, l11 = chol2(S00, S01, S11, jitter)
+                if l00 == 0.0:
+                    return NOT_PD
             n_trig = _innovation_norm(trig_norm, nu0, nu1, std0, std1, l00, l10, l11)
             if det_norm == trig_norm:
                 n_det = n_trig
@@ -316,15 +340,19 @@ def correct_links(
             )  # fmt: skip
             gated = _gate_link(n_det, detector, rho_i)
             detected = gated
-            if beyond is not None:  # the CUSUMs (kernels_detection)
+            # zone trust's withheld rows: discarded, and no other stage sees them
+            withheld = beyond is not None and verdict == WITHHELD
+            if beyond is not None and not withheld:  # the CUSUMs (kernels_detection)
                 detected = detect_link(
                     detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11
                 )
             # the per-robot stages (robot CUSUM, recovery: kernels_defence)
-            if beyond is not None and defending:
+            if beyond is not None and defending and not withheld:
                 detected, inflation = defend_link(
                     defence, e, i, detected, gated, Pi, nu0, nu1, l00, l10, l11
                 )
+            if withheld:
+                detected = True
             triggered, delivered = _decide_link(detected, n_trig, delta, trigger, channel_ok[e])
             fuse = delivered
             if beyond is not None and cached:
@@ -419,6 +447,7 @@ stamp_with_pieces(
     _kernels_joint_links,
     _kernels_split,
     _kernels_tamper,
+    _kernels_zone,
 )
 
 # The link's pieces by public names, for the loop over rounds (resloc.cl.kernels_rounds),

@@ -41,6 +41,7 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
     NIS_CODE,
@@ -72,6 +73,7 @@ from resloc.cl.kernels_math import (
 )
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
+from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD
 
 _jit = jit_lanes
 
@@ -190,20 +192,26 @@ def screen_lanes(
     reference-count update per link (measured: the pieces that take the structures, 0.5 us
     a link for the full defence; this loop, 0.05 us)."""
     trigger, det_norm = options[3], options[4]
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes = detection
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone = detection
     fixed = fixes.shape[0] > 0  # the redundancy pre-pass's verdict (kernels_redundancy)
+    zoned = zone[0]  # zone-aware trust's verdicts (kernels_zone.zone_lanes)
+    verdict = zone[3]
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     for c in range(n):
         e = lane_e[c]
         i = obs[c]
+        if zoned and verdict[e] == WITHHELD:  # no stage sees it (withhold_lanes)
+            inflation[c] = 1.0
+            continue
         gated = decision[1, c] == 1.0
         nu0 = update[0, c]
         nu1 = update[1, c]
         l00 = update[2, c]
         l10 = update[3, c]
         l11 = update[4, c]
-        detected = gated or (fixed and fixes[e])
+        # (not on a row zone trust substituted: fused as the partner's fix)
+        detected = gated or (fixed and fixes[e] and not (zoned and verdict[e] == SUBSTITUTED))
         if cusum:  # detect_link: the NIS CUSUM of the link
             if det_norm == NIS_CODE:
                 stat = norms[1, c] * norms[1, c]
@@ -441,6 +449,7 @@ PIECE_MODULES = (
     _kernels_joint,
     _kernels_gauge,
     _kernels_tamper,
+    _kernels_zone,
 )
 for _dispatcher in (
     save_state,

@@ -57,6 +57,7 @@ import numpy as np
 
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
+from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
@@ -88,6 +89,7 @@ from resloc.cl.kernels_round_stages import (
     screen_lanes,
     tamper_lanes,
 )
+from resloc.cl.kernels_zone import withhold_lanes, zone_lanes
 from resloc.cl.links import LinkBatch
 
 _jit = jit_lanes
@@ -140,6 +142,7 @@ def beyond_paper(options, fusion, detection, defence, gauge, tamper):
         or detection[0]  # NIS CUSUM
         or detection[6]  # mean-shift CUSUM
         or detection[11].shape[0] > 0  # the redundancy pre-pass's verdicts
+        or detection[12][0]  # zone-aware trust
         or defence[0]  # robot CUSUM
         or defence[5]  # recovery
         or fusion[0] != NAIVE_UPDATE  # ci, split_ci, the tracked / factorized joints
@@ -276,9 +279,13 @@ def _rounds(
     decision = np.empty((4, C))
     inflation = np.ones(C)
     T3 = np.empty((3, 3))
+    zone = detection[12]
+    zoned = zone[0]
     if beyond is not None:
         retry = retry_lanes(m, C if recovering else 1)
         work = link_scratch()
+        zone_pxz = np.empty((3, 2))
+        zone_h = np.empty((2, 3))
     E = li.shape[0]
     p = 0
     while p < E:
@@ -324,9 +331,17 @@ def _rounds(
                     return FALLBACK
             if beyond is not None and tampered:
                 tamper_lanes(tamper, z, lane_e, obs, n, zl, moments, update)
+            if beyond is not None and zoned:  # the verdicts, the partners' fixes
+                if zone_lanes(
+                    zone, x_ref, P_ref, P, obs, src, lane_e, n, xi, update, inflation,
+                    decision, False, R, zone_pxz, zone_h,
+                ) != OK:  # fmt: skip
+                    return FALLBACK
             norms_lanes(n, update, options, norms)
             robot_lanes(obs, lane_e, n, channel_ok, last_norm, robots, options, norms, inputs)
             decide_lanes(n, options, norms, inputs, decision)
+            if beyond is not None and zoned:
+                withhold_lanes(zone, lane_e, n, decision, inflation)
             if beyond is not None and screening:
                 screen_lanes(
                     P, lane_e, obs, n, channel_ok, options, detection, defence, update, norms,
@@ -339,6 +354,11 @@ def _rounds(
                 )  # fmt: skip
                 if status != OK:
                     return status
+                if zoned and zone_lanes(
+                    zone, x_ref, P_ref, P, obs, src, lane_e, n, xi, update, inflation,
+                    decision, True, R, zone_pxz, zone_h,
+                ) != OK:  # fmt: skip
+                    return FALLBACK
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman)
             if beyond is not None and not kalman and not intersect_lanes(
                 x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
@@ -354,7 +374,11 @@ def _rounds(
 
 for _dispatcher in (correct_rounds, _rounds):
     stamp_with_pieces(
-        _dispatcher, _kernels_trig, _kernels_round_stages, *_kernels_round_stages.PIECE_MODULES
+        _dispatcher,
+        _kernels_trig,
+        _kernels_round_stages,
+        _kernels_zone,
+        *_kernels_round_stages.PIECE_MODULES,
     )
 
 
