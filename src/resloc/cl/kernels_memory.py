@@ -28,10 +28,11 @@ __all__ = ["overwrite_stored", "stored_positions"]
 
 
 @jit
-def _position(keys, key):
+def _position(keys, key, start):
     """Position of ``key`` in the sorted ``keys`` (``np.searchsorted``, side left), -1 when
-    it is not there."""
-    lo = 0
+    it is not there; ``start``: a position at or before it (links come sorted by key, so
+    the next one is searched from the last one's position)."""
+    lo = start
     hi = keys.shape[0]
     while lo < hi:
         mid = (lo + hi) // 2
@@ -49,11 +50,15 @@ def stored_positions(keys, n_nodes, i, j, pos):
     """``pos[e]``: the position of link ``(i[e], j[e])`` (key ``i * n_nodes + j``) in the
     sorted ``keys`` (shapes (E,), int64); False (``pos`` partly written) when a link is not
     stored."""
+    last = -1
+    p = 0
     for e in range(i.shape[0]):
-        p = _position(keys, i[e] * n_nodes + j[e])
+        key = i[e] * n_nodes + j[e]
+        p = _position(keys, key, p if key > last else 0)
         if p < 0:
             return False
         pos[e] = p
+        last = key
     return True
 
 

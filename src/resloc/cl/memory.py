@@ -11,16 +11,15 @@ _COMPILED: list = []
 
 def _compiled_lookups():
     """:mod:`resloc.cl.kernels_memory` when the backend is numba, else None (imported on
-    first use: numba's import is for commands that step an estimator)."""
-    from resloc.cl.backend import backend
-
-    if backend() != "numba":
-        return None
+    first use: numba's import is for commands that step an estimator; an import statement
+    costs about a microsecond, and this runs a few times a step)."""
     if not _COMPILED:
         from resloc.cl import kernels_memory
+        from resloc.cl.backend import backend
 
-        _COMPILED.append(kernels_memory)
-    return _COMPILED[0]
+        _COMPILED.extend((backend, kernels_memory))
+    backend, kernels_memory = _COMPILED
+    return kernels_memory if backend() == "numba" else None
 
 
 def _float_rows(a, shape: tuple) -> bool:
