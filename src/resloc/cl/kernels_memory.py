@@ -28,11 +28,10 @@ __all__ = ["overwrite_stored", "stored_positions"]
 
 
 @jit
-def _position(keys, key, start):
+def _position(keys, key):
     """Position of ``key`` in the sorted ``keys`` (``np.searchsorted``, side left), -1 when
-    it is not there; ``start``: a position at or before it (links come sorted by key, so
-    the next one is searched from the last one's position)."""
-    lo = start
+    it is not there."""
+    lo = 0
     hi = keys.shape[0]
     while lo < hi:
         mid = (lo + hi) // 2
@@ -49,12 +48,22 @@ def _position(keys, key, start):
 def stored_positions(keys, n_nodes, i, j, pos):
     """``pos[e]``: the position of link ``(i[e], j[e])`` (key ``i * n_nodes + j``) in the
     sorted ``keys`` (shapes (E,), int64); False (``pos`` partly written) when a link is not
-    stored."""
+    stored. Links come sorted by key (by observer, then neighbour): the next one is found
+    by walking on from the last one's position (both lists once, where a binary search per
+    link cost several microseconds a call); a key out of order is searched from the start."""
+    K = keys.shape[0]
     last = -1
     p = 0
     for e in range(i.shape[0]):
         key = i[e] * n_nodes + j[e]
-        p = _position(keys, key, p if key > last else 0)
+        if e == 0 or key < last:
+            p = _position(keys, key)
+        elif key > last:
+            p += 1
+            while p < K and keys[p] < key:
+                p += 1
+            if p >= K or keys[p] != key:
+                p = -1
         if p < 0:
             return False
         pos[e] = p
