@@ -284,6 +284,17 @@ class _Bookkept(_TransmittedOnly):
         return self._joint(memory).finish(P)
 
 
+def _warm_up_joint_form() -> None:
+    """The link loop's form of the correlated joints loaded (or compiled) now, while a run
+    sets up, not in its first timed step (:func:`resloc.cl.kernels_joint.warm_up_joint_form`;
+    imported here: the kernels import this module's registry; numba is optional)."""
+    try:
+        from resloc.cl.kernels_joint import warm_up_joint_form
+    except ImportError:  # pragma: no cover - numba is optional
+        return
+    warm_up_joint_form()
+
+
 def _team_size(method: str, team_size: int | None) -> int:
     if team_size is None:
         raise ValueError(f"fusion {str(method)!r} needs team_size (the team's number of robots)")
@@ -303,6 +314,7 @@ class TrackedFusion(_Bookkept):
 
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         memory.joint = JointCovariance(P0, _team_size(self.method, team_size))
+        _warm_up_joint_form()
 
     def moments(self, filt, memory, x_i, P_i, x_j, P_j, i, j, R) -> Moments:
         return self._joint(memory).moments(filt, x_i, P_i, x_j, P_j, i, j, R)
@@ -336,6 +348,8 @@ class FactorizedFusion(TrackedFusion):
     def init(self, memory, x0, P0, team_size=None, *, local=False, rounds=None) -> None:
         team = _team_size(self.method, team_size)
         memory.joint = FactorizedCovariance(len(P0), team, local=local)
+        if not local:  # (a robot's process keeps its factors in numpy)
+            _warm_up_joint_form()
 
     def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
         from resloc.cl.kernels_fusion_step import compiled_factorized_predict

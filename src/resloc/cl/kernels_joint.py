@@ -67,6 +67,7 @@ __all__ = [
     "joint_commit",
     "joint_state",
     "no_joint",
+    "warm_up_joint_form",
 ]
 
 
@@ -243,3 +244,34 @@ def _factorized_products(A, sig, Bij, gains, obs, nbr, fused, N, sig_out, Bm):
                     for q in range(3):
                         S[p, q] = T[p, q]
             e -= 1
+
+
+_WARMED: list = []
+
+
+def warm_up_joint_form() -> None:
+    """Load (or compile) the link loop's form of the correlated joints
+    (:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`) once per process, by one small
+    ``tracked`` correction: the strategies call it when they set up their state, before a
+    run times its steps (the runner's warm-up loads the forms every option shares; this
+    one only a run of ``tracked`` or ``factorized`` needs)."""
+    from resloc.cl.backend import backend
+
+    if _WARMED or backend() != "numba":
+        return
+    _WARMED.append(True)
+    from resloc.cl.kernels import fast_correct  # the dispatch imports the strategies
+    from resloc.cl.links import LinkBatch
+    from resloc.cl.memory import LinkMemory
+    from resloc.cl.params import CLParams
+    from resloc.filters.base import make_filter
+
+    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
+    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
+    links = LinkBatch(
+        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
+        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
+    )  # fmt: skip
+    memory = LinkMemory(2)
+    memory.joint = JointCovariance(P, 2)
+    fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)

@@ -10,16 +10,19 @@ import math
 
 import numpy as np
 
+from resloc.cl.backend import HAVE_NUMBA
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_math import chol3, jit, jit_inline, mul3, wrap
+from resloc.cl.kernels_math import chol3, jit_inline, wrap
 
 __all__ = [
     "FACTORIZED",
+    "JOINT_FORM",
     "NO_JOINT",
     "TRACKED",
     "correlated_linearized_moments",
     "correlated_offsets",
     "joint_cross",
+    "joint_form",
     "joint_record",
     "scaled_unit_minus_is_pd",
 ]
@@ -28,6 +31,36 @@ __all__ = [
 NO_JOINT = 0
 TRACKED = 1
 FACTORIZED = 2
+
+#: The link loops' ``beyond`` switch (:func:`resloc.cl.kernels_rounds.beyond_paper`) for
+#: ``tracked`` and ``factorized``: the int 1, equal to the other options' ``True`` but typed
+#: ``int64`` by numba, so that the loops compile a form of their own for the correlated
+#: joint. Its per-link pieces (this module) are inlined into that form only: called, each
+#: piece cost a reference count per array it was passed, about 0.2 us a link; inlined into
+#: the form every option shares, their code slowed the other options' loop (measured:
+#: ``cached`` 1.17x, the options' form of the paper's method 1.3x).
+JOINT_FORM = 1
+
+
+def joint_form(beyond) -> bool:
+    """Whether the loops' switch ``beyond`` is :data:`JOINT_FORM` (an int, not a bool):
+    the form that runs the correlated joint. Compiled, a constant of the switch's type."""
+    return type(beyond) is int
+
+
+if HAVE_NUMBA:  # the optional extra ``fast``
+    from numba.core import types as _types
+    from numba.extending import overload as _overload
+
+    @_overload(joint_form)
+    def _joint_form_of_type(beyond):
+        on = isinstance(beyond, _types.Integer)  # a bool is types.Boolean, not an Integer
+
+        def constant(beyond):
+            return on
+
+        return constant
+
 
 _CAP = 1.0 - 1e-6  # valid_cross's default cap on the correlation's singular values
 
@@ -49,20 +82,16 @@ def _add_mul_t(X, Y, out):
 
 
 @jit_inline
-def _tracked_row(joint, e, first, fused, i, col, out, T3):
-    """``out = (M_i Sigma)[:, col block]`` of robot ``i`` (its links from row ``first``,
-    ``fused``: the flags of the rows so far; ``T3``: scratch)."""
-    N = joint[1]
-    nbr = joint[2]
-    sigma = joint[3]
-    A = joint[5]
-    Bij = joint[6]
+def _tracked_row(sigma, A, Bij, nbr, N, e, first, fused, i, col, work):
+    """``work[1] = (M_i Sigma)[:, col block]`` of robot ``i`` (its links from row ``first``,
+    ``fused``: the flags of the rows so far). Indexes the arrays, takes no view of them: a
+    view costs a reference count per link."""
     t = i // N
     c0 = 3 * col
     p0 = 3 * (i % N)
     for a in range(3):
         for b in range(3):
-            out[a, b] = (
+            work[1, a, b] = (
                 A[i, a, 0] * sigma[t, p0, c0 + b]
                 + A[i, a, 1] * sigma[t, p0 + 1, c0 + b]
                 + A[i, a, 2] * sigma[t, p0 + 2, c0 + b]
@@ -72,7 +101,7 @@ def _tracked_row(joint, e, first, fused, i, col, out, T3):
             q0 = 3 * (nbr[r] % N)
             for a in range(3):
                 for b in range(3):
-                    out[a, b] += (
+                    work[1, a, b] += (
                         Bij[r, a, 0] * sigma[t, q0, c0 + b]
                         + Bij[r, a, 1] * sigma[t, q0 + 1, c0 + b]
                         + Bij[r, a, 2] * sigma[t, q0 + 2, c0 + b]
@@ -80,24 +109,28 @@ def _tracked_row(joint, e, first, fused, i, col, out, T3):
 
 
 @jit_inline
-def _tracked_update(G, K, R, joint, e, Pn, T1, T2):
+def _tracked_update(G, K, R, Bij, e, work, J6, Pn, T1):
     """Robot i's covariance after an update with gain ``K`` and ``G = I - K H_i``:
     ``[G, D] [[P_i, C_ij], [C_ij^T, P_j]] [G, D]^T + K R K^T`` with ``D = -K H_j`` (the
-    link's ``Bij``) and the blocks of :func:`joint_cross` (``work``), symmetrized, into
-    ``Pn``. Twin: ``JointCovariance.current`` after ``update`` (``M_i Sigma M_i^T + N_i``
-    with the updated ``M_i``, ``N_i``; the same quantity)."""
-    work = joint[11]
-    Pm = work[0]
-    C = work[1]
-    Pr = work[2]
-    D = joint[6][e]
+    link's ``Bij[e]``) and the blocks of :func:`joint_cross` (``work[0:3]``), symmetrized,
+    into ``Pn`` and ``work[4]`` (``T1``, ``J6[1, :3, :3]``: scratch). Twin:
+    ``JointCovariance.current`` after ``update`` (``M_i Sigma M_i^T + N_i`` with the
+    updated ``M_i``, ``N_i``; the same quantity)."""
     for a in range(3):  # T1 = G P_i + D C^T, T2 = G C + D P_j
         for b in range(3):
-            T1[a, b] = (G[a, 0] * Pm[0, b] + G[a, 1] * Pm[1, b] + G[a, 2] * Pm[2, b]) + (
-                D[a, 0] * C[b, 0] + D[a, 1] * C[b, 1] + D[a, 2] * C[b, 2]
+            T1[a, b] = (
+                G[a, 0] * work[0, 0, b] + G[a, 1] * work[0, 1, b] + G[a, 2] * work[0, 2, b]
+            ) + (
+                Bij[e, a, 0] * work[1, b, 0]
+                + Bij[e, a, 1] * work[1, b, 1]
+                + Bij[e, a, 2] * work[1, b, 2]
             )
-            T2[a, b] = (G[a, 0] * C[0, b] + G[a, 1] * C[1, b] + G[a, 2] * C[2, b]) + (
-                D[a, 0] * Pr[0, b] + D[a, 1] * Pr[1, b] + D[a, 2] * Pr[2, b]
+            J6[1, a, b] = (
+                G[a, 0] * work[1, 0, b] + G[a, 1] * work[1, 1, b] + G[a, 2] * work[1, 2, b]
+            ) + (
+                Bij[e, a, 0] * work[2, 0, b]
+                + Bij[e, a, 1] * work[2, 1, b]
+                + Bij[e, a, 2] * work[2, 2, b]
             )
     for a in range(3):
         t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
@@ -105,7 +138,11 @@ def _tracked_update(G, K, R, joint, e, Pn, T1, T2):
         for b in range(3):
             Pn[a, b] = (
                 (T1[a, 0] * G[b, 0] + T1[a, 1] * G[b, 1] + T1[a, 2] * G[b, 2])
-                + (T2[a, 0] * D[b, 0] + T2[a, 1] * D[b, 1] + T2[a, 2] * D[b, 2])
+                + (
+                    J6[1, a, 0] * Bij[e, b, 0]
+                    + J6[1, a, 1] * Bij[e, b, 1]
+                    + J6[1, a, 2] * Bij[e, b, 2]
+                )
                 + (t0 * K[b, 0] + t1 * K[b, 1])
             )
     for a in range(3):
@@ -183,40 +220,42 @@ def scaled_unit_minus_is_pd(M, c):
     return n00 > 0.0 and m2 > 0.0 and det > 0.0
 
 
-@jit
+@jit_inline
 def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
     """The blocks of the correlated joint for link ``e`` of robot ``i``: the observer's
     covariance into ``work[0]``, ``C_ij`` into ``work[1]`` and j's covariance into
     ``work[2]`` (``tracked``: from the joint; ``factorized``: ``Pi``, the factors' product
-    shrunk to a valid joint, ``Pj``). False when a covariance has no Cholesky factor."""
+    shrunk to a valid joint, ``Pj``). False when a covariance has no Cholesky factor.
+    ``tracked`` indexes the arrays and takes no view of them (a view costs a reference
+    count, and this runs per link)."""
     code = joint[0]
     N = joint[1]
-    j = joint[2][e]
+    nbr = joint[2]
+    j = nbr[e]
     work = joint[11]
+    if code == TRACKED:
+        sigma = joint[3]
+        t = i // N
+        if e == first:  # robot i's covariance now (work[4]): Sigma_ii at its first link
+            c0 = 3 * (i % N)
+            for a in range(3):
+                for b in range(3):
+                    work[4, a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
+        for a in range(3):
+            for b in range(3):
+                work[0, a, b] = work[4, a, b]
+        _tracked_row(sigma, joint[5], joint[6], nbr, N, e, first, fused, i, j % N, work)
+        t = j // N
+        c0 = 3 * (j % N)
+        for a in range(3):
+            for b in range(3):
+                work[2, a, b] = sigma[t, c0 + a, c0 + b]
+        return True
     Pm = work[0]
     C = work[1]
     Pr = work[2]
     T3 = work[3]
     L6 = joint[12][1]
-    if code == TRACKED:
-        sigma = joint[3]
-        now = work[4]  # robot i's covariance now: Sigma_ii at its first link
-        if e == first:
-            t = i // N
-            c0 = 3 * (i % N)
-            for a in range(3):
-                for b in range(3):
-                    now[a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
-        for a in range(3):
-            for b in range(3):
-                Pm[a, b] = now[a, b]
-        _tracked_row(joint, e, first, fused, i, j % N, C, T3)
-        t = j // N
-        c0 = 3 * (j % N)
-        for a in range(3):
-            for b in range(3):
-                Pr[a, b] = sigma[t, c0 + a, c0 + b]
-        return True
     sig = joint[7]
     sig_pred = joint[8]
     A = joint[5]
@@ -242,66 +281,60 @@ def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
 
 
 @jit_inline
-def _joint6(joint):
+def _joint6(work, J6):
     """``J = sym([[P_i, C], [C^T, P_j]])`` from ``work`` into ``J6[0]``."""
-    work = joint[11]
-    J = joint[12][0]
-    Pm = work[0]
-    C = work[1]
-    Pr = work[2]
     for a in range(3):
         for b in range(3):
-            J[a, b] = 0.5 * (Pm[a, b] + Pm[b, a])
-            J[3 + a, 3 + b] = 0.5 * (Pr[a, b] + Pr[b, a])
-            J[a, 3 + b] = C[a, b]
-            J[3 + b, a] = C[a, b]
-    return J
+            J6[0, a, b] = 0.5 * (work[0, a, b] + work[0, b, a])
+            J6[0, 3 + a, 3 + b] = 0.5 * (work[2, a, b] + work[2, b, a])
+            J6[0, a, 3 + b] = work[1, a, b]
+            J6[0, 3 + b, a] = work[1, a, b]
 
 
 @jit_inline
-def _chol6(A, L, jitter):
-    """Lower Cholesky factor of a 6 x 6 ``A`` into ``L`` with the escalating jitter of
-    :func:`resloc.linalg.cholesky_jitter`. False if none succeeds."""
+def _chol6(J6, jitter):
+    """Lower Cholesky factor of the 6 x 6 ``J6[0]`` into ``J6[1]`` with the escalating
+    jitter of :func:`resloc.linalg.cholesky_jitter`. False if none succeeds."""
     n = 6
     scale = 0.0
     for c in range(n):
         for r in range(n):
-            if not math.isfinite(A[r, c]):
+            if not math.isfinite(J6[0, r, c]):
                 return False
-        scale += abs(A[c, c])
+        scale += abs(J6[0, c, c])
     scale = max(scale / n, 1e-300)
     for level in jitter:
         eps = level * scale
         ok = True
         for c in range(n):
-            s = A[c, c] + eps
+            s = J6[0, c, c] + eps
             for k in range(c):
-                s -= L[c, k] * L[c, k]
+                s -= J6[1, c, k] * J6[1, c, k]
             if not s > 0.0:
                 ok = False
                 break
             d = math.sqrt(s)
-            L[c, c] = d
+            J6[1, c, c] = d
             for r in range(c + 1, n):
-                t = A[r, c]
+                t = J6[0, r, c]
                 for k in range(c):
-                    t -= L[r, k] * L[c, k]
-                L[r, c] = t / d
+                    t -= J6[1, r, k] * J6[1, c, k]
+                J6[1, r, c] = t / d
             for r in range(c):
-                L[r, c] = 0.0
+                J6[1, r, c] = 0.0
         if ok:
             return True
     return False
 
 
-@jit
+@jit_inline
 def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
     """The filter's unit points times the Cholesky factor of the correlated joint
     (:func:`joint_cross`'s blocks) into ``off: (6, m)``. False when the joint has no
     Cholesky factor. Twin: :func:`resloc.cl.tracking.joint_moments` (its offsets)."""
-    J = _joint6(joint)
-    L = joint[12][1]
-    if not _chol6(J, L, jitter):
+    J6 = joint[12]
+    _joint6(joint[11], J6)
+    if not _chol6(J6, jitter):
         return False
     for k in range(off.shape[1]):
         for a in range(6):
@@ -310,18 +343,18 @@ def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
             b = nz_idx[k, t]
             u = nz_val[k, t]
             for a in range(b, 6):  # L is lower triangular
-                off[a, k] += L[a, b] * u
+                off[a, k] += J6[1, a, b] * u
     return True
 
 
-@jit
+@jit_inline
 def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz):
     """First-order moments of eq. (3) under the correlated joint (:func:`joint_cross`'s
     blocks): ``S = H J H^T + R``, ``P^xz = J[:3] H^T`` with ``H = [H_i, H_j]`` at the means;
     fills ``Hi``, ``Hj``, ``Pxz``. Returns ``(zh0, zh1, S00, S01, S11)``.
     Twin: :func:`resloc.cl.tracking.joint_moments` (EKF)."""
-    J = _joint6(joint)
-    T = joint[12][1]  # (2, 6) of H J in its first rows
+    J6 = joint[12]  # the joint in J6[0], H J in the first rows of J6[1]
+    _joint6(joint[11], J6)
     dx = xj0 - xi0
     dy = xj1 - xi1
     range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
@@ -329,31 +362,31 @@ def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz
         for b in range(6):
             s = 0.0
             for c in range(3):
-                s += Hi[a, c] * J[c, b]
+                s += Hi[a, c] * J6[0, c, b]
             for c in range(3):
-                s += Hj[a, c] * J[3 + c, b]
-            T[a, b] = s
+                s += Hj[a, c] * J6[0, 3 + c, b]
+            J6[1, a, b] = s
     q00 = 0.0
     q01 = 0.0
     q10 = 0.0
     q11 = 0.0
     for c in range(3):
-        q00 += T[0, c] * Hi[0, c]
-        q01 += T[0, c] * Hi[1, c]
-        q10 += T[1, c] * Hi[0, c]
-        q11 += T[1, c] * Hi[1, c]
+        q00 += J6[1, 0, c] * Hi[0, c]
+        q01 += J6[1, 0, c] * Hi[1, c]
+        q10 += J6[1, 1, c] * Hi[0, c]
+        q11 += J6[1, 1, c] * Hi[1, c]
     for c in range(3):
-        q00 += T[0, 3 + c] * Hj[0, c]
-        q01 += T[0, 3 + c] * Hj[1, c]
-        q10 += T[1, 3 + c] * Hj[0, c]
-        q11 += T[1, 3 + c] * Hj[1, c]
+        q00 += J6[1, 0, 3 + c] * Hj[0, c]
+        q01 += J6[1, 0, 3 + c] * Hj[1, c]
+        q10 += J6[1, 1, 3 + c] * Hj[0, c]
+        q11 += J6[1, 1, 3 + c] * Hj[1, c]
     for a in range(3):
         for b in range(2):
             s = 0.0
             for c in range(3):
-                s += J[a, c] * Hi[b, c]
+                s += J6[0, a, c] * Hi[b, c]
             for c in range(3):
-                s += J[a, 3 + c] * Hj[b, c]
+                s += J6[0, a, 3 + c] * Hj[b, c]
             Pxz[a, b] = s
     S00 = q00 + R[0, 0]
     S01 = 0.5 * ((q01 + R[0, 1]) + (q10 + R[1, 0]))
@@ -362,39 +395,45 @@ def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz
 
 
 @jit_inline
-def _left_multiply(G, M, T3):
-    """``M <- G M`` of 3 x 3 matrices in place (``T3``: scratch)."""
-    mul3(G, M, T3)
+def _left_multiply_row(G, M, r, T3):
+    """``M[r] <- G M[r]`` of 3 x 3 matrices in place (``T3``: scratch; no view of ``M``)."""
     for a in range(3):
         for b in range(3):
-            M[a, b] = T3[a, b]
+            T3[a, b] = G[a, 0] * M[r, 0, b] + G[a, 1] * M[r, 1, b] + G[a, 2] * M[r, 2, b]
+    for a in range(3):
+        for b in range(3):
+            M[r, a, b] = T3[a, b]
 
 
-@jit
+@jit_inline
 def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
     the update into ``Pn``. Twin: ``JointCovariance.update`` /
-    ``FactorizedCovariance.update``."""
+    ``FactorizedCovariance.update``. Indexes the arrays, takes no view of them (a view
+    costs a reference count, and this runs per link)."""
     code = joint[0]
     N = joint[1]
     j = joint[2][e]
-    A = joint[5]
+    Bij = joint[6]
     range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     for a in range(3):  # G = I - K H_i
         for b in range(3):
             G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
-    _left_multiply(G, A[i], T3)
+    _left_multiply_row(G, joint[5], i, T3)
     if code == TRACKED:  # the blocks of M_i, the noise, then P_i
         noise = joint[4]
-        Bij = joint[6]
         for r in range(first, e):
             if fused[r]:
-                _left_multiply(G, Bij[r], T3)
+                _left_multiply_row(G, Bij, r, T3)
         for a in range(3):
             for b in range(3):
                 Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
-        mul3(G, noise[i], T3)  # N_i <- G N_i G^T + K R K^T
+        for a in range(3):  # N_i <- G N_i G^T + K R K^T
+            for b in range(3):
+                T3[a, b] = (
+                    G[a, 0] * noise[i, 0, b] + G[a, 1] * noise[i, 1, b] + G[a, 2] * noise[i, 2, b]
+                )
         for a in range(3):
             t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
             t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
@@ -406,11 +445,10 @@ def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
         for a in range(3):
             for b in range(3):
                 noise[i, a, b] = Pn[a, b]
-        _tracked_update(G, K, R, joint, e, Pn, T3, joint[12][1][:3, :3])
+        _tracked_update(G, K, R, Bij, e, joint[11], joint[12], Pn, T3)
         return
     # FACTORIZED: the factors and B's products with G are deferred to the commit
     # (kernels_joint.joint_commit): record G and -K H_j
-    Bij = joint[6]
     gains = joint[13]
     for a in range(3):
         for b in range(3):

@@ -38,6 +38,7 @@ from resloc.cl.kernels_joint_links import (
     correlated_linearized_moments,
     correlated_offsets,
     joint_cross,
+    joint_form,
     joint_record,
 )
 from resloc.cl.kernels_math import (
@@ -206,7 +207,10 @@ def correct_links(
     fusion_code = fusion[0]
     # tracked / factorized: moments under a correlated joint (kernels_joint_links)
     joint = fusion[3]
-    correlated = joint[0] != NO_JOINT
+    # (their own compiled form: kernels_joint_links.JOINT_FORM; another form refuses them)
+    correlated = joint_form(beyond) and joint[0] != NO_JOINT
+    if beyond is not None and joint[0] != NO_JOINT and not correlated:
+        return NOT_PD  # the caller's reference path records the joint
     std0 = noise_std[0]
     std1 = noise_std[1]
     record_gauge = gauge[0]

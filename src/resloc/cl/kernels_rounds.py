@@ -59,6 +59,7 @@ from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
+from resloc.cl.kernels_joint_links import JOINT_FORM, NO_JOINT
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
     UPDATE_ROWS,
@@ -136,7 +137,9 @@ def beyond_paper(options, fusion, detection, defence, gauge, tamper):
     None, so the paper's method runs a form of each loop compiled without the options'
     stages (the first run of a fresh clone compiles only that), and any option runs the
     form with every option's stage, each behind its own runtime flag as before (compiled
-    once for all options, on the first run that needs it)."""
+    once for all options, on the first run that needs it). The ``tracked`` and
+    ``factorized`` joints run a third form, switch
+    :data:`~resloc.cl.kernels_joint_links.JOINT_FORM` (equal to True)."""
     on = (
         tamper[0]  # the stealthy attacker
         or detection[0]  # NIS CUSUM
@@ -149,7 +152,9 @@ def beyond_paper(options, fusion, detection, defence, gauge, tamper):
         or gauge[0]  # gauge bookkeeping
         or options[9]  # cached neighbour estimates
     )
-    return True if on else None
+    if not on:
+        return None
+    return JOINT_FORM if fusion[3][0] != NO_JOINT else True  # the joints: their own form
 
 
 #: Set by :func:`every_stage` (the warm-up): the loops run the form with every option's
@@ -178,9 +183,9 @@ def run_link_loop(
     (:func:`~resloc.cl.kernels_links.correct_links`). Each loop runs in the form
     :func:`beyond_paper` chooses (within :func:`every_stage`: the form with every option's
     stage). Returns the loop's status."""
-    beyond = True if _EVERY_STAGE[0] else beyond_paper(
-        options, fusion, detection, defence, gauge, tamper
-    )  # fmt: skip
+    beyond = beyond_paper(options, fusion, detection, defence, gauge, tamper)
+    if _EVERY_STAGE[0] and beyond is None:
+        beyond = True
     args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond)
     if len(links[0]) >= ROUNDS_MIN_LINKS and rounds_cover(
         filt, options, fusion, detection, defence, gauge, tamper

@@ -6,6 +6,30 @@ import numpy as np
 
 __all__ = ["LinkMemory", "LinkStatistic"]
 
+_COMPILED: list = []
+
+
+def _compiled_lookups():
+    """:mod:`resloc.cl.kernels_memory` when the backend is numba, else None (imported on
+    first use: numba's import is for commands that step an estimator; an import statement
+    costs about a microsecond, and this runs a few times a step)."""
+    if not _COMPILED:
+        from resloc.cl import kernels_memory
+        from resloc.cl.backend import backend
+
+        _COMPILED.extend((backend, kernels_memory))
+    backend, kernels_memory = _COMPILED
+    return kernels_memory if backend() == "numba" else None
+
+
+def _float_rows(a, shape: tuple) -> bool:
+    return (
+        type(a) is np.ndarray
+        and a.dtype == np.float64
+        and a.shape == shape
+        and a.flags.c_contiguous
+    )
+
 
 class LinkMemory:
     """What robot i remembers about each neighbour j it has received from.
@@ -91,6 +115,8 @@ class LinkMemory:
         """
         if len(i) == 0:
             return
+        if self._overwrite_compiled(i, j, x, P, norm):
+            return
         found, pos = self.lookup(i, j)
         if found.all():  # every link known (a run's steady state): overwrite in place
             self.x[pos] = x
@@ -109,6 +135,26 @@ class LinkMemory:
             self.x = np.concatenate([self.x, x[new]])[order]
             self.P = np.concatenate([self.P, P[new]])[order]
             self.last_norm = np.concatenate([self.last_norm, norm[new]])[order]
+
+    def _overwrite_compiled(self, i, j, x, P, norm) -> bool:
+        """:meth:`store` by one compiled call when every link is stored (a run's steady
+        state) and the arrays are as the compiled path passes them; False, nothing
+        written, otherwise."""
+        compiled = _compiled_lookups() if len(self.keys) else None
+        if compiled is None:
+            return False
+        ri, rj = compiled.int64_rows(i), compiled.int64_rows(j)
+        E = len(i)
+        if ri is None or rj is None or len(rj) != E:
+            return False
+        stores = (self.x, (len(self.keys), 3)), (self.P, (len(self.keys), 3, 3))
+        given = (x, (E, 3)), (P, (E, 3, 3)), (norm, (E,)), (self.last_norm, (len(self.keys),))
+        if not all(_float_rows(a, shape) for a, shape in (*stores, *given)):
+            return False
+        pos = np.empty(E, np.int64)
+        return compiled.overwrite_stored(
+            self.keys, self.n_nodes, ri, rj, x, P, norm, self.x, self.P, self.last_norm, pos
+        )
 
 
 class LinkStatistic:
@@ -173,6 +219,13 @@ class LinkStatistic:
         -------
         ndarray of int64, shape (E,)
         """
+        compiled = _compiled_lookups() if len(self.keys) else None
+        if compiled is not None:  # every link stored before (a run's steady state)
+            ri, rj = compiled.int64_rows(i), compiled.int64_rows(j)
+            if ri is not None and rj is not None and len(ri) == len(rj):
+                pos = np.empty(len(ri), np.int64)
+                if compiled.stored_positions(self.keys, self.n_nodes, ri, rj, pos):
+                    return pos
         k = self._keys(i, j)
         if len(k):
             pos = np.searchsorted(self.keys, k)

@@ -1,0 +1,96 @@
+"""Compiled look-ups of the per-link memory (:mod:`resloc.cl.memory`) for its steady state.
+
+After a run's first steps every link of a step is already stored: the compiled path then
+asks the stores for the positions of the step's links (:meth:`LinkStatistic.slots
+<resloc.cl.memory.LinkStatistic.slots>`, a few per step with the detector's and defence's
+stages) and overwrites the delivered links' estimates (:meth:`LinkMemory.store
+<resloc.cl.memory.LinkMemory.store>`, ``cached`` neighbour estimates). In numpy each is a
+handful of calls (keys, ``searchsorted``, the check that every key was found, the
+scatters), about ten microseconds; here one call. Each function returns False, having
+written nothing, when a link is not stored yet: the caller then inserts it by the numpy
+code, the only code that inserts.
+
+=============================  ==================================================
+kernel function                numpy twin
+=============================  ==================================================
+:func:`stored_positions`       ``np.searchsorted`` of the keys, every key found
+:func:`overwrite_stored`       ``LinkMemory.store`` when every link is stored
+=============================  ==================================================
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from resloc.cl.kernels_math import jit
+
+__all__ = ["overwrite_stored", "stored_positions"]
+
+
+@jit
+def _position(keys, key):
+    """Position of ``key`` in the sorted ``keys`` (``np.searchsorted``, side left), -1 when
+    it is not there."""
+    lo = 0
+    hi = keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo < keys.shape[0] and keys[lo] == key:
+        return lo
+    return -1
+
+
+@jit
+def stored_positions(keys, n_nodes, i, j, pos):
+    """``pos[e]``: the position of link ``(i[e], j[e])`` (key ``i * n_nodes + j``) in the
+    sorted ``keys`` (shapes (E,), int64); False (``pos`` partly written) when a link is not
+    stored. Links come sorted by key (by observer, then neighbour): the next one is found
+    by walking on from the last one's position (both lists once, where a binary search per
+    link cost several microseconds a call); a key out of order is searched from the start."""
+    K = keys.shape[0]
+    last = -1
+    p = 0
+    for e in range(i.shape[0]):
+        key = i[e] * n_nodes + j[e]
+        if e == 0 or key < last:
+            p = _position(keys, key)
+        elif key > last:
+            p += 1
+            while p < K and keys[p] < key:
+                p += 1
+            if p >= K or keys[p] != key:
+                p = -1
+        if p < 0:
+            return False
+        pos[e] = p
+        last = key
+    return True
+
+
+@jit
+def overwrite_stored(keys, n_nodes, i, j, x, P, norm, mem_x, mem_P, mem_last, pos):
+    """``mem_x[p] = x[e]``, ``mem_P[p] = P[e]``, ``mem_last[p] = norm[e]`` at the position
+    ``p`` of every link ``(i[e], j[e])`` when every link is stored (``pos``: (E,) int64
+    scratch); False, nothing written, when one is not."""
+    if not stored_positions(keys, n_nodes, i, j, pos):
+        return False
+    for e in range(i.shape[0]):
+        p = pos[e]
+        for a in range(3):
+            mem_x[p, a] = x[e, a]
+            for b in range(3):
+                mem_P[p, a, b] = P[e, a, b]
+        mem_last[p] = norm[e]
+    return True
+
+
+def int64_rows(a) -> np.ndarray | None:
+    """``a`` when it is a C-contiguous one-dimensional int64 array (what the compiled
+    look-ups take without a conversion), else None."""
+    if type(a) is np.ndarray and a.dtype == np.int64 and a.ndim == 1 and a.flags.c_contiguous:
+        return a
+    return None

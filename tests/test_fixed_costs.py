@@ -1,0 +1,144 @@
+"""The per-step fixed costs removed around the compiled kernels (docs/performance.md, "Fixed
+per-step costs of the options"): the compiled look-ups of the per-link memory
+(:mod:`resloc.cl.kernels_memory`) give the numpy code's positions and stores, and run; the
+``tracked`` and ``factorized`` joints run the link loop's form of their own
+(:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`), and another form refuses them rather
+than fusing without the joint."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, correct, kernels, kernels_memory, predict
+from resloc.cl import kernels_rounds as rounds
+from resloc.cl.backend import use_backend
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_joint_links import JOINT_FORM
+from resloc.cl.memory import LinkMemory, LinkStatistic
+from resloc.experiments.config import default_scenario
+from resloc.filters import make_filter
+from resloc.world.world import World
+from test_kernel_forms import _forms_seen
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+PARAMS = default_scenario().cl_params()
+
+
+def _outcomes(params, steps: int):
+    """The outcomes of ``steps`` corrections of the default scenario (two trials) with
+    ``params`` and the CKF, in the row-order loop (as a run steps it)."""
+    filt = make_filter("ckf")
+    world = World(default_scenario().world, 2, 3, default_scenario().trigger.lambda2)
+    fusion = fusion_strategy(params.fusion)
+    x, P = world.initial_estimates()
+    memory = LinkMemory(world.B)
+    fusion.init(memory, x, P, world.n)
+    saved = rounds.ROUNDS_MIN_LINKS
+    rounds.ROUNDS_MIN_LINKS = 10**18
+    try:
+        for _ in range(steps):
+            ws = world.step()
+            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+            Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
+            links = LinkBatch(
+                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
+                ws.lambda2, **fusion.link_fields(memory, ws.j),
+            )  # fmt: skip
+            x, P, out = correct(filt, xp, Pp, links, params, memory)
+            fusion.exchange(memory, ws.i, ws.j)
+            yield out
+    finally:
+        rounds.ROUNDS_MIN_LINKS = saved
+
+
+def _spy(monkeypatch, name: str) -> list:
+    """Calls of ``kernels_memory.<name>`` (the real function still runs), with results."""
+    calls: list = []
+    real = getattr(kernels_memory, name)
+
+    def spy(*args):
+        result = real(*args)
+        calls.append(result)
+        return result
+
+    monkeypatch.setattr(kernels_memory, name, spy)
+    return calls
+
+
+def _links(rng, n_nodes: int, E: int, stored=None) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct links ``(i, j)`` sorted by key: ``E`` drawn at random, or (``stored``: a
+    store's keys) about a third of the stored ones."""
+    if stored is None:
+        keys = np.unique(rng.integers(0, n_nodes * n_nodes, E))
+    else:
+        keys = stored[rng.random(len(stored)) < 0.3]
+    return keys // n_nodes, keys % n_nodes
+
+
+def test_compiled_slots_are_the_numpy_slots(monkeypatch) -> None:
+    rng = np.random.default_rng(3)
+    calls = _spy(monkeypatch, "stored_positions")
+    for width in (None, 4):
+        stores = {b: LinkStatistic(17, width=width) for b in ("numba", "numpy")}
+        for step in range(6):
+            known = stores["numpy"].keys if step >= 3 else None  # new links, then stored ones
+            i, j = _links(rng, 17, 40, known)
+            if step % 2:  # links out of key order: every search from the start
+                order = rng.permutation(len(i))
+                i, j = i[order], j[order]
+            got = {}
+            for backend, store in stores.items():
+                with use_backend(backend):
+                    got[backend] = store.slots(i, j)
+                store.values[got[backend]] += 1.0
+            np.testing.assert_array_equal(got["numba"], got["numpy"])
+            assert got["numba"].dtype == np.int64
+            np.testing.assert_array_equal(stores["numba"].keys, stores["numpy"].keys)
+            np.testing.assert_array_equal(stores["numba"].values, stores["numpy"].values)
+            if step >= 3:  # every link stored, in key order or not: the compiled look-up
+                assert calls and calls[-1] is True, (step, calls)
+    assert False in calls, "the compiled look-up never gave way to an insertion"
+
+
+def test_compiled_store_is_the_numpy_store(monkeypatch) -> None:
+    rng = np.random.default_rng(5)
+    calls = _spy(monkeypatch, "overwrite_stored")
+    memories = {b: LinkMemory(9) for b in ("numba", "numpy")}
+    for step in range(8):
+        i, j = _links(rng, 9, 30, memories["numpy"].keys if step >= 2 else None)
+        x = rng.normal(size=(len(i), 3))
+        P = rng.normal(size=(len(i), 3, 3))
+        norm = rng.random(len(i))
+        for backend, memory in memories.items():
+            with use_backend(backend):
+                memory.store(i, j, x, P, norm)
+        a, b = memories["numba"], memories["numpy"]
+        for name in ("keys", "x", "P", "last_norm"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert True in calls and False in calls, calls
+
+
+@pytest.mark.parametrize("method", ["tracked", "factorized"])
+def test_the_joints_run_their_own_form_of_the_loop(method: str) -> None:
+    params = replace(PARAMS, fusion=method)
+    with _forms_seen() as seen:
+        assert all(out.compiled for out in _outcomes(params, 2))
+    assert seen and all(type(form) is int and form == JOINT_FORM for _, form in seen), seen
+    with _forms_seen() as seen:  # the options' form: every switch the bool True
+        assert all(out.compiled for out in _outcomes(replace(PARAMS, fusion="ci"), 1))
+    assert seen and all(form is True for _, form in seen), seen
+
+
+def test_another_form_refuses_the_joints(monkeypatch) -> None:
+    """Run with the options' switch (True), the loop refuses a joint instead of fusing
+    without it: the correction goes to the reference path."""
+    monkeypatch.setattr(rounds, "beyond_paper", lambda *args: True)
+    params = replace(PARAMS, fusion="tracked")
+    with _forms_seen() as seen:
+        outs = list(_outcomes(params, 2))
+    assert seen and all(form is True for _, form in seen)
+    assert not any(out.compiled for out in outs)
