@@ -28,6 +28,9 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     (``|r_ij - r_ji|`` against ``sqrt(2) sigma_r``, one step and in sum since the link was
     admitted; a flagged link is held out a while, then re-admitted:
     :mod:`resloc.cl.detection_reciprocal`).
+``zone_landmarks``
+    Withholds the links whose neighbour's broadcast position lies inside the (grown) SDZ map
+    (:mod:`resloc.cl.detection_landmark`): a robot inside a zone is not a landmark.
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -51,6 +54,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.detection_landmark import ZoneLandmarks
 from resloc.cl.detection_reciprocal import ReciprocalCheck
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
@@ -99,6 +103,8 @@ class Evidence:
         The observers' covariances (the recovery bounds its inflation by their growth).
     x_obs : ndarray, shape (E, 3), optional
         The observers' estimates (zone-aware trust reads their positions).
+    x_nb : ndarray, shape (E, 3), optional
+        The neighbours' broadcast estimates (zone landmarks read their positions).
     zone_substituted : ndarray of bool, shape (E,), optional
         Rows whose observer is inside a mapped zone and whose measurement was replaced by
         the partner's range (zone-aware trust keeps them).
@@ -128,6 +134,7 @@ class Evidence:
     inflation: np.ndarray | None = None
     P_obs: np.ndarray | None = None
     x_obs: np.ndarray | None = None
+    x_nb: np.ndarray | None = None
     zone_substituted: np.ndarray | None = None
     fix_excluded: np.ndarray | None = None
     fix_statistic: np.ndarray | None = None
@@ -266,6 +273,7 @@ RECIPROCAL = ReciprocalCheck()
 OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE, RECIPROCAL)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
+    ZoneLandmarks(),
     NORM_GATE,
     REDUNDANCY,
     REDUNDANCY_SEQUENCE,

@@ -207,6 +207,7 @@ def _decide(
         np.zeros(len(rows), bool),
         P_obs=P_i,
         x_obs=x_i,
+        x_nb=links.x_nb[rows],
         zone_substituted=substituted,
         **({} if fixes is None else {k: v[rows] for k, v in fixes.items()}),
     )

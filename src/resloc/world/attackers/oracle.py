@@ -50,7 +50,7 @@ ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
 #: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
 #: set in its own copy of the victims' links: stackable, and exact for lies told together).
-CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence", "reciprocal"})
+CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence", "reciprocal", "zone_landmarks"})
 
 
 @dataclass
@@ -62,10 +62,15 @@ class StepContext:
 
     fix: FixContext | None = None
     reciprocal: ReciprocalContext | None = None
+    #: The candidates' rows' broadcast estimates, shape (n, 3) (zone landmarks read them).
+    x_nb: np.ndarray | None = None
 
     def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
         """Evidence fields for the stacked ``candidates``, shape (G, n, 2)."""
         out: dict[str, np.ndarray] = {}
+        if self.x_nb is not None:
+            G = np.asarray(candidates).reshape(-1, len(self.x_nb), 2).shape[0]
+            out["x_nb"] = np.tile(self.x_nb, (G, 1))
         for part in (self.fix, self.reciprocal):
             if part is not None:
                 out.update(part.fields(candidates))
@@ -127,7 +132,8 @@ def fix_context(
             x_obs,
             links.x_nb,
         )
-    return StepContext(fix, reciprocal)
+    x_nb = np.asarray(links.x_nb)[rows] if "zone_landmarks" in names else None
+    return StepContext(fix, reciprocal, x_nb)
 
 
 def _scratch(value):
