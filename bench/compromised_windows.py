@@ -4,10 +4,11 @@ One seed (its own run, so the recorded trial-0 track is that seed's), the defaul
 with a defence, clean (no SDZ, the study's clean run) and against ``compromised``. Per
 window of steps: the MSLE (gauge-free: pairwise distances), the robots that carry it (each
 robot's share of the MSLE sum), how many robots' estimates are inside the mapped SDZ, the
-lie per fused link from a compromised robot (m) and the share of those links fused, split by
-whether the victim's estimate is inside the map, and the share of honest links discarded,
-split the same way. ``--window A B`` lets the attacker lie only in steps ``[A, B)``
-(ablation: which part of the run the damage comes from).
+lie per fused link from a compromised robot (m), split by whether the victim's estimate is
+inside the map and by whether the liar's is, and the share of honest links and of the
+compromised robots' links the detector discarded (zone trust's withheld rows included),
+split by the observer's estimate inside or outside the map. ``--window A B`` lets the
+attacker lie only in steps ``[A, B)`` (ablation: which part of the run the damage comes from).
 
     .venv/bin/python bench/compromised_windows.py --seed 8 --robots 1 --claimed-cov 0.01 \
         --steps 700 --defence zone+full+redundancy+sequence+cap
@@ -132,7 +133,8 @@ def main() -> None:
     windows = []
     for k0 in range(0, args.steps, args.every):
         k1 = k0 + args.every
-        w = (step > k0) & (step <= k1) & delivered
+        every = (step > k0) & (step <= k1)
+        w = every & delivered
         row = {
             "steps": [k0, k1],
             "msle": float(pr[k0 + 1 : k1 + 1].sum(1).mean()),
@@ -157,8 +159,10 @@ def main() -> None:
             row[f"lie_fused_mean_m_{tag}"] = (
                 float(lie_m[lw & fused].mean()) if (lw & fused).any() else None
             )
-            hw = w & honest & sel
+            hw = every & honest & sel
             row[f"honest_discarded_{tag}"] = float(detected[hw].mean()) if hw.any() else None
+            lw = every & from_liar & sel
+            row[f"liar_discarded_{tag}"] = float(detected[lw].mean()) if lw.any() else None
         windows.append(row)
         print(json.dumps(row), flush=True)
     report["windows"] = windows

@@ -29,8 +29,9 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     admitted; a flagged link is held out a while, then re-admitted:
     :mod:`resloc.cl.detection_reciprocal`).
 ``zone_landmarks``
-    Withholds the links whose neighbour's broadcast position lies inside the (grown) SDZ map
-    (:mod:`resloc.cl.detection_landmark`): a robot inside a zone is not a landmark.
+    Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
+    is weighed, in every test and in the fusion, with its claimed covariance inflated
+    (:mod:`resloc.cl.detection_landmark`): a robot inside a zone is a weak landmark.
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -103,8 +104,6 @@ class Evidence:
         The observers' covariances (the recovery bounds its inflation by their growth).
     x_obs : ndarray, shape (E, 3), optional
         The observers' estimates (zone-aware trust reads their positions).
-    x_nb : ndarray, shape (E, 3), optional
-        The neighbours' broadcast estimates (zone landmarks read their positions).
     zone_substituted : ndarray of bool, shape (E,), optional
         Rows whose observer is inside a mapped zone and whose measurement was replaced by
         the partner's range (zone-aware trust keeps them).
@@ -134,7 +133,6 @@ class Evidence:
     inflation: np.ndarray | None = None
     P_obs: np.ndarray | None = None
     x_obs: np.ndarray | None = None
-    x_nb: np.ndarray | None = None
     zone_substituted: np.ndarray | None = None
     fix_excluded: np.ndarray | None = None
     fix_statistic: np.ndarray | None = None

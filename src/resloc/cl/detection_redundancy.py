@@ -53,7 +53,6 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from resloc.cl.detection_landmark import not_landmarks
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
 
@@ -386,7 +385,7 @@ def fix_evidence(
         i,
         at_robots(params.redundancy_gate, i),
         at_robots(params.redundancy_min_peers, i),
-        excluded=not_landmarks(params, x_nb, held_out(params, memory, i, j)),
+        excluded=held_out(params, memory, i, j),
         residuals=True,
     )
     out = {
@@ -483,8 +482,7 @@ class FixContext:
             from resloc.cl.detection_sequence import held_out
 
             held = held_out(params, self.memory, self.i[victims], self.j[victims])
-        held = not_landmarks(params, x_nb, held)  # zone landmarks: no reference either
-        held = None if held is None else np.tile(held, G)
+            held = None if held is None else np.tile(held, G)
         excluded, stat, residual, residual_cov = exclude_inconsistent(
             fix, C, group, gate, peers, excluded=held, residuals=True
         )

@@ -88,7 +88,7 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 **_SEQUENCE,
                 **_RECIPROCAL,
             },
-            # + no robot inside the map is a landmark (cl/detection_landmark.py): its
+            # + a robot inside the map is a weak landmark (cl/detection_landmark.py): its
             # estimate there is built from its partners' fixes, and a compromised robot
             # inside closes that loop with its lies.
             "zone+full+redundancy+sequence+cap+landmarks": {

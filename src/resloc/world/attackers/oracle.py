@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
+from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_reciprocal import ReciprocalContext
-from resloc.cl.detection_redundancy import FixContext
+from resloc.cl.detection_redundancy import FixContext, capped_claims
 from resloc.cl.detector import innovation_norm
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
@@ -50,7 +51,7 @@ ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
 #: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
 #: set in its own copy of the victims' links: stackable, and exact for lies told together).
-CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence", "reciprocal", "zone_landmarks"})
+CONTEXT_STAGES = frozenset({"redundancy", "redundancy_sequence", "reciprocal"})
 
 
 @dataclass
@@ -62,15 +63,10 @@ class StepContext:
 
     fix: FixContext | None = None
     reciprocal: ReciprocalContext | None = None
-    #: The candidates' rows' broadcast estimates, shape (n, 3) (zone landmarks read them).
-    x_nb: np.ndarray | None = None
 
     def fields(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
         """Evidence fields for the stacked ``candidates``, shape (G, n, 2)."""
         out: dict[str, np.ndarray] = {}
-        if self.x_nb is not None:
-            G = np.asarray(candidates).reshape(-1, len(self.x_nb), 2).shape[0]
-            out["x_nb"] = np.tile(self.x_nb, (G, 1))
         for part in (self.fix, self.reciprocal):
             if part is not None:
                 out.update(part.fields(candidates))
@@ -105,6 +101,13 @@ def fix_context(
         )
     source = links.neighbours
     z = np.asarray(links.z if z is None else z, float)
+    P_nb = links.P_nb if P_nb is None else P_nb
+    if params.zone_landmarks:
+        # The victim's step caps the claims (with the cap in fusion), then inflates those
+        # of the neighbours inside the map, before every test.
+        if params.redundancy_cap_fusion:
+            P_nb = capped_claims(P_nb, np.asarray(links.i))
+        P_nb = landmark_claims(params, links.x_nb, P_nb, np.asarray(links.i))
     x_obs = source.x[links.i]
     fix = None
     if names & {"redundancy", "redundancy_sequence"}:
@@ -113,7 +116,7 @@ def fix_context(
             x_obs,
             source.P[links.i],
             links.x_nb,
-            links.P_nb if P_nb is None else P_nb,
+            P_nb,
             np.asarray(links.i),
             params,
             np.asarray(rows),
@@ -132,8 +135,7 @@ def fix_context(
             x_obs,
             links.x_nb,
         )
-    x_nb = np.asarray(links.x_nb)[rows] if "zone_landmarks" in names else None
-    return StepContext(fix, reciprocal, x_nb)
+    return StepContext(fix, reciprocal)
 
 
 def _scratch(value):
