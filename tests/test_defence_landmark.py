@@ -137,3 +137,32 @@ def test_the_compromised_robot_inside_the_map_sits_on_the_gate_of_the_inflated_c
         assert accepted(sent[name][[liar]], *args, context=context).all()
         assert not accepted(more, *args, context=context).any()
     assert lie["on"] > 1.5 * lie["off"]
+
+
+@pytest.mark.parametrize(("mode", "cap"), [("sequential", True), ("summed", False)])
+def test_robot_nodes_reproduce_the_batched_engine_with_zone_landmarks(mode, cap):
+    """The SDZ on the team's start (zone trust off here: the nodes' helper sends no partner
+    readings), neighbours inside the map inflated: one robot's process (its own rows'
+    median claim) equals the batched engine to 1e-9, and the stage changes the estimates."""
+    from resloc.cl import kernels
+    from test_node import assert_same, hot_scenario, run_batched, run_nodes, simulate
+
+    scenario = hot_scenario(15)
+    params = dataclasses.replace(
+        scenario.replace(
+            **DEFENCES["full+redundancy+sequence"], **{"detector.zone_landmarks": True}
+        ).cl_params(),
+        update_mode=mode,
+        redundancy_cap_fusion=cap,
+    )
+    assert params.zone_landmarks_map
+    world, x0, P0, ws_list = simulate(scenario, trials=1, seed=4)
+    filt = make_filter("ekf")
+    with kernels.use_backend("auto"):
+        batched = run_batched(filt, params, world, x0, P0, ws_list)
+        by_robot = run_nodes(filt, params, world, x0, P0, ws_list)
+        without = run_batched(
+            filt, dataclasses.replace(params, zone_landmarks=False), world, x0, P0, ws_list
+        )
+    assert assert_same(batched, by_robot, ws_list, compiled=False) > 0
+    assert max(np.abs(b[0] - w[0]).max() for b, w in zip(batched, without, strict=True)) > 1e-6
