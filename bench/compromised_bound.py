@@ -53,11 +53,14 @@ class DropBroadcasts:
         return dataclasses.replace(links, channel_ok=links.channel_ok & ~hit)
 
 
-def bound(defence: str, seeds: int, steps: int, robots: list[int]) -> dict:
+def bound(
+    defence: str, seeds: int, steps: int, robots: list[int], extra: dict | None = None
+) -> dict:
     """Per-seed MSLE of the defence's clean run and of the genie for each liar count, and
-    the paired ratios."""
+    the paired ratios; ``extra``: more dotted scenario overrides (a defence's option)."""
     base = default_scenario().replace(
         **defence_overrides(defence),
+        **(extra or {}),
         **{
             "run.trials": seeds,
             "run.steps": steps,
@@ -66,7 +69,8 @@ def bound(defence: str, seeds: int, steps: int, robots: list[int]) -> dict:
         },
     )
     clean = run_scenario(base.replace(sdz=[])).estimators["ckf"].per_trial("msle_mean")
-    out = {"defence": defence, "seeds": seeds, "steps": steps, "clean": clean.tolist()}
+    out = {"defence": defence, "set": extra or {}, "seeds": seeds, "steps": steps}
+    out["clean"] = clean.tolist()
     for n in robots:
         liars = make_attacker("compromised", robots=n).targets(base.world.team.robots) if n else []
         genie = DropBroadcasts(np.asarray(liars, int))
@@ -95,9 +99,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--defence", default="zone+full+redundancy+sequence+cap")
     ap.add_argument("--robots", type=int, nargs="+", default=[0, 1, 3])
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON")
     ap.add_argument("--out", type=Path, default=Path("runs/compromised_bound.json"))
     args = ap.parse_args()
-    out = bound(args.defence, args.seeds, args.steps, args.robots)
+    extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    out = bound(args.defence, args.seeds, args.steps, args.robots, extra)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1))
 
