@@ -5,7 +5,8 @@ and attacker points with every seed batched (the same per-seed worlds and result
 times faster on a loaded machine), clean run (no SDZ) included, and prints the per-seed MSLE
 ratios. Extra scenario overrides (``--set key=value``, JSON values) vary a defence's option.
 
-    .venv/bin/python bench/compromised_long.py --defence zone+full+redundancy+sequence+cap+landmarks \
+    .venv/bin/python bench/compromised_long.py \
+        --defence zone+full+redundancy+sequence+cap+landmarks \
         --set detector.zone_landmarks_inflation=100 --seeds 10 --steps 1000 --out runs/long.json
 """
 
