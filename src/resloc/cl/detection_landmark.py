@@ -6,8 +6,9 @@ its outside partners send it, i.e. it is built from those partners' estimates. W
 partners then fuse that robot as a landmark they fuse their own information back (a loop
 naive fusion does not model), and a *compromised* robot inside the zone closes the loop
 with a lie: it is told where it is by its victims, whom its last lie pulled, and lies again
-on top of that. Over the default 1000 steps this loop, while compromised robots are inside
-the map, is where most of their harm comes from (``docs/attack/compromised_long.md``).
+on top of that. Over the default 1000 steps this loop, while a compromised robot is inside
+the map, is where most of one compromised robot's harm comes from; against three it is one
+mechanism of several (``docs/attack/compromised_long.md``).
 
 This stage weighs each neighbour ``j`` whose broadcast position lies inside the map grown
 by ``zone_landmarks_margin`` with its claimed covariance multiplied by
