@@ -35,8 +35,8 @@ What it assumes, where it fails:
   edge plus the margin (0.25 m by default), which the other stages judge as any other
   lie. (In the simulator a compromised robot's lie is carried as the equivalent reading,
   so its broadcast position field is its honest estimate: a claim moved out of the map is
-  not modelled; the margin is ten times the largest lie per step the gates were measured
-  to accept inside the map, 25-50 mm.)
+  not modelled; the margin is three to ten times the mean lie per link the gates were
+  measured to accept inside the map, 25-80 mm.)
 * The compiled kernel does not implement it (``compiled = False``): the correction falls
   back to the numpy path.
 """
