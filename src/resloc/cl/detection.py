@@ -28,6 +28,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     (``|r_ij - r_ji|`` against ``sqrt(2) sigma_r``, one step and in sum since the link was
     admitted; a flagged link is held out a while, then re-admitted:
     :mod:`resloc.cl.detection_reciprocal`).
+``zone_landmarks``
+    Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
+    is weighed, in every test and in the fusion, with its claimed covariance inflated
+    (:mod:`resloc.cl.detection_landmark`): a robot inside a zone is a weak landmark.
 ``zone_trust``
     Withholds the measurements whose observer's estimate lies inside a mapped sensing
     danger zone (:mod:`resloc.cl.detection_zone`): they are discarded and the other stages,
@@ -51,6 +55,7 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
+from resloc.cl.detection_landmark import ZoneLandmarks
 from resloc.cl.detection_reciprocal import ReciprocalCheck
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
@@ -266,6 +271,7 @@ RECIPROCAL = ReciprocalCheck()
 OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE, RECIPROCAL)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
+    ZoneLandmarks(),
     NORM_GATE,
     REDUNDANCY,
     REDUNDANCY_SEQUENCE,

@@ -131,6 +131,13 @@ class CLParams:
         sensing danger zone (:mod:`resloc.cl.detection_zone`).
     zone_trust_map : tuple of (cx, cy, r)
         The discs distrusted (the SDZ map, grown by the margin).
+    zone_landmarks : bool
+        A neighbour whose broadcast position lies inside ``zone_landmarks_map`` is weighed
+        with its claimed covariance inflated (:mod:`resloc.cl.detection_landmark`).
+    zone_landmarks_map : tuple of (cx, cy, r)
+        The zone map grown by the landmark margin.
+    zone_landmarks_inflation : float
+        The factor on those neighbours' claimed covariances.
     redundancy : bool
         Discard a link whose position fix of the observer disagrees with the observer's
         other fixes of the step (:mod:`resloc.cl.detection_redundancy`).
@@ -201,6 +208,9 @@ class CLParams:
     recovery_inflation_cap: float | np.ndarray = 100.0
     zone_trust: bool = False
     zone_trust_map: tuple = ()
+    zone_landmarks: bool = False
+    zone_landmarks_map: tuple = ()
+    zone_landmarks_inflation: float = 10.0
     redundancy: bool = False
     redundancy_gate: float | np.ndarray = 13.815510557964274
     redundancy_min_peers: float | np.ndarray = 2.0

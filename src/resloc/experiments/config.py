@@ -183,6 +183,17 @@ class DetectorSpec:
     zone_trust_scale: float = option(
         1.0, "zone trust: the map's error for evaluation, radii times this", min=0.0, max=1e3
     )
+    zone_landmarks: bool = option(
+        False,
+        "a neighbour whose broadcast position lies inside a mapped SDZ (the zone trust map "
+        "grown by zone_landmarks_margin) is weighed with its claimed covariance inflated",
+    )
+    zone_landmarks_inflation: float = option(
+        10.0, "zone landmarks: the factor on those neighbours' claimed covariance", min=1.0, max=1e6
+    )
+    zone_landmarks_margin: float = option(
+        0.25, "zone landmarks: grow the zone trust map by this more (m)", min=0.0, max=ARENA_MAX
+    )
     redundancy: bool = option(
         False,
         "discard a link whose fix of the robot's position disagrees with its other "
@@ -330,6 +341,14 @@ class Scenario:
             zone_trust_map=zone_map(
                 [(z.center, z.radius) for z in w.sdz] if d.zone_trust else [],
                 d.zone_trust_margin,
+                tuple(d.zone_trust_shift),
+                d.zone_trust_scale,
+            ),
+            zone_landmarks=d.zone_landmarks,
+            zone_landmarks_inflation=float(d.zone_landmarks_inflation),
+            zone_landmarks_map=zone_map(
+                [(z.center, z.radius) for z in w.sdz] if d.zone_landmarks else [],
+                d.zone_trust_margin + d.zone_landmarks_margin,
                 tuple(d.zone_trust_shift),
                 d.zone_trust_scale,
             ),

@@ -88,6 +88,16 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 **_SEQUENCE,
                 **_RECIPROCAL,
             },
+            # + a robot inside the map is a weak landmark (cl/detection_landmark.py): its
+            # estimate there is built from its partners' fixes, and a compromised robot
+            # inside closes that loop with its lies.
+            "zone+full+redundancy+sequence+cap+landmarks": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

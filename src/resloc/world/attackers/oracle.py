@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
+from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_reciprocal import ReciprocalContext
-from resloc.cl.detection_redundancy import FixContext
+from resloc.cl.detection_redundancy import FixContext, capped_claims
 from resloc.cl.detector import innovation_norm
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
@@ -100,6 +101,13 @@ def fix_context(
         )
     source = links.neighbours
     z = np.asarray(links.z if z is None else z, float)
+    P_nb = links.P_nb if P_nb is None else P_nb
+    if params.zone_landmarks:
+        # The victim's step caps the claims (with the cap in fusion), then inflates those
+        # of the neighbours inside the map, before every test.
+        if params.redundancy_cap_fusion:
+            P_nb = capped_claims(P_nb, np.asarray(links.i))
+        P_nb = landmark_claims(params, links.x_nb, P_nb, np.asarray(links.i))
     x_obs = source.x[links.i]
     fix = None
     if names & {"redundancy", "redundancy_sequence"}:
@@ -108,7 +116,7 @@ def fix_context(
             x_obs,
             source.P[links.i],
             links.x_nb,
-            links.P_nb if P_nb is None else P_nb,
+            P_nb,
             np.asarray(links.i),
             params,
             np.asarray(rows),
