@@ -73,6 +73,12 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+cap": dict(
         DEFENCES["zone+full+redundancy+sequence+cap"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap+landmarks"]
+    ),
+    "defence zone+full+redundancy+sequence+reciprocal": dict(
+        DEFENCES["zone+full+redundancy+sequence+reciprocal"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 

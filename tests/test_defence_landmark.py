@@ -1,6 +1,7 @@
 """Zone landmarks (cl/detection_landmark.py): a neighbour whose broadcast position is inside
 the map is weighed with its claimed covariance inflated, in the tests and in the fusion;
-the scenario keys; the numpy path runs it; the compromised robot's oracle knows it (its lie
+the scenario keys; the compiled path runs it as the reference does; the compromised
+robot's oracle knows it (its lie
 sits on the redundancy gate of the inflated covariance, 5% more is rejected)."""
 
 from __future__ import annotations
@@ -47,12 +48,44 @@ def test_claims_inside_the_map_are_inflated_and_no_others():
     assert landmark_claims(dataclasses.replace(params, zone_landmarks=False), POSE, P, i) is P
 
 
-def test_the_stage_discards_nothing_and_the_numpy_path_runs_it():
+@pytest.mark.parametrize("redundancy", [False, True])
+def test_the_compiled_path_fuses_the_weakened_claims_as_the_reference(redundancy):
+    """Neighbour 5 (inside the map) broadcasts 2 cm off: the compiled correction (the claims
+    weakened before its kernel, between the redundancy cap and the hook) equals the
+    reference to 1e-9, and differs from the run without the stage."""
+    from resloc.cl import kernels
+
     (stage,) = [s for s in DETECTOR_STAGES if s.name == "zone_landmarks"]
-    assert not stage.compiled
-    params = CLParams(detector_norm="nis", zone_landmarks=True, zone_landmarks_map=AROUND_5)
+    assert stage.compiled
+    params = CLParams(
+        detector_norm="nis",
+        trigger=False,  # every estimate sent
+        zone_landmarks=True,
+        zone_landmarks_map=AROUND_5,
+        redundancy=redundancy,
+        redundancy_cap_fusion=redundancy,
+    )
     links, *_ = _compromised_scene(params)
-    assert "zone_landmarks" in kernel_refusal(make_filter("ekf"), params, links)
+    x_nb = links.x_nb.copy()
+    x_nb[4, 0] += 0.02
+    links = dataclasses.replace(links, x_nb=x_nb, neighbours=None)
+    x, P = POSE.copy(), np.tile(np.diag([1e-4, 1e-4, 1e-4]), (6, 1, 1))
+    filt = make_filter("ckf")
+    if not kernels.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    assert kernel_refusal(filt, params, links) is None
+    runs = {}
+    for name, p, backend in (
+        ("compiled", params, "numba"),
+        ("reference", params, "numpy"),
+        ("without", dataclasses.replace(params, zone_landmarks=False), "numba"),
+    ):
+        with kernels.use_backend(backend):
+            runs[name] = resloc.cl.step.correct(filt, x, P, links, p)
+    assert runs["compiled"][2].compiled and not runs["reference"][2].compiled
+    np.testing.assert_allclose(runs["compiled"][0], runs["reference"][0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(runs["compiled"][1], runs["reference"][1], rtol=0, atol=1e-9)
+    assert np.abs(runs["compiled"][0] - runs["without"][0]).max() > 1e-4
 
 
 def test_a_neighbour_inside_the_map_moves_the_victim_less():
@@ -164,5 +197,5 @@ def test_robot_nodes_reproduce_the_batched_engine_with_zone_landmarks(mode, cap)
         without = run_batched(
             filt, dataclasses.replace(params, zone_landmarks=False), world, x0, P0, ws_list
         )
-    assert assert_same(batched, by_robot, ws_list, compiled=False) > 0
+    assert assert_same(batched, by_robot, ws_list, compiled=kernels.HAVE_NUMBA) > 0
     assert max(np.abs(b[0] - w[0]).max() for b, w in zip(batched, without, strict=True)) > 1e-6

@@ -82,6 +82,12 @@ CASES = {
         True,
     ),
     "zone-strict-recovery": ("ckf", _params("zone+full", **STRICT), False),
+    # the neighbours inside the map weakened as landmarks (their claims, before the kernel)
+    "zone+full+redundancy+sequence+cap+landmarks": (
+        "ckf",
+        _params("zone+full+redundancy+sequence+cap+landmarks"),
+        False,
+    ),
     "zone-ekf": ("ekf", _params("zone+full+redundancy+sequence"), False),
     "zone-gate-only-ekf": ("ekf", _params("zone"), False),
 }

@@ -43,12 +43,14 @@ What it assumes, where it fails:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
 from resloc.cl.detection_redundancy import capped_claims
 from resloc.cl.detection_zone import inside_zone_map
+from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 
@@ -79,14 +81,23 @@ def landmark_claims(
     return out
 
 
+def landmark_links(params: CLParams, links: LinkBatch) -> LinkBatch:
+    """``links`` with :func:`landmark_claims` applied to their claimed covariances (what the
+    reference correction and the compiled path both fuse), else ``links`` itself."""
+    if not params.zone_landmarks:
+        return links
+    claims = landmark_claims(params, links.x_nb, links.P_nb, links.i)
+    return links if claims is links.P_nb else dataclasses.replace(links, P_nb=claims)
+
+
 class ZoneLandmarks:
     """The stage's place in the registry: it discards nothing (its effect is on the claimed
-    covariances, :func:`landmark_claims`, applied by :func:`resloc.cl.step.correct` and by
-    the attackers' oracle); declared so that the backend's coverage reads it (no compiled
-    twin)."""
+    covariances, :func:`landmark_links`, applied by :func:`resloc.cl.step.correct`, by the
+    compiled path before its kernel (:func:`resloc.cl.kernels.fast_correct`, which then
+    fuses the weakened claims as the reference does) and by the attackers' oracle)."""
 
     name: ClassVar[str] = "zone_landmarks"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:

@@ -58,6 +58,7 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
+from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
@@ -432,6 +433,8 @@ def fast_correct(
         links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
         if links is None:
             return None
+    else:  # (with it, between the cap and the hook)
+        links = landmark_links(params, links)
     if params.reciprocal:
         # The reciprocal check compares the readings as reported with the partners'
         # (a tamper hook applied to every row: kernels_reciprocal)

@@ -41,6 +41,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
@@ -413,7 +414,9 @@ def capped_links(
 ) -> LinkBatch | None:
     """``links`` as the reference's correction judges them with the redundancy stage on:
     the claimed covariances capped (``redundancy_cap_fusion``, by :func:`claim_scales`),
-    then an adversary's tamper hook applied to every row at the predicted estimates
+    those of neighbours inside the landmark map weakened (``zone_landmarks``:
+    :func:`~resloc.cl.detection_landmark.landmark_claims`), then an adversary's tamper
+    hook applied to every row at the predicted estimates
     (:func:`~resloc.cl.kernels_reciprocal.partner_readings`, as the reference does: the
     hook is Python). None when the rows are not sorted by observer (the reference path
     then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
@@ -429,6 +432,7 @@ def capped_links(
         capped = np.empty((E, 3, 3))
         _scaled_claims(P_src, rows, scale, capped)
         links = dataclasses.replace(links, P_nb=capped)
+    links = landmark_links(params, links)
     if links.tamper is not None:  # (with the hook's ``reported`` partner readings)
         links = partner_readings(filt, x, P, links, strategy, memory, params.R)
     return links

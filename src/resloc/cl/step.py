@@ -15,7 +15,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
-from resloc.cl.detection_landmark import landmark_claims
+from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_zone import (
@@ -365,9 +365,7 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     if params.redundancy and params.redundancy_cap_fusion:
         # A neighbour weighs in the update no more than the redundancy test credited it.
         links = dataclasses.replace(links, P_nb=capped_claims(links.P_nb, links.i))
-    if params.zone_landmarks:  # a neighbour inside the map is a weak landmark
-        claims = landmark_claims(params, links.x_nb, links.P_nb, links.i)
-        links = dataclasses.replace(links, P_nb=claims)
+    links = landmark_links(params, links)  # a neighbour inside the map is a weak landmark
     if (
         ((params.zone_trust or params.reciprocal) and links.z_reciprocal is None)
         or (params.redundancy and links.tamper is not None)
