@@ -13,9 +13,10 @@ of its neighbours lengthened 2 cm, ~2.8 sigma of ``d``: under the one-step gate,
 the sum). A short hold makes the held links come back within the run; the test asserts that links
 were held and re-admitted.
 
-Zone trust itself is not compiled on this branch (the combination with it is refused, tested
-below); the map's blame rule (``zone_trust_map`` without zone trust: a pair with one end
-inside the map is not judged) is, and has its case."""
+The map's blame rule (``zone_trust_map`` without zone trust: a pair with one end inside the
+map is not judged) has its case here; the check beside zone trust itself (whose withheld and
+substituted rows keep no state) is run in lockstep through the zone crossing in
+``tests/test_kernels_zone.py``."""
 
 from __future__ import annotations
 
@@ -303,9 +304,6 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
     assert not np.array_equal(verdicts[0], verdicts[1]), "the map changed nothing"
 
 
-def test_zone_trust_with_the_check_falls_back_with_a_reason() -> None:
+def test_zone_trust_with_the_check_runs_compiled() -> None:
     params = replace(_params("zone+full+redundancy+sequence+reciprocal"))
-    refusal = kernel_refusal(FILTERS["ckf"], params, _one_step_links())
-    assert refusal is not None and "zone_trust" in refusal
-    assert ReciprocalCheck().kernel_refusal(params) is not None
-    assert ReciprocalCheck().kernel_refusal(_mapped("full+reciprocal")) is None
+    assert kernel_refusal(FILTERS["ckf"], params, _one_step_links()) is None

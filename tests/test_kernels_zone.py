@@ -82,6 +82,12 @@ CASES = {
         True,
     ),
     "zone-strict-recovery": ("ckf", _params("zone+full", **STRICT), False),
+    # the reciprocal check's pre-pass beside zone trust (its state kept for judged rows only)
+    "zone+full+redundancy+sequence+reciprocal": (
+        "ckf",
+        _params("zone+full+redundancy+sequence+reciprocal"),
+        False,
+    ),
     # the neighbours inside the map weakened as landmarks (their claims, before the kernel)
     "zone+full+redundancy+sequence+cap+landmarks": (
         "ckf",
@@ -193,6 +199,7 @@ STORES = (
     ("recovery_spread", None),
     ("recovery_applied", None),
     ("redundancy_sequence", 6),
+    ("reciprocal", 3),
 )
 
 

@@ -49,8 +49,9 @@ The correction computes the verdict once per step over all links
 (:func:`reciprocal_evidence`), so it is the same in either update mode and in one robot's
 process (``RobotNode.correct``'s ``z_reciprocal``). Its compiled twin is the same pre-pass,
 :func:`resloc.cl.kernels_reciprocal.reciprocal_verdicts`; with zone trust on (which withholds
-and substitutes rows round by round, and then no state is stored for them) the correction
-runs this numpy stage (:meth:`ReciprocalCheck.kernel_refusal`).
+and substitutes rows in the link loops, and the reference stores no state for them) the
+state of those rows is put back after the loop
+(:func:`resloc.cl.kernels_zone.keep_sequence_state`).
 """
 
 from __future__ import annotations
@@ -281,15 +282,6 @@ class ReciprocalCheck:
     name: ClassVar[str] = "reciprocal"
     compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
-
-    def kernel_refusal(self, params: CLParams) -> str | None:
-        """The combination the compiled pre-pass lacks (None: it runs this stage)."""
-        if params.zone_trust:
-            return (
-                "the detector stage 'reciprocal' with zone_trust: the zone stage's withheld "
-                "and substituted rows keep no reciprocal state (numpy only)"
-            )
-        return None
 
     def problem(self, options: Any) -> str | None:
         """Why the scenario's ``[detector]`` ``options`` cannot run as set (names the fix)."""

@@ -155,8 +155,6 @@ class ZoneTrust:
             )
         if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
             return "the detector stage 'zone_trust' has no compiled twin with cached estimates"
-        if params.reciprocal:
-            return "the detector stage 'zone_trust' has no compiled twin beside 'reciprocal'"
         return None
 
     def discard(

@@ -583,10 +583,10 @@ def fast_correct(
         defence.undo()
         detection.undo()
         return None
-    if zone is not None:  # the sequence test keeps no state of the rows it did not judge
+    if zone is not None:  # the pre-passes keep no state of the rows they did not judge
         from resloc.cl.kernels_zone import keep_sequence_state
 
-        keep_sequence_state(zone, fixes, li, lj)
+        keep_sequence_state(zone, (fixes, paired), li, lj)
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     fusion_commit(fusion, memory, li, fused)

@@ -177,20 +177,26 @@ def zone_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory)
 
 
 def keep_sequence_state(state: ZoneState, fixes, li, lj) -> None:
-    """After a compiled step: the sequence test's state of the withheld and substituted
-    links back to what it was before the step's pre-pass (the reference stores the state of
-    the rows its stages judged only: ``RedundancySequence.discard``). ``fixes``: the
-    pre-pass's :class:`~resloc.cl.kernels_redundancy.FixVerdict` (None: no pre-pass),
-    whose saved store entry (:func:`~resloc.cl.kernels_detection.store_slots`) holds the
-    state before it: the old values at the links' slots, or, when the step inserted links,
-    the old keys and values."""
-    saved = () if fixes is None else fixes.state.saved
-    if not saved:
-        return  # no sequence test
+    """After a compiled step: the state the pre-passes keep per link (the redundancy
+    sequence test's, the reciprocal check's) of the withheld and substituted links back to
+    what it was before the step (the reference stores the state of the rows its stages
+    judged only: ``RedundancySequence.discard``, ``ReciprocalCheck.discard``). ``fixes``:
+    the pre-passes' verdicts (:class:`~resloc.cl.kernels_redundancy.FixVerdict`,
+    :class:`~resloc.cl.kernels_reciprocal.ReciprocalVerdict`; None: not run), whose saved
+    store entries (:func:`~resloc.cl.kernels_detection.store_slots`) hold the state before
+    them: the old values at the links' slots, or, when the step inserted links, the old
+    keys and values."""
     rows = np.flatnonzero(state.kernel.verdict != OUTSIDE)
     if not rows.size:
         return
-    store, keys, values, slots, old = saved[0]
+    for verdict in fixes:
+        for saved in () if verdict is None else verdict.state.saved[:1]:
+            _restore(saved, rows, li, lj)
+
+
+def _restore(saved: tuple, rows: np.ndarray, li: np.ndarray, lj: np.ndarray) -> None:
+    """One store's entries at ``rows`` back to their values in ``saved``."""
+    store, keys, values, slots, old = saved
     if old is not None:  # the steady state: every link known, values kept in place
         store.values[slots[rows]] = old[rows]
         return
