@@ -23,8 +23,8 @@ kernel function               paper                   numpy twin
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
 ``_cached_decision``          eqs. (8), (10), cached  ``resloc.cl.step._decide`` (``cached``)
 ``correct_links`` (block)    Algorithm 1, gain       :func:`resloc.filters.update.kalman_gain`
-``_schur_update``             Algorithm 1             :func:`resloc.filters.update.kalman_update`
-``correct_links`` (block)    Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
+``schur_update``              Algorithm 1             :func:`resloc.filters.update.kalman_update`
+``joseph_update``             Algorithm 1 (EKF)       :func:`resloc.filters.update.kalman_update`
 ``ci_update``                 beyond the paper        :func:`resloc.cl.fusion.fused_update` (``ci``)
 ============================  ======================  =============================================
 

@@ -155,7 +155,32 @@ def _cached_decision(
 
 
 @jit_inline
-def _schur_update(Pi, K, S00, S01, S11, Pn):
+def joseph_update(Pi, K, H, re00, re01, re11, A3, T3, Pn):
+    """``(I - K H) P (I - K H)^T + K R_eff K^T`` into ``Pn`` (EKF; ``R_eff`` symmetric, its
+    entries ``re00, re01, re11``; ``A3``, ``T3``: 3x3 scratch). Twin:
+    :func:`resloc.filters.update.kalman_update`."""
+    for a in range(3):
+        for b in range(3):
+            KH = K[a, 0] * H[0, b] + K[a, 1] * H[1, b]
+            A3[a, b] = (1.0 if a == b else 0.0) - KH
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += A3[a, c] * Pi[c, b]
+            T3[a, b] = s
+    for a in range(3):
+        t0 = K[a, 0] * re00 + K[a, 1] * re01
+        t1 = K[a, 0] * re01 + K[a, 1] * re11
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += T3[a, c] * A3[b, c]
+            Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+
+
+@jit_inline
+def schur_update(Pi, K, S00, S01, S11, Pn):
     """``P - K S K^T`` into ``Pn`` (sigma-point filters).
     Twin: :func:`resloc.filters.update.kalman_update`."""
     for a in range(3):
@@ -407,28 +432,10 @@ def correct_links(
             x[i, 0] = xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)
             x[i, 1] = xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)
             x[i, 2] = wrap(xi2 + (K[2, 0] * nu0 + K[2, 1] * nu1))
-            if linearized and not correlated:
-                # Joseph form (I - K H) P (I - K H)^T + K R_eff K^T (EKF; twin: kalman_update)
-                for a in range(3):
-                    for b in range(3):
-                        KH = K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b]
-                        A3[a, b] = (1.0 if a == b else 0.0) - KH
-                for a in range(3):
-                    for b in range(3):
-                        s = 0.0
-                        for c in range(3):
-                            s += A3[a, c] * Pi[c, b]
-                        T3[a, b] = s
-                for a in range(3):
-                    t0 = K[a, 0] * re00 + K[a, 1] * re01
-                    t1 = K[a, 0] * re01 + K[a, 1] * re11
-                    for b in range(3):
-                        s = 0.0
-                        for c in range(3):
-                            s += T3[a, c] * A3[b, c]
-                        Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+            if linearized and not correlated:  # Joseph form (EKF)
+                joseph_update(Pi, K, Hi, re00, re01, re11, A3, T3, Pn)
             else:  # (the correlated joint's moments carry no Jacobian: P - K S K^T)
-                _schur_update(Pi, K, S00, S01, S11, Pn)
+                schur_update(Pi, K, S00, S01, S11, Pn)
             if beyond is not None and correlated:  # tracked: Pn becomes the joint's P_i
                 joint_record(
                     joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G3, T3, Pn
@@ -460,5 +467,4 @@ innovation_norm_of_link = _innovation_norm
 event_threshold_of_link = _event_threshold
 gate_link = _gate_link
 decide_link = _decide_link
-schur_update = _schur_update
 linearized_moments = _linearized_moments  # (and for the summed update, kernels_summed)

@@ -51,7 +51,9 @@ from resloc.cl.kernels_links import (
     event_threshold_of_link,
     gate_link,
     innovation_norm_of_link,
+    joseph_update,
     linearized_moments,
+    schur_update,
 )
 from resloc.cl.kernels_math import (
     chol2,
@@ -359,31 +361,9 @@ def correct_summed(
                 K[a, 0] = k0
                 K[a, 1] = k1
             if linearized:  # Joseph form with R_eff (twin: kalman_update)
-                H = Hi[e]
-                for a in range(3):
-                    for b in range(3):
-                        KH = K[a, 0] * H[0, b] + K[a, 1] * H[1, b]
-                        A3[a, b] = (1.0 if a == b else 0.0) - KH
-                for a in range(3):
-                    for b in range(3):
-                        s = 0.0
-                        for c in range(3):
-                            s += A3[a, c] * Pu[c, b]
-                        T3[a, b] = s
-                for a in range(3):
-                    t0 = K[a, 0] * re00 + K[a, 1] * re01
-                    t1 = K[a, 0] * re01 + K[a, 1] * re11
-                    for b in range(3):
-                        s = 0.0
-                        for c in range(3):
-                            s += T3[a, c] * A3[b, c]
-                        Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+                joseph_update(Pu, K, Hi[e], re00, re01, re11, A3, T3, Pn)
             else:  # P - K S K^T
-                for a in range(3):
-                    t0 = K[a, 0] * S00 + K[a, 1] * S01
-                    t1 = K[a, 0] * S01 + K[a, 1] * S11
-                    for b in range(3):
-                        Pn[a, b] = Pu[a, b] - (t0 * K[b, 0] + t1 * K[b, 1])
+                schur_update(Pu, K, S00, S01, S11, Pn)
             # np.add.at: the robot's estimate moves by each update's step from the prediction
             x[i, 0] += (xi0 + (K[0, 0] * nu0 + K[0, 1] * nu1)) - xi0
             x[i, 1] += (xi1 + (K[1, 0] * nu0 + K[1, 1] * nu1)) - xi1
