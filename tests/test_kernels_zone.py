@@ -130,7 +130,7 @@ class Verdicts:
         self.compiled: list = []
         self.readmitted_substituted = 0  # by the reference's recovery, with f > 1
         discard = ZoneTrust.discard
-        keep = kernels_zone.keep_sequence_state
+        keep = kernels_zone.keep_unjudged_state
         recover = RejectionRecovery.discard
 
         def recovered(stage, evidence, params, memory):
@@ -154,7 +154,7 @@ class Verdicts:
 
         monkeypatch.setattr(ZoneTrust, "discard", judged)
         monkeypatch.setattr(RejectionRecovery, "discard", recovered)
-        monkeypatch.setattr(kernels_zone, "keep_sequence_state", kept)
+        monkeypatch.setattr(kernels_zone, "keep_unjudged_state", kept)
 
     def reference_rows(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """The reference's verdicts of the step's rows ``(i, j)`` (its rounds gathered)."""

@@ -391,3 +391,30 @@ def test_a_signal_during_a_callback_from_c_is_raised_after_it_not_lost():
         sys.unraisablehook = previous_hook
     assert finished == [] or finished == [sum(range(10_000))]
     assert unraisable == []
+
+
+def test_a_signal_wrapped_by_an_import_stops_the_command_with_one_line(capsys):
+    """A Ctrl-C while a module defines a dataclass arrives as a RuntimeError whose cause is
+    the KeyboardInterrupt (``__set_name__``): one line and exit 130, as a bare Ctrl-C."""
+    import typer
+
+    from resloc.cli.common import EXIT_INTERRUPTED, handle_errors
+
+    @handle_errors
+    def importing():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise RuntimeError("Error calling __set_name__ on 'Field' instance") from exc
+
+    with pytest.raises(typer.Exit) as stop:
+        importing()
+    assert stop.value.exit_code == EXIT_INTERRUPTED["SIGINT"] == 130
+    assert capsys.readouterr().err == "error: interrupted (SIGINT); --out left as it was\n"
+
+    @handle_errors
+    def broken():
+        raise RuntimeError("a bug, not a signal")
+
+    with pytest.raises(RuntimeError, match="a bug"):  # anything else is not swallowed
+        broken()

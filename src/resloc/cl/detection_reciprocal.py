@@ -51,7 +51,7 @@ process (``RobotNode.correct``'s ``z_reciprocal``). Its compiled twin is the sam
 :func:`resloc.cl.kernels_reciprocal.reciprocal_verdicts`; with zone trust on (which withholds
 and substitutes rows in the link loops, and the reference stores no state for them) the
 state of those rows is put back after the loop
-(:func:`resloc.cl.kernels_zone.keep_sequence_state`).
+(:func:`resloc.cl.kernels_zone.keep_unjudged_state`).
 """
 
 from __future__ import annotations

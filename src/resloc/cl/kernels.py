@@ -584,9 +584,9 @@ def fast_correct(
         detection.undo()
         return None
     if zone is not None:  # the pre-passes keep no state of the rows they did not judge
-        from resloc.cl.kernels_zone import keep_sequence_state
+        from resloc.cl.kernels_zone import keep_unjudged_state
 
-        keep_sequence_state(zone, (fixes, paired), li, lj)
+        keep_unjudged_state(zone, (fixes, paired), li, lj)
     detected, triggered, delivered, fused, repaired = out.flags
     bookkeeping.commit(memory, gauge, li, lj, fused)
     fusion_commit(fusion, memory, li, fused)

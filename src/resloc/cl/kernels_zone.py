@@ -20,7 +20,7 @@ update and again after the recovery's inflated second pass, :func:`withhold_lane
 the decisions). Both write each row's verdict into :attr:`KernelZone.verdict`, which the
 stages that run after it read (``detect_link``, ``screen_lanes``) and which the dispatch
 reads after the loop: the redundancy pre-pass (:mod:`resloc.cl.kernels_redundancy`)
-writes every link's sequence-test state before the loop, and :func:`keep_sequence_state`
+writes every link's sequence-test state before the loop, and :func:`keep_unjudged_state`
 puts the withheld and substituted links' state back, as the reference stores only the
 rows its stages judged.
 
@@ -68,7 +68,7 @@ __all__ = [
     "WITHHELD",
     "KernelZone",
     "inside_map",
-    "keep_sequence_state",
+    "keep_unjudged_state",
     "no_zone",
     "partner_readings",
     "position_fix_of_link",
@@ -176,7 +176,7 @@ def zone_links(filt, x, P, links: LinkBatch, params: CLParams, strategy, memory)
     return links
 
 
-def keep_sequence_state(state: ZoneState, fixes, li, lj) -> None:
+def keep_unjudged_state(state: ZoneState, fixes, li, lj) -> None:
     """After a compiled step: the state the pre-passes keep per link (the redundancy
     sequence test's, the reciprocal check's) of the withheld and substituted links back to
     what it was before the step (the reference stores the state of the rows its stages

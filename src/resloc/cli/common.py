@@ -75,15 +75,40 @@ def handle_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             return fn(*args, **kwargs)
         except ResLocError as exc:
             raise fail(str(exc)) from None
-        except KeyboardInterrupt:
-            print("error: interrupted (SIGINT); --out left as it was", file=sys.stderr)
-            raise typer.Exit(EXIT_INTERRUPTED["SIGINT"]) from None
-        except Terminated as exc:
-            name = signal_name(exc.signum)
-            print(f"error: stopped by {name}; --out left as it was", file=sys.stderr)
-            raise typer.Exit(EXIT_INTERRUPTED.get(name, 128 + exc.signum)) from None
+        except (KeyboardInterrupt, Terminated) as exc:
+            raise _stopped(exc) from None
+        except Exception as exc:
+            # A signal during an import or a class definition arrives wrapped (a dataclass
+            # field's __set_name__ turns it into a RuntimeError whose cause it is).
+            cause = _signal_cause(exc)
+            if cause is None:
+                raise
+            raise _stopped(cause) from None
 
     return wrapper
+
+
+def _signal_cause(exc: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt or Terminated among ``exc``'s causes and contexts, or None."""
+    from resloc.experiments.output import Terminated
+
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _stopped(exc: BaseException) -> typer.Exit:
+    """One line for a stop by signal, and the exit (128 + signal) to raise."""
+    if isinstance(exc, KeyboardInterrupt):
+        print("error: interrupted (SIGINT); --out left as it was", file=sys.stderr)
+        return typer.Exit(EXIT_INTERRUPTED["SIGINT"])
+    name = signal_name(exc.signum)
+    print(f"error: stopped by {name}; --out left as it was", file=sys.stderr)
+    return typer.Exit(EXIT_INTERRUPTED.get(name, 128 + exc.signum))
 
 
 def signal_name(signum: int) -> str:
