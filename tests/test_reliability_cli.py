@@ -418,3 +418,14 @@ def test_a_signal_wrapped_by_an_import_stops_the_command_with_one_line(capsys):
 
     with pytest.raises(RuntimeError, match="a bug"):  # anything else is not swallowed
         broken()
+
+    @handle_errors
+    def own_exit():  # a command's own exit after it handled a signal keeps its code
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise typer.Exit(143) from None
+
+    with pytest.raises(typer.Exit) as stop:
+        own_exit()
+    assert stop.value.exit_code == 143

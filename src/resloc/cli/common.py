@@ -77,6 +77,8 @@ def handle_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
             raise fail(str(exc)) from None
         except (KeyboardInterrupt, Terminated) as exc:
             raise _stopped(exc) from None
+        except (typer.Exit, typer.Abort):
+            raise  # the command's own exit (e.g. a study's 143 after SIGTERM)
         except Exception as exc:
             # A signal during an import or a class definition arrives wrapped (a dataclass
             # field's __set_name__ turns it into a RuntimeError whose cause it is).
@@ -89,7 +91,8 @@ def handle_errors(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _signal_cause(exc: BaseException) -> BaseException | None:
-    """The KeyboardInterrupt or Terminated among ``exc``'s causes and contexts, or None."""
+    """The KeyboardInterrupt or Terminated among ``exc``'s causes and (unsuppressed)
+    contexts, or None."""
     from resloc.experiments.output import Terminated
 
     seen: set[int] = set()
@@ -97,7 +100,7 @@ def _signal_cause(exc: BaseException) -> BaseException | None:
         if isinstance(exc, (KeyboardInterrupt, Terminated)):
             return exc
         seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+        exc = exc.__cause__ or (None if exc.__suppress_context__ else exc.__context__)
     return None
 
 
