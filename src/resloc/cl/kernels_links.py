@@ -155,6 +155,25 @@ def _cached_decision(
 
 
 @jit_inline
+def point_offsets(Li, Lj, nz_idx, nz_val, nz_cnt, off):
+    """The joint points' offsets ``off[:, k] = blockdiag(L_i, L_j) u_k`` (``off: (6, m)``)
+    from the non-zero entries of the unit points (``FilterKernelSpec``). Twin: the points of
+    :class:`resloc.filters.sigma_points.SigmaPointFilter` over ``[x_i; x_j]``."""
+    for k in range(nz_cnt.shape[0]):
+        for a in range(6):
+            off[a, k] = 0.0
+        for t in range(nz_cnt[k]):
+            b = nz_idx[k, t]
+            u = nz_val[k, t]
+            if b < 3:
+                for a in range(3):
+                    off[a, k] += Li[a, b] * u
+            else:
+                for a in range(3):
+                    off[3 + a, k] += Lj[a, b - 3] * u
+
+
+@jit_inline
 def joseph_update(Pi, K, H, re00, re01, re11, A3, T3, Pn):
     """``(I - K H) P (I - K H)^T + K R_eff K^T`` into ``Pn`` (EKF; ``R_eff`` symmetric, its
     entries ``re00, re01, re11``; ``A3``, ``T3``: 3x3 scratch). Twin:
@@ -304,18 +323,7 @@ def correct_links(
                 elif not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
                     return NOT_PD
                 else:
-                    for k in range(m):
-                        for a in range(6):
-                            off[a, k] = 0.0
-                        for t in range(nz_cnt[k]):
-                            b = nz_idx[k, t]
-                            u = nz_val[k, t]
-                            if b < 3:
-                                for a in range(3):
-                                    off[a, k] += Li[a, b] * u
-                            else:
-                                for a in range(3):
-                                    off[3 + a, k] += Lj[a, b - 3] * u
+                    point_offsets(Li, Lj, nz_idx, nz_val, nz_cnt, off)
                 # the points' range and bearing, all points at once (kernels_points)
                 zh0, zh1, S00, S01, S11 = point_moments(
                     off, Wm, Wc, circular, xi0, xi1, xi2, xr0, xr1, sin_i, cos_i, R, Zp, Pxz

@@ -53,6 +53,7 @@ from resloc.cl.kernels_links import (
     innovation_norm_of_link,
     joseph_update,
     linearized_moments,
+    point_offsets,
     schur_update,
 )
 from resloc.cl.kernels_math import (
@@ -100,19 +101,7 @@ def link_moments(
         return True, zh0, zh1, S00, S01, S11, re00, re01, re11
     if not chol3(Pi, Li, jitter) or not chol3(Pr, Lj, jitter):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    m = Wm.shape[0]
-    for k in range(m):
-        for a in range(6):
-            off[a, k] = 0.0
-        for t in range(nz_cnt[k]):
-            b = nz_idx[k, t]
-            u = nz_val[k, t]
-            if b < 3:
-                for a in range(3):
-                    off[a, k] += Li[a, b] * u
-            else:
-                for a in range(3):
-                    off[3 + a, k] += Lj[a, b - 3] * u
+    point_offsets(Li, Lj, nz_idx, nz_val, nz_cnt, off)
     sin_i = math.sin(xi2)
     cos_i = math.cos(xi2)
     zh0, zh1, S00, S01, S11 = point_moments(
