@@ -38,6 +38,7 @@ from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.attackers import AttackStep, make_attacker
 from resloc.world.world import World
+from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 from test_kernels_rounds import assert_same_loops
 
@@ -195,20 +196,10 @@ def lockstep(filt, params, steps: int, seed: int, kind: str):
         yield res["numpy"][2], memories["numpy"], liar, int((inside[ws.i] != inside[ws.j]).sum())
 
 
-def _one_step_links(seed: int = 4):
-    sc = default_scenario()
-    world = World(sc.world, 1, seed, sc.trigger.lambda2)
-    x, P = world.initial_estimates()
-    ws = world.step()
-    return LinkBatch(
-        ws.i, ws.j, ws.z, x[ws.j], P[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
-    )
-
-
 @pytest.mark.parametrize("case", list(CASES))
 def test_compiled_reciprocal_check_equals_the_reference(case: str) -> None:
     name, params, kind = CASES[case]
-    links = _one_step_links()
+    links = links_of_one_step()
     assert kernel_refusal(FILTERS[name], params, links) is None
     tampered = dataclasses.replace(links, tamper=lambda rows, z_hat, S: links.z[rows])
     assert kernel_refusal(FILTERS[name], params, tampered) is None  # a Python hook too
@@ -244,7 +235,7 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
     held links), with the map's blame rule and without; the map changes the verdict."""
     from resloc.cl.kernels_reciprocal import reciprocal_verdict
 
-    links = _one_step_links(8)
+    links = links_of_one_step(8)
     sc = default_scenario()
     world = World(sc.world, 1, 8, sc.trigger.lambda2)
     x, _ = world.initial_estimates()
@@ -306,4 +297,4 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
 
 def test_zone_trust_with_the_check_runs_compiled() -> None:
     params = replace(_params("zone+full+redundancy+sequence+reciprocal"))
-    assert kernel_refusal(FILTERS["ckf"], params, _one_step_links()) is None
+    assert kernel_refusal(FILTERS["ckf"], params, links_of_one_step()) is None

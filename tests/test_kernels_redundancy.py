@@ -161,7 +161,7 @@ def lockstep(filt, params, steps: int, seed: int, tampered: bool):
 @pytest.mark.parametrize("case", list(CASES))
 def test_compiled_redundancy_equals_the_reference(case: str) -> None:
     name, params, tampered = CASES[case]
-    assert kernel_refusal(FILTERS[name], params, _links_of_one_step()) is None
+    assert kernel_refusal(FILTERS[name], params, links_of_one_step()) is None
     detected = fused = held = 0
     liar_detected = liar_rows = 0
     released = False
@@ -185,7 +185,9 @@ def test_compiled_redundancy_equals_the_reference(case: str) -> None:
             assert released, "no held link was re-admitted"
 
 
-def _links_of_one_step(seed: int = 4):
+def links_of_one_step(seed: int = 4) -> LinkBatch:
+    """The links of the default scenario's first step (one trial), at the initial estimates:
+    what a kernel refusal is asked about (shared by the kernel tests)."""
     sc = default_scenario()
     world = World(sc.world, 1, seed, sc.trigger.lambda2)
     x, P = world.initial_estimates()
@@ -229,7 +231,7 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
 def test_capped_claims_twin() -> None:
     from resloc.cl.kernels_redundancy import _scaled_claims, claim_scales
 
-    links = _links_of_one_step()
+    links = links_of_one_step()
     P_nb = links.P_nb.copy()
     P_nb[::3] *= np.linspace(0.01, 3.0, len(P_nb[::3]))[:, None, None]
     li = links.i.astype(np.int64)

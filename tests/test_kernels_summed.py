@@ -25,6 +25,7 @@ from resloc.filters import make_filter
 from resloc.world.world import World
 from test_kernels_defence import assert_same_stage_statistics
 from test_kernels_detection import assert_same_statistics
+from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -113,7 +114,7 @@ def lockstep(filt, params, steps: int, seed: int):
 @pytest.mark.parametrize("case", list(CASES))
 def test_compiled_summed_update_equals_the_reference(case: str) -> None:
     name, params, seed = CASES[case]
-    links = _one_step_links()
+    links = links_of_one_step()
     assert kernel_refusal(FILTERS[name], params, links) is None
     detected = fused = 0
     alarmed = readmitted = False
@@ -132,18 +133,8 @@ def test_compiled_summed_update_equals_the_reference(case: str) -> None:
         assert readmitted, "the recovery never re-admitted a measurement"
 
 
-def _one_step_links(seed: int = 4):
-    sc = default_scenario()
-    world = World(sc.world, 1, seed, sc.trigger.lambda2)
-    x, P = world.initial_estimates()
-    ws = world.step()
-    return LinkBatch(
-        ws.i, ws.j, ws.z, x[ws.j], P[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
-    )
-
-
 def test_summed_with_other_fusions_or_cached_estimates_falls_back_with_a_reason() -> None:
-    links = _one_step_links()
+    links = links_of_one_step()
     for changes, word in (({"fusion": "ci"}, "'ci'"), ({"neighbour_estimate": "cached"}, "cached")):
         refusal = kernel_refusal(FILTERS["ckf"], replace(_params("full"), **changes), links)
         assert refusal is not None and "summed" in refusal and word in refusal

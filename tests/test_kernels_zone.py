@@ -29,6 +29,7 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.world import World
+from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -257,7 +258,7 @@ def lockstep(filt, params, steps: int, seed: int, tampered: bool, verdicts: Verd
 def test_compiled_zone_trust_equals_the_reference(case: str, monkeypatch) -> None:
     name, params, tampered = CASES[case]
     filt = FILTERS[name]
-    assert kernel_refusal(filt, params, _links_of_one_step()) is None
+    assert kernel_refusal(filt, params, links_of_one_step()) is None
     verdicts = Verdicts(monkeypatch)
     count = np.zeros(3, int)
     fused_substituted = 0
@@ -270,16 +271,6 @@ def test_compiled_zone_trust_equals_the_reference(case: str, monkeypatch) -> Non
     assert substituted > 0 and fused_substituted > 0, "no partner's position fix fused"
     if params.recovery_after <= 1.0:
         assert verdicts.readmitted_substituted > 0, "no fix re-admitted with f P_i"
-
-
-def _links_of_one_step(seed: int = 4):
-    sc = default_scenario()
-    world = World(sc.world, 1, seed, sc.trigger.lambda2)
-    x, P = world.initial_estimates()
-    ws = world.step()
-    return LinkBatch(
-        ws.i, ws.j, ws.z, x[ws.j], P[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
-    )
 
 
 def test_zone_trust_selects_the_options_form() -> None:
@@ -300,7 +291,7 @@ def test_zone_trust_selects_the_options_form() -> None:
 )
 def test_what_the_twin_does_not_cover_falls_back_with_a_reason(changes, reason) -> None:
     params = _params("zone+full", **changes)
-    refusal = kernel_refusal(FILTERS["ckf"], params, _links_of_one_step())
+    refusal = kernel_refusal(FILTERS["ckf"], params, links_of_one_step())
     assert refusal is not None and "zone_trust" in refusal and reason in refusal
 
 
@@ -308,7 +299,7 @@ def test_partner_readings_equal_the_reference_pairing() -> None:
     """The compiled gathering of the partners' readings is the reference's
     (``materialize_with_reciprocal`` without a hook), with links whose reverse is missing;
     rows not sorted by observer are refused."""
-    links = _links_of_one_step()
+    links = links_of_one_step()
     keep = np.ones(len(links), bool)
     keep[::7] = False  # some pairs lose one direction
     li = links.i[keep].astype(np.int64)
