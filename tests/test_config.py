@@ -12,6 +12,7 @@ from resloc.experiments.config import (
     dump_scenario,
     load_scenario,
     parse_scenario,
+    scenario_to_dict,
 )
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -26,6 +27,19 @@ def test_default_scenario_is_the_paper_setup():
     assert (s.world.sensing.range_std, s.world.sensing.bearing_std) == (0.005, 0.05)
     assert len(s.world.sdz) == 1 and len(s.world.cdz) == 1
     assert s.run.filters == ["ckf", "ukf", "ekf"]
+
+
+def test_a_partial_file_is_the_default_without_its_zones(tmp_path):
+    """What the README promises a partial scenario file: every key not set is the embedded
+    default's, but the zone lists are the file's own (none here)."""
+    p = tmp_path / "partial.toml"
+    p.write_text("[run]\nsteps = 50\n", encoding="utf-8")
+    s, d = load_scenario(p), default_scenario()
+    assert s.run.steps == 50
+    assert len(s.world.sdz) == 0 and len(s.world.cdz) == 0
+    zoned = s.replace(**{"run.steps": d.run.steps})
+    without_zones = {k: v for k, v in scenario_to_dict(d).items() if k not in ("sdz", "cdz")}
+    assert scenario_to_dict(zoned) == without_zones
 
 
 def test_dump_load_roundtrip(tmp_path):
