@@ -79,15 +79,19 @@ class DetectorState(NamedTuple):
     :class:`~resloc.cl.kernels_defence.KernelDefence`) with what :meth:`undo` needs."""
 
     kernel: KernelDetection
-    saved: tuple  # per store: (store, keys before, values before or None, slots, old values)
+    # per store: (store, keys before, values before or None, slots, a copy of all values
+    # before or None): the arrays before when the step inserted links (they are left
+    # untouched), else a copy of the values (all of them: one copy of a contiguous array
+    # costs less than a gather at the step's slots, which repeat a robot's slot per link)
+    saved: tuple
 
     def undo(self) -> None:
         """Put the stores back as they were before :func:`detector_state`."""
-        for store, keys, values, slots, old in self.saved:
+        for store, keys, values, _slots, old in self.saved:
             if values is not None:  # links were inserted: the old arrays are untouched
                 store.keys, store.values = keys, values
             else:
-                store.values[slots] = old
+                store.values[...] = old
 
 
 def _gain(v) -> np.ndarray:
@@ -106,7 +110,7 @@ def store_slots(store, i, j, saved: list) -> np.ndarray:
     keys, values = store.keys, store.values
     slots = store.slots(i, j)
     if store.values is values:
-        saved.append((store, keys, None, slots, values[slots].copy()))
+        saved.append((store, keys, None, slots, values.copy()))
     else:
         saved.append((store, keys, values, slots, None))
     if not store.values.flags.c_contiguous:
@@ -142,7 +146,7 @@ def _saved(store, slots: np.ndarray) -> tuple:
     """What :meth:`DetectorState.undo` needs to restore ``store`` at ``slots`` (in place)."""
     if not store.values.flags.c_contiguous:
         store.values = np.ascontiguousarray(store.values)
-    return (store, store.keys, None, slots, store.values[slots].copy())
+    return (store, store.keys, None, slots, store.values.copy())
 
 
 def shared_slots(store, other, slots: np.ndarray, saved: list) -> np.ndarray | None:

@@ -349,8 +349,9 @@ def fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, disc
     ``e`` reads ``z[e]``, observer ``li[e]`` and j's claimed estimate ``x_nb[nb[e]]``,
     ``P_nb[nb[e]]``; ``discard: (E,)`` receives the verdict. ``seq_state[seq_slot[e]]``:
     the sequence test's state of link ``e`` (updated in place). Rows sorted by observer
-    (False otherwise, nothing written). Twin: :func:`~resloc.cl.detection_redundancy.
-    fix_evidence` with ``RedundancyCheck.discard`` and ``RedundancySequence.discard``."""
+    (False otherwise, nothing written). IEEE division, as numpy's (``jit_lanes``). Twin:
+    :func:`~resloc.cl.detection_redundancy.fix_evidence` with ``RedundancyCheck.discard``
+    and ``RedundancySequence.discard``."""
     R, gate, min_peers, sequence, seq_gate, seq_hold, seq_forget = options
     E = li.shape[0]
     scale = np.empty(E)
