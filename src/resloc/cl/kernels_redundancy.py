@@ -434,11 +434,12 @@ def capped_links(
     (:func:`~resloc.cl.kernels_reciprocal.partner_readings`, as the reference does: the
     hook is Python). None when the rows are not sorted by observer (the reference path
     then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
-    from resloc.cl.kernels_claims import claimed_links  # (it imports claim_scales)
+    if params.redundancy_cap_fusion or params.zone_landmarks:
+        from resloc.cl.kernels_claims import claimed_links  # (it imports claim_scales)
 
-    links = claimed_links(params, links)
-    if links is None:
-        return None
+        links = claimed_links(params, links)
+        if links is None:
+            return None
     if links.tamper is not None:  # (with the hook's ``reported`` partner readings)
         links = partner_readings(filt, x, P, links, strategy, memory, params.R)
     return links
