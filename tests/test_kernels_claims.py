@@ -40,7 +40,7 @@ def _scene():
 
 @pytest.mark.parametrize("cap", [False, True])
 def test_the_claims_are_the_numpy_stages(cap: bool) -> None:
-    from resloc.cl.kernels_claims import UNCHANGED, claimed_covariances
+    from resloc.cl.kernels_claims import CLAIMS_UNCHANGED, claimed_covariances
 
     links, discs, _, _ = _scene()
     params = CLParams(
@@ -70,7 +70,7 @@ def test_the_claims_are_the_numpy_stages(cap: bool) -> None:
         assert got == 0
         np.testing.assert_array_equal(out, capped_claims(links.P_nb, links.i))
     else:
-        assert got == UNCHANGED
+        assert got == CLAIMS_UNCHANGED
 
 
 @pytest.mark.parametrize("cap", [False, True])

@@ -229,7 +229,7 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
 
 
 def test_capped_claims_twin() -> None:
-    from resloc.cl.kernels_claims import UNSORTED, claimed_covariances
+    from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_covariances
     from resloc.cl.kernels_redundancy import claim_scales
 
     links = links_of_one_step()
@@ -245,7 +245,7 @@ def test_capped_claims_twin() -> None:
     assert claimed_covariances(li, *args) == 0  # capped, no map
     np.testing.assert_array_equal(out, capped_claims(P_nb, links.i))
     assert not claim_scales(li[::-1].copy(), P_nb, nb, scale, np.empty(len(li)))
-    assert claimed_covariances(li[::-1].copy(), *args) == UNSORTED
+    assert claimed_covariances(li[::-1].copy(), *args) == CLAIMS_UNSORTED
 
 
 def test_the_attack_suite_runs_the_redundancy_defence_compiled(monkeypatch) -> None:

@@ -38,11 +38,17 @@ from resloc.cl.kernels_redundancy import claim_scales
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
-__all__ = ["CLAIMS_RUNS", "UNCHANGED", "UNSORTED", "claimed_covariances", "claimed_links"]
+__all__ = [
+    "CLAIMS_RUNS",
+    "CLAIMS_UNCHANGED",
+    "CLAIMS_UNSORTED",
+    "claimed_covariances",
+    "claimed_links",
+]
 
 #: :func:`claimed_covariances`'s results besides the number of rows inside the map.
-UNSORTED = -2  # rows not sorted by observer: nothing decided
-UNCHANGED = -1  # neither option changed a claim: ``out`` not written
+CLAIMS_UNSORTED = -2  # rows not sorted by observer: nothing decided
+CLAIMS_UNCHANGED = -1  # neither option changed a claim: ``out`` not written
 
 #: How often :func:`claimed_links` ran the compiled pass (the tests read it).
 CLAIMS_RUNS = {"compiled": 0}
@@ -56,19 +62,19 @@ def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scal
     broadcast position ``x_src[rows[e], :2]`` lies inside a disc of ``discs: (Z, 3)``,
     scaled by that factor of the (capped) claims and multiplied by ``inflation``.
     ``scale``, ``scratch``: (E,) scratch. Returns the number of rows inside the map,
-    ``UNCHANGED`` (``out`` not written) when neither step changed anything (no cap, no row
-    inside) and ``UNSORTED`` when the rows are not sorted by observer. Twin:
+    ``CLAIMS_UNCHANGED`` (``out`` not written) when neither step changed anything (no cap,
+    no row inside) and ``CLAIMS_UNSORTED`` when the rows are not sorted by observer. Twin:
     :func:`~resloc.cl.detection_redundancy.capped_claims` then
     :func:`~resloc.cl.detection_landmark.landmark_claims` (same products, same order)."""
     E = li.shape[0]
     inside = 0
     for e in range(E):
         if e > 0 and li[e] < li[e - 1]:
-            return UNSORTED
+            return CLAIMS_UNSORTED
         if discs.shape[0] > 0 and inside_discs(x_src[rows[e], 0], x_src[rows[e], 1], discs):
             inside += 1
     if not cap and inside == 0:
-        return UNCHANGED
+        return CLAIMS_UNCHANGED
     if cap:
         claim_scales(li, P_src, rows, scale, scratch)
     for e in range(E):
@@ -125,9 +131,9 @@ def claimed_links(params: CLParams, links: LinkBatch) -> LinkBatch | None:
         li, x_src, P_src, rows, cap, discs, inflation, out, scale, np.empty(E)
     )
     CLAIMS_RUNS["compiled"] += 1
-    if inside == UNSORTED:
+    if inside == CLAIMS_UNSORTED:
         return None if cap else landmark_links(params, links)
-    if inside == UNCHANGED:
+    if inside == CLAIMS_UNCHANGED:
         return links
     claimed = copy.copy(links)  # the other fields shared, as dataclasses.replace shares them
     claimed.P_nb = out
