@@ -229,7 +229,8 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
 
 
 def test_capped_claims_twin() -> None:
-    from resloc.cl.kernels_redundancy import _scaled_claims, claim_scales
+    from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_covariances
+    from resloc.cl.kernels_redundancy import claim_scales
 
     links = links_of_one_step()
     P_nb = links.P_nb.copy()
@@ -239,9 +240,12 @@ def test_capped_claims_twin() -> None:
     scale = np.empty(len(li))
     assert claim_scales(li, P_nb, nb, scale, np.empty(len(li)))
     out = np.empty_like(P_nb)
-    _scaled_claims(P_nb, nb, scale, out)
+    x_nb, no_map = np.ascontiguousarray(links.x_nb), np.zeros((0, 3))
+    args = (x_nb, P_nb, nb, True, no_map, 10.0, out, scale, np.empty(len(li)))
+    assert claimed_covariances(li, *args) == 0  # capped, no map
     np.testing.assert_array_equal(out, capped_claims(P_nb, links.i))
     assert not claim_scales(li[::-1].copy(), P_nb, nb, scale, np.empty(len(li)))
+    assert claimed_covariances(li[::-1].copy(), *args) == CLAIMS_UNSORTED
 
 
 def test_the_attack_suite_runs_the_redundancy_defence_compiled(monkeypatch) -> None:

@@ -58,7 +58,6 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     set_backend,
     use_backend,
 )
-from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
@@ -433,8 +432,10 @@ def fast_correct(
         links = capped_links(filt, x, P, links, params, fusion_strategy(params.fusion), memory)
         if links is None:
             return None
-    else:  # (with it, between the cap and the hook)
-        links = landmark_links(params, links)
+    elif params.zone_landmarks:  # (with it, between the cap and the hook)
+        from resloc.cl.kernels_claims import claimed_links  # compiled on first use
+
+        links = claimed_links(params, links)
     if params.reciprocal:
         # The reciprocal check compares the readings as reported with the partners'
         # (a tamper hook applied to every row: kernels_reciprocal)
@@ -520,9 +521,8 @@ def fast_correct(
     if params.reciprocal:  # every link's range against its partner's (kernels_reciprocal)
         from resloc.cl.kernels_reciprocal import reciprocal_verdict
 
-        paired = reciprocal_verdict(
-            params, memory, li, lj, z, links.z_reciprocal, x, x_nb, nb, detect
-        )
+        z_rec = links.z_reciprocal if zone is None else zone.kernel.z_reciprocal  # (found)
+        paired = reciprocal_verdict(params, memory, li, lj, z, z_rec, x, x_nb, nb, detect)
         if paired is None:
             if fixes is not None:
                 fixes.undo()

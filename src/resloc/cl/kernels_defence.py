@@ -39,7 +39,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from resloc.cl.kernels_detection import DetectorState, gain_at, nis_of, store_slots
+from resloc.cl.kernels_detection import (
+    DetectorState,
+    gain_at,
+    nis_of,
+    shared_slots,
+    store_slots,
+)
 from resloc.cl.kernels_math import jit_inline, per_params
 from resloc.cl.params import CLParams
 
@@ -117,9 +123,21 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
     if (robot_gains or recovery_gains) and memory is None:
         return None
     saved: list = []
+    first: list = []  # the first store's (store, slots): the others share them when they can
+
+    def slots_of(store) -> np.ndarray:
+        # every store is keyed (i, i) by the same observers: in a run's steady state they
+        # hold the same keys, and a comparison of ~B keys replaces a look-up of E links
+        slots = shared_slots(store, *first[0], saved) if first else None
+        if slots is None:
+            slots = store_slots(store, i, i, saved)
+            if not first:
+                first.append((store, slots))
+        return slots
+
     if robot_gains:
         store = memory.stage_statistic("robot_cusum")
-        slot = store_slots(store, i, i, saved)
+        slot = slots_of(store)
         robot_part = (True, *robot_gains, store.values, slot)
     else:
         robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
@@ -129,9 +147,9 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
         runs = memory.stage_statistic("recovery", width=None)
         spread = memory.stage_statistic("recovery_spread")
         applied = memory.stage_statistic("recovery_applied")
-        runs_slot = store_slots(runs, i, i, saved)
-        spread_slot = store_slots(spread, i, i, saved)
-        applied_slot = store_slots(applied, i, i, saved)
+        runs_slot = slots_of(runs)
+        spread_slot = slots_of(spread)
+        applied_slot = slots_of(applied)
         recovery_part = (True, *recovery_gains, runs.values, runs_slot, spread.values, spread_slot)
         recovery_part += (applied.values, applied_slot)
     else:

@@ -31,6 +31,7 @@ import numpy as np
 
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import jit_inline, per_params
+from resloc.cl.kernels_memory import int64_rows, same_keys
 from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
 
@@ -78,15 +79,19 @@ class DetectorState(NamedTuple):
     :class:`~resloc.cl.kernels_defence.KernelDefence`) with what :meth:`undo` needs."""
 
     kernel: KernelDetection
-    saved: tuple  # per store: (store, keys before, values before or None, slots, old values)
+    # per store: (store, keys before, values before or None, slots, a copy of all values
+    # before or None): the arrays before when the step inserted links (they are left
+    # untouched), else a copy of the values (all of them: one copy of a contiguous array
+    # costs less than a gather at the step's slots, which repeat a robot's slot per link)
+    saved: tuple
 
     def undo(self) -> None:
         """Put the stores back as they were before :func:`detector_state`."""
-        for store, keys, values, slots, old in self.saved:
+        for store, keys, values, _slots, old in self.saved:
             if values is not None:  # links were inserted: the old arrays are untouched
                 store.keys, store.values = keys, values
             else:
-                store.values[slots] = old
+                store.values[...] = old
 
 
 def _gain(v) -> np.ndarray:
@@ -105,7 +110,7 @@ def store_slots(store, i, j, saved: list) -> np.ndarray:
     keys, values = store.keys, store.values
     slots = store.slots(i, j)
     if store.values is values:
-        saved.append((store, keys, None, slots, values[slots].copy()))
+        saved.append((store, keys, None, slots, values.copy()))
     else:
         saved.append((store, keys, values, slots, None))
     if not store.values.flags.c_contiguous:
@@ -128,14 +133,20 @@ def _detection_gains(params: CLParams) -> tuple:
 
 
 def _same_keys(store, other) -> bool:
-    return store.keys.shape == other.keys.shape and np.array_equal(store.keys, other.keys)
+    a, b = store.keys, other.keys
+    if a.shape != b.shape:
+        return False
+    rows = int64_rows(a), int64_rows(b)
+    if rows[0] is None or rows[1] is None:
+        return bool(np.array_equal(a, b))
+    return bool(same_keys(*rows))  # compiled (kernels_memory): 2-4% of a step in numpy
 
 
 def _saved(store, slots: np.ndarray) -> tuple:
     """What :meth:`DetectorState.undo` needs to restore ``store`` at ``slots`` (in place)."""
     if not store.values.flags.c_contiguous:
         store.values = np.ascontiguousarray(store.values)
-    return (store, store.keys, None, slots, store.values[slots].copy())
+    return (store, store.keys, None, slots, store.values.copy())
 
 
 def shared_slots(store, other, slots: np.ndarray, saved: list) -> np.ndarray | None:

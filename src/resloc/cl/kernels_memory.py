@@ -15,6 +15,7 @@ kernel function                numpy twin
 =============================  ==================================================
 :func:`stored_positions`       ``np.searchsorted`` of the keys, every key found
 :func:`overwrite_stored`       ``LinkMemory.store`` when every link is stored
+:func:`same_keys`              ``np.array_equal`` of two stores' keys
 =============================  ==================================================
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["overwrite_stored", "stored_positions"]
+__all__ = ["overwrite_stored", "same_keys", "stored_positions"]
 
 
 @jit
@@ -85,6 +86,18 @@ def overwrite_stored(keys, n_nodes, i, j, x, P, norm, mem_x, mem_P, mem_last, po
             for b in range(3):
                 mem_P[p, a, b] = P[e, a, b]
         mem_last[p] = norm[e]
+    return True
+
+
+@jit
+def same_keys(a, b):
+    """Whether the keys ``a`` and ``b`` (int64, (K,)) are equal (``np.array_equal``: a
+    few microseconds of dispatch for the ~300 keys of a step, here a fraction of one)."""
+    if a.shape[0] != b.shape[0]:
+        return False
+    for k in range(a.shape[0]):
+        if a[k] != b[k]:
+            return False
     return True
 
 

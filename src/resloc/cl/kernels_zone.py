@@ -34,6 +34,7 @@ kernel function                numpy twin
 :func:`zone_lanes`             the ``position_fixes`` of ``resloc.cl.step._decide`` and the
                                Kalman update of the fix
 :func:`withhold_lanes`         :func:`resloc.cl.detection.detect` (the withheld rows)
+:func:`restore_unjudged`       ``_restore`` (the pre-passes' state of the rows not judged)
 :func:`zone_links`             the head of ``resloc.cl.step._correct_reference`` (the
                                partners' readings)
 :func:`partner_readings`       the same without a tamper hook
@@ -72,6 +73,7 @@ __all__ = [
     "no_zone",
     "partner_readings",
     "position_fix_of_link",
+    "restore_unjudged",
     "withhold_lanes",
     "zone_lanes",
     "zone_links",
@@ -184,21 +186,36 @@ def keep_unjudged_state(state: ZoneState, fixes, li, lj) -> None:
     the pre-passes' verdicts (:class:`~resloc.cl.kernels_redundancy.FixVerdict`,
     :class:`~resloc.cl.kernels_reciprocal.ReciprocalVerdict`; None: not run), whose saved
     store entries (:func:`~resloc.cl.kernels_detection.store_slots`) hold the state before
-    them: the old values at the links' slots, or, when the step inserted links, the old
-    keys and values."""
-    rows = np.flatnonzero(state.kernel.verdict != OUTSIDE)
-    if not rows.size:
-        return
-    for verdict in fixes:
-        for saved in () if verdict is None else verdict.state.saved[:1]:
-            _restore(saved, rows, li, lj)
+    them: a copy of the old values, or, when the step inserted links, the old keys and
+    values."""
+    verdict = state.kernel.verdict
+    rows = None
+    for fix in fixes:
+        for saved in () if fix is None else fix.state.saved[:1]:
+            store, _, _, slots, old = saved
+            values = store.values
+            if old is not None and values.ndim == 2 and values.flags.c_contiguous:
+                # the steady state: one compiled pass, no index arrays (restore_unjudged)
+                restore_unjudged(verdict, slots, values, old)
+                RESTORE_RUNS["compiled"] += 1
+                continue
+            if rows is None:
+                rows = np.flatnonzero(verdict != OUTSIDE)
+            if rows.size:
+                _restore(saved, rows, li, lj)
+
+
+#: How often :func:`keep_unjudged_state` restored a store by the compiled pass (the tests
+#: read it).
+RESTORE_RUNS = {"compiled": 0}
 
 
 def _restore(saved: tuple, rows: np.ndarray, li: np.ndarray, lj: np.ndarray) -> None:
     """One store's entries at ``rows`` back to their values in ``saved``."""
     store, keys, values, slots, old = saved
-    if old is not None:  # the steady state: every link known, values kept in place
-        store.values[slots[rows]] = old[rows]
+    if old is not None:  # every link known, values kept in place
+        at = slots[rows]
+        store.values[at] = old[at]
         return
     # links inserted this step: their old values from the old arrays (0: never stored)
     wanted = li[rows] * store.n_nodes + lj[rows]
@@ -243,6 +260,18 @@ def partner_readings(li, lj, z, out):
                 break
             lo += 1
     return True
+
+
+@jit
+def restore_unjudged(verdict, slots, values, old):
+    """``values[slots[e]] = old[slots[e]]`` on every row ``e`` whose ``verdict`` is not
+    ``OUTSIDE`` (``values``, ``old``: ``(K, w)``). Twin: ``_restore`` (the steady state's
+    fancy indexing)."""
+    for e in range(verdict.shape[0]):
+        if verdict[e] != OUTSIDE:
+            k = slots[e]
+            for c in range(values.shape[1]):
+                values[k, c] = old[k, c]
 
 
 @jit_inline

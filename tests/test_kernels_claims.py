@@ -1,0 +1,101 @@
+"""The compiled claims (:mod:`resloc.cl.kernels_claims`): the redundancy cap and the zone
+landmarks' weakened claims in one pass, equal to the numpy stages (the cap's
+``capped_claims`` then ``landmark_claims``), and the compiled correction runs it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import resloc.cl.step
+from resloc.cl import kernels
+from resloc.cl.detection_landmark import landmark_claims
+from resloc.cl.detection_redundancy import capped_claims
+from resloc.cl.detection_zone import zone_map
+from resloc.cl.links import LinkBatch
+from resloc.cl.params import CLParams
+from resloc.experiments.config import default_scenario
+from resloc.filters.base import make_filter
+from resloc.world.world import World
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+
+def _scene():
+    """The default scenario's first step (one trial) at the initial estimates ``x, P``:
+    its links with a few claims made tiny or large, and a map around two of the
+    neighbours (by their broadcast positions)."""
+    sc = default_scenario()
+    world = World(sc.world, 1, 4, sc.trigger.lambda2)
+    x, P = world.initial_estimates()
+    ws = world.step()
+    P_nb = P[ws.j].copy()
+    P_nb[::4] *= np.linspace(0.01, 5.0, len(P_nb[::4]))[:, None, None]
+    links = LinkBatch(
+        ws.i, ws.j, ws.z, x[ws.j], P_nb, ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
+    )
+    centres = np.unique(links.x_nb[:, :2], axis=0)[[1, 5]]
+    return links, zone_map([((float(cx), float(cy)), 0.05) for cx, cy in centres]), x, P
+
+
+@pytest.mark.parametrize("cap", [False, True])
+def test_the_claims_are_the_numpy_stages(cap: bool) -> None:
+    from resloc.cl.kernels_claims import CLAIMS_UNCHANGED, claimed_covariances
+
+    links, discs, _, _ = _scene()
+    params = CLParams(
+        zone_landmarks=True,
+        zone_landmarks_map=discs,
+        zone_landmarks_inflation=7.0,
+        redundancy=True,
+        redundancy_cap_fusion=cap,
+    )
+    li = links.i.astype(np.int64)
+    E = len(li)
+    expected = capped_claims(links.P_nb, links.i) if cap else links.P_nb
+    expected = landmark_claims(params, links.x_nb, expected, links.i)
+    rows = np.arange(E, dtype=np.int64)
+    out = np.empty((E, 3, 3))
+    scratch = np.empty(E), np.empty(E)
+    disc_array = np.asarray(discs, float)
+    x_nb = np.ascontiguousarray(links.x_nb)
+    inside = claimed_covariances(li, x_nb, links.P_nb, rows, cap, disc_array, 7.0, out, *scratch)
+    assert inside >= 2
+    np.testing.assert_array_equal(out, expected)
+    assert not np.array_equal(out, links.P_nb)
+    # nothing inside and no cap: nothing written; the cap alone: the capped claims
+    far = disc_array + np.array([1e3, 0.0, 0.0])
+    got = claimed_covariances(li, x_nb, links.P_nb, rows, cap, far, 7.0, out, *scratch)
+    if cap:
+        assert got == 0
+        np.testing.assert_array_equal(out, capped_claims(links.P_nb, links.i))
+    else:
+        assert got == CLAIMS_UNCHANGED
+
+
+@pytest.mark.parametrize("cap", [False, True])
+def test_the_compiled_correction_runs_the_claims_pass(cap: bool) -> None:
+    """The compiled correction weakens the claims by the compiled pass (counted) and
+    equals the reference to 1e-9 with the same decisions."""
+    from resloc.cl.kernels_claims import CLAIMS_RUNS
+
+    links, discs, x, P = _scene()
+    params = CLParams(
+        detector_norm="nis",
+        zone_landmarks=True,
+        zone_landmarks_map=discs,
+        redundancy=cap,
+        redundancy_cap_fusion=cap,
+    )
+    filt = make_filter("ckf")
+    before = CLAIMS_RUNS["compiled"]
+    with kernels.use_backend("numba"):
+        fast = resloc.cl.step.correct(filt, x, P, links, params)
+    assert CLAIMS_RUNS["compiled"] == before + 1
+    with kernels.use_backend("numpy"):
+        ref = resloc.cl.step.correct(filt, x, P, links, params)
+    assert fast[2].compiled and not ref[2].compiled
+    np.testing.assert_allclose(fast[0], ref[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast[1], ref[1], rtol=0, atol=1e-9)
+    for name in ("detected", "triggered", "delivered", "fused"):
+        np.testing.assert_array_equal(getattr(fast[2], name), getattr(ref[2], name))

@@ -1,0 +1,131 @@
+"""The compiled glue of the defences' pre-passes.
+
+* The comparison of two per-link stores' keys (:func:`resloc.cl.kernels_memory.same_keys`):
+  the detector stages that see every link of every step share one store's slots when their
+  keys are equal (``kernels_detection.shared_slots``); it gives ``np.array_equal``'s answer
+  and runs.
+* Zone trust's restore of the pre-passes' state on the rows it withheld or substituted
+  (:func:`resloc.cl.kernels_zone.restore_unjudged`): the numpy restore's result, and it
+  runs.
+* The per-robot stores of the defence share the first one's slots
+  (``kernels_defence.defence_state``) and put everything back on ``undo``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from resloc.cl import kernels, kernels_detection, kernels_memory, kernels_zone
+from resloc.cl.kernels_defence import defence_state
+from resloc.cl.memory import LinkMemory, LinkStatistic
+from resloc.cl.params import CLParams
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+
+@pytest.mark.parametrize(
+    "a, b",
+    [
+        ([1, 5, 9], [1, 5, 9]),
+        ([1, 5, 9], [1, 5, 8]),
+        ([1, 5, 9], [1, 5]),
+        ([], []),
+        ([7], [3]),
+        ([0, 2, 4, 6], [0, 2, 4, 7]),
+    ],
+)
+def test_same_keys_is_array_equal(a, b) -> None:
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    assert kernels_memory.same_keys(a, b) == np.array_equal(a, b)
+
+
+def test_shared_slots_compares_the_keys_compiled(monkeypatch) -> None:
+    calls = []
+    real = kernels_detection.same_keys
+
+    def spy(a, b):
+        calls.append(real(a, b))
+        return calls[-1]
+
+    monkeypatch.setattr(kernels_detection, "same_keys", spy)
+    i, j = np.array([0, 0, 1, 2]), np.array([1, 2, 0, 1])
+    store, other = LinkStatistic(3), LinkStatistic(3)
+    slots = other.slots(i, j)
+    store.slots(i, j)
+    saved: list = []
+    assert kernels_detection.shared_slots(store, other, slots, saved) is slots
+    assert calls == [True] and len(saved) == 1
+    store.slots(np.array([2]), np.array([0]))  # one key more: not shared
+    assert kernels_detection.shared_slots(store, other, slots, saved) is None
+    other.slots(np.array([2]), np.array([2]))  # as many keys, one different
+    assert kernels_detection.shared_slots(store, other, other.slots(i, j), saved) is None
+    assert calls == [True, False]
+
+
+def _store_with_values(rng, n_nodes: int, i, j, width: int) -> LinkStatistic:
+    store = LinkStatistic(n_nodes, width=width)
+    store.slots(i, j)
+    store.values[...] = rng.normal(size=store.values.shape)
+    return store
+
+
+def test_zone_restores_the_unjudged_rows_compiled() -> None:
+    """Rows 1 and 3 withheld / substituted: their slots get the saved values back, every
+    other slot keeps what the step wrote; the numpy restore agrees."""
+    rng = np.random.default_rng(3)
+    i, j = np.array([0, 0, 1, 2, 2]), np.array([1, 2, 0, 0, 1])
+    results = []
+    for compiled in (True, False):
+        store = _store_with_values(rng if compiled else np.random.default_rng(3), 3, i, j, 6)
+        saved: list = []
+        slots = kernels_detection.store_slots(store, i, j, saved)
+        before = store.values.copy()
+        store.values += 1.0  # what the step's pre-pass wrote
+        verdict = np.array([0, kernels_zone.WITHHELD, 0, kernels_zone.SUBSTITUTED, 0])
+        if compiled:
+            runs = kernels_zone.RESTORE_RUNS["compiled"]
+            state = kernels_detection.DetectorState(None, tuple(saved))
+            fix = kernels_zone.ZoneState(kernels_zone.KernelZone(True, None, None, verdict))
+            kernels_zone.keep_unjudged_state(fix, [None, _Verdict(state)], i, j)
+            assert kernels_zone.RESTORE_RUNS["compiled"] == runs + 1
+        else:
+            kernels_zone._restore(saved[0], np.flatnonzero(verdict), i, j)
+        back = slots[[1, 3]]
+        kept = slots[[0, 2, 4]]
+        np.testing.assert_array_equal(store.values[back], before[back])
+        np.testing.assert_array_equal(store.values[kept], before[kept] + 1.0)
+        results.append(store.values.copy())
+    np.testing.assert_array_equal(*results)
+
+
+class _Verdict:
+    def __init__(self, state) -> None:
+        self.state = state
+
+
+def test_the_defence_stores_share_slots_and_undo_puts_them_back(monkeypatch) -> None:
+    params = CLParams(detector_norm="nis", robot_cusum=True, recovery=True)
+    memory = LinkMemory(4)
+    i = np.array([0, 0, 1, 2, 2, 3])
+    first = defence_state(params, memory, i)  # inserts the robots' keys in every store
+    calls = []
+    real = kernels_detection.same_keys
+
+    def spy(a, b):
+        calls.append(real(a, b))
+        return calls[-1]
+
+    monkeypatch.setattr(kernels_detection, "same_keys", spy)
+    state = defence_state(params, memory, i)
+    assert calls == [True, True, True]  # the three recovery stores share the first's slots
+    slots = state.kernel[4], state.kernel[10], state.kernel[12], state.kernel[14]
+    for s in slots[1:]:
+        assert s is slots[0]
+    np.testing.assert_array_equal(slots[0], first.kernel[4])
+    stores = [state.kernel[k] for k in (3, 9, 11, 13)]
+    before = [s.copy() for s in stores]
+    for s in stores:
+        s += 2.0
+    state.undo()
+    for s, b in zip(stores, before, strict=True):
+        np.testing.assert_array_equal(s, b)
