@@ -28,9 +28,9 @@ kernel function                 numpy twin
 ==============================  =========================================================
 
 With zone trust on, the zone stage withholds or substitutes rows round by round and the
-numpy stage stores no state for them: that combination is not compiled
-(``ReciprocalCheck.kernel_refusal``). The map's blame rule alone (``zone_trust_map`` set)
-is.
+numpy stage stores no state for the rows it never judges: the link loops decide zone trust,
+and :func:`resloc.cl.kernels_zone.keep_unjudged_state` puts back this pre-pass's state (and
+the redundancy pre-pass's) for those rows, so the combination runs compiled too.
 """
 
 from __future__ import annotations
