@@ -18,6 +18,7 @@ import pytest
 
 from resloc.angles import wrap_angle
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
@@ -79,8 +80,11 @@ def assert_summed_equal(fast, ref, tol: float = 1e-9) -> None:
 
 def lockstep(filt, params, steps: int, seed: int):
     """``steps`` steps through the compiled path and the reference; checks every step and
-    yields the reference's outcome and memory."""
+    yields the reference's outcome and memory. The compiled path must take the rows'
+    moments in SIMD lanes (``rounds``) for the sigma-point filters from
+    ``SUMMED_LANES_MIN_LINKS`` links on, else by its scalar moments (``row_order``)."""
     from resloc.cl.kernels_summed import SUMMED_RUNS
+    from resloc.cl.kernels_summed_lanes import SUMMED_LANES_MIN_LINKS
 
     sc = default_scenario()
     world = World(sc.world, 2, seed, sc.trigger.lambda2)
@@ -100,9 +104,14 @@ def lockstep(filt, params, steps: int, seed: int):
                     ws.lambda2,
                 )  # fmt: skip
                 before = SUMMED_RUNS["summed"]
+                loops = rounds.LOOP_RUNS.copy()
                 res[path] = correct(filt, xp, Pp, links, params, memory)
                 ran = SUMMED_RUNS["summed"] - before
+                loops = rounds.LOOP_RUNS - loops
             assert ran == (path != "numpy"), "the compiled summed loop did not run"
+            if path != "numpy":
+                lanes = filt is not FILTERS["ekf"] and len(ws.i) >= SUMMED_LANES_MIN_LINKS
+                assert loops == {"rounds" if lanes else "row_order": 1}, dict(loops)
             state[path] = (res[path][0], res[path][1], memory)
         assert_summed_equal(res["row_order"], res["numpy"])
         a, b = state["row_order"][2], state["numpy"][2]
@@ -138,3 +147,41 @@ def test_summed_with_other_fusions_or_cached_estimates_falls_back_with_a_reason(
     for changes, word in (({"fusion": "ci"}, "'ci'"), ({"neighbour_estimate": "cached"}, "cached")):
         refusal = kernel_refusal(FILTERS["ckf"], replace(_params("full"), **changes), links)
         assert refusal is not None and "summed" in refusal and word in refusal
+
+
+@pytest.mark.parametrize("name", ["ckf", "ukf"])
+def test_summed_lanes_give_every_rows_moments(name: str) -> None:
+    """The lanes (:func:`~resloc.cl.kernels_summed_lanes.summed_moments_lanes`) take every
+    row of a healthy batch (more rows than a chunk, a partial last chunk) and give the
+    filter's moments (``SigmaPointFilter.relative_moments``) to 1e-12; a row whose
+    covariance needs jitter is left to the scalar moments."""
+    from resloc.cl.backend import filter_kernel_spec
+    from resloc.cl.kernels_lanes import CHUNK
+    from resloc.cl.kernels_summed_lanes import summed_moments_lanes
+
+    sc = default_scenario()
+    world = World(sc.world, 40, 3, sc.trigger.lambda2)
+    x, P = world.initial_estimates()
+    rng = np.random.default_rng(0)
+    x = x + rng.normal(scale=[0.3, 0.3, 0.5], size=x.shape)
+    ws = world.step()
+    E = len(ws.i)
+    assert E > CHUNK and E % CHUNK
+    li, lj = ws.i.astype(np.int64), ws.j.astype(np.int64)
+    x_nb, P_nb = x[lj].copy(), P[lj].copy()
+    P_nb[7] = 0.0  # no factor without jitter
+    links = (li, ws.z, x_nb, P_nb, np.arange(E), ws.channel_ok, np.zeros(0), x_nb, P_nb,
+             np.zeros(E, np.bool_))  # fmt: skip
+    zh, s, done = np.empty((E, 2)), np.empty((E, 3)), np.empty(E, np.bool_)
+    Pxz = np.empty((E, 3, 2))
+    filt = FILTERS[name]
+    summed_moments_lanes(x, P, links, tuple(filter_kernel_spec(filt)), zh, s, Pxz, done)
+    assert not done[7] and done[np.arange(E) != 7].all()
+    ok = done
+    m = filt.relative_moments(x[li][ok], P[li][ok], x_nb[ok], P_nb[ok], np.zeros((2, 2)))
+    np.testing.assert_allclose(zh[ok, 0], m.z_hat[:, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(wrap_angle(zh[ok, 1] - m.z_hat[:, 1]), 0.0, atol=1e-12)
+    np.testing.assert_allclose(s[ok, 0], m.S[:, 0, 0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s[ok, 1], m.S[:, 0, 1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s[ok, 2], m.S[:, 1, 1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(Pxz[ok], m.Pxz, rtol=0, atol=1e-12)

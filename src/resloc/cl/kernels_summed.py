@@ -67,6 +67,12 @@ from resloc.cl.kernels_math import (
     wrap,
 )
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
+from resloc.cl.kernels_rounds import LOOP_RUNS
+from resloc.cl.kernels_summed_lanes import (
+    SUMMED_LANES_MIN_LINKS,
+    summed_lanes_cover,
+    summed_moments_lanes,
+)
 from resloc.cl.kernels_tamper import stealthy_measurement
 
 __all__ = [
@@ -190,12 +196,16 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
 
 @jit
 def correct_summed(
-    x_pred, P_pred, x, P, links, robots, filt, options, detection, defence, tamper, out
+    x_pred, P_pred, x, P, links, robots, filt, options, detection, defence, tamper, out,
+    lanes,
 ):  # fmt: skip
     """Every link of one step from the predicted estimates ``x_pred: (B, 3)``,
     ``P_pred: (B, 3, 3)``, the updates added per robot into ``x``, ``P`` (copies of the
     predictions on entry), one repair per robot. Arguments as
-    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion, not cached). Returns
+    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion, not cached);
+    ``lanes = (done, zh, s, Pxz)``: the rows' moments the SIMD lanes computed
+    (:func:`~resloc.cl.kernels_summed_lanes.summed_moments_lanes`; ``done`` empty: none),
+    ``Pxz: (E, 3, 2)`` also the working array of the rows' cross-covariances. Returns
     ``OK``, ``NOT_PD`` or :data:`UNSORTED` (then the outputs are partial and must be
     discarded). Twin: the ``summed`` branch of ``resloc.cl.step._correct_reference``."""
     li, z, _, _, nb, channel_ok, last_norm, x_ref, P_ref, _ = links  # (transmitted: x_ref)
@@ -226,7 +236,8 @@ def correct_summed(
     nu = np.empty((E, 2))
     cov = np.empty((E, 3))  # S
     chol = np.empty((E, 3))  # S = L L^T
-    Pxz = np.zeros((E, 3, 2))
+    done, zh_rows, s_rows, Pxz = lanes
+    pre = done.shape[0] == E
     Hi = np.zeros((E, 2, 3))
     reff = np.zeros((E, 3))
     n_trig = np.empty(E)
@@ -250,13 +261,21 @@ def correct_summed(
         xi2 = x_pred[i, 2]
         for e in range(start, stop):  # 1. moments, innovation, norms, per-link stages
             n = nb[e]
-            ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
-                linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pi,
-                x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e], Hi[e],
-                Hj, T3,
-            )  # fmt: skip
-            if not ok:
-                return NOT_PD
+            if pre and done[e]:  # the lanes' moments (Pxz[e] filled): S as point_moments
+                zh0 = zh_rows[e, 0]
+                zh1 = zh_rows[e, 1]
+                S00 = s_rows[e, 0] + R[0, 0]
+                S01 = 0.5 * ((s_rows[e, 1] + R[0, 1]) + (s_rows[e, 1] + R[1, 0]))
+                S11 = s_rows[e, 2] + R[1, 1]
+                re00 = re01 = re11 = 0.0
+            else:
+                ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
+                    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pi,
+                    x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
+                    Hi[e], Hj, T3,
+                )  # fmt: skip
+                if not ok:
+                    return NOT_PD
             reff[e, 0] = re00
             reff[e, 1] = re01
             reff[e, 2] = re11
@@ -393,11 +412,40 @@ def run_summed_loop(
 ):  # fmt: skip
     """The summed update of one step into ``x_out``, ``P_out`` (copies of ``x``, ``P`` on
     entry), arguments as :func:`~resloc.cl.kernels_rounds.run_link_loop` (``fusion`` and
-    ``gauge``: naive, none). Returns the status."""
+    ``gauge``: naive, none): the rows' moments in SIMD lanes where they cover the filter
+    and there are at least :data:`~resloc.cl.kernels_summed_lanes.SUMMED_LANES_MIN_LINKS`
+    links (counted as ``rounds`` in :data:`~resloc.cl.kernels_rounds.LOOP_RUNS`, else
+    ``row_order``), then :func:`correct_summed`. Returns the status."""
     del gauge
     if fusion[0] != NAIVE_UPDATE:
         return NOT_PD  # (summed_refusal keeps other fusions out: never reached)
     SUMMED_RUNS["summed"] += 1
+    E = len(links[0])
+    Pxz = np.zeros((E, 3, 2))
+    if E >= SUMMED_LANES_MIN_LINKS and summed_lanes_cover(filt):  # the moments in lanes
+        done = np.empty(E, np.bool_)
+        zh = np.empty((E, 2))
+        s = np.empty((E, 3))
+        summed_moments_lanes(x, P, links, filt, zh, s, Pxz, done)
+        LOOP_RUNS["rounds"] += 1
+    else:
+        done, zh, s = _NO_LANES
+        LOOP_RUNS["row_order"] += 1
     return correct_summed(
-        x, P, x_out, P_out, links, robots, filt, options, detection, defence, tamper, out
+        x,
+        P,
+        x_out,
+        P_out,
+        links,
+        robots,
+        filt,
+        options,
+        detection,
+        defence,
+        tamper,
+        out,
+        (done, zh, s, Pxz),
     )
+
+
+_NO_LANES = (np.zeros(0, np.bool_), np.zeros((0, 2)), np.zeros((0, 3)))
