@@ -29,8 +29,6 @@ copied, so that the row-order loop starts from the same state.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from resloc.cl import kernels_defence as _kernels_defence
@@ -278,8 +276,8 @@ def retry_lanes(m, columns):
 
 @_jit
 def inflated_moments(
-    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, Lj, moments, pxz, update, retry,
-    filt, R, jitter, x_nb, P_nb,
+    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj, moments, pxz,
+    update, retry, filt, R, jitter, x_nb, P_nb,
 ):  # fmt: skip
     """The second pass of the fused lanes (``decision[3]``) whose update uses other
     moments than the first pass: those the recovery re-admitted with robot ``i``'s
@@ -289,7 +287,8 @@ def inflated_moments(
     the row-order loop's scalar pieces (a round has few such lanes: the SIMD stages would
     run mostly their scalar remainder), then the innovation and Kalman update of all of
     them at once (:func:`kalman_lanes`), written over the lanes' ``moments``, ``pxz`` and
-    ``update``. ``filt``: the filter's description. Returns ``OK``, ``NOT_PD`` (a
+    ``update`` (the first pass's factors ``Li``, ``Lj`` and heading's ``sin_cos`` where
+    they serve). ``filt``: the filter's description. Returns ``OK``, ``NOT_PD`` (a
     covariance has no factor) or ``FALLBACK`` (a special case of the row-order loop).
     Twin: ``attempt == 1`` of ``correct_links``."""
     lane, zl_r, mom_r, pxz_r, Pi_r, upd_r, Pf, Li_s, Lj_s, Pj, off, Zp, Pxz_s, R0 = retry
@@ -305,8 +304,13 @@ def inflated_moments(
             for b in range(3):
                 Pf[a, b] = P[i, a, b] * f  # f = 1: P_i itself
                 Pi_r[3 * a + b, k] = Pf[a, b]
-        if not chol3(Pf, Li_s, jitter):
-            return NOT_PD
+        if f > 1.0:
+            if not chol3(Pf, Li_s, jitter):
+                return NOT_PD
+        else:  # the first pass's factor of the same P_i
+            for a in range(3):
+                for b in range(3):
+                    Li_s[a, b] = Li[a, b, c]
         xr0 = xr[0, c]
         xr1 = xr[1, c]
         if fresh[c] == 1.0:  # j's transmitted estimate, its factor by chol3 (as the loop)
@@ -323,10 +327,9 @@ def inflated_moments(
                 for b in range(3):
                     Lj_s[a, b] = Lj[a, b, c]
         point_offsets(Li_s, Lj_s, nz_idx, nz_val, nz_cnt, off)
-        xi2 = xi[2, c]
         zh0, zh1, s00, s01, s11 = point_moments(
-            off, Wm, Wc, circular, xi[0, c], xi[1, c], xi2, xr0, xr1, math.sin(xi2),
-            math.cos(xi2), R0, Zp, Pxz_s,
+            off, Wm, Wc, circular, xi[0, c], xi[1, c], xi[2, c], xr0, xr1, sin_cos[0, c],
+            sin_cos[1, c], R0, Zp, Pxz_s,
         )  # fmt: skip
         mom_r[0, k] = zh0
         mom_r[1, k] = zh1

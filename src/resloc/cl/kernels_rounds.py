@@ -354,8 +354,8 @@ def _rounds(
                 cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
             if beyond is not None and (recovering or cached):
                 status = inflated_moments(
-                    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, Lj, moments, pxz,
-                    update, retry, filt, R, jitter, x_nb, P_nb,
+                    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj,
+                    moments, pxz, update, retry, filt, R, jitter, x_nb, P_nb,
                 )  # fmt: skip
                 if status != OK:
                     return status
