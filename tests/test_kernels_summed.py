@@ -142,11 +142,14 @@ def test_compiled_summed_update_equals_the_reference(case: str) -> None:
         assert readmitted, "the recovery never re-admitted a measurement"
 
 
-def test_summed_with_other_fusions_or_cached_estimates_falls_back_with_a_reason() -> None:
+def test_summed_with_other_fusions_cached_estimates_or_zones_falls_back_with_a_reason() -> None:
     links = links_of_one_step()
     for changes, word in (({"fusion": "ci"}, "'ci'"), ({"neighbour_estimate": "cached"}, "cached")):
         refusal = kernel_refusal(FILTERS["ckf"], replace(_params("full"), **changes), links)
         assert refusal is not None and "summed" in refusal and word in refusal
+    # the summed loop has no zone verdicts or position fixes: it would fuse as if off
+    refusal = kernel_refusal(FILTERS["ckf"], _params("zone+full+redundancy+sequence"), links)
+    assert refusal is not None and "summed" in refusal and "zone" in refusal
 
 
 @pytest.mark.parametrize("name", ["ckf", "ukf"])

@@ -227,6 +227,8 @@ def _summed_refusal(params: CLParams) -> str | None:
         return f"update_mode 'summed' with fusion {params.fusion.value!r} has no compiled twin"
     if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
         return "update_mode 'summed' with cached neighbour estimates has no compiled twin"
+    if params.zone_trust:  # (its verdicts and position fixes are the link loops')
+        return "update_mode 'summed' with zone trust has no compiled twin"
     return None
 
 
