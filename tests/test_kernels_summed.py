@@ -55,6 +55,18 @@ CASES = {
     "ekf-full": ("ekf", _params("full"), 52),
     "ukf-every-stage": ("ukf", _params("full+redundancy+sequence+reciprocal"), 51),
     "ckf-paper": ("ckf", replace(_params("paper"), recovery=False), 54),
+    # cached estimates: the first reception triggers, a delivered row is fused with the
+    # transmitted estimate, an untriggered one with the cached estimate
+    "ckf-cached-full": (
+        "ckf",
+        _params("full", neighbour_estimate="cached", update_without_transmission=True),
+        50,
+    ),
+    "ukf-cached-last_sent": (
+        "ukf",
+        _params("paper", neighbour_estimate="cached", threshold_innovation="last_sent"),
+        51,
+    ),
 }
 
 
@@ -117,6 +129,10 @@ def lockstep(filt, params, steps: int, seed: int):
         a, b = state["row_order"][2], state["numpy"][2]
         assert_same_statistics(a, b)
         assert_same_stage_statistics(a, b)
+        if params.neighbour_estimate == "cached":  # what each robot received
+            np.testing.assert_array_equal(a.keys, b.keys)
+            for name in ("x", "P", "last_norm"):
+                np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-9)
         yield res["numpy"][2], b
 
 
@@ -125,26 +141,29 @@ def test_compiled_summed_update_equals_the_reference(case: str) -> None:
     name, params, seed = CASES[case]
     links = links_of_one_step()
     assert kernel_refusal(FILTERS[name], params, links) is None
-    detected = fused = 0
+    detected = fused = stale = 0
     alarmed = readmitted = False
     for out, memory in lockstep(FILTERS[name], params, 60, seed):
         detected += int(out.detected.sum())
         fused += int(out.fused.sum())
+        stale += int((out.fused & ~out.delivered).sum())
         if params.robot_cusum:
             g = memory.stage_statistic("robot_cusum").values
             alarmed |= bool((g > params.robot_cusum_h).any())
         if params.recovery:
             readmitted |= bool((memory.stage_statistic("recovery_applied").values > 1.0).any())
-    assert fused > 0 and detected > 0
+    assert fused > 0 and (detected > 0 or not params.detector)
+    if params.update_without_transmission:
+        assert stale > 0, "no row was fused with a cached estimate"
     if params.robot_cusum:
         assert alarmed, "the robot CUSUM never alarmed"
     if params.recovery:
         assert readmitted, "the recovery never re-admitted a measurement"
 
 
-def test_summed_with_other_fusions_cached_estimates_or_zones_falls_back_with_a_reason() -> None:
+def test_summed_with_other_fusions_or_zones_falls_back_with_a_reason() -> None:
     links = links_of_one_step()
-    for changes, word in (({"fusion": "ci"}, "'ci'"), ({"neighbour_estimate": "cached"}, "cached")):
+    for changes, word in (({"fusion": "ci"}, "'ci'"), ({"fusion": "split_ci"}, "split_ci")):
         refusal = kernel_refusal(FILTERS["ckf"], replace(_params("full"), **changes), links)
         assert refusal is not None and "summed" in refusal and word in refusal
     # the summed loop has no zone verdicts or position fixes: it would fuse as if off

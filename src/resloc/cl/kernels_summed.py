@@ -14,9 +14,12 @@ per-link stages (:func:`~resloc.cl.kernels_detection.detect_link`: the gate, the
 the pre-passes' verdicts); then the per-robot stages over the robot's rows; then per row
 the re-admitted rows' moments from the inflated covariance, the event trigger and channel,
 and the fused rows' updates, accumulated into the robot's estimate. Coverage
-(:func:`resloc.cl.backend.kernel_refusal`): naive fusion, transmitted neighbour estimates,
-any filter and detector stage the row-order loop covers, the stealthy attacker's compiled
-form.
+(:func:`resloc.cl.backend.kernel_refusal`): naive fusion, transmitted or cached neighbour
+estimates (with ``cached``, the first reception triggers and a delivered row's moments are
+taken again from the transmitted estimate, beside the re-admitted rows'), any filter and
+detector stage the row-order loop covers but zone trust, the stealthy attacker's compiled
+form. The rows' moments at the prediction come from SIMD lanes where they can
+(:mod:`resloc.cl.kernels_summed_lanes`).
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -47,6 +50,7 @@ from resloc.cl.kernels_fusion import NAIVE_UPDATE
 from resloc.cl.kernels_links import (
     NOT_PD,
     OK,
+    cached_decision,
     decide_link,
     event_threshold_of_link,
     gate_link,
@@ -202,17 +206,19 @@ def correct_summed(
     """Every link of one step from the predicted estimates ``x_pred: (B, 3)``,
     ``P_pred: (B, 3, 3)``, the updates added per robot into ``x``, ``P`` (copies of the
     predictions on entry), one repair per robot. Arguments as
-    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion, not cached);
+    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion);
     ``lanes = (done, zh, s, Pxz)``: the rows' moments the SIMD lanes computed
     (:func:`~resloc.cl.kernels_summed_lanes.summed_moments_lanes`; ``done`` empty: none),
     ``Pxz: (E, 3, 2)`` also the working array of the rows' cross-covariances. Returns
     ``OK``, ``NOT_PD`` or :data:`UNSORTED` (then the outputs are partial and must be
     discarded). Twin: the ``summed`` branch of ``resloc.cl.step._correct_reference``."""
-    li, z, _, _, nb, channel_ok, last_norm, x_ref, P_ref, _ = links  # (transmitted: x_ref)
+    # x_ref, P_ref: the estimates of j the first pass uses (cached: j's last received, per
+    # link; else the transmitted rows x_nb, P_nb themselves)
+    li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
     R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
-    jitter = options[8]
+    jitter, cached, update_without_transmission = options[8], options[9], options[10]
     out_norm, out_threshold, flags = out
     defending = defence[0] or defence[5]
     tampered = tamper[0]
@@ -325,14 +331,22 @@ def correct_summed(
             triggered, delivered = decide_link(
                 detected[e], n_trig[e], delta[e], trigger, channel_ok[e]
             )
+            fuse = delivered
+            if cached:  # the first reception triggers; a cached estimate may be fused
+                triggered, delivered, fuse = cached_decision(
+                    detected[e], triggered, delivered, known[e], trigger, channel_ok[e],
+                    update_without_transmission,
+                )  # fmt: skip
             out_norm[e] = n_trig[e]
             out_threshold[e] = math.nan if detected[e] else delta[e]
             flags[0, e] = detected[e]
             flags[1, e] = triggered
             flags[2, e] = delivered
-            flags[3, e] = delivered
-            if not delivered:
+            flags[3, e] = fuse
+            if not fuse:
                 continue
+            # a delivered message carries j's current estimate: fused with that (cached)
+            fresh = cached and delivered and known[e]
             Pu = Pi
             l00 = chol[e, 0]
             l10 = chol[e, 1]
@@ -345,16 +359,18 @@ def correct_summed(
             S00 = cov[e, 0]
             S01 = cov[e, 1]
             S11 = cov[e, 2]
-            if inflation[e] > 1.0:  # re-admitted: the moments from the inflated covariance
-                for a in range(3):
-                    for c in range(3):
-                        Pinf[a, c] = Pi[a, c] * inflation[e]
-                Pu = Pinf
+            if inflation[e] > 1.0 or fresh:  # the moments again, from f P_i or fresh x_j
+                if inflation[e] > 1.0:  # re-admitted: from the inflated covariance
+                    for a in range(3):
+                        for c in range(3):
+                            Pinf[a, c] = Pi[a, c] * inflation[e]
+                    Pu = Pinf
                 n = nb[e]
+                xr_, Pr = (x_nb, P_nb) if fresh else (x_ref, P_ref)
                 ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
                     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pu,
-                    x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
-                    Hi[e], Hj, T3,
+                    xr_[n, 0], xr_[n, 1], Pr[n], R, jitter, Li, Lj, off, Zp, Pxz[e], Hi[e],
+                    Hj, T3,
                 )  # fmt: skip
                 if not ok:
                     return NOT_PD
