@@ -14,8 +14,8 @@ function                    option                             piece of ``correc
 :func:`tamper_lanes`        stealthy attacker                  ``stealthy_measurement``
 :func:`screen_lanes`        CUSUMs, robot CUSUM, recovery      ``detect_link``,
                                                                ``defend_link``
-:func:`inflated_moments`    recovery (re-admission, ``f > 1``),  the second pass
-                            cached (delivered: transmitted)
+:func:`inflated_moments`    recovery (re-admission,            the second pass
+                            ``f > 1``), ``cached`` (delivered)
 :func:`intersect_lanes`     ``ci``, ``split_ci``               ``ci_update``,
                                                                ``split_ci_update``
 :func:`gauge_lanes`         ``gauge``                          ``gauge_record``
