@@ -45,6 +45,7 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_detection import detect_link, gain_at, nis_of
 from resloc.cl.kernels_fusion import NAIVE_UPDATE
 from resloc.cl.kernels_links import (
@@ -78,6 +79,7 @@ from resloc.cl.kernels_summed_lanes import (
     summed_moments_lanes,
 )
 from resloc.cl.kernels_tamper import stealthy_measurement
+from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
 
 __all__ = [
     "SUMMED_RUNS",
@@ -121,7 +123,7 @@ def link_moments(
 
 
 @jit_inline
-def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, inflation):
+def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, inflation, withheld):
     """The per-robot stages on robot ``i``'s rows ``start:stop`` of one summed call
     (``P_i``: its predicted covariance; ``stat``: the rows' NIS): the robot CUSUM adds all
     the rows' excesses (the rows the gate passed) before it judges any, then the recovery,
@@ -129,7 +131,8 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
     discarded rows (``detected``, ``inflation`` updated in place). Twin:
     ``RobotCusum.discard`` (:func:`~resloc.cl.detection_robot.robot_cusum`) and
     ``RejectionRecovery.discard`` (``update_rejection_runs``, ``_record_applied``) on rows
-    that repeat a robot."""
+    that repeat a robot. The rows zone trust ``withheld`` are not theirs (no stage but
+    zone trust sees them: :func:`resloc.cl.detection.detect`)."""
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     if robot:
@@ -139,7 +142,7 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
         excess = 0.0
         fed = False
         for e in range(start, stop):  # np.bincount: the rows' sum, then added to g
-            if not gated[e]:
+            if not gated[e] and not withheld[e]:
                 excess += stat[e] - k
                 fed = True
         g = rg[slot]
@@ -180,6 +183,8 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
     readmitted = False
     discarded = 0.0
     for e in range(start, stop):
+        if withheld[e]:
+            continue
         if not detected[e]:
             passed = True
         elif math.isfinite(f) and stat[e] / f <= gain_at(gate, i):
@@ -220,6 +225,9 @@ def correct_summed(
     R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
     jitter, cached, update_without_transmission = options[8], options[9], options[10]
     out_norm, out_threshold, flags = out
+    zone = detection[12]  # zone-aware trust (kernels_zone): verdicts at the prediction
+    zoned = zone[0]
+    z_rec = zone[2]
     defending = defence[0] or defence[5]
     tampered = tamper[0]
     attacked = tamper[3]
@@ -252,6 +260,7 @@ def correct_summed(
     gated = np.zeros(E, np.bool_)
     detected = np.zeros(E, np.bool_)
     inflation = np.ones(E)
+    withheld = np.zeros(E, np.bool_)
     any_fused = False
     start = 0
     while start < E:
@@ -300,6 +309,20 @@ def correct_summed(
                 zu1 = wrap(zt1)
                 nu0 = zu0 - zh0
                 nu1 = wrap(zu1 - zh1)
+            if zoned:  # twin: substitute_reciprocal, ZoneTrust.discard at x_i,k|k-1
+                verdict = zone_verdict(zone, e, xi0, xi1, x_nb[n, 0], x_nb[n, 1])
+                withheld[e] = verdict == WITHHELD
+                if verdict == SUBSTITUTED:  # the partner's position fix of i
+                    nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                        xi0, xi1, Pi, 1.0, x_nb[n, 0], x_nb[n, 1], x_nb[n, 2], P_nb[n],
+                        z_rec[e, 0], z_rec[e, 1], R, Pxz[e], Hi[e],
+                    )  # fmt: skip
+                    l00, l10, l11 = chol2(S00, S01, S11, jitter)
+                    if l00 == 0.0:
+                        return NOT_PD
+                    reff[e, 0] = re00
+                    reff[e, 1] = re01
+                    reff[e, 2] = re11
             zu[e, 0] = zu0
             zu[e, 1] = zu1
             nu[e, 0] = nu0
@@ -321,11 +344,17 @@ def correct_summed(
                 risk_floor,
             )  # fmt: skip
             g = gate_link(nd, detector, gain_at(rho, i))
-            gated[e] = g
-            detected[e] = detect_link(detection, e, i, g, nu0, nu1, nd, det_norm, l00, l10, l11)
+            if withheld[e]:  # discarded, and no other stage sees it
+                gated[e] = False
+                detected[e] = True
+            else:
+                gated[e] = g
+                detected[e] = detect_link(detection, e, i, g, nu0, nu1, nd, det_norm, l00, l10, l11)
             stat[e] = nis_of(nu0, nu1, l00, l10, l11)
         if defending:  # 2. the per-robot stages over the robot's rows
-            robot_block_stages(defence, start, stop, i, Pi, gated, detected, stat, inflation)
+            robot_block_stages(
+                defence, start, stop, i, Pi, gated, detected, stat, inflation, withheld
+            )
         first = -1
         for e in range(start, stop):  # 3. trigger, channel and the fused rows' updates
             triggered, delivered = decide_link(
@@ -366,16 +395,22 @@ def correct_summed(
                             Pinf[a, c] = Pi[a, c] * inflation[e]
                     Pu = Pinf
                 n = nb[e]
-                xr_, Pr = (x_nb, P_nb) if fresh else (x_ref, P_ref)
-                ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
-                    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pu,
-                    xr_[n, 0], xr_[n, 1], Pr[n], R, jitter, Li, Lj, off, Zp, Pxz[e], Hi[e],
-                    Hj, T3,
-                )  # fmt: skip
-                if not ok:
-                    return NOT_PD
-                nu0 = zu[e, 0] - zh0
-                nu1 = wrap(zu[e, 1] - zh1)
+                if zoned and zone[3][e] == SUBSTITUTED:  # the position fix from f P_i
+                    nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                        xi0, xi1, Pu, 1.0, x_nb[n, 0], x_nb[n, 1], x_nb[n, 2], P_nb[n],
+                        z_rec[e, 0], z_rec[e, 1], R, Pxz[e], Hi[e],
+                    )  # fmt: skip
+                else:
+                    xr_, Pr = (x_nb, P_nb) if fresh else (x_ref, P_ref)
+                    ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
+                        linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2,
+                        Pu, xr_[n, 0], xr_[n, 1], Pr[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
+                        Hi[e], Hj, T3,
+                    )  # fmt: skip
+                    if not ok:
+                        return NOT_PD
+                    nu0 = zu[e, 0] - zh0
+                    nu1 = wrap(zu[e, 1] - zh1)
                 l00, l10, l11 = chol2(S00, S01, S11, jitter)
                 if l00 == 0.0:
                     return NOT_PD
@@ -419,6 +454,7 @@ stamp_with_pieces(
     _kernels_detection,
     _kernels_defence,
     _kernels_tamper,
+    _kernels_zone,
 )
 
 
