@@ -17,9 +17,10 @@ and the fused rows' updates, accumulated into the robot's estimate. Coverage
 (:func:`resloc.cl.backend.kernel_refusal`): naive fusion, transmitted or cached neighbour
 estimates (with ``cached``, the first reception triggers and a delivered row's moments are
 taken again from the transmitted estimate, beside the re-admitted rows'), any filter and
-detector stage the row-order loop covers but zone trust, the stealthy attacker's compiled
-form. The rows' moments at the prediction come from SIMD lanes where they can
-(:mod:`resloc.cl.kernels_summed_lanes`).
+detector stage the row-order loop covers (zone trust's verdicts and position fixes at the
+predicted estimates, its withheld rows kept from the per-robot stages), the stealthy
+attacker's compiled form. The rows' moments at the prediction come from SIMD lanes where
+they can (:mod:`resloc.cl.kernels_summed_lanes`).
 
 =============================  ==========================================================
 kernel function                numpy twin
