@@ -64,6 +64,24 @@ CASES = {
     "gauge-full-strict": ("ukf", _params("full", fusion="gauge", **STRICT), None),
     "stealthy-cusums": ("ckf", _params(**CUSUMS), StealthKnowledge.FULL),
     "resilient-full": ("ckf", _params("full", fusion="gauge", **CUSUMS), StealthKnowledge.FULL),
+    # cached neighbour estimates (kernels_round_cached): the first pass with j's last
+    # received estimate, a delivered link's second pass with the transmitted one
+    "cached": ("ckf", _params(neighbour_estimate="cached"), None),
+    "cached-uwt-full-strict": (
+        "ckf",
+        _params("full", neighbour_estimate="cached", update_without_transmission=True, **STRICT),
+        None,
+    ),
+    "cached-last_sent-split_ci": (
+        "ukf",
+        _params(neighbour_estimate="cached", threshold_innovation="last_sent", fusion="split_ci"),
+        None,
+    ),
+    "cached-ci-stealthy": (
+        "ckf",
+        _params(neighbour_estimate="cached", fusion="ci", **CUSUMS),
+        StealthKnowledge.FULL,
+    ),
 }
 
 
@@ -84,6 +102,11 @@ def assert_same_state(params, a: LinkMemory, b: LinkMemory) -> None:
     """Every option's state after a step is the same in ``a`` and ``b``."""
     assert_same_statistics(a, b)
     assert_same_stage_statistics(a, b)
+    if params.neighbour_estimate == "cached" or params.threshold_innovation == "last_sent":
+        np.testing.assert_array_equal(a.keys, b.keys)
+        np.testing.assert_allclose(a.x, b.x, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.P, b.P, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.last_norm, b.last_norm, rtol=0, atol=1e-9)
     if params.fusion == "split_ci":
         np.testing.assert_allclose(a.independent, b.independent, rtol=0, atol=1e-9)
     if params.fusion == "gauge":
@@ -145,13 +168,16 @@ def test_rounds_run_every_option_as_the_row_order_loop_and_the_reference(
     case, readmissions, ci_weights_seen  # noqa: F811
 ):  # fmt: skip
     name, params, knowledge = CASES[case]
-    fused = detected = moved = 0
+    fused = detected = moved = stale = 0
     seed = 21 + list(CASES).index(case)
     for out, hit in lockstep_three_paths(FILTERS[name], params, 60, seed, knowledge):
         fused += int(out.fused.sum())
         detected += int(out.detected.sum())
         moved += int(out.fused[hit].sum())
+        stale += int((out.fused & ~out.delivered).sum())
     assert fused > 0
+    if params.update_without_transmission:
+        assert stale > 0, "no link was fused with a cached estimate"
     if params.detector:
         assert detected > 0, "no measurement was rejected"
     if params.fusion in ("ci", "split_ci"):

@@ -157,8 +157,6 @@ def test_rounds_give_way_on_rows_not_sorted_by_observer() -> None:
         ("ekf", {"fusion": "ci", "cusum": True}),
         ("ckf", {"fusion": "tracked"}),
         ("ckf", {"fusion": "factorized"}),
-        ("ckf", {"neighbour_estimate": "cached"}),
-        ("ckf", {"neighbour_estimate": "cached", "fusion": "split_ci"}),
     ],
 )
 def test_rounds_leave_what_they_do_not_cover_to_the_row_order_loop(name, changes) -> None:

@@ -219,14 +219,12 @@ _last_params: tuple = (None, None)
 
 def _summed_refusal(params: CLParams) -> str | None:
     """The combinations the compiled summed update (:mod:`resloc.cl.kernels_summed`) lacks:
-    it fuses with the Kalman update alone, from the transmitted neighbour estimates."""
+    it fuses with the Kalman update alone."""
     if params.update_mode is not UpdateMode.SUMMED:
         return None
     strategy = fusion_strategy(params.fusion)
     if strategy.kernel_update != "kalman" or strategy.kernel_bookkeeping != "none":
         return f"update_mode 'summed' with fusion {params.fusion.value!r} has no compiled twin"
-    if params.neighbour_estimate is not NeighbourEstimate.CURRENT:
-        return "update_mode 'summed' with cached neighbour estimates has no compiled twin"
     return None
 
 

@@ -592,9 +592,7 @@ def fast_correct(
     fusion_commit(fusion, memory, li, fused)
     P_out = strategy.finish(memory, P_out, lj, delivered)
     if need_memory and delivered.any():
-        d = np.flatnonzero(delivered)
-        rows = nb[d]
-        memory.store(links.i[d], links.j[d], x_nb[rows], P_nb[rows], out.norm[d])
+        memory.store_delivered(li, lj, delivered, x_nb, P_nb, nb, out.norm)
     outcome = LinkOutcome(
         out.norm, out.threshold, detected, triggered, delivered, fused, repaired, compiled=True
     )

@@ -475,4 +475,5 @@ innovation_norm_of_link = _innovation_norm
 event_threshold_of_link = _event_threshold
 gate_link = _gate_link
 decide_link = _decide_link
+cached_decision = _cached_decision
 linearized_moments = _linearized_moments  # (and for the summed update, kernels_summed)

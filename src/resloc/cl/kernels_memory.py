@@ -15,6 +15,7 @@ kernel function                numpy twin
 =============================  ==================================================
 :func:`stored_positions`       ``np.searchsorted`` of the keys, every key found
 :func:`overwrite_stored`       ``LinkMemory.store`` when every link is stored
+:func:`overwrite_delivered`    ``LinkMemory.store`` of a step's delivered links
 :func:`same_keys`              ``np.array_equal`` of two stores' keys
 =============================  ==================================================
 """
@@ -25,7 +26,7 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["overwrite_stored", "same_keys", "stored_positions"]
+__all__ = ["overwrite_delivered", "overwrite_stored", "same_keys", "stored_positions"]
 
 
 @jit
@@ -107,3 +108,48 @@ def int64_rows(a) -> np.ndarray | None:
     if type(a) is np.ndarray and a.dtype == np.int64 and a.ndim == 1 and a.flags.c_contiguous:
         return a
     return None
+
+
+@jit
+def overwrite_delivered(keys, n_nodes, i, j, delivered, rows, x, P, norm, mem, pos):
+    """For every link ``e`` with ``delivered[e]`` (links sorted by key, as
+    :func:`stored_positions` takes them): ``mem_x[p] = x[rows[e]]``, ``mem_P[p] =
+    P[rows[e]]``, ``mem_last[p] = norm[e]`` at the position ``p`` of ``(i[e], j[e])``
+    (``mem = (mem_x, mem_P, mem_last)``; ``pos``: (E,) int64 scratch). False, nothing
+    written, when a delivered link is not stored. Twin: ``LinkMemory.store`` of the rows
+    ``delivered`` selects."""
+    K = keys.shape[0]
+    last = -1
+    p = 0
+    d = 0
+    for e in range(i.shape[0]):
+        if not delivered[e]:
+            continue
+        key = i[e] * n_nodes + j[e]
+        if d == 0 or key < last:
+            p = _position(keys, key)
+        elif key > last:
+            p += 1
+            while p < K and keys[p] < key:
+                p += 1
+            if p >= K or keys[p] != key:
+                p = -1
+        if p < 0:
+            return False
+        pos[d] = p
+        d += 1
+        last = key
+    mem_x, mem_P, mem_last = mem
+    d = 0
+    for e in range(i.shape[0]):
+        if not delivered[e]:
+            continue
+        p = pos[d]
+        r = rows[e]
+        for a in range(3):
+            mem_x[p, a] = x[r, a]
+            for b in range(3):
+                mem_P[p, a, b] = P[r, a, b]
+        mem_last[p] = norm[e]
+        d += 1
+    return True

@@ -14,7 +14,8 @@ function                    option                             piece of ``correc
 :func:`tamper_lanes`        stealthy attacker                  ``stealthy_measurement``
 :func:`screen_lanes`        CUSUMs, robot CUSUM, recovery      ``detect_link``,
                                                                ``defend_link``
-:func:`inflated_moments`    recovery (re-admission, ``f > 1``)  the second pass
+:func:`inflated_moments`    recovery (re-admission,            the second pass
+                            ``f > 1``), ``cached`` (delivered)
 :func:`intersect_lanes`     ``ci``, ``split_ci``               ``ci_update``,
                                                                ``split_ci_update``
 :func:`gauge_lanes`         ``gauge``                          ``gauge_record``
@@ -39,6 +40,7 @@ from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl import kernels_link_stages as _kernels_link_stages
 from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
+from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
@@ -54,23 +56,16 @@ from resloc.cl.kernels_detection import (
 from resloc.cl.kernels_fusion import CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_lanes import FALLBACK
-from resloc.cl.kernels_link_stages import (
-    UPDATE_ROWS,
-    chol_jitter_lanes,
-    chol_lanes,
-    kalman_lanes,
-    load_covariances,
-    load_robot_covariances,
-    moments_lanes,
-    points_lanes,
-)
-from resloc.cl.kernels_links import NOT_PD, OK, decide_link
+from resloc.cl.kernels_link_stages import UPDATE_ROWS, kalman_lanes
+from resloc.cl.kernels_links import NOT_PD, OK, decide_link, point_offsets
 from resloc.cl.kernels_math import (
+    chol3,
     jit_lanes,
     stamp_with_pieces,
     store_covariance,
     wrap,
 )
+from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
 from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD
@@ -260,79 +255,98 @@ def screen_lanes(
 @_jit
 def retry_lanes(m, columns):
     """Working arrays of :func:`inflated_moments` for ``m`` sigma points (``columns``:
-    ``CHUNK`` where the recovery is on, else 1: never used)."""
+    ``CHUNK`` where the recovery or cached estimates are on, else 1: never used)."""
     return (
         np.empty(columns, np.int64),  # the retried lane of each column
-        np.arange(columns),  # rows of the inflated covariances
-        np.empty((columns, 3, 3)),  # f P_i
-        np.empty((3, columns)),  # x_i
-        np.empty((2, columns)),  # x_j
         np.empty((2, columns)),  # z
-        np.empty((2, columns)),  # sin, cos of the heading
-        np.zeros((3, 3, columns)),  # factor of f P_i
-        np.zeros((3, 3, columns)),  # factor of P_j
-        np.empty((7, columns)),  # chol_lanes's input
-        np.empty(columns),  # its success
-        np.empty(columns),  # bad
-        np.empty((m, columns)),  # the points' ranges
-        np.empty((m, columns)),  # the points' bearings
-        np.empty((4, columns)),  # sums
         np.empty((5, columns)),  # moments
         np.empty((6, columns)),  # P^xz
-        np.empty((3, columns)),  # mean offset of x_i
         np.empty((9, columns)),  # f P_i by lane
         np.empty((UPDATE_ROWS, columns)),  # update
-        np.empty((3, 3)),  # chol3's scratch
-        np.empty((3, 3)),
+        np.empty((3, 3)),  # f P_i
+        np.zeros((3, 3)),  # its factor
+        np.zeros((3, 3)),  # P_j's factor
+        np.empty((3, 3)),  # P_j
+        np.zeros((6, m)),  # the points' offsets
+        np.zeros((POINT_ROWS, m)),  # the points' range and bearing
+        np.zeros((3, 2)),  # P^xz of one lane
+        np.zeros((2, 2)),  # no R: the moments' spread alone (R is kalman_lanes's)
     )
 
 
 @_jit
 def inflated_moments(
-    P, obs, n, inflation, decision, xi, xr, zl, sin_cos, Lj, moments, pxz, update, retry,
-    points, R, jitter,
+    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj, moments, pxz,
+    update, retry, filt, R, jitter, x_nb, P_nb,
 ):  # fmt: skip
-    """The second pass of the lanes the recovery re-admitted with robot ``i``'s covariance
-    inflated (``f > 1``) and that are delivered: the moments, innovation and Kalman update
-    again from ``f P_i`` (the vectorized stages on those lanes only), written over the
-    lanes' ``moments``, ``pxz`` and ``update``. ``points = (axis, value, Wm, Wc,
-    circular)``. Returns ``OK``, ``NOT_PD`` (``f P_i`` has no factor) or ``FALLBACK`` (a
-    special case of the row-order loop). Twin: ``attempt == 1`` of ``correct_links``."""
-    lane, rows, Pf, xi_r, xr_r, zl_r, sc_r, Li_r, Lj_r, cov, ok, bad = retry[:12]
-    Z0, Z1, sums, mom_r, pxz_r, mean, Pi_r, upd_r, scratch_in, scratch_out = retry[12:]
-    axis, value, Wm, Wc, circular = points
+    """The second pass of the fused lanes (``decision[3]``) whose update uses other
+    moments than the first pass: those the recovery re-admitted with robot ``i``'s
+    covariance inflated (``f = inflation[c] > 1``), and those delivered while the first
+    pass used ``j``'s cached estimate (``fresh[c] == 1``: the moments with the transmitted
+    one, ``x_nb``, ``P_nb`` at row ``src[c]``). The moments from ``f P_i`` lane by lane by
+    the row-order loop's scalar pieces (a round has few such lanes: the SIMD stages would
+    run mostly their scalar remainder), then the innovation and Kalman update of all of
+    them at once (:func:`kalman_lanes`), written over the lanes' ``moments``, ``pxz`` and
+    ``update`` (the first pass's factors ``Li``, ``Lj`` and heading's ``sin_cos`` where
+    they serve). ``filt``: the filter's description. Returns ``OK``, ``NOT_PD`` (a
+    covariance has no factor) or ``FALLBACK`` (a special case of the row-order loop).
+    Twin: ``attempt == 1`` of ``correct_links``."""
+    lane, zl_r, mom_r, pxz_r, Pi_r, upd_r, Pf, Li_s, Lj_s, Pj, off, Zp, Pxz_s, R0 = retry
+    nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
     k = np.int64(0)  # not the literal 0 (see _rounds): one compiled form of each stage
     for c in range(n):
-        if not (inflation[c] > 1.0 and decision[3, c] == 1.0):
+        if not (decision[3, c] == 1.0 and (inflation[c] > 1.0 or fresh[c] == 1.0)):
             continue
         lane[k] = c
         i = obs[c]
         f = inflation[c]
         for a in range(3):
             for b in range(3):
-                Pf[k, a, b] = P[i, a, b] * f
-                Lj_r[a, b, k] = Lj[a, b, c]
+                Pf[a, b] = P[i, a, b] * f  # f = 1: P_i itself
+                Pi_r[3 * a + b, k] = Pf[a, b]
+        if f > 1.0:
+            if not chol3(Pf, Li_s, jitter):
+                return NOT_PD
+        else:  # the first pass's factor of the same P_i
+            for a in range(3):
+                for b in range(3):
+                    Li_s[a, b] = Li[a, b, c]
+        xr0 = xr[0, c]
+        xr1 = xr[1, c]
+        if fresh[c] == 1.0:  # j's transmitted estimate, its factor by chol3 (as the loop)
+            s = src[c]
+            xr0 = x_nb[s, 0]
+            xr1 = x_nb[s, 1]
+            for a in range(3):
+                for b in range(3):
+                    Pj[a, b] = P_nb[s, a, b]
+            if not chol3(Pj, Lj_s, jitter):
+                return NOT_PD
+        else:  # the first pass's factor of the same P_j
+            for a in range(3):
+                for b in range(3):
+                    Lj_s[a, b] = Lj[a, b, c]
+        point_offsets(Li_s, Lj_s, nz_idx, nz_val, nz_cnt, off)
+        zh0, zh1, s00, s01, s11 = point_moments(
+            off, Wm, Wc, circular, xi[0, c], xi[1, c], xi[2, c], xr0, xr1, sin_cos[0, c],
+            sin_cos[1, c], R0, Zp, Pxz_s,
+        )  # fmt: skip
+        mom_r[0, k] = zh0
+        mom_r[1, k] = zh1
+        mom_r[2, k] = s00
+        mom_r[3, k] = s01
+        mom_r[4, k] = s11
         for a in range(3):
-            xi_r[a, k] = xi[a, c]
-        for a in range(2):
-            xr_r[a, k] = xr[a, c]
-            zl_r[a, k] = zl[a, c]
-            sc_r[a, k] = sin_cos[a, c]
+            pxz_r[2 * a, k] = Pxz_s[a, 0]
+            pxz_r[2 * a + 1, k] = Pxz_s[a, 1]
+        zl_r[0, k] = zl[0, c]
+        zl_r[1, k] = zl[1, c]
         k += 1
     if k == 0:
         return OK
-    load_covariances(Pf, rows, k, cov)
-    chol_lanes(cov, k, Li_r, ok)
-    if not chol_jitter_lanes(Pf, rows, k, Li_r, ok, jitter, scratch_in, scratch_out):
-        return NOT_PD
-    for c in range(k):
-        bad[c] = 0.0
-    points_lanes(axis, value, Wm, k, xi_r, xr_r, sc_r, Li_r, Lj_r, Z0, Z1, sums, bad)
-    moments_lanes(axis, value, Wm, Wc, circular, k, Li_r, Z0, Z1, sums, mom_r, pxz_r, mean, bad)
-    load_robot_covariances(Pf, rows, k, Pi_r)
     kalman_lanes(k, zl_r, R, mom_r, pxz_r, Pi_r, upd_r)
     for t in range(k):
-        if bad[t] != 0.0 or upd_r[15, t] != 0.0:
+        if upd_r[15, t] != 0.0:
             return FALLBACK
         c = lane[t]
         for a in range(5):
@@ -450,6 +464,7 @@ PIECE_MODULES = (
     _kernels_gauge,
     _kernels_tamper,
     _kernels_zone,
+    _kernels_points,
 )
 for _dispatcher in (
     save_state,

@@ -34,10 +34,11 @@ Coverage (:func:`rounds_cover`): sigma-point filters whose 6-D points have at mo
 non-zero entry (the CKF and the UKF), the Kalman update (``naive``, ``gauge`` with its
 bookkeeping), ``ci`` and ``split_ci``, the detector gate and the event trigger with any
 norms and either threshold innovation, the NIS and mean-shift CUSUMs, the robot CUSUM,
-the recovery (its second pass on ``f P_i`` too), the stealthy attacker, transmitted
-neighbour estimates. The options' per-link stages run lane by lane after the vectorized
-moments (:mod:`resloc.cl.kernels_round_stages`). The ``tracked`` and ``factorized``
-joints, cached estimates and the EKF run in the row-order loop. A lane that needs a
+the recovery (its second pass on ``f P_i`` too), the stealthy attacker, transmitted and
+cached neighbour estimates (:mod:`resloc.cl.kernels_round_cached`). The options' per-link
+stages run lane by lane after the vectorized moments
+(:mod:`resloc.cl.kernels_round_stages`). The ``tracked`` and ``factorized`` joints and
+the EKF run in the row-order loop. A lane that needs a
 special case of the row-order loop (the Cholesky jitter of ``P_i``, ``P_j`` is handled
 here; a point at the robot's own position, an ``S`` that needs jitter, a measured bearing
 outside ``(-2 pi, 2 pi)``, non-finite values, rows not sorted by observer are not) makes
@@ -55,6 +56,7 @@ from collections import Counter
 
 import numpy as np
 
+from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl import kernels_zone as _kernels_zone
@@ -79,6 +81,7 @@ from resloc.cl.kernels_link_stages import (
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_round_cached import cached_lanes, sent_lanes, transmitted_lanes
 from resloc.cl.kernels_round_stages import (
     gauge_lanes,
     inflated_moments,
@@ -117,13 +120,12 @@ LOOP_RUNS: Counter = Counter()
 def rounds_cover(filt, options, fusion, detection, defence, gauge, tamper) -> bool:
     """Whether :func:`correct_rounds` implements this configuration (arguments as those of
     :func:`~resloc.cl.kernels_links.correct_links`)."""
-    del detection, defence, gauge, tamper  # every stage of theirs is a stage of the rounds
+    del options, detection, defence, gauge, tamper  # every stage of theirs is a stage of them
     linearized, nz_cnt = filt[0], filt[3]
     return not (
         linearized
         or np.any(nz_cnt > 1)
         or fusion[0] not in (NAIVE_UPDATE, CI, SPLIT_CI)  # the tracked / factorized joints
-        or options[9]  # cached neighbour estimates
     )
 
 
@@ -232,25 +234,19 @@ def _rounds(
     """The body of :func:`correct_rounds` (which puts the stores back on ``FALLBACK``).
     Every option's stage sits behind ``beyond is not None``: with ``beyond = None`` numba
     prunes them before typing, and this form compiles the paper's stages only."""
-    li, z, nb, channel_ok, last_norm, x_ref, P_ref = (
-        links[0],
-        links[1],
-        links[4],
-        links[5],
-        links[6],
-        links[7],
-        links[8],
-    )  # the transmitted rows x_nb, P_nb are x_ref, P_ref here (not cached)
+    # x_ref, P_ref: the estimates of j the first pass uses (cached: the last received,
+    # per link; else the transmitted rows x_nb, P_nb themselves)
+    li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt[1:]
     R, jitter = options[0], options[8]
     tampered = tamper[0]
     screening = detection[0] or detection[6] or detection[11].shape[0] > 0 or defence[0]
     screening = screening or defence[5]
     recovering = defence[5]
+    cached = options[9]
     kalman = fusion[0] == NAIVE_UPDATE
     record_gauge = gauge[0]
     axis, value = point_axes(nz_idx, nz_val, nz_cnt)
-    points = (axis, value, Wm, Wc, circular)
     m = axis.shape[0]
     C = CHUNK
     block_start = np.empty(C, np.int64)
@@ -287,7 +283,9 @@ def _rounds(
     zone = detection[12]
     zoned = zone[0]
     if beyond is not None:
-        retry = retry_lanes(m, C if recovering else 1)
+        retry = retry_lanes(m, C if recovering or cached else 1)
+        sent = np.empty(C)  # cached: delivered (decision[3] then holds fused)
+        fresh = np.zeros(C)  # cached: delivered with a cached estimate (stays 0 otherwise)
         work = link_scratch()
         zone_pxz = np.empty((3, 2))
         zone_h = np.empty((2, 3))
@@ -338,7 +336,7 @@ def _rounds(
                 tamper_lanes(tamper, z, lane_e, obs, n, zl, moments, update)
             if beyond is not None and zoned:  # the verdicts, the partners' fixes
                 if zone_lanes(
-                    zone, x_ref, P_ref, P, obs, src, lane_e, n, xi, update, inflation,
+                    zone, x_nb, P_nb, P, obs, src, lane_e, n, xi, update, inflation,
                     decision, False, R, zone_pxz, zone_h,
                 ) != OK:  # fmt: skip
                     return FALLBACK
@@ -352,21 +350,27 @@ def _rounds(
                     P, lane_e, obs, n, channel_ok, options, detection, defence, update, norms,
                     decision, inflation,
                 )  # fmt: skip
-            if beyond is not None and recovering:
+            if beyond is not None and cached:  # decision[3]: fused from here on
+                cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
+            if beyond is not None and (recovering or cached):
                 status = inflated_moments(
-                    P, obs, n, inflation, decision, xi, xr, zl, sin_cos, Lj, moments, pxz,
-                    update, retry, points, R, jitter,
+                    P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj,
+                    moments, pxz, update, retry, filt, R, jitter, x_nb, P_nb,
                 )  # fmt: skip
                 if status != OK:
                     return status
                 if zoned and zone_lanes(
-                    zone, x_ref, P_ref, P, obs, src, lane_e, n, xi, update, inflation,
+                    zone, x_nb, P_nb, P, obs, src, lane_e, n, xi, update, inflation,
                     decision, True, R, zone_pxz, zone_h,
                 ) != OK:  # fmt: skip
                     return FALLBACK
+            if beyond is not None and cached:  # the update stages see j's transmitted x
+                transmitted_lanes(x_nb, src, n, xr)
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, kalman)
+            if beyond is not None and cached:
+                sent_lanes(lane_e, n, sent, out)
             if beyond is not None and not kalman and not intersect_lanes(
-                x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
+                x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
                 decision, options, fusion, out, work, filt[0],
             ):  # fmt: skip
                 return NOT_PD
@@ -382,6 +386,7 @@ for _dispatcher in (correct_rounds, _rounds):
         _dispatcher,
         _kernels_trig,
         _kernels_round_stages,
+        _kernels_round_cached,
         _kernels_zone,
         *_kernels_round_stages.PIECE_MODULES,
     )

@@ -14,9 +14,13 @@ per-link stages (:func:`~resloc.cl.kernels_detection.detect_link`: the gate, the
 the pre-passes' verdicts); then the per-robot stages over the robot's rows; then per row
 the re-admitted rows' moments from the inflated covariance, the event trigger and channel,
 and the fused rows' updates, accumulated into the robot's estimate. Coverage
-(:func:`resloc.cl.backend.kernel_refusal`): naive fusion, transmitted neighbour estimates,
-any filter and detector stage the row-order loop covers, the stealthy attacker's compiled
-form.
+(:func:`resloc.cl.backend.kernel_refusal`): naive fusion, transmitted or cached neighbour
+estimates (with ``cached``, the first reception triggers and a delivered row's moments are
+taken again from the transmitted estimate, beside the re-admitted rows'), any filter and
+detector stage the row-order loop covers (zone trust's verdicts and position fixes at the
+predicted estimates, its withheld rows kept from the per-robot stages), the stealthy
+attacker's compiled form. The rows' moments at the prediction come from SIMD lanes where
+they can (:mod:`resloc.cl.kernels_summed_lanes`).
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -42,11 +46,13 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_tamper as _kernels_tamper
+from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_detection import detect_link, gain_at, nis_of
 from resloc.cl.kernels_fusion import NAIVE_UPDATE
 from resloc.cl.kernels_links import (
     NOT_PD,
     OK,
+    cached_decision,
     decide_link,
     event_threshold_of_link,
     gate_link,
@@ -67,7 +73,14 @@ from resloc.cl.kernels_math import (
     wrap,
 )
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
+from resloc.cl.kernels_rounds import LOOP_RUNS
+from resloc.cl.kernels_summed_lanes import (
+    SUMMED_LANES_MIN_LINKS,
+    summed_lanes_cover,
+    summed_moments_lanes,
+)
 from resloc.cl.kernels_tamper import stealthy_measurement
+from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
 
 __all__ = [
     "SUMMED_RUNS",
@@ -111,7 +124,7 @@ def link_moments(
 
 
 @jit_inline
-def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, inflation):
+def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, inflation, withheld):
     """The per-robot stages on robot ``i``'s rows ``start:stop`` of one summed call
     (``P_i``: its predicted covariance; ``stat``: the rows' NIS): the robot CUSUM adds all
     the rows' excesses (the rows the gate passed) before it judges any, then the recovery,
@@ -119,7 +132,8 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
     discarded rows (``detected``, ``inflation`` updated in place). Twin:
     ``RobotCusum.discard`` (:func:`~resloc.cl.detection_robot.robot_cusum`) and
     ``RejectionRecovery.discard`` (``update_rejection_runs``, ``_record_applied``) on rows
-    that repeat a robot."""
+    that repeat a robot. The rows zone trust ``withheld`` are not theirs (no stage but
+    zone trust sees them: :func:`resloc.cl.detection.detect`)."""
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
     if robot:
@@ -129,7 +143,7 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
         excess = 0.0
         fed = False
         for e in range(start, stop):  # np.bincount: the rows' sum, then added to g
-            if not gated[e]:
+            if not gated[e] and not withheld[e]:
                 excess += stat[e] - k
                 fed = True
         g = rg[slot]
@@ -170,6 +184,8 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
     readmitted = False
     discarded = 0.0
     for e in range(start, stop):
+        if withheld[e]:
+            continue
         if not detected[e]:
             passed = True
         elif math.isfinite(f) and stat[e] / f <= gain_at(gate, i):
@@ -190,20 +206,29 @@ def robot_block_stages(defence, start, stop, i, P_i, gated, detected, stat, infl
 
 @jit
 def correct_summed(
-    x_pred, P_pred, x, P, links, robots, filt, options, detection, defence, tamper, out
+    x_pred, P_pred, x, P, links, robots, filt, options, detection, defence, tamper, out,
+    lanes,
 ):  # fmt: skip
     """Every link of one step from the predicted estimates ``x_pred: (B, 3)``,
     ``P_pred: (B, 3, 3)``, the updates added per robot into ``x``, ``P`` (copies of the
     predictions on entry), one repair per robot. Arguments as
-    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion, not cached). Returns
+    :func:`~resloc.cl.kernels_links.correct_links` (naive fusion);
+    ``lanes = (done, zh, s, Pxz)``: the rows' moments the SIMD lanes computed
+    (:func:`~resloc.cl.kernels_summed_lanes.summed_moments_lanes`; ``done`` empty: none),
+    ``Pxz: (E, 3, 2)`` also the working array of the rows' cross-covariances. Returns
     ``OK``, ``NOT_PD`` or :data:`UNSORTED` (then the outputs are partial and must be
     discarded). Twin: the ``summed`` branch of ``resloc.cl.step._correct_reference``."""
-    li, z, _, _, nb, channel_ok, last_norm, x_ref, P_ref, _ = links  # (transmitted: x_ref)
+    # x_ref, P_ref: the estimates of j the first pass uses (cached: j's last received, per
+    # link; else the transmitted rows x_nb, P_nb themselves)
+    li, z, x_nb, P_nb, nb, channel_ok, last_norm, x_ref, P_ref, known = links
     risk_s, risk_c, lambda2, rho, alpha, gamma, zeta_s, zeta_c = robots
     linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular = filt
     R, noise_std, detector, trigger, det_norm, trig_norm, risk_floor, last_sent = options[:8]
-    jitter = options[8]
+    jitter, cached, update_without_transmission = options[8], options[9], options[10]
     out_norm, out_threshold, flags = out
+    zone = detection[12]  # zone-aware trust (kernels_zone): verdicts at the prediction
+    zoned = zone[0]
+    z_rec = zone[2]
     defending = defence[0] or defence[5]
     tampered = tamper[0]
     attacked = tamper[3]
@@ -226,7 +251,8 @@ def correct_summed(
     nu = np.empty((E, 2))
     cov = np.empty((E, 3))  # S
     chol = np.empty((E, 3))  # S = L L^T
-    Pxz = np.zeros((E, 3, 2))
+    done, zh_rows, s_rows, Pxz = lanes
+    pre = done.shape[0] == E
     Hi = np.zeros((E, 2, 3))
     reff = np.zeros((E, 3))
     n_trig = np.empty(E)
@@ -235,6 +261,7 @@ def correct_summed(
     gated = np.zeros(E, np.bool_)
     detected = np.zeros(E, np.bool_)
     inflation = np.ones(E)
+    withheld = np.zeros(E, np.bool_)
     any_fused = False
     start = 0
     while start < E:
@@ -250,13 +277,21 @@ def correct_summed(
         xi2 = x_pred[i, 2]
         for e in range(start, stop):  # 1. moments, innovation, norms, per-link stages
             n = nb[e]
-            ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
-                linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pi,
-                x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e], Hi[e],
-                Hj, T3,
-            )  # fmt: skip
-            if not ok:
-                return NOT_PD
+            if pre and done[e]:  # the lanes' moments (Pxz[e] filled): S as point_moments
+                zh0 = zh_rows[e, 0]
+                zh1 = zh_rows[e, 1]
+                S00 = s_rows[e, 0] + R[0, 0]
+                S01 = 0.5 * ((s_rows[e, 1] + R[0, 1]) + (s_rows[e, 1] + R[1, 0]))
+                S11 = s_rows[e, 2] + R[1, 1]
+                re00 = re01 = re11 = 0.0
+            else:
+                ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
+                    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pi,
+                    x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
+                    Hi[e], Hj, T3,
+                )  # fmt: skip
+                if not ok:
+                    return NOT_PD
             reff[e, 0] = re00
             reff[e, 1] = re01
             reff[e, 2] = re11
@@ -275,6 +310,20 @@ def correct_summed(
                 zu1 = wrap(zt1)
                 nu0 = zu0 - zh0
                 nu1 = wrap(zu1 - zh1)
+            if zoned:  # twin: substitute_reciprocal, ZoneTrust.discard at x_i,k|k-1
+                verdict = zone_verdict(zone, e, xi0, xi1, x_nb[n, 0], x_nb[n, 1])
+                withheld[e] = verdict == WITHHELD
+                if verdict == SUBSTITUTED:  # the partner's position fix of i
+                    nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                        xi0, xi1, Pi, 1.0, x_nb[n, 0], x_nb[n, 1], x_nb[n, 2], P_nb[n],
+                        z_rec[e, 0], z_rec[e, 1], R, Pxz[e], Hi[e],
+                    )  # fmt: skip
+                    l00, l10, l11 = chol2(S00, S01, S11, jitter)
+                    if l00 == 0.0:
+                        return NOT_PD
+                    reff[e, 0] = re00
+                    reff[e, 1] = re01
+                    reff[e, 2] = re11
             zu[e, 0] = zu0
             zu[e, 1] = zu1
             nu[e, 0] = nu0
@@ -296,24 +345,38 @@ def correct_summed(
                 risk_floor,
             )  # fmt: skip
             g = gate_link(nd, detector, gain_at(rho, i))
-            gated[e] = g
-            detected[e] = detect_link(detection, e, i, g, nu0, nu1, nd, det_norm, l00, l10, l11)
+            if withheld[e]:  # discarded, and no other stage sees it
+                gated[e] = False
+                detected[e] = True
+            else:
+                gated[e] = g
+                detected[e] = detect_link(detection, e, i, g, nu0, nu1, nd, det_norm, l00, l10, l11)
             stat[e] = nis_of(nu0, nu1, l00, l10, l11)
         if defending:  # 2. the per-robot stages over the robot's rows
-            robot_block_stages(defence, start, stop, i, Pi, gated, detected, stat, inflation)
+            robot_block_stages(
+                defence, start, stop, i, Pi, gated, detected, stat, inflation, withheld
+            )
         first = -1
         for e in range(start, stop):  # 3. trigger, channel and the fused rows' updates
             triggered, delivered = decide_link(
                 detected[e], n_trig[e], delta[e], trigger, channel_ok[e]
             )
+            fuse = delivered
+            if cached:  # the first reception triggers; a cached estimate may be fused
+                triggered, delivered, fuse = cached_decision(
+                    detected[e], triggered, delivered, known[e], trigger, channel_ok[e],
+                    update_without_transmission,
+                )  # fmt: skip
             out_norm[e] = n_trig[e]
             out_threshold[e] = math.nan if detected[e] else delta[e]
             flags[0, e] = detected[e]
             flags[1, e] = triggered
             flags[2, e] = delivered
-            flags[3, e] = delivered
-            if not delivered:
+            flags[3, e] = fuse
+            if not fuse:
                 continue
+            # a delivered message carries j's current estimate: fused with that (cached)
+            fresh = cached and delivered and known[e]
             Pu = Pi
             l00 = chol[e, 0]
             l10 = chol[e, 1]
@@ -326,21 +389,29 @@ def correct_summed(
             S00 = cov[e, 0]
             S01 = cov[e, 1]
             S11 = cov[e, 2]
-            if inflation[e] > 1.0:  # re-admitted: the moments from the inflated covariance
-                for a in range(3):
-                    for c in range(3):
-                        Pinf[a, c] = Pi[a, c] * inflation[e]
-                Pu = Pinf
+            if inflation[e] > 1.0 or fresh:  # the moments again, from f P_i or fresh x_j
+                if inflation[e] > 1.0:  # re-admitted: from the inflated covariance
+                    for a in range(3):
+                        for c in range(3):
+                            Pinf[a, c] = Pi[a, c] * inflation[e]
+                    Pu = Pinf
                 n = nb[e]
-                ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
-                    linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2, Pu,
-                    x_ref[n, 0], x_ref[n, 1], P_ref[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
-                    Hi[e], Hj, T3,
-                )  # fmt: skip
-                if not ok:
-                    return NOT_PD
-                nu0 = zu[e, 0] - zh0
-                nu1 = wrap(zu[e, 1] - zh1)
+                if zoned and zone[3][e] == SUBSTITUTED:  # the position fix from f P_i
+                    nu0, nu1, S00, S01, S11, re00, re01, re11 = position_fix_of_link(
+                        xi0, xi1, Pu, 1.0, x_nb[n, 0], x_nb[n, 1], x_nb[n, 2], P_nb[n],
+                        z_rec[e, 0], z_rec[e, 1], R, Pxz[e], Hi[e],
+                    )  # fmt: skip
+                else:
+                    xr_, Pr = (x_nb, P_nb) if fresh else (x_ref, P_ref)
+                    ok, zh0, zh1, S00, S01, S11, re00, re01, re11 = link_moments(
+                        linearized, nz_idx, nz_val, nz_cnt, Wm, Wc, circular, xi0, xi1, xi2,
+                        Pu, xr_[n, 0], xr_[n, 1], Pr[n], R, jitter, Li, Lj, off, Zp, Pxz[e],
+                        Hi[e], Hj, T3,
+                    )  # fmt: skip
+                    if not ok:
+                        return NOT_PD
+                    nu0 = zu[e, 0] - zh0
+                    nu1 = wrap(zu[e, 1] - zh1)
                 l00, l10, l11 = chol2(S00, S01, S11, jitter)
                 if l00 == 0.0:
                     return NOT_PD
@@ -384,6 +455,7 @@ stamp_with_pieces(
     _kernels_detection,
     _kernels_defence,
     _kernels_tamper,
+    _kernels_zone,
 )
 
 
@@ -393,11 +465,40 @@ def run_summed_loop(
 ):  # fmt: skip
     """The summed update of one step into ``x_out``, ``P_out`` (copies of ``x``, ``P`` on
     entry), arguments as :func:`~resloc.cl.kernels_rounds.run_link_loop` (``fusion`` and
-    ``gauge``: naive, none). Returns the status."""
+    ``gauge``: naive, none): the rows' moments in SIMD lanes where they cover the filter
+    and there are at least :data:`~resloc.cl.kernels_summed_lanes.SUMMED_LANES_MIN_LINKS`
+    links (counted as ``rounds`` in :data:`~resloc.cl.kernels_rounds.LOOP_RUNS`, else
+    ``row_order``), then :func:`correct_summed`. Returns the status."""
     del gauge
     if fusion[0] != NAIVE_UPDATE:
         return NOT_PD  # (summed_refusal keeps other fusions out: never reached)
     SUMMED_RUNS["summed"] += 1
+    E = len(links[0])
+    Pxz = np.zeros((E, 3, 2))
+    if E >= SUMMED_LANES_MIN_LINKS and summed_lanes_cover(filt):  # the moments in lanes
+        done = np.empty(E, np.bool_)
+        zh = np.empty((E, 2))
+        s = np.empty((E, 3))
+        summed_moments_lanes(x, P, links, filt, zh, s, Pxz, done)
+        LOOP_RUNS["rounds"] += 1
+    else:
+        done, zh, s = _NO_LANES
+        LOOP_RUNS["row_order"] += 1
     return correct_summed(
-        x, P, x_out, P_out, links, robots, filt, options, detection, defence, tamper, out
+        x,
+        P,
+        x_out,
+        P_out,
+        links,
+        robots,
+        filt,
+        options,
+        detection,
+        defence,
+        tamper,
+        out,
+        (done, zh, s, Pxz),
     )
+
+
+_NO_LANES = (np.zeros(0, np.bool_), np.zeros((0, 2)), np.zeros((0, 3)))

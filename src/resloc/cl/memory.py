@@ -136,6 +136,51 @@ class LinkMemory:
             self.P = np.concatenate([self.P, P[new]])[order]
             self.last_norm = np.concatenate([self.last_norm, norm[new]])[order]
 
+    def store_delivered(
+        self,
+        i: np.ndarray,
+        j: np.ndarray,
+        delivered: np.ndarray,
+        x: np.ndarray,
+        P: np.ndarray,
+        rows: np.ndarray,
+        norm: np.ndarray,
+    ) -> None:
+        """:meth:`store` of the links a step delivered: ``(i[e], j[e])`` with ``x[rows[e]]``,
+        ``P[rows[e]]`` and ``norm[e]`` for every ``e`` where ``delivered``; by one compiled
+        call when every delivered link is stored (a run's steady state) and the arrays are
+        as the compiled path passes them (no per-step copies of the delivered rows).
+
+        Shapes: ``i, j, delivered, rows, norm: (E,)``, ``x: (S, 3)``, ``P: (S, 3, 3)``.
+        """
+        if self._overwrite_delivered(i, j, delivered, x, P, rows, norm):
+            return
+        d = np.flatnonzero(delivered)
+        r = np.asarray(rows)[d]
+        self.store(np.asarray(i)[d], np.asarray(j)[d], x[r], P[r], np.asarray(norm)[d])
+
+    def _overwrite_delivered(self, i, j, delivered, x, P, rows, norm) -> bool:
+        """:meth:`store_delivered` by one compiled call; False, nothing written, when a
+        delivered link is not stored or an array is not as the compiled path passes it."""
+        compiled = _compiled_lookups() if len(self.keys) else None
+        if compiled is None:
+            return False
+        ri, rj, rr = compiled.int64_rows(i), compiled.int64_rows(j), compiled.int64_rows(rows)
+        E, S, K = len(i), len(x), len(self.keys)
+        if ri is None or rj is None or rr is None or len(rj) != E or len(rr) != E:
+            return False
+        if not (type(delivered) is np.ndarray and delivered.dtype == np.bool_):
+            return False
+        shapes = (x, (S, 3)), (P, (S, 3, 3)), (norm, (E,)), (self.x, (K, 3))
+        shapes += (self.P, (K, 3, 3)), (self.last_norm, (K,))
+        if delivered.shape != (E,) or not all(_float_rows(a, shape) for a, shape in shapes):
+            return False
+        stores = (self.x, self.P, self.last_norm)
+        return compiled.overwrite_delivered(
+            self.keys, self.n_nodes, ri, rj, delivered, rr, x, P, norm, stores,
+            np.empty(E, np.int64),
+        )  # fmt: skip
+
     def _overwrite_compiled(self, i, j, x, P, norm) -> bool:
         """:meth:`store` by one compiled call when every link is stored (a run's steady
         state) and the arrays are as the compiled path passes them; False, nothing
