@@ -20,6 +20,7 @@ kernel function                numpy twin
 =============================  ==========================================================
 :func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
 :func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
+:func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
 :func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
 :func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
@@ -273,13 +274,51 @@ def _gram(c, d):
 def _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost):
     """The cost (:func:`_ci_cost`) at every candidate weight of ``grid`` into ``cost: (G,)``.
     A loop of its own, free of branches and compiled with IEEE division (``jit_lanes``),
-    so that LLVM evaluates several weights per SIMD instruction (measured: the weight of a
-    ``ci`` link about 2.3x faster than by the scalar search that kept the best as it went);
-    the same arithmetic per weight, so the same costs to the bit."""
+    so that LLVM evaluates several weights per SIMD instruction; the same arithmetic per
+    weight as one evaluation, so the same costs to the bit."""
     for t in range(grid.shape[0]):
         cost[t] = _ci_cost(
             grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R
         )
+
+
+@jit_lanes
+def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R,
+                   prior, cost):  # fmt: skip
+    """The weight minimising the cost (arguments of :func:`_ci_cost`; ``prior``: the cost
+    of ``w = 1``, the prior kept; ``cost: (G,)``: scratch): the first best of the grid
+    (:func:`_grid_costs`), refined by the parabola through it and its neighbours (the first
+    or last three points when it is at an end) where that helps; 1.0 when no weight beats
+    the prior. A call of its own, not inlined: the link loops' bodies stay small, and the
+    grid's loop is vectorized (measured: the weight of a ``ci`` link about 2.3x faster
+    than by the inlined scalar search that kept the best as it went)."""
+    n = grid.shape[0]
+    _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost)
+    # the first best (a NaN first cost stays the best, as in the scalar search)
+    best = cost[0]
+    k = 0
+    for t in range(1, n):
+        if cost[t] < best:
+            best = cost[t]
+            k = t
+    kc = min(max(k, 1), n - 2)
+    c0 = cost[kc - 1]
+    c1 = cost[kc]
+    c2 = cost[kc + 1]
+    h = grid[1] - grid[0]
+    denom = c0 - 2.0 * c1 + c2
+    shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
+    if k == kc:
+        shift = min(max(shift, -h), h)
+        w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
+    else:
+        w = grid[k]
+    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R)
+    if refined <= best:
+        best = refined
+    else:
+        w = grid[k]
+    return w if best < prior else 1.0
 
 
 @jit_inline
@@ -308,47 +347,19 @@ def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
         - Di[0, 1] * (Di[1, 0] * Di[2, 2] - Di[1, 2] * Di[2, 0])
         + Di[0, 2] * (Di[1, 0] * Di[2, 1] - Di[1, 1] * Di[2, 0])
     )
-    # the matrices as tuples of scalars for the evaluations of the cost (see _ci_cost)
-    dp = _entries(Di)
-    ip = _entries(Ii)
     tr_ip = Ii[0, 0] + Ii[1, 1] + Ii[2, 2]
-    r = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
-    n = grid.shape[0]
-    _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r, cost)
-    # the first best (a NaN first cost stays the best, as in the search this replaces)
-    best = cost[0]
-    k = 0
-    for t in range(1, n):
-        if cost[t] < best:
-            best = cost[t]
-            k = t
-    # the parabola through the best and its neighbours (the first or last three points
-    # when the best is at an end of the grid)
-    kc = min(max(k, 1), n - 2)
-    c0 = cost[kc - 1]
-    c1 = cost[kc]
-    c2 = cost[kc + 1]
-    h = grid[1] - grid[0]
-    denom = c0 - 2.0 * c1 + c2
-    shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
-    if k == kc:
-        shift = min(max(shift, -h), h)
-        w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
-    else:
-        w = grid[k]
-    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, dp, ip, tr_ip, r)
-    if refined <= best:
-        best = refined
-    else:
-        w = grid[k]
     if split:  # the prior P_i = D_i + I_i
         if det:
             prior = _det3_scaled(Di, 1.0, Ii)
         else:
-            prior = tr_i + (Ii[0, 0] + Ii[1, 1] + Ii[2, 2])
+            prior = tr_i + tr_ip
     else:
         prior = det_i if det else tr_i
-    return w if best < prior else 1.0
+    # the matrices as tuples of scalars for the evaluations of the cost (see _ci_cost)
+    return _search_weight(
+        grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, _entries(Di), _entries(Ii),
+        tr_ip, (R[0, 0], R[0, 1], R[1, 0], R[1, 1]), prior, cost,
+    )  # fmt: skip
 
 
 @jit_inline
