@@ -97,3 +97,43 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
         np.testing.assert_allclose(fast.x, ref.x, rtol=0, atol=1e-12)
         np.testing.assert_allclose(fast.last_norm, ref.last_norm, rtol=1e-12, atol=1e-12)
     assert (untransmitted > 0) == bool(params.update_without_transmission)
+
+
+@pytest.mark.parametrize("split", [False, True])
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
+    """The vectorized grid search (``kernels_fusion._grid_costs``, compiled and called
+    here directly) gives the reference's cost at every candidate weight, for both
+    criteria, with and without independent parts."""
+    from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
+    from resloc.cl.kernels_fusion import _grid_costs
+    from resloc.models.measurement import range_bearing_jacobians
+
+    rng = np.random.default_rng(5)
+    R = np.diag([0.01, 0.003])
+
+    def spd(scale):
+        A = rng.normal(size=(3, 3)) * scale
+        return A @ A.T + 0.01 * scale * np.eye(3)
+
+    for _ in range(5):
+        x_i = rng.normal(size=(1, 3))
+        x_j = x_i + rng.normal(size=(1, 3))
+        H_i, H_j = (h[0] for h in range_bearing_jacobians(x_i, x_j))
+        Di, Dj = spd(0.2), spd(0.1)
+        Ii, Ij = (spd(0.05), spd(0.05)) if split else (np.zeros((3, 3)), np.zeros((3, 3)))
+        Cd, Ci = Di @ H_i.T, Ii @ H_i.T
+        a, ai = H_i @ Cd, H_i @ Ci
+        b, bi = H_j @ Dj @ H_j.T, (H_j @ Ij @ H_j.T + R if split else np.zeros((2, 2)))
+        quad = [a, ai, b, bi, Cd.T @ Cd, Cd.T @ Ci, Ci.T @ Ci]
+        cost = np.full(CI_GRID.size, np.nan)
+        _grid_costs(
+            CI_GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
+            *(tuple(m.ravel()) for m in quad), tuple(Di.ravel()), tuple(Ii.ravel()),
+            np.trace(Ii), tuple(R.ravel()), cost,
+        )  # fmt: skip
+        ref = _posterior_cost(
+            H_i[None], H_j[None], Di[None], Ii[None] if split else None, Dj[None],
+            Ij[None] if split else None, R, CI_GRID, CICriterion(criterion),
+        )[0]  # fmt: skip
+        np.testing.assert_allclose(cost, ref, rtol=1e-12, atol=0)

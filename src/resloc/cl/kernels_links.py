@@ -248,6 +248,9 @@ def correct_links(
     G3 = np.zeros((3, 3))
     Pinf = np.zeros((3, 3))
     defending = defence[0] or defence[5]
+    # the detector stages' block only where one is on (else its verdict is the gate's):
+    # inlined, it unpacks its structure, a reference count per array and link
+    detecting = detection[0] or detection[6] or detection[11].shape[0] > 0
     fusion_code = fusion[0]
     # tracked / factorized: moments under a correlated joint (kernels_joint_links)
     joint = fusion[3]
@@ -379,7 +382,7 @@ def correct_links(
             detected = gated
             # zone trust's withheld rows: discarded, and no other stage sees them
             withheld = beyond is not None and verdict == WITHHELD
-            if beyond is not None and not withheld:  # the CUSUMs (kernels_detection)
+            if beyond is not None and detecting and not withheld:  # CUSUMs (kernels_detection)
                 detected = detect_link(
                     detection, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11
                 )

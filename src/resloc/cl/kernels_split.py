@@ -134,7 +134,7 @@ def split_ci_update(
         for b in range(3):
             Di[a, b] = Pi[a, b] - Ii[a, b]
             Dj[a, b] = Pj[a, b] - Ij[a, b]
-    w = ci_weight(Di, Dj, Ii, Ij, True, Hi, Hj, R, fusion[1], fusion[2])
+    w = ci_weight(Di, Dj, Ii, Ij, True, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
     if w >= 1.0:  # j adds nothing: the prior (and its clipped independent part) is kept
         for a in range(3):
             for b in range(3):
