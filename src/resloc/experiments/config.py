@@ -270,7 +270,7 @@ class DetectorSpec:
         max=100,
     )
     witness_k: float = option(
-        4.0, "witness: sequence-test drift per step (chi-square units, above 2)", gt=0.0, max=1e6
+        4.0, "witness: sequence-test drift per step (chi-square units)", gt=0.0, max=1e6
     )
     witness_h: float = option(
         40.0, "witness: sequence-test alarm threshold (chi-square units)", gt=0.0, max=1e6
