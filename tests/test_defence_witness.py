@@ -226,3 +226,30 @@ def test_the_compiled_path_refuses_the_stage():
     from resloc.cl.backend import _params_refusal
 
     assert "witness" in _params_refusal(CLParams(witness=True))
+
+
+def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch):
+    """The simulator's attacker (the per-victim oracle, then the witness budget): the
+    liar's statistic after every step is at most h, and the budget is used (it reaches h)."""
+    import resloc.cl.step as step_module
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import defence_overrides
+    from resloc.experiments.runner import run_scenario
+    from resloc.world.attackers import make_attacker
+
+    seen = []
+
+    def record(notes, params, memory):
+        record_witness(notes, params, memory)
+        seen.append(float(witness_state(memory, np.array([5]))[0]))
+
+    monkeypatch.setattr(step_module, "record_witness", record)
+    adv = make_attacker("compromised", robots=1, claimed_cov=0.01)
+    sc = default_scenario().replace(
+        **defence_overrides("zone+full+redundancy+sequence+cap+landmarks+witness"),
+        **{"run.steps": 12, "run.filters": ["ckf"], "run.dead_reckoning": False},
+    )
+    run_scenario(sc.replace(**adv.overrides), adversary=adv)
+    h = sc.cl_params().witness_h
+    assert len(seen) == 12 and max(seen) <= h * (1 + 1e-9)
+    assert max(seen) >= 0.98 * h
