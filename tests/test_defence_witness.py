@@ -253,3 +253,40 @@ def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch
     h = sc.cl_params().witness_h
     assert len(seen) == 12 and max(seen) <= h * (1 + 1e-9)
     assert max(seen) >= 0.98 * h
+
+
+def test_the_liar_receives_its_victims_honest_readings_of_it(monkeypatch):
+    """The lie travels in the liar's broadcast; each victim's reading of the liar, which the
+    liar receives (zone trust fuses it inside the map), stays physical, range and bearing."""
+    import resloc.cl.step as step_module
+    from resloc.cl.backend import use_backend
+    from resloc.cl.detection_zone import reciprocal_rows
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import defence_overrides
+    from resloc.experiments.runner import run_scenario
+    from resloc.world.attackers import make_attacker
+
+    original = step_module.materialize_with_reciprocal
+    checked = []
+
+    def materialize(links, z_hat, S):
+        honest = np.array(links.z, float)
+        reported = links.tamper.reported
+        out = original(links, z_hat, S)
+        received = reported(out.z_reciprocal)
+        reverse = reciprocal_rows(links.i, links.j)
+        from_liar = (links.j % 17 == 5) & (reverse >= 0)
+        lied = np.abs(out.z[from_liar] - honest[from_liar]).max()
+        assert np.array_equal(received[reverse[from_liar]], honest[from_liar])
+        checked.append(lied)
+        return out
+
+    monkeypatch.setattr(step_module, "materialize_with_reciprocal", materialize)
+    adv = make_attacker("compromised", robots=1)
+    sc = default_scenario().replace(
+        **defence_overrides("zone+full+redundancy+sequence+cap+landmarks"),
+        **{"run.steps": 5, "run.filters": ["ckf"], "run.dead_reckoning": False},
+    )
+    with use_backend("numpy"):  # (the compiled path applies the same hook in its kernels)
+        run_scenario(sc.replace(**adv.overrides), adversary=adv)
+    assert len(checked) == 5 and max(checked) > 1e-3  # the victims' rows did carry lies

@@ -113,15 +113,20 @@ class CompromisedRobot(Strategy):
         injected = np.zeros(len(z_all))  # the range each victim's row carries of the lie
 
         def reported(z_reciprocal: np.ndarray) -> np.ndarray:
-            """The partner readings as the robots receive them: the liar reports its reading
-            of each victim moved by the range injected on that victim's row, and itself
-            receives the victim's physical (honest) reading."""
+            """The partner readings as the robots receive them: with the reciprocal check on,
+            the liar reports its reading of each victim moved by the range injected on that
+            victim's row; and the liar itself receives each victim's physical (honest)
+            reading of it, range and bearing (the lie is in its broadcast, not in the
+            victim's sensor: without this the lie, carried as the victim's reading, would be
+            fed back into the liar's own estimate wherever zone trust makes it fuse its
+            partners' readings of it)."""
             out = np.array(z_reciprocal, float)
-            rows = np.flatnonzero(injected)
-            reverse = reciprocal_rows(links.i, links.j)[rows]
-            out[rows, 0] += injected[rows]
-            ok = reverse >= 0
-            out[reverse[ok], 0] -= injected[rows[ok]]
+            reverse = reciprocal_rows(links.i, links.j)
+            if reports_own:
+                rows = np.flatnonzero(injected)
+                out[rows, 0] += injected[rows]
+            rows = np.flatnonzero(from_liar & (reverse >= 0))
+            out[reverse[rows]] = z_all[rows]
             return out
 
         def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -165,7 +170,7 @@ class CompromisedRobot(Strategy):
             injected[r] = out[hit, 0] - z[:, 0]
             return out
 
-        if reports_own:
+        if reports_own or params.zone_trust:  # what the partners' readings carry
             tamper.reported = reported
         if params.witness:  # the liars' own notes on their neighbours lie too
             tamper.notes = lambda notes: lying_notes(notes, is_liar, params)
