@@ -36,7 +36,7 @@ EXONERATION = (0.0, 0.5, 1.0, 2.0, 4.0)
 #: An accusing note's shift along world +x, in standard deviations of the note.
 ACCUSATION = 3.0
 #: Bisection steps of the common factor on a liar's lies (resolution 2^-12).
-BISECTIONS = 12
+BUDGET_BISECTIONS = 12
 
 
 def lying_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) -> WitnessNotes:
@@ -131,7 +131,7 @@ def within_witness(
     if ok.all():
         return a
     lo, hi = np.zeros(len(liars)), np.ones(len(liars))
-    for _ in range(BISECTIONS):
+    for _ in range(BUDGET_BISECTIONS):
         mid = np.where(ok, 1.0, 0.5 * (lo + hi))
         good = after(mid) <= h
         lo = np.where(good, mid, lo)
