@@ -21,7 +21,10 @@ only the ``Q_ij`` are treated as independent (the observers' cross-covariances w
 other, which naive CL fusion does not track either, are ignored). Robot i sends its notes
 (j's id, ``u_ij``, the three entries of ``Q_ij``) with its next broadcast: one frame per
 robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note). Notes of
-readings the observer itself distrusts (its estimate inside the zone-trust map) are not sent.
+readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
+by the receivers (they are sent and counted: a receiver sees where the observer says it is).
+In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
+notes and never judges anyone: it needs the team's notes (the simulator's batch).
 
 **The aggregate of robot j's notes, robust to f lying observers** (``witness_liars``: the
 compromised robots also send notes, and may exonerate each other or accuse honest robots).
@@ -155,7 +158,7 @@ class WitnessNotes:
         The position block of the covariance neighbour j claimed to observer i.
     i, j : ndarray of int, shape (E,)
     sent : ndarray of bool, shape (E,)
-        Notes sent (an observer inside the zone-trust map sends none of its readings).
+        Notes the receivers use (not those of an observer inside the zone-trust map).
     """
 
     def __init__(self, u, Q, P_pos, i, j, sent) -> None:
