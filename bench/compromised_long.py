@@ -23,6 +23,9 @@ from resloc.world.attackers import make_attacker
 
 #: The suite's grid of the compromised attacker.
 POINTS = ({"robots": 1}, {"robots": 1, "claimed_cov": 0.01}, {"robots": 3, "claimed_cov": 0.01})
+#: Not in the suite's grid: three robots claiming their honest covariance (against the
+#: witness stage a small claim tightens the liar's own test, docs/attack/witness.md).
+POINTS = (*POINTS, {"robots": 3})
 
 
 def main() -> None:

@@ -64,7 +64,7 @@ class Logged:
                     log.append((int(step.k), int(links.i[r]), int(links.j[r]), float(m)))
             return z
 
-        for attr in ("reported",):
+        for attr in ("reported", "notes"):  # what the partners report, the liars' notes
             if hasattr(inner, attr):
                 setattr(tamper, attr, getattr(inner, attr))
         return dataclasses.replace(out, tamper=tamper)

@@ -28,6 +28,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     (``|r_ij - r_ji|`` against ``sqrt(2) sigma_r``, one step and in sum since the link was
     admitted; a flagged link is held out a while, then re-admitted:
     :mod:`resloc.cl.detection_reciprocal`).
+``witness``
+    Discards every link from a robot whose observers' notes on it (its broadcast position
+    against the position each observer's estimate and reading imply), summed over time and
+    robust to f lying observers, convict it (:mod:`resloc.cl.detection_witness`).
 ``zone_landmarks``
     Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
     is weighed, in every test and in the fusion, with its claimed covariance inflated
@@ -61,6 +65,7 @@ from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
 from resloc.cl.detection_sequence import RedundancySequence
+from resloc.cl.detection_witness import WitnessCheck
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
 from resloc.cl.memory import LinkMemory
@@ -276,6 +281,7 @@ DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     REDUNDANCY,
     REDUNDANCY_SEQUENCE,
     RECIPROCAL,
+    WitnessCheck(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

@@ -170,6 +170,17 @@ class CLParams:
         Evaluations of a flagged link it is held out before it is re-admitted afresh.
     reciprocal_forget : float or ndarray (B,)
         Discount ``lambda`` of the sums per evaluation (1: since the link was admitted).
+    witness : bool
+        Every robot's observers send notes on it (its broadcast position against the
+        position their own estimate and reading imply); a per-robot sequence test on the
+        notes, robust to ``witness_liars`` lying observers, discards every link from a
+        robot it convicts (:mod:`resloc.cl.detection_witness`; needs a LinkMemory).
+    witness_liars : float or ndarray (B,)
+        ``f``: lying observers assumed per robot (the statistic drops any f notes).
+    witness_k, witness_h : float or ndarray (B,)
+        The sequence test's drift and alarm threshold, in chi-square (2 dof) units.
+    witness_false_alarm : float
+        Consistency gate of a set of notes (chi-square, 2 (n - 1) dof, this probability).
     """
 
     range_std: float = 0.005
@@ -224,6 +235,11 @@ class CLParams:
     reciprocal_sequence_gate: float | np.ndarray = 23.928126976934827
     reciprocal_hold: float | np.ndarray = 100.0
     reciprocal_forget: float | np.ndarray = 0.995
+    witness: bool = False
+    witness_liars: float | np.ndarray = 3.0
+    witness_k: float | np.ndarray = 4.0
+    witness_h: float | np.ndarray = 40.0
+    witness_false_alarm: float = 1e-3
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -18,6 +18,7 @@ from resloc.cl.detection import Evidence, detect
 from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
+from resloc.cl.detection_witness import record_witness, step_notes
 from resloc.cl.detection_zone import (
     materialize_with_reciprocal,
     reciprocal_position_fix,
@@ -362,6 +363,8 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
     problem = fusion.problem(params)
     if problem is not None:
         raise ValueError(f"fusion {params.fusion.value!r} {problem}")
+    claimed = links.P_nb if params.witness else None  # the claims as sent (witness notes)
+    lie_notes = getattr(links.tamper, "notes", None)  # an adversary's own notes, if any
     if params.redundancy and params.redundancy_cap_fusion:
         # A neighbour weighs in the update no more than the redundancy test credited it.
         links = dataclasses.replace(links, P_nb=capped_claims(links.P_nb, links.i))
@@ -370,6 +373,7 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         ((params.zone_trust or params.reciprocal) and links.z_reciprocal is None)
         or (params.redundancy and links.tamper is not None)
         or (params.reciprocal and links.tamper is not None)
+        or (params.witness and links.tamper is not None)
     ):
         # Every reading as reported (lies included) and its reverse link's range.
         pre = fusion.moments(
@@ -380,6 +384,15 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         links = materialize_with_reciprocal(links, pre.z_hat, pre.S)
         if reported is not None:
             links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
+    notes = None
+    if params.witness:
+        # Every reading's note on its neighbour, sent with the next broadcast: the verdicts
+        # of this step read the notes of the steps before (record_witness, at the end).
+        notes = step_notes(
+            links.z, x[links.i], P[links.i], links.x_nb, claimed, links.i, links.j, params
+        )
+        if lie_notes is not None:
+            notes = lie_notes(notes)
     fixes = None
     if params.redundancy:
         # Every link's fix of its observer, judged against the observer's other fixes of
@@ -430,6 +443,7 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
             Pt = P[touched]
             P[touched], bad = _ensure_pd(0.5 * (Pt + np.swapaxes(Pt, -1, -2)))
             out.repaired[f[first[bad]]] = True
+        record_witness(notes, params, memory)
         return x, P, out
 
     # Sequential: round r fuses every robot's r-th link (robots are independent in a step).
@@ -465,4 +479,5 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         x[obs] = x_new
         P[obs] = P_new
     P = fusion.finish(memory, P, links.j, out.delivered)
+    record_witness(notes, params, memory)
     return x, P, out

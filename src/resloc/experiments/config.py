@@ -257,6 +257,27 @@ class DetectorSpec:
         gt=0.0,
         max=1.0,
     )
+    witness: bool = option(
+        False,
+        "every robot's observers send notes on it (its broadcast position against their "
+        "estimate and reading); a robot the notes convict over time (robust to witness_liars "
+        "lying observers) is ignored until they clear it (docs/attack/witness.md)",
+    )
+    witness_liars: int = option(
+        3,
+        "witness: lying observers assumed per robot (any this many notes are dropped)",
+        min=0,
+        max=100,
+    )
+    witness_k: float = option(
+        4.0, "witness: sequence-test drift per step (chi-square units)", gt=0.0, max=1e6
+    )
+    witness_h: float = option(
+        40.0, "witness: sequence-test alarm threshold (chi-square units)", gt=0.0, max=1e6
+    )
+    witness_false_alarm: float = option(
+        1e-3, "witness: consistency gate of a set of notes at this probability", gt=0.0, max=0.5
+    )
 
 
 @dataclass(frozen=True)
@@ -375,6 +396,11 @@ class Scenario:
             ),
             reciprocal_hold=float(d.reciprocal_hold),
             reciprocal_forget=float(d.reciprocal_forget),
+            witness=d.witness,
+            witness_liars=float(d.witness_liars),
+            witness_k=float(d.witness_k),
+            witness_h=float(d.witness_h),
+            witness_false_alarm=float(d.witness_false_alarm),
         )
 
     def replace(self, **changes: Any) -> Scenario:

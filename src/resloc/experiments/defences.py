@@ -98,6 +98,16 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.redundancy_cap_fusion": True,
                 "detector.zone_landmarks": True,
             },
+            # + the observers of each robot compare notes on it (cl/detection_witness.py):
+            # a per-robot sequence test across observers, robust to f lying ones.
+            "zone+full+redundancy+sequence+cap+landmarks+witness": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+                "detector.witness": True,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

@@ -64,6 +64,13 @@ WIRE_BYTES: dict[str, int] = {
     # directed communication link and round, framed like a CONSENSUS message (the runtime
     # does not carry it: a test builds the frame with the codec's header, msgpack and tag)
     "connectivity": 117,
+    # detector.witness: each robot's notes on the neighbours it measured, one frame per robot
+    # and step ({"notes": bytes}; not carried by the runtime: a test builds the frame with
+    # the codec's header, msgpack and tag), 48 bytes a note (the neighbour's id i8, the
+    # residual 2 f8, its covariance's three entries 3 f8); exact from 6 to 1365 notes a
+    # frame (with 1-5 notes msgpack's shorter length prefix saves 1 byte, not counted)
+    "witness_frame": 78,
+    "witness_note": 48,
 }
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) whose frames are counted.
@@ -401,13 +408,14 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         ``consensus_messages`` (gauge consensus exchanges), and factorized fusion's
         ``factors`` (transmissions carrying a factor), ``pair_ack_frames`` /
         ``pair_ack_links`` and ``pair_frames`` / ``pair_messages`` (its pair exchange), and
-        ``connectivity_messages`` (the distributed ``lambda2``'s exchanges).
+        ``connectivity_messages`` (the distributed ``lambda2``'s exchanges),
+        ``witness_frames`` and ``witness_notes`` (the witness stage's notes).
 
     Returns
     -------
     dict
         ``{kind: (messages (T,), bytes (T,))}`` for ``estimate``, ``ack``, ``consensus``,
-        ``pair``, ``connectivity`` and ``total``, at :data:`WIRE_BYTES`.
+        ``pair``, ``connectivity``, ``witness`` and ``total``, at :data:`WIRE_BYTES`.
     """
 
     def get(key: str) -> np.ndarray:
@@ -437,6 +445,10 @@ def communication(totals: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, 
         "consensus": (cons, cons * w["consensus"]),
         "pair": (pairs, pairs * w["pair_frame"] + get("pair_messages") * w["pair_per_link"]),
         "connectivity": (lam, lam * w["connectivity"]),
+        "witness": (
+            get("witness_frames"),
+            get("witness_frames") * w["witness_frame"] + get("witness_notes") * w["witness_note"],
+        ),
     }
     out["total"] = (sum(m for m, _ in out.values()), sum(b for _, b in out.values()))
     return out

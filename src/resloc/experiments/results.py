@@ -63,6 +63,8 @@ TOTALS = (
     "pair_messages",
     "pair_frames",
     "connectivity_messages",
+    "witness_frames",
+    "witness_notes",
 )
 
 

@@ -258,6 +258,9 @@ def run_scenario(
             tr.totals["factors"] += tr.totals["triggered"]
         if source.dl2 is not None:  # the distributed lambda2's exchanges, per trial
             tr.totals["connectivity_messages"] += source.dl2.messages_per_team
+        if params.witness:  # a note per reading, one frame per observer and step
+            tr.totals["witness_notes"] += tr.totals["candidates"]
+            tr.totals["witness_frames"] += source.observer_steps
     shared = link_columns(source.trial0_links)
     results = {}
     for tr in everyone:
@@ -296,6 +299,7 @@ class _WorldSteps:
         self.l2_true: list[float] = []
         self.l2_est: list[float] = []
         self.l2_abs_rel: list[float] = []
+        self.observer_steps = np.zeros(world.trials, np.int64)  # witness frames, per trial
         self._l2_seen: tuple = (None, 0.0)  # the world's last lambda2 array and its mean
         if scenario.trigger.lambda2 is Lambda2Source.DISTRIBUTED:
             # Initial Fiedler-vector guesses drawn per trial (independent of the batching).
@@ -331,6 +335,7 @@ class _WorldSteps:
             self.ws, self.own_links = ws, len(i)
             self.team_i = world.team[ws.i]
             self.candidates = np.bincount(self.team_i, minlength=T)
+            self.observer_steps += np.bincount(world.team[np.unique(ws.i)], minlength=T)
             self.attacked_n = np.bincount(self.team_i, weights=ws.attacked, minlength=T)
             self.record_metrics = (k + 1) % self.metric_stride == 0 or k == self.steps_total - 1
             lambda2 = self.lambda2(ws)

@@ -143,6 +143,11 @@ def check_supported(scenario: Scenario) -> None:
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
             f"processes ({refusal}); use naive, gauge, ci, split_ci or factorized"
         )
+    if scenario.detector.witness:
+        raise ConfigError(
+            "detector.witness: the observers' notes are not a message of the runtime yet; "
+            "set detector.witness = false"
+        )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
             "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"

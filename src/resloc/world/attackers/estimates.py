@@ -13,6 +13,7 @@ from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
 from resloc.world.attackers.oracle import fix_context, largest_accepted_along
 from resloc.world.attackers.sensing import measurement_difference
+from resloc.world.attackers.witness import lying_notes, within_witness
 
 __all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
 
@@ -91,6 +92,7 @@ class CompromisedRobot(Strategy):
         from_liar = np.isin(links.j % step.robots, self.targets(step.robots))
         if not from_liar.any():
             return dataclasses.replace(links, tamper=None)
+        is_liar = np.isin(np.arange(len(step.pose)) % step.robots, self.targets(step.robots))
         P_nb = links.P_nb
         if self.claimed_cov != 1.0:
             P_nb = P_nb.copy()
@@ -111,15 +113,20 @@ class CompromisedRobot(Strategy):
         injected = np.zeros(len(z_all))  # the range each victim's row carries of the lie
 
         def reported(z_reciprocal: np.ndarray) -> np.ndarray:
-            """The partner readings as the robots receive them: the liar reports its reading
-            of each victim moved by the range injected on that victim's row, and itself
-            receives the victim's physical (honest) reading."""
+            """The partner readings as the robots receive them: with the reciprocal check on,
+            the liar reports its reading of each victim moved by the range injected on that
+            victim's row; and the liar itself receives each victim's physical (honest)
+            reading of it, range and bearing (the lie is in its broadcast, not in the
+            victim's sensor: without this the lie, carried as the victim's reading, would be
+            fed back into the liar's own estimate wherever zone trust makes it fuse its
+            partners' readings of it)."""
             out = np.array(z_reciprocal, float)
-            rows = np.flatnonzero(injected)
-            reverse = reciprocal_rows(links.i, links.j)[rows]
-            out[rows, 0] += injected[rows]
-            ok = reverse >= 0
-            out[reverse[ok], 0] -= injected[rows[ok]]
+            reverse = reciprocal_rows(links.i, links.j)
+            if reports_own:
+                rows = np.flatnonzero(injected)
+                out[rows, 0] += injected[rows]
+            rows = np.flatnonzero(from_liar & (reverse >= 0))
+            out[reverse[rows]] = z_all[rows]
             return out
 
         def tamper(rows: np.ndarray, z_hat: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -140,13 +147,41 @@ class CompromisedRobot(Strategy):
             a = largest_accepted_along(
                 path, zh, S[hit], links.i[r], links.j[r], judged, memory, context=context
             )
+            if params.witness and memory is not None and links.neighbours is not None:
+                # The observers' notes on each liar must keep it under the witness test
+                # after this step (its fellows' notes lying for it).
+                source = links.neighbours
+                a = within_witness(
+                    a,
+                    path,
+                    r,
+                    z_all if len(rows) == len(z_all) else _with_rows(z_all, rows, out),
+                    source.x[links.i],
+                    source.P[links.i],
+                    links.x_nb,
+                    P_nb,
+                    links.i,
+                    links.j,
+                    is_liar,
+                    params,
+                    memory,
+                )
             out[hit] = path(a[None])[0]
             injected[r] = out[hit, 0] - z[:, 0]
             return out
 
-        if reports_own:
+        if reports_own or params.zone_trust:  # what the partners' readings carry
             tamper.reported = reported
+        if params.witness:  # the liars' own notes on their neighbours lie too
+            tamper.notes = lambda notes: lying_notes(notes, is_liar, params)
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
+
+
+def _with_rows(z_all: np.ndarray, rows: np.ndarray, z_rows: np.ndarray) -> np.ndarray:
+    """The step's readings with ``rows`` as sent (the other rows honest)."""
+    z = np.array(z_all, float)
+    z[rows] = z_rows
+    return z
 
 
 class Replay(SensingLie):

@@ -46,8 +46,11 @@ PASSES = 3
 #: row-wise bound).
 BISECTIONS = 6
 #: Stages whose verdict on a row depends only on that row and the state before the round
-#: (the gate, the per-link CUSUMs, recovery's re-admission test): candidates may be stacked.
-ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery"})
+#: (the gate, the per-link CUSUMs, recovery's re-admission test, the witness verdict on the
+#: neighbour, read from the state the notes of the steps before left): candidates may be
+#: stacked. (What a lie adds to the witness test is judged by the compromised robots'
+#: :func:`~resloc.world.attackers.witness.within_witness`.)
+ROW_WISE_STAGES = frozenset({"gate", "cusum", "mean_cusum", "recovery", "witness"})
 #: Stages whose verdict on a row also reads the step's other rows (through a
 #: :class:`~resloc.cl.detection_redundancy.FixContext`, which judges each stacked candidate
 #: set in its own copy of the victims' links: stackable, and exact for lies told together).

@@ -1,0 +1,357 @@
+"""Witnesses: a robot's observers compare notes on it (a per-robot test across observers).
+
+Every per-link test judges a neighbour's broadcast against one observer's view; a
+compromised robot that tells each neighbour the largest lie that neighbour's tests accept
+stays under all of them, and two agreeing liars around one victim look like a majority
+(``docs/attack/compromised_long.md``). Each observer, however, has its own reading of the
+liar, and the liar's lies must survive all of them at once. This stage sums that evidence.
+
+**Notes.** Each step every robot i, for each neighbour j it measured, computes the position
+of j its own estimate and its reading imply, ``g_ij = p_i + r u(theta_i + b)``, and the
+residual between j's broadcast position and it,
+
+``u_ij = p_j - g_ij``,   ``cov = P_j,pos + Q_ij``,  ``Q_ij = J_x P_i J_x^T + J_z R J_z^T``
+
+(first order in i's estimate and the sensor noise, at the predicted geometry; the range
+corrected for the mean shortening the angle's noise causes, as
+:func:`~resloc.cl.detection_redundancy.position_fix` does). The residuals of different
+observers of j share j's own estimation error: ``P_j,pos`` (j's *claimed* covariance: a
+robot claiming a small covariance asserts small residuals) is common to all of them, and
+only the ``Q_ij`` are treated as independent (the observers' cross-covariances with each
+other, which naive CL fusion does not track either, are ignored). Robot i sends its notes
+(j's id, ``u_ij``, the three entries of ``Q_ij``) with its next broadcast: one frame per
+robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note). Notes of
+readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
+by the receivers (they are sent and counted: a receiver sees where the observer says it is).
+In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
+notes and never judges anyone: it needs the team's notes (the simulator's batch).
+
+**The aggregate of robot j's notes, robust to f lying observers** (``witness_liars``: the
+compromised robots also send notes, and may exonerate each other or accuse honest robots).
+For a set ``K`` of notes the information-weighted mean and its covariance are
+
+``m_K = Y_K^-1 sum_K Q_k^-1 u_k``,  ``Y_K = sum_K Q_k^-1``,
+``T_K = m_K^T (P_j,pos + Y_K^-1)^-1 m_K``   (chi-square, 2 dof, for an honest j),
+
+and the set is *consistent* when ``c_K = sum_K u_k^T Q_k^-1 u_k - m_K^T Y_K m_K`` (the
+spread of the notes about their mean; j's own error cancels in it) is under the
+chi-square quantile with ``2 (|K| - 1)`` degrees of freedom at ``witness_false_alarm``.
+The step's statistic of j is the smallest ``T_K`` over the consistent sets left after
+dropping any ``d <= f`` notes:
+
+``T_j = min { T_K : K = all notes minus at most f, c_K consistent }``.
+
+So j is accused only if *every* way of discarding f notes still convicts it: f liars'
+accusations of an honest robot can always be dropped (the honest notes alone are a
+candidate set, consistent with probability ``1 - witness_false_alarm``), and f fellow
+liars' notes can pull the mean of a liar's notes only as far as the honest notes'
+consistency allows. A robot with at most ``f`` notes in a step is not judged (its
+statistic only decays). When no candidate set is consistent (more than f notes disagree:
+outside the threat model, or j lying inconsistently to its observers) the step counts
+``witness_h / 2``.
+
+**Sequence test, with recovery.** Per robot ``S_j <- clip(S_j + min(T_j, h / 2) - k, 0,
+2 h)`` (``k = witness_k``, ``h = witness_h``; a step without judgement adds ``-k``). While
+``S_j > h`` every robot discards j's broadcasts (all links ``(i, j)``). The notes keep
+coming (the readings are the observers' own), so a robot that stops lying decays back
+under ``h`` in at most ``h / (k - 2)`` steps on average: no robot is locked out forever.
+
+**Latency.** The notes of step ``t`` travel with the broadcasts of step ``t + 1``: the
+verdict applied in step ``t`` is ``S_j`` as it stood after step ``t - 1``; the step's own
+notes update it at the end of the step (:func:`record_witness`). An attacker that knows
+the defence keeps the updated ``S_j`` under ``h`` (the compromised robot's oracle,
+:mod:`resloc.world.attackers.estimates`).
+
+What it assumes, where it fails (``docs/attack/witness.md``): at most f of a robot's
+observers lie (in their notes) in any step; the observers' readings of j are honest
+(sensing attacks inside the mapped zone are excluded through the zone-trust map; without
+the map an in-zone sensing attack makes honest observers' notes lie); the observers'
+own estimates are not all pulled the same way by the lie (an observer a lie pulled by
+``delta`` sees every neighbour ``delta`` off: the test compares j with the observers'
+consensus, not with the truth). The compiled kernel does not implement it
+(``compiled = False``: the correction falls back to the numpy path), and the runtime
+refuses it (the notes are not a message of its schema).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams, at_robots
+
+if TYPE_CHECKING:
+    from resloc.cl.detection import Evidence
+
+__all__ = [
+    "WitnessCheck",
+    "WitnessNotes",
+    "record_witness",
+    "step_notes",
+    "witness_cusum",
+    "witness_notes",
+    "witness_state",
+    "witness_statistic",
+]
+
+#: The name of the per-robot statistic in :meth:`LinkMemory.stage_statistic` (keyed (j, j)).
+STATE = "witness"
+
+
+def witness_notes(
+    z: np.ndarray, x_obs: np.ndarray, P_obs: np.ndarray, x_nb: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each observer's note on a neighbour: its broadcast position minus the position the
+    observer's estimate and reading imply, and that residual's independent covariance.
+
+    Parameters
+    ----------
+    z : ndarray, shape (E, 2)
+        Range and bearing of j measured by i.
+    x_obs, P_obs : ndarray, shapes (E, 3), (E, 3, 3)
+        The observers' estimates.
+    x_nb : ndarray, shape (E, 3)
+        The neighbours' broadcast estimates.
+    R : ndarray, shape (2, 2)
+
+    Returns
+    -------
+    u : ndarray, shape (E, 2)
+        ``p_j - g_ij``.
+    Q : ndarray, shape (E, 2, 2)
+        ``J_x P_i J_x^T + J_z R J_z^T`` (j's own covariance not included).
+    """
+    z, x_obs, P_obs, x_nb = (np.asarray(a, float) for a in (z, x_obs, P_obs, x_nb))
+    a = x_obs[:, 2] + z[:, 1]
+    # As position_fix: undo the mean shortening of a direction read with angle noise.
+    r_mean = z[:, 0] * np.exp(0.5 * (R[1, 1] + P_obs[:, 2, 2]))
+    implied = x_obs[:, :2] + r_mean[:, None] * np.stack([np.cos(a), np.sin(a)], axis=1)
+    u = x_nb[:, :2] - implied
+    # Jacobians at the predicted geometry (weights that moved with the reading's own noise
+    # would bias the mean the notes are combined into).
+    rel = x_nb[:, :2] - x_obs[:, :2]
+    r = np.hypot(rel[:, 0], rel[:, 1])
+    use = r > 0.0
+    c = np.where(use, rel[:, 0] / np.where(use, r, 1.0), np.cos(a))
+    s = np.where(use, rel[:, 1] / np.where(use, r, 1.0), np.sin(a))
+    r = np.where(use, r, z[:, 0])
+    E = len(z)
+    J_x = np.zeros((E, 2, 3))
+    J_x[:, 0, 0] = J_x[:, 1, 1] = 1.0
+    J_x[:, 0, 2], J_x[:, 1, 2] = -r * s, r * c
+    J_z = np.stack([np.stack([c, -r * s], 1), np.stack([s, r * c], 1)], 1)
+    Q = J_x @ P_obs @ np.swapaxes(J_x, -1, -2) + J_z @ R @ np.swapaxes(J_z, -1, -2)
+    return u, 0.5 * (Q + np.swapaxes(Q, -1, -2))
+
+
+class WitnessNotes:
+    """The notes of one step (every link), as the robots receive them.
+
+    Attributes
+    ----------
+    u, Q : ndarray, shapes (E, 2), (E, 2, 2)
+        :func:`witness_notes`.
+    P_pos : ndarray, shape (E, 2, 2)
+        The position block of the covariance neighbour j claimed to observer i.
+    i, j : ndarray of int, shape (E,)
+    sent : ndarray of bool, shape (E,)
+        Notes the receivers use (not those of an observer inside the zone-trust map).
+    """
+
+    def __init__(self, u, Q, P_pos, i, j, sent) -> None:
+        self.u, self.Q, self.P_pos = u, Q, P_pos
+        self.i, self.j, self.sent = np.asarray(i), np.asarray(j), np.asarray(sent, bool)
+
+    def __len__(self) -> int:
+        return len(self.u)
+
+
+def step_notes(
+    z: np.ndarray,
+    x_obs: np.ndarray,
+    P_obs: np.ndarray,
+    x_nb: np.ndarray,
+    P_nb: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    params: CLParams,
+) -> WitnessNotes:
+    """Every link's note of the step (what the CL step and an attacker's copy both
+    compute): readings ``z (E, 2)`` as reported, the observers' predicted estimates, the
+    neighbours' broadcast estimates with their claimed covariances ``P_nb (E, 3, 3)``."""
+    from resloc.cl.detection_zone import inside_zone_map
+
+    u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R)
+    sent = np.ones(len(u), bool)
+    if params.zone_trust and params.zone_trust_map:
+        sent = ~inside_zone_map(np.asarray(x_obs)[:, :2], params.zone_trust_map)
+    sent &= np.isfinite(u).all(axis=1)
+    return WitnessNotes(u, Q, np.asarray(P_nb, float)[:, :2, :2], i, j, sent)
+
+
+_COMBINATIONS: dict[tuple[int, int], np.ndarray] = {}
+_GATES: dict[tuple[float, int], float] = {}
+
+
+def _dropped(m: int, d: int) -> np.ndarray:
+    """Every set of ``d`` of ``m`` positions, shape (K, d)."""
+    key = (m, d)
+    if key not in _COMBINATIONS:
+        combos = list(itertools.combinations(range(m), d))
+        _COMBINATIONS[key] = np.array(combos, dtype=np.intp).reshape(len(combos), d)
+    return _COMBINATIONS[key]
+
+
+def _consistency_gate(p: float, dof: int) -> float:
+    key = (float(p), int(dof))
+    if key not in _GATES:
+        from resloc.distributions import chi2_isf
+
+        _GATES[key] = float(chi2_isf(p, dof))
+    return _GATES[key]
+
+
+def witness_statistic(
+    notes: WitnessNotes, params: CLParams, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The step's statistic of every robot noted on: the smallest ``T_K`` over the
+    consistent sets left after dropping at most ``f`` notes (module docstring).
+
+    Parameters
+    ----------
+    notes : WitnessNotes
+    params : CLParams
+        ``witness_liars`` (f), ``witness_false_alarm``, ``witness_h`` (read at each robot).
+    robots : ndarray of int, optional
+        Judge only these robots (default: every robot with a sent note).
+
+    Returns
+    -------
+    robots : ndarray of int, shape (G,)
+        The robots noted on (sorted).
+    T : ndarray, shape (G,)
+        Their statistics (0 where not judged).
+    judged : ndarray of bool, shape (G,)
+        More than f notes on the robot this step.
+    """
+    rows = np.flatnonzero(notes.sent)
+    if robots is not None:
+        rows = rows[np.isin(notes.j[rows], robots)]
+    rows = rows[np.argsort(notes.j[rows], kind="stable")]
+    ids, start, count = np.unique(notes.j[rows], return_index=True, return_counts=True)
+    G = len(ids)
+    T = np.zeros(G)
+    f = np.broadcast_to(np.rint(at_robots(params.witness_liars, ids)).astype(int), (G,))
+    judged = count > f
+    if not judged.any():
+        return ids, T, judged
+    u, Q = notes.u[rows], notes.Q[rows]
+    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
+    Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
+    ya = Ya * u[:, 0] + Yb * u[:, 1]
+    yb = Yb * u[:, 0] + Yc * u[:, 1]
+    q = u[:, 0] * ya + u[:, 1] * yb
+    per_note = np.stack([Ya, Yb, Yc, ya, yb, q], axis=1)  # (E', 6)
+    # j's claimed position covariance: the largest claim among its notes (per-link claims
+    # could differ; the largest is the most lenient to j).
+    P = notes.P_pos[rows]
+    trace = P[:, 0, 0] + P[:, 1, 1]
+    big = start + np.array(
+        [np.argmax(trace[s : s + n]) for s, n in zip(start, count, strict=True)], dtype=np.intp
+    )
+    Pj = P[big]
+    half_h = 0.5 * np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), (G,))
+    p_fa = float(np.max(params.witness_false_alarm))
+    for m in np.unique(count[judged]):
+        for fg in np.unique(f[judged & (count == m)]):
+            g = np.flatnonzero(judged & (count == m) & (f == fg))
+            members = per_note[start[g][:, None] + np.arange(m)]  # (n_g, m, 6)
+            total = members.sum(axis=1)  # (n_g, 6)
+            best = np.full(len(g), np.inf)
+            for d in range(int(min(fg, m - 1)) + 1):
+                drop = _dropped(int(m), d)  # (K, d)
+                kept = total[:, None, :] - members[:, drop, :].sum(axis=2)  # (n_g, K, 6)
+                Sa, Sb, Sc, sa, sb, sq = np.moveaxis(kept, -1, 0)
+                dS = Sa * Sc - Sb * Sb
+                Ia, Ib, Ic = Sc / dS, -Sb / dS, Sa / dS  # Y_K^-1
+                ma, mb = Ia * sa + Ib * sb, Ib * sa + Ic * sb
+                spread = sq - (ma * sa + mb * sb)
+                size = int(m) - d
+                ok = (
+                    np.ones(spread.shape, bool)
+                    if size == 1
+                    else spread <= _consistency_gate(p_fa, 2 * (size - 1))
+                )
+                Ca = Pj[g, 0, 0][:, None] + Ia
+                Cb = 0.5 * (Pj[g, 0, 1] + Pj[g, 1, 0])[:, None] + Ib
+                Cc = Pj[g, 1, 1][:, None] + Ic
+                stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+                best = np.minimum(best, np.where(ok, stat, np.inf).min(axis=1))
+            T[g] = np.where(np.isfinite(best), best, half_h[g])
+    return ids, T, judged
+
+
+def witness_cusum(
+    S: np.ndarray, T: np.ndarray, judged: np.ndarray, k: np.ndarray, h: np.ndarray
+) -> np.ndarray:
+    """``clip(S + min(T, h / 2) - k, 0, 2 h)`` (``T`` counted only where ``judged``),
+    shapes (G,)."""
+    step = np.where(judged, np.minimum(T, 0.5 * h), 0.0)
+    return np.clip(S + step - k, 0.0, 2.0 * h)
+
+
+def witness_state(memory: LinkMemory, robots: np.ndarray) -> np.ndarray:
+    """``S_j`` of ``robots (G,)`` as it stands (0 for a robot never noted on)."""
+    robots = np.asarray(robots)
+    return memory.stage_statistic(STATE).get(robots, robots)
+
+
+def updated_state(
+    notes: WitnessNotes, params: CLParams, memory: LinkMemory, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The robots noted on and their ``S_j`` after this step's notes (memory unchanged)."""
+    ids, T, judged = witness_statistic(notes, params, robots)
+    k = np.broadcast_to(np.asarray(at_robots(params.witness_k, ids), float), ids.shape)
+    h = np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), ids.shape)
+    return ids, witness_cusum(witness_state(memory, ids), T, judged, k, h)
+
+
+def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMemory | None):
+    """Update every noted robot's ``S_j`` with the step's notes (at the end of the step:
+    the verdicts of this step were read before); robots with no note decay by ``k``."""
+    if notes is None:
+        return
+    if memory is None:
+        raise ValueError("detector witness (params.witness) needs a LinkMemory")
+    stat = memory.stage_statistic(STATE)
+    ids, S = updated_state(notes, params, memory)
+    silent = stat.keys // stat.n_nodes
+    silent = silent[(stat.keys % stat.n_nodes == silent) & ~np.isin(silent, ids)]
+    if len(silent):
+        k = np.broadcast_to(np.asarray(at_robots(params.witness_k, silent), float), silent.shape)
+        ids = np.concatenate([ids, silent])
+        S = np.concatenate([S, np.maximum(witness_state(memory, silent) - k, 0.0)])
+    stat.set(ids, ids, S)
+
+
+class WitnessCheck:
+    """Discard every link from a neighbour whose observers' notes convict it: ``S_j > h``
+    as it stood before this step (``params.witness``)."""
+
+    name: ClassVar[str] = "witness"
+    compiled: ClassVar[bool] = False
+    overrides: ClassVar[bool] = False
+
+    def active(self, params: CLParams) -> bool:
+        return bool(params.witness)
+
+    def discard(
+        self, evidence: Evidence, params: CLParams, memory: LinkMemory | None
+    ) -> np.ndarray:
+        if memory is None:
+            raise ValueError("detector witness (params.witness) needs a LinkMemory")
+        j = np.asarray(evidence.j)
+        return witness_state(memory, j) > at_robots(params.witness_h, j)

@@ -1,0 +1,140 @@
+"""What compromised robots do against the witness stage (:mod:`resloc.cl.detection_witness`).
+
+Two things, both with full knowledge of the defence:
+
+* **Their own notes lie** (:func:`lying_notes`). On a fellow compromised robot a liar sends
+  the note that exonerates it most: minus ``t`` times the honest observers' mean note on it,
+  ``t`` from :data:`EXONERATION` chosen per robot to minimise its statistic (``t = 0``: "I
+  see it exactly where it says"; larger ``t`` pulls the mean back until the set's own
+  consistency test drops the note), or its honest note when that exonerates best. On an
+  honest neighbour it accuses: its honest note moved by :data:`ACCUSATION` standard
+  deviations along world +x, the direction of the lies (a note far beyond that is dropped
+  by the consistency test anyway).
+* **Their broadcasts stay under the aggregate test** (:func:`within_witness`). The notes of
+  the step update each robot's sequence test at the end of the step; a liar whose
+  statistic then exceeds ``witness_h`` is ignored by everyone from the next step on. The
+  attacker scales all of one liar's lies of the step by one factor ``c`` in ``[0, 1]``,
+  the largest (bisection) that keeps its updated statistic at most ``witness_h``, given its
+  fellows' lying notes. (One common factor per liar, not an allocation across victims: the
+  per-victim oracle has already put every lie at its victim's own limit.)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from resloc.cl.detection_witness import WitnessNotes, step_notes, updated_state, witness_statistic
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams, at_robots
+
+__all__ = ["ACCUSATION", "EXONERATION", "lying_notes", "within_witness"]
+
+#: Multiples ``t`` of the honest observers' mean note a fellow liar may send, negated.
+EXONERATION = (0.0, 0.5, 1.0, 2.0, 4.0)
+#: An accusing note's shift along world +x, in standard deviations of the note.
+ACCUSATION = 3.0
+#: Bisection steps of the common factor on a liar's lies (resolution 2^-12).
+BUDGET_BISECTIONS = 12
+
+
+def lying_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) -> WitnessNotes:
+    """``notes`` with the compromised observers' notes replaced by their lies.
+
+    Parameters
+    ----------
+    notes : WitnessNotes
+    is_liar : ndarray of bool, shape (B,)
+        Which robots of the batch are compromised.
+    params : CLParams
+        The victims' (the statistic the exoneration minimises).
+    """
+    liar_obs = is_liar[notes.i] & notes.sent
+    if not liar_obs.any():
+        return notes
+    on_liar = is_liar[notes.j]
+    u = notes.u.copy()
+    Q = notes.Q
+    accuse = liar_obs & ~on_liar
+    sd = np.sqrt(0.5 * (Q[:, 0, 0] + Q[:, 1, 1]))
+    u[accuse, 0] += ACCUSATION * sd[accuse]
+    exonerate = np.flatnonzero(liar_obs & on_liar)
+    if exonerate.size:
+        honest = np.flatnonzero(notes.sent & ~is_liar[notes.i] & on_liar)
+        Y = np.linalg.inv(Q[honest])
+        n = len(is_liar)
+        info = np.zeros((n, 2, 2))
+        vec = np.zeros((n, 2))
+        np.add.at(info, notes.j[honest], Y)
+        np.add.at(vec, notes.j[honest], (Y @ u[honest][:, :, None])[:, :, 0])
+        seen = np.linalg.det(info) > 0.0
+        mean = np.zeros((n, 2))
+        mean[seen] = np.linalg.solve(info[seen], vec[seen][:, :, None])[:, :, 0]
+        liars = np.unique(notes.j[exonerate])
+        best_T = np.full(len(liars), np.inf)
+        best_u = u[exonerate].copy()
+        for t in (None, *EXONERATION):  # None: its honest note, if that exonerates best
+            trial = u.copy()
+            if t is not None:
+                trial[exonerate] = -t * mean[notes.j[exonerate]]
+            ids, T, _ = witness_statistic(
+                WitnessNotes(trial, Q, notes.P_pos, notes.i, notes.j, notes.sent), params, liars
+            )
+            T_of = np.full(len(liars), np.inf)
+            T_of[np.searchsorted(liars, ids)] = T
+            better = T_of < best_T
+            best_T = np.where(better, T_of, best_T)
+            rows_better = better[np.searchsorted(liars, notes.j[exonerate])]
+            best_u[rows_better] = trial[exonerate][rows_better]
+        u[exonerate] = best_u
+    return WitnessNotes(u, Q, notes.P_pos, notes.i, notes.j, notes.sent)
+
+
+def within_witness(
+    a: np.ndarray,
+    path: Callable[[np.ndarray], np.ndarray],
+    rows: np.ndarray,
+    z_all: np.ndarray,
+    x_obs: np.ndarray,
+    P_obs: np.ndarray,
+    x_nb: np.ndarray,
+    P_nb: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    is_liar: np.ndarray,
+    params: CLParams,
+    memory: LinkMemory,
+) -> np.ndarray:
+    """The liars' fractions ``a (n,)`` on ``rows`` (their links this step, ``path(frac)``
+    the readings they inject) scaled, per liar, by the largest common factor that keeps its
+    witness statistic after the step at most ``witness_h``.
+
+    ``z_all (E, 2)``: the step's readings (honest outside ``rows``); ``x_obs, P_obs``: the
+    observers' predicted estimates; ``x_nb, P_nb``: the broadcast estimates and claims; all
+    rows of the step (the notes of every observer enter the statistic).
+    """
+    liars = np.unique(j[rows])
+    where = np.searchsorted(liars, j[rows])
+    h = np.broadcast_to(np.asarray(at_robots(params.witness_h, liars), float), liars.shape)
+
+    def after(c: np.ndarray) -> np.ndarray:  # (L,) factors -> (L,) statistics after the step
+        z = np.array(z_all, float)
+        z[rows] = path((c[where] * a)[None])[0]
+        notes = lying_notes(step_notes(z, x_obs, P_obs, x_nb, P_nb, i, j, params), is_liar, params)
+        ids, S = updated_state(notes, params, memory, liars)
+        out = np.zeros(len(liars))  # a liar nobody noted on is not judged
+        out[np.searchsorted(liars, ids)] = S
+        return out
+
+    ok = after(np.ones(len(liars))) <= h
+    if ok.all():
+        return a
+    lo, hi = np.zeros(len(liars)), np.ones(len(liars))
+    for _ in range(BUDGET_BISECTIONS):
+        mid = np.where(ok, 1.0, 0.5 * (lo + hi))
+        good = after(mid) <= h
+        lo = np.where(good, mid, lo)
+        hi = np.where(good, hi, mid)
+    c = np.where(ok, 1.0, lo)
+    return c[where] * a

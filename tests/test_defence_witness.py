@@ -1,0 +1,292 @@
+"""The witness stage (cl/detection_witness.py): observers compare notes on each robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from resloc.cl.detection import Evidence
+from resloc.cl.detection_witness import (
+    WitnessCheck,
+    WitnessNotes,
+    record_witness,
+    step_notes,
+    updated_state,
+    witness_state,
+    witness_statistic,
+)
+from resloc.cl.memory import LinkMemory
+from resloc.cl.params import CLParams
+from resloc.errors import ConfigError
+from resloc.world.attackers.estimates import shifted_prediction
+from resloc.world.attackers.witness import lying_notes, within_witness
+
+PARAMS = CLParams(witness=True, witness_liars=2.0, witness_k=4.0, witness_h=20.0)
+SUSPECT = 0
+OBSERVERS = 9
+SD_Q = 0.01  # each note's own noise (m)
+SD_P = 0.005  # the suspect's own estimation error, common to every note (m)
+
+
+def _notes(rng, lie=(0.0, 0.0), accusers=0, accusation=(0.0, 0.0)) -> WitnessNotes:
+    """One step's notes of ``OBSERVERS`` observers (1..) on robot 0: the suspect's own
+    error (shared), each note's independent noise, a lie in its broadcast seen by every
+    observer, and ``accusers`` observers whose notes are moved by ``accusation``."""
+    n = OBSERVERS
+    shared = rng.normal(0.0, SD_P, 2)
+    u = shared + rng.normal(0.0, SD_Q, (n, 2)) + np.asarray(lie)
+    u[:accusers] += np.asarray(accusation)
+    Q = np.tile(np.eye(2) * SD_Q**2, (n, 1, 1))
+    P = np.tile(np.eye(2) * SD_P**2, (n, 1, 1))
+    return WitnessNotes(u, Q, P, np.arange(1, n + 1), np.full(n, SUSPECT), np.ones(n, bool))
+
+
+def _run(steps, make, params=PARAMS, memory=None):
+    """The suspect's state after each step (the stage's update at the end of each step)."""
+    memory = LinkMemory(OBSERVERS + 1) if memory is None else memory
+    out = []
+    for k in range(steps):
+        record_witness(make(k), params, memory)
+        out.append(float(witness_state(memory, np.array([SUSPECT]))[0]))
+    return np.array(out), memory
+
+
+def _convicted(memory, params=PARAMS) -> bool:
+    ev = Evidence(
+        np.zeros((1, 2)), np.eye(2)[None], np.zeros(1), np.array([1]), np.array([SUSPECT]),
+        np.zeros(1, bool),
+    )  # fmt: skip
+    return bool(WitnessCheck().discard(ev, params, memory)[0])
+
+
+def test_honest_notes_raise_no_alarm():
+    rng = np.random.default_rng(1)
+    S, memory = _run(500, lambda k: _notes(rng))
+    assert S.max() < 0.5 * PARAMS.witness_h
+    assert not _convicted(memory)
+
+
+def test_a_coherent_liar_seen_by_every_observer_is_convicted():
+    rng = np.random.default_rng(2)
+    # 1.5 sd of one note: every per-link test of one observer passes it most of the time
+    S, memory = _run(20, lambda k: _notes(rng, lie=(1.5 * SD_Q, 0.0)))
+    assert S[-1] > PARAMS.witness_h and _convicted(memory)
+
+
+@pytest.mark.parametrize("size", [0.02, 0.05, 1.0])
+def test_lying_notes_of_f_observers_do_not_convict_an_honest_robot(size):
+    rng = np.random.default_rng(3)
+    f = int(PARAMS.witness_liars)
+    S, memory = _run(300, lambda k: _notes(rng, accusers=f, accusation=(size, 0.0)))
+    assert S.max() < PARAMS.witness_h and not _convicted(memory)
+    # the same accusations convict when the stage drops none of them (the test can fail)
+    rng = np.random.default_rng(3)
+    naive = CLParams(witness=True, witness_liars=0.0, witness_k=4.0, witness_h=20.0)
+    S0, _ = _run(300, lambda k: _notes(rng, accusers=f, accusation=(size, 0.0)), naive)
+    assert S0.max() > PARAMS.witness_h
+
+
+def test_a_robot_that_stops_lying_is_readmitted():
+    rng = np.random.default_rng(4)
+    lying = 30
+
+    def make(k):
+        return _notes(rng, lie=(0.05, 0.0) if k < lying else (0.0, 0.0))
+
+    S, memory = _run(lying + 30, make)
+    assert S[lying - 1] == pytest.approx(2 * PARAMS.witness_h)  # the statistic is capped
+    back = np.flatnonzero(S[lying:] <= PARAMS.witness_h)
+    # from the cap, about h / (k - E T) steps (E T < 1 for honest notes here)
+    assert back.size and back[0] <= PARAMS.witness_h / (PARAMS.witness_k - 1.0) + 1
+    assert not _convicted(memory)
+
+
+def test_a_robot_with_at_most_f_notes_is_not_judged():
+    rng = np.random.default_rng(5)
+    notes = _notes(rng, lie=(1.0, 0.0))
+    keep = np.arange(OBSERVERS) < PARAMS.witness_liars
+    few = WitnessNotes(notes.u, notes.Q, notes.P_pos, notes.i, notes.j, keep)
+    ids, T, judged = witness_statistic(few, PARAMS)
+    assert list(ids) == [SUSPECT] and not judged[0] and T[0] == 0.0
+    ids, T, judged = witness_statistic(notes, PARAMS)
+    assert judged[0] and T[0] > 1e3
+
+
+def _ring(liars=(0,)):
+    """Robot 0 at the origin, observers 1..7 on a unit circle (heading 0), every link to
+    robot 0 and back; honest readings exact."""
+    n = 8
+    ang = np.linspace(0.0, 2 * np.pi, n - 1, endpoint=False)
+    pos = np.vstack([[0.0, 0.0], np.c_[np.cos(ang), np.sin(ang)]])
+    x = np.c_[pos, np.zeros(n)]
+    P = np.tile(np.diag([1e-4, 1e-4, 1e-5]), (n, 1, 1))
+    i = np.r_[np.arange(1, n), np.zeros(n - 1, int)]
+    j = np.r_[np.zeros(n - 1, int), np.arange(1, n)]
+    rel = x[j, :2] - x[i, :2]
+    z = np.c_[np.hypot(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 1], rel[:, 0])]
+    is_liar = np.isin(np.arange(n), liars)
+    return x, P, i, j, z, is_liar
+
+
+@pytest.mark.parametrize("liars", [(0,), (0, 1)])
+def test_the_compromised_robots_lie_sits_on_the_witness_threshold(liars):
+    params = CLParams(witness=True, witness_liars=1.0, witness_k=4.0, witness_h=20.0)
+    x, P, i, j, z, is_liar = _ring(liars)
+    rows = np.flatnonzero(j == 0)  # robot 0's broadcast to each observer
+    shift = np.array([0.3, 0.0])  # world +x, every observer's heading is 0
+
+    def path(frac):
+        lied = shifted_prediction(z[rows], frac[..., None] * shift[None])
+        return z[rows][None] - (lied - z[rows][None])
+
+    memory = LinkMemory(len(x))
+    memory.stage_statistic("witness").set(np.array([0]), np.array([0]), np.array([20.0]))
+    a = within_witness(
+        np.ones(len(rows)), path, rows, z, x[i], P[i], x[j], P[j], i, j, is_liar, params, memory
+    )
+    assert 0.0 < a.min() and np.ptp(a) == 0.0  # one common factor, a lie is sent
+
+    def S_after(frac):
+        zz = z.copy()
+        zz[rows] = path(frac[None])[0]
+        notes = lying_notes(step_notes(zz, x[i], P[i], x[j], P[j], i, j, params), is_liar, params)
+        return updated_state(notes, params, memory, np.array([0]))[1][0]
+
+    assert S_after(a) == pytest.approx(params.witness_h, rel=0.02)
+    assert S_after(1.05 * a) > params.witness_h
+
+
+def test_lying_notes_exonerate_a_fellow_liar_and_accuse_the_honest():
+    params = CLParams(witness=True, witness_liars=1.0)
+    x, P, i, j, z, is_liar = _ring((0, 1))
+    rows = j == 0
+    z = z.copy()  # robot 0 lies: 5 cm along world +x to every observer
+    z[rows] -= shifted_prediction(z[rows], np.array([[0.05, 0.0]])) - z[rows]
+    notes = step_notes(z, x[i], P[i], x[j], P[j], i, j, params)
+    lied = lying_notes(notes, is_liar, params)
+    T = witness_statistic(notes, params)[1]
+    T_lied = witness_statistic(lied, params)[1]
+    assert T[0] > 10.0 and T_lied[0] < 0.9 * T[0]  # robot 1 note lowers robot 0 statistic
+    accusing = (i == 0) & (j > 1)  # robot 0's notes on the honest robots
+    assert accusing.sum() == 6 and (lied.u[accusing, 0] > notes.u[accusing, 0] + 1e-3).all()
+    assert np.array_equal(lied.u[i > 1], notes.u[i > 1])  # honest notes unchanged
+
+
+def test_bytes_of_the_notes_are_counted():
+    import msgpack
+
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.metrics import WIRE_BYTES, communication
+    from resloc.experiments.runner import run_scenario
+    from resloc.runtime.messages import HEADER, TAG_SIZE
+
+    for n in (6, 15, 40):
+        body = {"notes": np.zeros((n, 6)).tobytes()}  # id i8 and 5 f8 per note
+        frame = HEADER.size + len(msgpack.packb(body, use_bin_type=True)) + TAG_SIZE
+        assert frame == WIRE_BYTES["witness_frame"] + n * WIRE_BYTES["witness_note"]
+    sc = default_scenario().replace(
+        **{"team.robots": 6, "run.steps": 15, "run.filters": ["ekf"],
+           "run.dead_reckoning": False, "detector.witness": True}
+    )  # fmt: skip
+    est = run_scenario(sc).estimators["ekf"]
+    t, log = est.totals, est.links
+    frames = sum(len(np.unique(log["i"][log["step"] == k])) for k in np.unique(log["step"]))
+    assert int(t["witness_notes"][0]) == len(log["i"]) == int(t["candidates"][0]) > 0
+    assert int(t["witness_frames"][0]) == frames > 0
+    comm = communication(t)
+    w = WIRE_BYTES
+    assert comm["witness"][1][0] == frames * w["witness_frame"] + len(log["i"]) * w["witness_note"]
+    plain = run_scenario(sc.replace(**{"detector.witness": False})).estimators["ekf"].totals
+    assert plain["witness_frames"].sum() == plain["witness_notes"].sum() == 0
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("witness_k", 0), ("witness_h", -1.0), ("witness_liars", -1), ("witness_false_alarm", 0.9)],
+)
+def test_bad_witness_values_are_one_line_errors(key, value):
+    from resloc.experiments.config import default_scenario
+
+    with pytest.raises(ConfigError) as err:
+        default_scenario().replace(**{f"detector.{key}": value})
+    assert f"detector.{key}" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_runtime_refuses_the_witness_in_one_line():
+    from resloc.experiments.config import default_scenario
+    from resloc.runtime.team import check_supported
+
+    sc = default_scenario().replace(**{"run.trials": 1, "detector.witness": True})
+    with pytest.raises(ConfigError, match=r"detector\.witness") as err:
+        check_supported(sc)
+    assert "\n" not in str(err.value)
+
+
+def test_the_compiled_path_refuses_the_stage():
+    from resloc.cl.backend import _params_refusal
+
+    assert "witness" in _params_refusal(CLParams(witness=True))
+
+
+def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch):
+    """The simulator's attacker (the per-victim oracle, then the witness budget): the
+    liar's statistic after every step is at most h, and the budget is used (it reaches h)."""
+    import resloc.cl.step as step_module
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import defence_overrides
+    from resloc.experiments.runner import run_scenario
+    from resloc.world.attackers import make_attacker
+
+    seen = []
+
+    def record(notes, params, memory):
+        record_witness(notes, params, memory)
+        seen.append(float(witness_state(memory, np.array([5]))[0]))
+
+    monkeypatch.setattr(step_module, "record_witness", record)
+    adv = make_attacker("compromised", robots=1, claimed_cov=0.01)
+    sc = default_scenario().replace(
+        **defence_overrides("zone+full+redundancy+sequence+cap+landmarks+witness"),
+        **{"run.steps": 12, "run.filters": ["ckf"], "run.dead_reckoning": False},
+    )
+    run_scenario(sc.replace(**adv.overrides), adversary=adv)
+    h = sc.cl_params().witness_h
+    assert len(seen) == 12 and max(seen) <= h * (1 + 1e-9)
+    assert max(seen) >= 0.98 * h
+
+
+def test_the_liar_receives_its_victims_honest_readings_of_it(monkeypatch):
+    """The lie travels in the liar's broadcast; each victim's reading of the liar, which the
+    liar receives (zone trust fuses it inside the map), stays physical, range and bearing."""
+    import resloc.cl.step as step_module
+    from resloc.cl.backend import use_backend
+    from resloc.cl.detection_zone import reciprocal_rows
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import defence_overrides
+    from resloc.experiments.runner import run_scenario
+    from resloc.world.attackers import make_attacker
+
+    original = step_module.materialize_with_reciprocal
+    checked = []
+
+    def materialize(links, z_hat, S):
+        honest = np.array(links.z, float)
+        reported = links.tamper.reported
+        out = original(links, z_hat, S)
+        received = reported(out.z_reciprocal)
+        reverse = reciprocal_rows(links.i, links.j)
+        from_liar = (links.j % 17 == 5) & (reverse >= 0)
+        lied = np.abs(out.z[from_liar] - honest[from_liar]).max()
+        assert np.array_equal(received[reverse[from_liar]], honest[from_liar])
+        checked.append(lied)
+        return out
+
+    monkeypatch.setattr(step_module, "materialize_with_reciprocal", materialize)
+    adv = make_attacker("compromised", robots=1)
+    sc = default_scenario().replace(
+        **defence_overrides("zone+full+redundancy+sequence+cap+landmarks"),
+        **{"run.steps": 5, "run.filters": ["ckf"], "run.dead_reckoning": False},
+    )
+    with use_backend("numpy"):  # (the compiled path applies the same hook in its kernels)
+        run_scenario(sc.replace(**adv.overrides), adversary=adv)
+    assert len(checked) == 5 and max(checked) > 1e-3  # the victims' rows did carry lies
