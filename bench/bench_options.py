@@ -79,6 +79,9 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+reciprocal": dict(
         DEFENCES["zone+full+redundancy+sequence+reciprocal"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks+witness": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 
