@@ -47,25 +47,33 @@ def _position(keys, key):
 
 
 @jit
+def _walk(keys, key, last, p, first):
+    """The position of ``key`` in the sorted ``keys`` (-1 when it is not there), walking on
+    from ``p``, the previous key's (``last``) position; searched from the start for the
+    ``first`` key or one out of order."""
+    if first or key < last:
+        return _position(keys, key)
+    if key > last:
+        p += 1
+        while p < keys.shape[0] and keys[p] < key:
+            p += 1
+        if p >= keys.shape[0] or keys[p] != key:
+            return -1
+    return p
+
+
+@jit
 def stored_positions(keys, n_nodes, i, j, pos):
     """``pos[e]``: the position of link ``(i[e], j[e])`` (key ``i * n_nodes + j``) in the
     sorted ``keys`` (shapes (E,), int64); False (``pos`` partly written) when a link is not
     stored. Links come sorted by key (by observer, then neighbour): the next one is found
     by walking on from the last one's position (both lists once, where a binary search per
     link cost several microseconds a call); a key out of order is searched from the start."""
-    K = keys.shape[0]
     last = -1
     p = 0
     for e in range(i.shape[0]):
         key = i[e] * n_nodes + j[e]
-        if e == 0 or key < last:
-            p = _position(keys, key)
-        elif key > last:
-            p += 1
-            while p < K and keys[p] < key:
-                p += 1
-            if p >= K or keys[p] != key:
-                p = -1
+        p = _walk(keys, key, last, p, e == 0)
         if p < 0:
             return False
         pos[e] = p
@@ -118,7 +126,6 @@ def overwrite_delivered(keys, n_nodes, i, j, delivered, rows, x, P, norm, mem, p
     (``mem = (mem_x, mem_P, mem_last)``; ``pos``: (E,) int64 scratch). False, nothing
     written, when a delivered link is not stored. Twin: ``LinkMemory.store`` of the rows
     ``delivered`` selects."""
-    K = keys.shape[0]
     last = -1
     p = 0
     d = 0
@@ -126,14 +133,7 @@ def overwrite_delivered(keys, n_nodes, i, j, delivered, rows, x, P, norm, mem, p
         if not delivered[e]:
             continue
         key = i[e] * n_nodes + j[e]
-        if d == 0 or key < last:
-            p = _position(keys, key)
-        elif key > last:
-            p += 1
-            while p < K and keys[p] < key:
-                p += 1
-            if p >= K or keys[p] != key:
-                p = -1
+        p = _walk(keys, key, last, p, d == 0)
         if p < 0:
             return False
         pos[d] = p
