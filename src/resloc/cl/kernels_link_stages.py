@@ -33,6 +33,7 @@ __all__ = [
     "kalman_lanes",
     "load_covariances",
     "load_robot_covariances",
+    "moment_scratch",
     "moments_lanes",
     "norms_lanes",
     "point_axes",
@@ -43,6 +44,36 @@ __all__ = [
 
 #: Rows of :func:`kalman_lanes`'s ``update``.
 UPDATE_ROWS = 22
+
+
+@_jit
+def moment_scratch(C, m):
+    """The lanes' scratch of one chunk of ``C`` links' moments (``m`` sigma points), as
+    :func:`gather_lanes`, :func:`load_covariances`, :func:`chol_lanes`, :func:`points_lanes`
+    and :func:`moments_lanes` take it: ``(lane_e, obs, src, xi, xr, zl, sin_cos, Li, Lj,
+    cov, ok_i, ok_j, bad, Z0, Z1, sums, moments, pxz, mean)``; ``Li``, ``Lj`` zeroed (their
+    upper triangles are never written)."""
+    return (
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty((3, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.zeros((3, 3, C)),
+        np.zeros((3, 3, C)),
+        np.empty((7, C)),
+        np.empty(C),
+        np.empty(C),
+        np.empty(C),
+        np.empty((m, C)),
+        np.empty((m, C)),
+        np.empty((4, C)),
+        np.empty((5, C)),
+        np.empty((6, C)),
+        np.empty((3, C)),
+    )
 
 
 @_jit

@@ -73,6 +73,7 @@ from resloc.cl.kernels_link_stages import (
     kalman_lanes,
     load_covariances,
     load_robot_covariances,
+    moment_scratch,
     moments_lanes,
     norms_lanes,
     point_axes,
@@ -251,26 +252,9 @@ def _rounds(
     C = CHUNK
     block_start = np.empty(C, np.int64)
     block_count = np.empty(C, np.int64)
-    lane_e = np.empty(C, np.int64)
     lane_first = np.empty(C, np.int64)
-    obs = np.empty(C, np.int64)
-    src = np.empty(C, np.int64)
-    xi = np.empty((3, C))
-    xr = np.empty((2, C))
-    zl = np.empty((2, C))
-    sin_cos = np.empty((2, C))
-    Li = np.zeros((3, 3, C))
-    Lj = np.zeros((3, 3, C))
-    cov = np.empty((7, C))
-    ok_i = np.empty(C)
-    ok_j = np.empty(C)
-    bad = np.empty(C)
-    Z0 = np.empty((m, C))
-    Z1 = np.empty((m, C))
-    sums = np.empty((4, C))
-    moments = np.empty((5, C))
-    pxz = np.empty((6, C))
-    mean = np.empty((3, C))
+    (lane_e, obs, src, xi, xr, zl, sin_cos, Li, Lj, cov, ok_i, ok_j, bad, Z0, Z1, sums,
+     moments, pxz, mean) = moment_scratch(C, m)  # fmt: skip
     scratch_in = np.empty((3, 3))
     scratch_out = np.empty((3, 3))
     Pi = np.empty((9, C))

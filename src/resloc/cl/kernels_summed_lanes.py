@@ -27,6 +27,7 @@ from resloc.cl.kernels_link_stages import (
     chol_lanes,
     gather_lanes,
     load_covariances,
+    moment_scratch,
     moments_lanes,
     point_axes,
     points_lanes,
@@ -62,25 +63,8 @@ def summed_moments_lanes(x, P, links, filt, zh, s, pxz_rows, done):
     axis, value = point_axes(nz_idx, nz_val, nz_cnt)
     m = axis.shape[0]
     C = CHUNK
-    lane_e = np.empty(C, np.int64)
-    obs = np.empty(C, np.int64)
-    src = np.empty(C, np.int64)
-    xi = np.empty((3, C))
-    xr = np.empty((2, C))
-    zl = np.empty((2, C))
-    sin_cos = np.empty((2, C))
-    Li = np.zeros((3, 3, C))
-    Lj = np.zeros((3, 3, C))
-    cov = np.empty((7, C))
-    ok_i = np.empty(C)
-    ok_j = np.empty(C)
-    bad = np.empty(C)
-    Z0 = np.empty((m, C))
-    Z1 = np.empty((m, C))
-    sums = np.empty((4, C))
-    moments = np.empty((5, C))
-    pxz = np.empty((6, C))
-    mean = np.empty((3, C))
+    (lane_e, obs, src, xi, xr, zl, sin_cos, Li, Lj, cov, ok_i, ok_j, bad, Z0, Z1, sums,
+     moments, pxz, mean) = moment_scratch(C, m)  # fmt: skip
     E = li.shape[0]
     for start in range(0, E, C):
         n = min(C, E - start)
