@@ -39,7 +39,8 @@ def test_same_keys_is_array_equal(a, b) -> None:
     assert kernels_memory.same_keys(a, b) == np.array_equal(a, b)
 
 
-def test_shared_slots_compares_the_keys_compiled(monkeypatch) -> None:
+def _spy_same_keys(monkeypatch) -> list:
+    """Records every result of the compiled key comparison (``kernels_detection.same_keys``)."""
     calls = []
     real = kernels_detection.same_keys
 
@@ -48,6 +49,11 @@ def test_shared_slots_compares_the_keys_compiled(monkeypatch) -> None:
         return calls[-1]
 
     monkeypatch.setattr(kernels_detection, "same_keys", spy)
+    return calls
+
+
+def test_shared_slots_compares_the_keys_compiled(monkeypatch) -> None:
+    calls = _spy_same_keys(monkeypatch)
     i, j = np.array([0, 0, 1, 2]), np.array([1, 2, 0, 1])
     store, other = LinkStatistic(3), LinkStatistic(3)
     slots = other.slots(i, j)
@@ -108,14 +114,7 @@ def test_the_defence_stores_share_slots_and_undo_puts_them_back(monkeypatch) -> 
     memory = LinkMemory(4)
     i = np.array([0, 0, 1, 2, 2, 3])
     first = defence_state(params, memory, i)  # inserts the robots' keys in every store
-    calls = []
-    real = kernels_detection.same_keys
-
-    def spy(a, b):
-        calls.append(real(a, b))
-        return calls[-1]
-
-    monkeypatch.setattr(kernels_detection, "same_keys", spy)
+    calls = _spy_same_keys(monkeypatch)
     state = defence_state(params, memory, i)
     assert calls == [True, True, True]  # the three recovery stores share the first's slots
     slots = state.kernel[4], state.kernel[10], state.kernel[12], state.kernel[14]
