@@ -24,7 +24,10 @@ robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note
 readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
 by the receivers (they are sent and counted: a receiver sees where the observer says it is).
 In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
-notes and never judges anyone: it needs the team's notes (the simulator's batch).
+notes and never judges anyone: it needs the team's notes (the simulator's batch). The
+simulator keeps one statistic per robot for the whole team: every robot is assumed to hear
+every note (not lost to jamming, not limited to radio range), an idealization that favours
+the stage (``docs/attack/witness.md``, "Threat model").
 
 **The aggregate of robot j's notes, robust to f lying observers** (``witness_liars``: the
 compromised robots also send notes, and may exonerate each other or accuse honest robots).
