@@ -429,3 +429,19 @@ def test_a_signal_wrapped_by_an_import_stops_the_command_with_one_line(capsys):
     with pytest.raises(typer.Exit) as stop:
         own_exit()
     assert stop.value.exit_code == 143
+
+
+def test_an_estimate_worse_than_dead_reckoning_is_warned(tmp_path):
+    """The literal summed update double-counts the prior with many neighbours and ends far
+    above dead reckoning's MSLE: the run succeeds, with one warning line per such filter."""
+    scenario = tmp_path / "summed.toml"
+    scenario.write_text(
+        '[run]\nsteps = 200\nfilters = ["ckf"]\n[estimator]\nupdate_mode = "summed"\n'
+    )
+    res = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "a"), "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert any(ln.startswith("warning: CKF's mean MSLE") for ln in _err_lines(res)), res.output
+    scenario.write_text('[run]\nsteps = 200\nfilters = ["ckf"]\n')
+    res = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "b"), "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert not any("above dead reckoning" in ln for ln in _err_lines(res)), res.output

@@ -66,6 +66,25 @@ def print_summary(result, console=None) -> None:
         min_width=len("dead reckoning"),
     )
     warn_diverged(result.estimators)
+    warn_worse_than_dead_reckoning(result.summary())
+
+
+def warn_worse_than_dead_reckoning(summary: dict) -> None:
+    """One warning line per estimator whose mean MSLE is above dead reckoning's (a
+    cooperative estimate worse than none: e.g. ``update_mode = "summed"`` on a dense team)."""
+    from resloc.experiments.output import warn
+
+    alone = summary.get("dr", {}).get("msle_mean")
+    if alone is None or not alone == alone:  # no dead reckoning, or NaN
+        return
+    for name, s in summary.items():
+        msle = s.get("msle_mean")
+        if name != "dr" and not s.get("diverged_step") and msle is not None and msle > alone:
+            warn(
+                f"{name.upper()}'s mean MSLE {msle:.3g} is above dead reckoning's ({alone:.3g}): "
+                "its cooperative estimate is worse than none; check the scenario's estimator "
+                "options (docs/algorithm.md)"
+            )
 
 
 def warn_diverged(estimators: dict) -> None:
