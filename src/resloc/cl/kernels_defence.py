@@ -46,7 +46,7 @@ from resloc.cl.kernels_detection import (
     shared_slots,
     store_slots,
 )
-from resloc.cl.kernels_math import jit_inline, per_params
+from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.params import CLParams
 
 __all__ = [
@@ -82,10 +82,6 @@ class KernelDefence(NamedTuple):
     applied_slot: np.ndarray  # (E,) int64
 
 
-def _gain(v) -> np.ndarray:
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
 _NO_GAIN = np.zeros(1)
 _NO_SLOTS = np.zeros(0, np.int64)
 _NO_VALUES = np.zeros(0)
@@ -95,9 +91,9 @@ _NO_VALUES = np.zeros(0)
 def _defence_gains(params: CLParams) -> tuple[tuple, tuple]:
     """The robot CUSUM's ``(k, h)`` and the recovery's ``(after, gate, cap)`` as the kernel
     takes them; empty for a stage that is off."""
-    robot = (_gain(params.robot_cusum_k), _gain(params.robot_cusum_h))
+    robot = (gain_array(params.robot_cusum_k), gain_array(params.robot_cusum_h))
     recovery = tuple(
-        _gain(g)
+        gain_array(g)
         for g in (params.recovery_after, params.recovery_gate, params.recovery_inflation_cap)
     )
     return (robot if params.robot_cusum else ()), (recovery if params.recovery else ())

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.detector import InnovationNorm
-from resloc.cl.kernels_math import jit_inline, per_params
+from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.kernels_memory import int64_rows, same_keys
 from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
@@ -38,6 +38,7 @@ from resloc.cl.params import CLParams
 __all__ = [
     "DetectorState",
     "KernelDetection",
+    "PrepassVerdict",
     "cusum_step",
     "detect_link",
     "detector_state",
@@ -94,8 +95,17 @@ class DetectorState(NamedTuple):
                 store.values[...] = old
 
 
-def _gain(v) -> np.ndarray:
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
+class PrepassVerdict(NamedTuple):
+    """A compiled pre-pass's discards, shape (E,), and its stage's state before the step
+    (:func:`resloc.cl.kernels_redundancy.fix_verdicts`,
+    :func:`resloc.cl.kernels_reciprocal.reciprocal_verdict`)."""
+
+    discard: np.ndarray
+    state: DetectorState
+
+    def undo(self) -> None:
+        """Put the stage's store back as it was before the pre-pass."""
+        self.state.undo()
 
 
 _NO_GAIN = np.zeros(1)
@@ -124,11 +134,11 @@ def _detection_gains(params: CLParams) -> tuple:
     cusum, mean = bool(params.cusum), bool(params.mean_cusum)
     k = h = cap = mk = mh = _NO_GAIN
     if cusum:
-        h = _gain(params.cusum_h)
-        cap = 2.0 * h if params.cusum_cap is None else _gain(params.cusum_cap)
-        k = _gain(params.cusum_k)
+        h = gain_array(params.cusum_h)
+        cap = 2.0 * h if params.cusum_cap is None else gain_array(params.cusum_cap)
+        k = gain_array(params.cusum_k)
     if mean:
-        mk, mh = _gain(params.mean_cusum_k), _gain(params.mean_cusum_h)
+        mk, mh = gain_array(params.mean_cusum_k), gain_array(params.mean_cusum_h)
     return cusum, k, h, cap, mean, mk, mh
 
 

@@ -349,3 +349,9 @@ def per_params(func: Callable) -> Callable:
         return value
 
     return cached
+
+
+def gain_array(v) -> np.ndarray:
+    """A scalar or per-robot option (gain, threshold, ...) as the contiguous float64
+    vector the kernels take (shape (1,) or (N,))."""
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())

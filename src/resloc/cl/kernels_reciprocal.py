@@ -10,8 +10,8 @@ loops run their options' form, :func:`~resloc.cl.kernels_rounds.beyond_paper`). 
 per-link state ``[s, V, hold]`` is the same store of the run's
 :class:`~resloc.cl.memory.LinkMemory` the numpy stage reads and writes
 (``stage_statistic("reciprocal", width=3)``), updated in place; a run can switch paths
-between steps. :meth:`ReciprocalVerdict.undo` puts it back when the kernel gives up on a
-step.
+between steps. :meth:`~resloc.cl.kernels_detection.PrepassVerdict.undo` puts it back
+when the kernel gives up on a step.
 
 ==============================  =========================================================
 kernel function                 numpy twin
@@ -44,14 +44,19 @@ import numpy as np
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.detection_reciprocal import STATE_WIDTH, ReciprocalCheck
 from resloc.cl.detection_zone import materialize_with_reciprocal
-from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
-from resloc.cl.kernels_math import jit_inline, jit_lanes, per_params, stamp_with_pieces
+from resloc.cl.kernels_detection import (
+    DetectorState,
+    PrepassVerdict,
+    gain_at,
+    shared_slots,
+    store_slots,
+)
+from resloc.cl.kernels_math import gain_array, jit_inline, jit_lanes, per_params, stamp_with_pieces
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
 __all__ = [
     "ReciprocalOptions",
-    "ReciprocalVerdict",
     "inside_discs",
     "partner_readings",
     "partner_rows",
@@ -75,30 +80,15 @@ class ReciprocalOptions(NamedTuple):
     discs: np.ndarray  # (Z, 3) the zone map's discs (cx, cy, r); (0, 3) without a map
 
 
-class ReciprocalVerdict(NamedTuple):
-    """The pre-pass's discards, shape (E,), and what :meth:`undo` needs."""
-
-    discard: np.ndarray
-    state: DetectorState
-
-    def undo(self) -> None:
-        """Put the stage's store back as it was before :func:`reciprocal_verdict`."""
-        self.state.undo()
-
-
-def _gain(v) -> np.ndarray:
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
 @per_params
 def _options(params: CLParams) -> ReciprocalOptions:
     discs = np.asarray(params.zone_trust_map, dtype=float).reshape(-1, 3)
     return ReciprocalOptions(
         float(2.0 * params.range_std**2),
-        _gain(params.reciprocal_gate),
-        _gain(params.reciprocal_sequence_gate),
-        _gain(params.reciprocal_hold),
-        _gain(params.reciprocal_forget),
+        gain_array(params.reciprocal_gate),
+        gain_array(params.reciprocal_sequence_gate),
+        gain_array(params.reciprocal_hold),
+        gain_array(params.reciprocal_forget),
         np.ascontiguousarray(discs),
     )
 
@@ -256,7 +246,7 @@ _IN_BATCH = np.zeros((0, 2))
 
 def reciprocal_verdict(
     params, memory, li, lj, z, z_rec, x, x_nb, nb, detection
-) -> ReciprocalVerdict | None:
+) -> PrepassVerdict | None:
     """The pre-pass of one step (:func:`reciprocal_verdicts`): ``li``, ``lj`` int64
     ``(E,)``, ``z``, ``z_rec: (E, 2)`` the readings as reported and the partners', ``x``
     the predicted estimates, ``x_nb`` the transmitted estimates at rows ``nb``
@@ -279,7 +269,7 @@ def reciprocal_verdict(
         slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
     if slots is None:
         slots = store_slots(store, li, lj, saved)
-    verdict = ReciprocalVerdict(np.empty(E, dtype=np.bool_), DetectorState(None, tuple(saved)))
+    verdict = PrepassVerdict(np.empty(E, dtype=np.bool_), DetectorState(None, tuple(saved)))
     if not reciprocal_verdicts(
         li, lj, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(z_rec, dtype=float),
         np.ascontiguousarray(x, dtype=float), x_nb, nb, *_options(params), store.values, slots,

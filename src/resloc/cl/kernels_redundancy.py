@@ -10,8 +10,8 @@ the links are fused. The compiled correction therefore runs them as a pre-pass,
 The sequence test's per-link state is the same store of the run's
 :class:`~resloc.cl.memory.LinkMemory` the numpy stage reads and writes
 (``stage_statistic("redundancy_sequence", width=6)``), updated in place; a run can switch
-paths between steps. :meth:`FixVerdict.undo` puts it back when the kernel gives up on a
-step.
+paths between steps. :meth:`~resloc.cl.kernels_detection.PrepassVerdict.undo` puts it back
+when the kernel gives up on a step.
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -41,15 +41,27 @@ import numpy as np
 
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
-from resloc.cl.kernels_detection import DetectorState, gain_at, shared_slots, store_slots
-from resloc.cl.kernels_math import jit, jit_inline, jit_lanes, per_params, stamp_with_pieces
+from resloc.cl.kernels_detection import (
+    DetectorState,
+    PrepassVerdict,
+    gain_at,
+    shared_slots,
+    store_slots,
+)
+from resloc.cl.kernels_math import (
+    gain_array,
+    jit,
+    jit_inline,
+    jit_lanes,
+    per_params,
+    stamp_with_pieces,
+)
 from resloc.cl.kernels_reciprocal import partner_readings
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
 __all__ = [
     "FixOptions",
-    "FixVerdict",
     "capped_links",
     "claim_scales",
     "exclude_group",
@@ -77,21 +89,6 @@ class FixOptions(NamedTuple):
     sequence_forget: np.ndarray
 
 
-class FixVerdict(NamedTuple):
-    """The pre-pass's discards, shape (E,), and what :meth:`undo` needs."""
-
-    discard: np.ndarray
-    state: DetectorState
-
-    def undo(self) -> None:
-        """Put the sequence test's store back as it was before :func:`redundancy_verdict`."""
-        self.state.undo()
-
-
-def _gain(v) -> np.ndarray:
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
 _NO_GAIN = np.zeros(1)
 
 
@@ -106,7 +103,7 @@ def _named_fix_options(params: CLParams) -> FixOptions:
     sequence = bool(params.redundancy_sequence)
     seq = (
         tuple(
-            _gain(v)
+            gain_array(v)
             for v in (
                 params.redundancy_sequence_gate,
                 params.redundancy_sequence_hold,
@@ -118,8 +115,8 @@ def _named_fix_options(params: CLParams) -> FixOptions:
     )
     return FixOptions(
         np.ascontiguousarray(params.R, dtype=float),
-        _gain(params.redundancy_gate),
-        _gain(params.redundancy_min_peers),
+        gain_array(params.redundancy_gate),
+        gain_array(params.redundancy_min_peers),
         sequence,
         *seq,
     )
@@ -447,7 +444,7 @@ def capped_links(
 
 def redundancy_verdict(
     params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detection
-) -> FixVerdict | None:
+) -> PrepassVerdict | None:
     """The pre-pass of one step (:func:`fix_verdicts`): ``li``, ``lj`` int64 ``(E,)``,
     ``z: (E, 2)`` the readings as reported, ``x``, ``P`` the predicted estimates, ``x_nb``,
     ``P_nb`` the claimed estimates at rows ``nb`` (contiguous); ``detection``: the step's
@@ -471,7 +468,7 @@ def redundancy_verdict(
         if slots is None:
             slots = store_slots(store, li, lj, saved)
         state = store.values
-    verdict = FixVerdict(np.zeros(len(li), dtype=np.bool_), DetectorState(None, tuple(saved)))
+    verdict = PrepassVerdict(np.zeros(len(li), dtype=np.bool_), DetectorState(None, tuple(saved)))
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     if not fix_verdicts(li, np.ascontiguousarray(z, dtype=float), x, P, x_nb, P_nb, nb, options,

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.backend import HAVE_NUMBA
+from resloc.cl.kernels_math import gain_array
 
 if HAVE_NUMBA:  # the optional extra ``fast``
     import numba
@@ -73,10 +74,6 @@ def no_tamper() -> KernelTamper:
     )  # fmt: skip
 
 
-def _gain(v) -> np.ndarray:
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
 def kernel_tamper(
     z, attacked, observer, direction, margin, cap, detector, norm_code, rho, noise_std,
     cusum_k, mean_cusum_k,
@@ -95,12 +92,12 @@ def kernel_tamper(
         float(cap),
         bool(detector),
         int(norm_code),
-        _gain(rho),
+        gain_array(rho),
         np.ascontiguousarray(noise_std, dtype=float),
         cusum_k is not None,
-        one if cusum_k is None else _gain(cusum_k),
+        one if cusum_k is None else gain_array(cusum_k),
         mean_cusum_k is not None,
-        one if mean_cusum_k is None else _gain(mean_cusum_k),
+        one if mean_cusum_k is None else gain_array(mean_cusum_k),
     )
 
 

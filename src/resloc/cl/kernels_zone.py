@@ -183,8 +183,8 @@ def keep_unjudged_state(state: ZoneState, fixes, li, lj) -> None:
     sequence test's, the reciprocal check's) of the withheld and substituted links back to
     what it was before the step (the reference stores the state of the rows its stages
     judged only: ``RedundancySequence.discard``, ``ReciprocalCheck.discard``). ``fixes``:
-    the pre-passes' verdicts (:class:`~resloc.cl.kernels_redundancy.FixVerdict`,
-    :class:`~resloc.cl.kernels_reciprocal.ReciprocalVerdict`; None: not run), whose saved
+    the pre-passes' verdicts (:class:`~resloc.cl.kernels_detection.PrepassVerdict` of
+    each; None: not run), whose saved
     store entries (:func:`~resloc.cl.kernels_detection.store_slots`) hold the state before
     them: a copy of the old values, or, when the step inserted links, the old keys and
     values."""
