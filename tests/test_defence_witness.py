@@ -222,10 +222,10 @@ def test_the_runtime_refuses_the_witness_in_one_line():
     assert "\n" not in str(err.value)
 
 
-def test_the_compiled_path_refuses_the_stage():
+def test_the_compiled_path_takes_the_stage():
     from resloc.cl.backend import _params_refusal
 
-    assert "witness" in _params_refusal(CLParams(witness=True))
+    assert WitnessCheck.compiled and _params_refusal(CLParams(witness=True)) is None
 
 
 def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch):
@@ -243,7 +243,8 @@ def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch
         record_witness(notes, params, memory)
         seen.append(float(witness_state(memory, np.array([5]))[0]))
 
-    monkeypatch.setattr(step_module, "record_witness", record)
+    monkeypatch.setattr(step_module, "record_witness", record)  # (either path)
+    monkeypatch.setattr("resloc.cl.kernels_witness.record_witness", record)
     adv = make_attacker("compromised", robots=1, claimed_cov=0.01)
     sc = default_scenario().replace(
         **defence_overrides("zone+full+redundancy+sequence+cap+landmarks+witness"),

@@ -71,8 +71,8 @@ observers lie (in their notes) in any step; the observers' readings of j are hon
 the map an in-zone sensing attack makes honest observers' notes lie); the observers'
 own estimates are not all pulled the same way by the lie (an observer a lie pulled by
 ``delta`` sees every neighbour ``delta`` off: the test compares j with the observers'
-consensus, not with the truth). The compiled kernel does not implement it
-(``compiled = False``: the correction falls back to the numpy path), and the runtime
+consensus, not with the truth). The compiled correction takes the stage's verdict as a
+per-link mask known before its loop (:mod:`resloc.cl.kernels_witness`); the runtime
 refuses it (the notes are not a message of its schema).
 """
 
@@ -345,7 +345,7 @@ class WitnessCheck:
     as it stood before this step (``params.witness``)."""
 
     name: ClassVar[str] = "witness"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
