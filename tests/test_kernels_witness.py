@@ -20,8 +20,14 @@ import pytest
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_witness, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
-from resloc.cl.detection_witness import STATE, witness_state
-from resloc.cl.params import at_robots
+from resloc.cl.detection_witness import (
+    STATE,
+    WitnessNotes,
+    reference_statistic,
+    witness_state,
+    witness_statistic,
+)
+from resloc.cl.params import CLParams, at_robots
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
@@ -108,3 +114,97 @@ def test_compiled_witness_equals_the_reference_through_convictions():
         assert out.detected[convicted].all()  # (no recovery re-admits a convicted robot here)
         discarded += int(convicted.sum())
     assert discarded > 0, "the stage convicted nobody: the case tests nothing"
+
+
+# ---------------------------------------------------------------------------------------
+# The compiled notes and statistic against the numpy spec.
+# ---------------------------------------------------------------------------------------
+def _random_notes(rng, robots: int, per_robot, lie=0.0, spread=1.0) -> WitnessNotes:
+    """Notes on robots 0..robots-1 (``per_robot[j]`` each, rows shuffled), honest noise
+    plus a common ``lie`` on robot 0 and, with ``spread`` > 1, a few notes far off."""
+    j = np.repeat(np.arange(robots), per_robot)
+    E = len(j)
+    i = rng.integers(robots, robots + 20, E)
+    A = rng.normal(0.0, 0.01, (E, 2, 2))
+    Q = A @ np.swapaxes(A, -1, -2) + 1e-5 * np.eye(2)
+    B = rng.normal(0.0, 0.005, (E, 2, 2))
+    P = B @ np.swapaxes(B, -1, -2) + 1e-6 * np.eye(2)
+    u = np.einsum("eab,eb->ea", np.linalg.cholesky(Q), rng.normal(size=(E, 2)))
+    u[j == 0] += lie
+    far = rng.random(E) < 0.15
+    u[far] *= spread
+    order = rng.permutation(E)
+    sent = rng.random(E) > 0.05
+    return WitnessNotes(u[order], Q[order], P[order], i[order], j[order], sent[order])
+
+
+def _both(notes, params, robots=None):
+    with kernels.use_backend("numba"):
+        before = kernels_witness.WITNESS_RUNS["statistics"]
+        fast = witness_statistic(notes, params, robots)
+        assert kernels_witness.WITNESS_RUNS["statistics"] == before + 1, "not compiled"
+    ref = reference_statistic(notes, params, robots)
+    np.testing.assert_array_equal(fast[0], ref[0])
+    np.testing.assert_array_equal(fast[2], ref[2])
+    np.testing.assert_allclose(fast[1], ref[1], rtol=1e-9, atol=1e-12)
+    return ref
+
+
+@pytest.mark.parametrize("liars", [0, 1, 2, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_statistic_equals_the_spec_on_random_notes(liars, seed):
+    rng = np.random.default_rng(seed)
+    params = CLParams(witness=True, witness_liars=float(liars), witness_h=30.0)
+    counts = rng.integers(0, 14, 9)
+    counts[:3] = (liars, liars + 1, 1)  # at most f notes, f + 1, a single note
+    notes = _random_notes(rng, 9, counts, lie=0.03, spread=float(rng.choice([1.0, 30.0])))
+    _, T, judged = _both(notes, params)
+    assert judged.any() and (T[judged] > 0.0).all()
+    _both(notes, params, robots=np.array([0, 4, 7]))
+
+
+def test_the_compiled_statistic_equals_the_spec_on_adversarial_notes():
+    rng = np.random.default_rng(9)
+    params = CLParams(witness=True, witness_liars=2.0, witness_h=30.0)
+    notes = _random_notes(rng, 4, np.array([8, 8, 5, 3]))
+    u = notes.u.copy()
+    on = [np.flatnonzero(notes.j == r) for r in range(4)]
+    u[on[0]] = np.where(np.arange(len(on[0]))[:, None] % 2, 1.0, -1.0)  # no consistent set
+    u[on[1][:2]] += 0.5  # two far liars (droppable)
+    u[on[2]] = u[on[2][0]]  # equal notes (ties between sets)
+    P = notes.P_pos.copy()
+    P[on[3]] = P[on[3][0]]  # equal claimed traces (argmax ties)
+    sent = np.ones(len(u), bool)
+    adversarial = WitnessNotes(u, notes.Q, P, notes.i, notes.j, sent)
+    ids, T, _ = _both(adversarial, params)
+    half_h = 0.5 * params.witness_h
+    assert T[list(ids).index(0)] == half_h  # the "no consistent set" rule
+    # a per-robot f (per-robot arrays of the gains)
+    per_robot = CLParams(witness=True, witness_liars=np.array([0.0, 1.0, 3.0, 2.0]))
+    _both(adversarial, per_robot)
+
+
+def test_the_compiled_notes_and_cusum_equal_the_spec():
+    from resloc.cl.detection_witness import witness_cusum, witness_notes
+
+    rng = np.random.default_rng(3)
+    E = 50
+    z = np.c_[rng.uniform(0.1, 3.0, E), rng.uniform(-np.pi, np.pi, E)]
+    x_obs = np.c_[rng.normal(size=(E, 2)), rng.uniform(-np.pi, np.pi, E)]
+    A = rng.normal(0.0, 0.05, (E, 3, 3))
+    P_obs = A @ np.swapaxes(A, -1, -2) + 1e-6 * np.eye(3)
+    x_nb = x_obs + np.c_[rng.normal(size=(E, 2)), np.zeros(E)]
+    x_nb[0, :2] = x_obs[0, :2]  # a neighbour at the observer's position (r = 0)
+    R = np.diag([0.01**2, 0.02**2])
+    with kernels.use_backend("numba"):
+        u, Q = kernels_witness.fast_notes(z, x_obs, P_obs, x_nb, R)
+    u0, Q0 = witness_notes(z, x_obs, P_obs, x_nb, R)
+    np.testing.assert_allclose(u, u0, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(Q, Q0, rtol=1e-9, atol=1e-15)
+    S = rng.uniform(0.0, 80.0, E)
+    T = rng.exponential(10.0, E)
+    judged = rng.random(E) < 0.7
+    k, h = np.full(E, 4.0), np.full(E, 40.0)
+    out = np.empty(E)
+    kernels_witness.cusum_of(S, T, judged, k, h, out)
+    np.testing.assert_allclose(out, witness_cusum(S, T, judged, k, h), rtol=0, atol=1e-12)

@@ -92,7 +92,10 @@ if TYPE_CHECKING:
 __all__ = [
     "WitnessCheck",
     "WitnessNotes",
+    "liars_at",
+    "note_groups",
     "record_witness",
+    "reference_statistic",
     "step_notes",
     "witness_cusum",
     "witness_notes",
@@ -186,8 +189,10 @@ def step_notes(
     compute): readings ``z (E, 2)`` as reported, the observers' predicted estimates, the
     neighbours' broadcast estimates with their claimed covariances ``P_nb (E, 3, 3)``."""
     from resloc.cl.detection_zone import inside_zone_map
+    from resloc.cl.kernels_witness import fast_notes  # numba's import, on first use
 
-    u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R)
+    notes = fast_notes(z, x_obs, P_obs, x_nb, params.R)
+    u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R) if notes is None else notes
     sent = np.ones(len(u), bool)
     if params.zone_trust and params.zone_trust_map:
         sent = ~inside_zone_map(np.asarray(x_obs)[:, :2], params.zone_trust_map)
@@ -208,7 +213,7 @@ def _dropped(m: int, d: int) -> np.ndarray:
     return _COMBINATIONS[key]
 
 
-def _consistency_gate(p: float, dof: int) -> float:
+def consistency_gate(p: float, dof: int) -> float:
     key = (float(p), int(dof))
     if key not in _GATES:
         from resloc.distributions import chi2_isf
@@ -240,14 +245,41 @@ def witness_statistic(
     judged : ndarray of bool, shape (G,)
         More than f notes on the robot this step.
     """
+    from resloc.cl.kernels_witness import fast_statistic  # numba's import, on first use
+
+    fast = fast_statistic(notes, params, robots)
+    if fast is not None:
+        return fast
+    return reference_statistic(notes, params, robots)
+
+
+def note_groups(
+    notes: WitnessNotes, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The sent notes grouped by the robot they are on: ``rows`` (sorted by ``j``, stable),
+    and per group the robot ``ids``, its first position in ``rows`` and its size."""
     rows = np.flatnonzero(notes.sent)
     if robots is not None:
         rows = rows[np.isin(notes.j[rows], robots)]
     rows = rows[np.argsort(notes.j[rows], kind="stable")]
     ids, start, count = np.unique(notes.j[rows], return_index=True, return_counts=True)
+    return rows, ids, start, count
+
+
+def liars_at(params: CLParams, ids: np.ndarray) -> np.ndarray:
+    """``f`` of each robot in ``ids (G,)``: the notes its statistic may drop, int64."""
+    f = np.rint(at_robots(params.witness_liars, ids)).astype(np.int64)
+    return np.ascontiguousarray(np.broadcast_to(f, ids.shape))
+
+
+def reference_statistic(
+    notes: WitnessNotes, params: CLParams, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`witness_statistic` in numpy (its executable specification)."""
+    rows, ids, start, count = note_groups(notes, robots)
     G = len(ids)
     T = np.zeros(G)
-    f = np.broadcast_to(np.rint(at_robots(params.witness_liars, ids)).astype(int), (G,))
+    f = liars_at(params, ids)
     judged = count > f
     if not judged.any():
         return ids, T, judged
@@ -286,7 +318,7 @@ def witness_statistic(
                 ok = (
                     np.ones(spread.shape, bool)
                     if size == 1
-                    else spread <= _consistency_gate(p_fa, 2 * (size - 1))
+                    else spread <= consistency_gate(p_fa, 2 * (size - 1))
                 )
                 Ca = Pj[g, 0, 0][:, None] + Ia
                 Cb = 0.5 * (Pj[g, 0, 1] + Pj[g, 1, 0])[:, None] + Ib
