@@ -277,12 +277,37 @@ def reference_statistic(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`witness_statistic` in numpy (its executable specification)."""
     rows, ids, start, count = note_groups(notes, robots)
+    T, judged = reference_groups(notes, params, rows, start, count, ids)
+    return ids, T, judged
+
+
+def group_statistic(
+    notes: WitnessNotes,
+    params: CLParams,
+    rows: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    ids: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The statistic ``T (G,)`` and ``judged (G,)`` of any groups of notes: group ``g`` is
+    ``rows[start[g] : start[g] + count[g]]`` of ``notes``, all on robot ``ids[g]`` (its
+    ``f`` and ``h``). The compiled twin with the numba backend, else the numpy spec."""
+    from resloc.cl.kernels_witness import fast_groups  # numba's import, on first use
+
+    fast = fast_groups(notes, params, rows, start, count, ids)
+    if fast is not None:
+        return fast
+    return reference_groups(notes, params, rows, start, count, ids)
+
+
+def reference_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`group_statistic` in numpy (its executable specification)."""
     G = len(ids)
     T = np.zeros(G)
     f = liars_at(params, ids)
     judged = count > f
     if not judged.any():
-        return ids, T, judged
+        return T, judged
     u, Q = notes.u[rows], notes.Q[rows]
     det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
     Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
@@ -326,7 +351,7 @@ def reference_statistic(
                 stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
                 best = np.minimum(best, np.where(ok, stat, np.inf).min(axis=1))
             T[g] = np.where(np.isfinite(best), best, half_h[g])
-    return ids, T, judged
+    return T, judged
 
 
 def witness_cusum(

@@ -54,6 +54,7 @@ __all__ = [
     "WitnessInputs",
     "WitnessVerdict",
     "cusum_of",
+    "fast_groups",
     "fast_notes",
     "fast_statistic",
     "group_statistics",
@@ -356,7 +357,15 @@ def fast_statistic(
     if backend() != "numba":
         return None
     rows, ids, start, count = note_groups(notes, robots)
+    T, judged = fast_groups(notes, params, rows, start, count, ids)
+    return ids, T, judged
+
+
+def fast_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`~resloc.cl.detection_witness.group_statistic` compiled (group ``g`` on robot
+    ``ids[g]``); None with the numpy backend."""
+    if backend() != "numba":
+        return None
     f = liars_at(params, ids)
     half_h = 0.5 * np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), ids.shape)
-    T, judged = statistic_of_groups(notes, params, rows, start, count, f, half_h)
-    return ids, T, judged
+    return statistic_of_groups(notes, params, rows, start, count, f, half_h)
