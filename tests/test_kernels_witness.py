@@ -49,8 +49,9 @@ def _params(**changes):
 
 
 def _witness_states(memory: LinkMemory) -> dict[int, float]:
+    """Every receiver's statistic on every robot, by the pair's key."""
     stat = memory.stage_statistic(STATE)
-    return dict(zip((stat.keys // stat.n_nodes).tolist(), stat.values.tolist(), strict=True))
+    return dict(zip(stat.keys.tolist(), stat.values.tolist(), strict=True))
 
 
 def lockstep(filt, params, steps: int, seed: int):
@@ -68,8 +69,6 @@ def lockstep(filt, params, steps: int, seed: int):
         ws = world.step()
         step = AttackStep(k + 1, world.dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
         step = dataclasses.replace(step, attacked=adversary.mark(ws.attacked, step))
-        h = at_robots(params.witness_h, ws.j)
-        convicted = witness_state(state["numpy"][2], ws.j) > h  # before the step: discarded
         res = {}
         for path, (x, P, memory) in state.items():
             with _path(path):
@@ -96,6 +95,9 @@ def lockstep(filt, params, steps: int, seed: int):
             np.testing.assert_allclose(
                 [got[r] for r in reference], list(reference.values()), rtol=0, atol=1e-9
             )
+        # the verdicts of the step: after the notes of the step before arrived
+        h = at_robots(params.witness_h, ws.j)
+        convicted = witness_state(state["numpy"][2], ws.i, ws.j) > h
         yield res["numpy"][2], state["numpy"][2], convicted
 
 
@@ -208,3 +210,39 @@ def test_the_compiled_notes_and_cusum_equal_the_spec():
     out = np.empty(E)
     kernels_witness.cusum_of(S, T, judged, k, h, out)
     np.testing.assert_allclose(out, witness_cusum(S, T, judged, k, h), rtol=0, atol=1e-12)
+
+
+def test_the_receivers_statistics_compiled_equal_the_spec():
+    """Each receiver's groups (its own notes and the frames that got through) judged by the
+    compiled twin and by the numpy spec: equal, and the jammed frames change them."""
+    from resloc.cl.detection_witness_frames import received_state
+    from resloc.cl.memory import LinkStatistic
+
+    rng = np.random.default_rng(11)
+    params = CLParams(witness=True, witness_liars=2.0, witness_h=30.0)
+    n = 12
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    keep = rng.random(len(pairs)) < 0.8  # who observes whom
+    i, j = pairs[keep].T
+    E = len(i)
+    A = rng.normal(0.0, 0.01, (E, 2, 2))
+    Q = A @ np.swapaxes(A, -1, -2) + 1e-5 * np.eye(2)
+    u = rng.normal(0.0, 0.01, (E, 2)) + np.where((j == 0)[:, None], 0.05, 0.0)
+    P = np.tile(1e-5 * np.eye(2), (E, 1, 1))
+    notes = WitnessNotes(u, Q, P, i, j, rng.random(E) > 0.05)
+    state = LinkStatistic(n)
+    state.set(i, j, rng.uniform(0.0, 50.0, E))
+    results = []
+    for ok in (np.ones(E, bool), rng.random(E) > 0.3):
+        with kernels.use_backend("numba"):
+            before = kernels_witness.WITNESS_RUNS["statistics"]
+            fast = received_state(notes, params, state, i, j, ok)
+            assert kernels_witness.WITNESS_RUNS["statistics"] == before + 1, "not compiled"
+        with kernels.use_backend("numpy"):
+            ref = received_state(notes, params, state, i, j, ok)
+        for a, b in zip(fast[:2], ref[:2], strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(fast[2], ref[2], rtol=1e-9, atol=1e-12)
+        results.append(ref)
+    assert len(results[0][0]) > len(np.unique(j))  # one group per receiver and robot
+    assert not np.array_equal(results[0][2][: len(results[1][2])], results[1][2])

@@ -94,7 +94,6 @@ __all__ = [
     "WitnessNotes",
     "liars_at",
     "note_groups",
-    "record_witness",
     "reference_statistic",
     "step_notes",
     "witness_cusum",
@@ -363,43 +362,16 @@ def witness_cusum(
     return np.clip(S + step - k, 0.0, 2.0 * h)
 
 
-def witness_state(memory: LinkMemory, robots: np.ndarray) -> np.ndarray:
-    """``S_j`` of ``robots (G,)`` as it stands (0 for a robot never noted on)."""
-    robots = np.asarray(robots)
-    return memory.stage_statistic(STATE).get(robots, robots)
-
-
-def updated_state(
-    notes: WitnessNotes, params: CLParams, memory: LinkMemory, robots: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """The robots noted on and their ``S_j`` after this step's notes (memory unchanged)."""
-    ids, T, judged = witness_statistic(notes, params, robots)
-    k = np.broadcast_to(np.asarray(at_robots(params.witness_k, ids), float), ids.shape)
-    h = np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), ids.shape)
-    return ids, witness_cusum(witness_state(memory, ids), T, judged, k, h)
-
-
-def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMemory | None):
-    """Update every noted robot's ``S_j`` with the step's notes (at the end of the step:
-    the verdicts of this step were read before); robots with no note decay by ``k``."""
-    if notes is None:
-        return
-    if memory is None:
-        raise ValueError("detector witness (params.witness) needs a LinkMemory")
-    stat = memory.stage_statistic(STATE)
-    ids, S = updated_state(notes, params, memory)
-    silent = stat.keys // stat.n_nodes
-    silent = silent[(stat.keys % stat.n_nodes == silent) & ~np.isin(silent, ids)]
-    if len(silent):
-        k = np.broadcast_to(np.asarray(at_robots(params.witness_k, silent), float), silent.shape)
-        ids = np.concatenate([ids, silent])
-        S = np.concatenate([S, np.maximum(witness_state(memory, silent) - k, 0.0)])
-    stat.set(ids, ids, S)
+def witness_state(memory: LinkMemory, receivers: np.ndarray, robots: np.ndarray) -> np.ndarray:
+    """``S_{r,j}`` of receivers ``r`` on ``robots`` ``j`` (both (G,)) as it stands (0 for a
+    pair never judged)."""
+    return memory.stage_statistic(STATE).get(np.asarray(receivers), np.asarray(robots))
 
 
 class WitnessCheck:
-    """Discard every link from a neighbour whose observers' notes convict it: ``S_j > h``
-    as it stood before this step (``params.witness``)."""
+    """Receiver i discards every link from a neighbour j that the notes i received convict:
+    ``S_{i,j} > h`` after the notes that arrived with this step's frames
+    (``params.witness``)."""
 
     name: ClassVar[str] = "witness"
     compiled: ClassVar[bool] = True
@@ -414,4 +386,4 @@ class WitnessCheck:
         if memory is None:
             raise ValueError("detector witness (params.witness) needs a LinkMemory")
         j = np.asarray(evidence.j)
-        return witness_state(memory, j) > at_robots(params.witness_h, j)
+        return witness_state(memory, evidence.i, j) > at_robots(params.witness_h, j)

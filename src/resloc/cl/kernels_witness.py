@@ -1,21 +1,22 @@
 """Compiled path of the witness stage (:mod:`resloc.cl.detection_witness`).
 
-The stage's verdict on a link ``(i, j)`` depends only on ``S_j`` as it stood before the
-step (the notes of step ``t`` arrive with the broadcasts of ``t + 1``): it is known before
-the link loop runs. :func:`witness_verdict` computes it once per step, with the step's notes
-(the readings as reported, the claims as sent), and the compiled loops read it as a per-link
+Receiver i's verdict on a link ``(i, j)`` depends only on ``S_{i,j}`` after the notes of
+the step before arrived with this step's frames
+(:func:`~resloc.cl.detection_witness_frames.delivered_store`): it is known before the link
+loop runs. :func:`witness_verdict` computes it once per step, with the step's notes (the
+readings as reported, the claims as sent), and the compiled loops read it as a per-link
 mask (:attr:`KernelDetection.witness <resloc.cl.kernels_detection.KernelDetection>`: a
 discard on every row the other stages judge, zone trust's substituted rows included, as
-``WitnessCheck.discard`` does). :meth:`WitnessVerdict.record` updates the statistic with the
-step's notes once the loop has succeeded (:func:`~resloc.cl.detection_witness.record_witness`).
+``WitnessCheck.discard`` does). :meth:`WitnessVerdict.record` puts the delivered statistic
+and the step's notes in the memory once the loop has succeeded (nothing to undo before).
 
 =============================  ==========================================================
 function                       numpy twin
 =============================  ==========================================================
 :func:`witness_links`          the head of ``resloc.cl.step._correct_reference`` (an
                                adversary's hook applied to every row)
-:func:`witness_verdict`        ``WitnessCheck.discard`` and ``step_notes`` (plus the
-                               adversary's ``notes`` hook)
+:func:`witness_verdict`        ``deliver_witness``, ``WitnessCheck.discard`` and
+                               ``step_notes`` (plus the adversary's ``notes`` hook)
 :func:`notes_of`               :func:`~resloc.cl.detection_witness.witness_notes`
 :func:`group_statistics`       :func:`~resloc.cl.detection_witness.reference_statistic`
                                (any grouping of the notes: rows sorted by a group key,
@@ -23,9 +24,10 @@ function                       numpy twin
 :func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
 =============================  ==========================================================
 
-``step_notes`` and ``witness_statistic`` run :func:`fast_notes` and :func:`fast_statistic`
-when the backend is numba (the CL step's notes, ``record_witness``, and the compromised
-robot's oracle, which evaluates the statistic a dozen times a step), else the numpy spec.
+``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
+:func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
+notes, every receiver's statistic, and the compromised robot's oracle, which evaluates them
+a dozen times a step), else the numpy spec.
 """
 
 from __future__ import annotations
@@ -41,12 +43,12 @@ from resloc.cl.detection_witness import (
     consistency_gate,
     liars_at,
     note_groups,
-    record_witness,
     step_notes,
-    witness_state,
 )
+from resloc.cl.detection_witness_frames import delivered_store, put_store, record_witness
 from resloc.cl.kernels_math import jit_lanes
 from resloc.cl.links import LinkBatch
+from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 
 __all__ = [
@@ -82,13 +84,17 @@ class WitnessInputs(NamedTuple):
 
 
 class WitnessVerdict(NamedTuple):
-    """The step's verdict ``discard (E,)`` bool and its ``notes`` (recorded at the end)."""
+    """The step's verdict ``discard (E,)`` bool, the receivers' statistic after the notes
+    that arrived with this step's frames (``store``) and the step's ``notes``: both put in
+    the memory once the loop has succeeded."""
 
     discard: np.ndarray
+    store: LinkStatistic
     notes: WitnessNotes
 
     def record(self, params: CLParams, memory) -> None:
-        """Update the statistic with the step's notes (after the loop succeeded)."""
+        """The delivered statistic and the step's notes into ``memory`` (after the loop)."""
+        put_store(memory, self.store)
         record_witness(self.notes, params, memory)
 
 
@@ -104,20 +110,22 @@ def witness_links(filt, x, P, links: LinkBatch, strategy, memory, R) -> LinkBatc
 def witness_verdict(
     params: CLParams, memory, x: np.ndarray, P: np.ndarray, links: LinkBatch, inputs: WitnessInputs
 ) -> WitnessVerdict | None:
-    """Every link's verdict (``S_j > h`` before the step) and the step's notes; ``x``, ``P``
-    the predicted estimates, ``links`` with the readings as reported. None without a memory
-    (the reference path raises the explanatory error)."""
+    """Every link's verdict (``S_{i,j} > h`` after the notes that arrived with this step's
+    frames: :func:`~resloc.cl.detection_witness_frames.delivered_store`) and the step's
+    notes; ``x``, ``P`` the predicted estimates, ``links`` with the readings as reported.
+    None without a memory (the reference path raises the explanatory error)."""
     if memory is None:
         return None
     j = np.asarray(links.j)
-    discard = np.ascontiguousarray(witness_state(memory, j) > at_robots(params.witness_h, j))
+    store = delivered_store(params, memory, links.i, j, links.channel_ok)
+    discard = np.ascontiguousarray(store.get(links.i, j) > at_robots(params.witness_h, j))
     notes = step_notes(
         links.z, x[links.i], P[links.i], links.x_nb, inputs.claimed, links.i, j, params
     )
     if inputs.lie_notes is not None:
         notes = inputs.lie_notes(notes)
     WITNESS_RUNS["verdicts"] += 1
-    return WitnessVerdict(discard.astype(np.bool_, copy=False), notes)
+    return WitnessVerdict(discard.astype(np.bool_, copy=False), store, notes)
 
 
 # ---------------------------------------------------------------------------------------
