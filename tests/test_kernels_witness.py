@@ -215,7 +215,8 @@ def test_the_compiled_notes_and_cusum_equal_the_spec():
 def test_the_receivers_statistics_compiled_equal_the_spec():
     """Each receiver's groups (its own notes and the frames that got through) judged by the
     compiled twin and by the numpy spec: equal, and the jammed frames change them."""
-    from resloc.cl.detection_witness_frames import received_state
+    from resloc.cl.detection_witness import reference_groups, witness_cusum
+    from resloc.cl.detection_witness_frames import received_groups, received_state
     from resloc.cl.memory import LinkStatistic
 
     rng = np.random.default_rng(11)
@@ -231,9 +232,15 @@ def test_the_receivers_statistics_compiled_equal_the_spec():
     P = np.tile(1e-5 * np.eye(2), (E, 1, 1))
     notes = WitnessNotes(u, Q, P, i, j, rng.random(E) > 0.05)
     state = LinkStatistic(n)
-    state.set(i, j, rng.uniform(0.0, 50.0, E))
+    low = rng.random(E) < 0.5  # half the pairs at 0 (their sets need no enumeration)
+    state.set(i, j, np.where(low, 0.0, rng.uniform(0.0, 50.0, E)))
     results = []
     for ok in (np.ones(E, bool), rng.random(E) > 0.3):
+        # the definition: every group's sets enumerated, then the CUSUM
+        recv, on, rows, start, count = received_groups(notes, i, j, ok)
+        T, judged = reference_groups(notes, params, rows, start, count, on)
+        k, h = params.witness_k, params.witness_h
+        plain = witness_cusum(state.get(recv, on), T, judged, k, h)
         with kernels.use_backend("numba"):
             before = kernels_witness.WITNESS_RUNS["statistics"]
             fast = received_state(notes, params, state, i, j, ok)
@@ -243,6 +250,8 @@ def test_the_receivers_statistics_compiled_equal_the_spec():
         for a, b in zip(fast[:2], ref[:2], strict=True):
             np.testing.assert_array_equal(a, b)
         np.testing.assert_allclose(fast[2], ref[2], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ref[2], plain, rtol=1e-12, atol=1e-12)
+        assert (plain == 0.0).sum() > 0.2 * len(plain)  # pairs the shortcut settles
         results.append(ref)
     assert len(results[0][0]) > len(np.unique(j))  # one group per receiver and robot
     assert not np.array_equal(results[0][2][: len(results[1][2])], results[1][2])

@@ -24,10 +24,9 @@ robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note
 readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
 by the receivers (they are sent and counted: a receiver sees where the observer says it is).
 In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
-notes and never judges anyone: it needs the team's notes (the simulator's batch). The
-simulator keeps one statistic per robot for the whole team: every robot is assumed to hear
-every note (not lost to jamming, not limited to radio range), an idealization that favours
-the stage (``docs/attack/witness.md``, "Threat model").
+notes and never judges anyone: it needs the team's notes (the simulator's batch). In the
+simulator each receiver judges the notes it received (:mod:`resloc.cl.detection_witness_frames`:
+the frames travel over the links' channels, jammed in the CDZ like the estimates).
 
 **The aggregate of robot j's notes, robust to f lying observers** (``witness_liars``: the
 compromised robots also send notes, and may exonerate each other or accuse honest robots).
@@ -53,17 +52,20 @@ statistic only decays). When no candidate set is consistent (more than f notes d
 outside the threat model, or j lying inconsistently to its observers) the step counts
 ``witness_h / 2``.
 
-**Sequence test, with recovery.** Per robot ``S_j <- clip(S_j + min(T_j, h / 2) - k, 0,
-2 h)`` (``k = witness_k``, ``h = witness_h``; a step without judgement adds ``-k``). While
-``S_j > h`` every robot discards j's broadcasts (all links ``(i, j)``). The notes keep
-coming (the readings are the observers' own), so a robot that stops lying decays back
-under ``h`` in at most ``h / (k - 2)`` steps on average: no robot is locked out forever.
+**Sequence test, with recovery.** Per receiver r and robot j, over the notes on j that r
+received, ``S_{r,j} <- clip(S_{r,j} + min(T, h / 2) - k, 0, 2 h)`` (``k = witness_k``,
+``h = witness_h``; a step without judgement adds ``-k``). While ``S_{r,j} > h`` receiver r
+discards j's broadcasts (the link ``(r, j)``). The notes keep coming (the readings are the
+observers' own), so a robot that stops lying decays back under ``h`` in at most
+``h / (k - 2)`` steps on average: no robot is locked out forever.
 
-**Latency.** The notes of step ``t`` travel with the broadcasts of step ``t + 1``: the
-verdict applied in step ``t`` is ``S_j`` as it stood after step ``t - 1``; the step's own
-notes update it at the end of the step (:func:`record_witness`). An attacker that knows
-the defence keeps the updated ``S_j`` under ``h`` (the compromised robot's oracle,
-:mod:`resloc.world.attackers.estimates`).
+**Latency.** The notes of step ``t`` travel in the observers' frames of step ``t + 1``
+(:func:`~resloc.cl.detection_witness_frames.record_witness` keeps them at the end of step
+``t``; :func:`~resloc.cl.detection_witness_frames.deliver_witness` delivers them at the
+start of step ``t + 1``, before any verdict): the verdict applied in step ``t + 1`` reads
+the notes up to step ``t``. An attacker that knows the defence keeps every honest
+receiver's ``S_{r,j}`` under ``h`` (the compromised robot's oracle,
+:mod:`resloc.world.attackers.witness`).
 
 What it assumes, where it fails (``docs/attack/witness.md``): at most f of a robot's
 observers lie (in their notes) in any step; the observers' readings of j are honest
@@ -210,6 +212,21 @@ def _dropped(m: int, d: int) -> np.ndarray:
         combos = list(itertools.combinations(range(m), d))
         _COMBINATIONS[key] = np.array(combos, dtype=np.intp).reshape(len(combos), d)
     return _COMBINATIONS[key]
+
+
+_GATE_TABLES: dict[tuple[float, int], np.ndarray] = {}
+
+
+def consistency_gates(p: float, largest: int) -> np.ndarray:
+    """``gates[n]``: the consistency gate of a set of ``n`` notes for ``2 <= n <= largest``
+    (at least 16; ``inf`` below 2), kept per ``p``."""
+    key = (float(p), max(int(largest), 16))
+    if key not in _GATE_TABLES:
+        gates = np.full(key[1] + 1, np.inf)
+        for n in range(2, key[1] + 1):
+            gates[n] = consistency_gate(p, 2 * (n - 1))
+        _GATE_TABLES[key] = gates
+    return _GATE_TABLES[key]
 
 
 def consistency_gate(p: float, dof: int) -> float:

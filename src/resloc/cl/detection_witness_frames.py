@@ -24,7 +24,9 @@ import numpy as np
 from resloc.cl.detection_witness import (
     STATE,
     WitnessNotes,
+    consistency_gates,
     group_statistic,
+    liars_at,
     witness_cusum,
 )
 from resloc.cl.memory import LinkMemory, LinkStatistic
@@ -40,6 +42,7 @@ __all__ = [
     "received_state",
     "received_statistic",
     "record_witness",
+    "whole_set_statistic",
 ]
 
 #: The notes of the step before, waiting for this step's frames, keyed (observer, j):
@@ -175,10 +178,58 @@ def received_state(
     groups`), from ``state`` (a :class:`~resloc.cl.memory.LinkStatistic` keyed (r, j)):
     ``(receiver, on, S)``, shapes (G,)."""
     recv, on, rows, start, count = received_groups(notes, i, j, channel_ok, robots)
-    T, judged = received_statistic(notes, params, on, rows, start, count)
     k = np.broadcast_to(np.asarray(at_robots(params.witness_k, on), float), on.shape)
     h = np.broadcast_to(np.asarray(at_robots(params.witness_h, on), float), on.shape)
-    return recv, on, witness_cusum(state.get(recv, on), T, judged, k, h)
+    S = state.get(recv, on)
+    T, consistent = whole_set_statistic(notes, params, rows, start, count)
+    judged = count > liars_at(params, on)
+    # A pair whose whole set of notes is consistent and leaves S at 0 needs no smaller
+    # statistic (the smallest is at most the whole set's, and the CUSUM clips at 0): its
+    # sets are not enumerated (the honest steady state: most pairs).
+    need = np.flatnonzero(~(judged & consistent & (S + T - k <= 0.0)))
+    if len(need):
+        sub = rows[_ranges(start[need], count[need])]
+        T[need], _ = received_statistic(
+            notes, params, on[need], sub, np.cumsum(count[need]) - count[need], count[need]
+        )
+    return recv, on, witness_cusum(S, T, judged, k, h)
+
+
+def whole_set_statistic(
+    notes: WitnessNotes, params: CLParams, rows, start, count
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each group's ``T_K`` and consistency for ``K`` all its notes (no note dropped),
+    shapes (G,), by the formulas of :func:`~resloc.cl.detection_witness.reference_groups`."""
+    G = len(start)
+    if G == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    u, Q, P = notes.u[rows], notes.Q[rows], notes.P_pos[rows]
+    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
+    Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
+    ya = Ya * u[:, 0] + Yb * u[:, 1]
+    yb = Yb * u[:, 0] + Yc * u[:, 1]
+    q = u[:, 0] * ya + u[:, 1] * yb
+    Sa, Sb, Sc, sa, sb, sq = np.add.reduceat(np.stack([Ya, Yb, Yc, ya, yb, q], 1), start).T
+    dS = Sa * Sc - Sb * Sb
+    Ia, Ib, Ic = Sc / dS, -Sb / dS, Sa / dS
+    ma, mb = Ia * sa + Ib * sb, Ib * sa + Ic * sb
+    spread = sq - (ma * sa + mb * sb)
+    p_fa = float(np.max(params.witness_false_alarm))
+    gate = consistency_gates(p_fa, int(count.max()))[count]
+    consistent = (count < 2) | (spread <= gate)
+    # j's claim: the first largest trace of the group's claims
+    trace = P[:, 0, 0] + P[:, 1, 1]
+    group = np.repeat(np.arange(G), count)
+    top = np.flatnonzero(trace == np.repeat(np.maximum.reduceat(trace, start), count))
+    _, first = np.unique(group[top], return_index=True)
+    if len(first) != G:  # a claim that is not a number: every set enumerated
+        return np.full(G, np.nan), np.zeros(G, bool)
+    Pj = P[top[first]]
+    Ca = Pj[:, 0, 0] + Ia
+    Cb = 0.5 * (Pj[:, 0, 1] + Pj[:, 1, 0]) + Ib
+    Cc = Pj[:, 1, 1] + Ic
+    T = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+    return T, consistent & np.isfinite(T)
 
 
 def delivered_store(

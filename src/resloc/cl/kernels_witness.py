@@ -40,7 +40,7 @@ import numpy as np
 from resloc.cl.backend import backend
 from resloc.cl.detection_witness import (
     WitnessNotes,
-    consistency_gate,
+    consistency_gates,
     liars_at,
     note_groups,
     step_notes,
@@ -315,20 +315,6 @@ def fast_notes(z, x_obs, P_obs, x_nb, R) -> tuple[np.ndarray, np.ndarray] | None
     return u, Q
 
 
-_GATES: dict[tuple[float, int], np.ndarray] = {}
-
-
-def _gates(p: float, largest: int) -> np.ndarray:
-    """``gates[n]``: the consistency gate of a set of ``n`` notes (n >= 2), n <= largest."""
-    key = (p, max(int(largest), 16))
-    if key not in _GATES:
-        gates = np.full(key[1] + 1, np.inf)
-        for n in range(2, key[1] + 1):
-            gates[n] = consistency_gate(p, 2 * (n - 1))
-        _GATES[key] = gates
-    return _GATES[key]
-
-
 def statistic_of_groups(
     notes: WitnessNotes, params: CLParams, rows, start, count, f, half_h
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -340,7 +326,7 @@ def statistic_of_groups(
     if G == 0:
         return T, judged
     rows = np.asarray(rows)
-    gates = _gates(float(np.max(params.witness_false_alarm)), int(np.max(count)))
+    gates = consistency_gates(float(np.max(params.witness_false_alarm)), int(np.max(count)))
     group_statistics(
         np.ascontiguousarray(notes.u[rows], dtype=float),
         np.ascontiguousarray(notes.Q[rows], dtype=float),

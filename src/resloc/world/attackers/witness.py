@@ -10,13 +10,18 @@ Two things, both with full knowledge of the defence:
   honest neighbour it accuses: its honest note moved by :data:`ACCUSATION` standard
   deviations along world +x, the direction of the lies (a note far beyond that is dropped
   by the consistency test anyway).
-* **Their broadcasts stay under the aggregate test** (:func:`within_witness`). The notes of
-  the step update each robot's sequence test at the end of the step; a liar whose
-  statistic then exceeds ``witness_h`` is ignored by everyone from the next step on. The
-  attacker scales all of one liar's lies of the step by one factor ``c`` in ``[0, 1]``,
-  the largest (bisection) that keeps its updated statistic at most ``witness_h``, given its
-  fellows' lying notes. (One common factor per liar, not an allocation across victims: the
-  per-victim oracle has already put every lie at its victim's own limit.)
+* **Their broadcasts stay under every receiver's test** (:func:`within_witness`). The notes
+  of the step arrive with the next step's frames, and each receiver updates its own
+  statistic on the liar with the notes it received; a receiver whose statistic then
+  exceeds ``witness_h`` ignores the liar from then on. The attacker knows every receiver's
+  statistic (the memory) and this step's channel outcomes, and predicts which frames will
+  get through by them (the next step's draws are not known when it lies). It scales all of
+  one liar's lies of the step by one factor ``c`` in ``[0, 1]``, the largest (bisection)
+  that keeps every honest receiver's updated statistic at most ``witness_h``, given its
+  fellows' lying notes; a receiver already above ``h`` with the liar's honest notes is
+  given up (it convicts whatever the liar sends). (One common factor per liar, not an
+  allocation across victims: the per-victim oracle has already put every lie at its
+  victim's own limit.)
 """
 
 from __future__ import annotations
