@@ -156,7 +156,11 @@ def received_statistic(
         return np.zeros(0), np.zeros(0, bool)
     words = _row_words(len(notes))[rows]
     sums = np.add.reduceat(words, start) if len(rows) else np.zeros(G, np.uint64)
-    key = np.rec.fromarrays([np.asarray(on, np.int64), count, sums.view(np.int64)])
+    # one word per group: the rows' sum mixed with the robot and the size (a collision of
+    # two different sets has probability ~G^2 / 2^64)
+    mix = np.asarray(on, np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+    mix += np.asarray(count, np.uint64) * np.uint64(0xC2B2AE3D27D4EB4F)
+    key = (sums + mix).view(np.int64)
     _, first, back = np.unique(key, return_index=True, return_inverse=True)
     rep_rows = rows[_ranges(start[first], count[first])]
     rep_start = np.cumsum(count[first]) - count[first]
