@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from resloc.cl.detection import Evidence
 from resloc.cl.detection_witness import (
+    STATE,
     WitnessCheck,
     WitnessNotes,
-    record_witness,
     step_notes,
-    updated_state,
     witness_state,
     witness_statistic,
+)
+from resloc.cl.detection_witness_frames import (
+    deliver_witness,
+    delivered_store,
+    received_state,
+    record_witness,
 )
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
@@ -41,20 +48,35 @@ def _notes(rng, lie=(0.0, 0.0), accusers=0, accusation=(0.0, 0.0)) -> WitnessNot
     return WitnessNotes(u, Q, P, np.arange(1, n + 1), np.full(n, SUSPECT), np.ones(n, bool))
 
 
-def _run(steps, make, params=PARAMS, memory=None):
-    """The suspect's state after each step (the stage's update at the end of each step)."""
+#: The observers' radio links: each receives every other's frames.
+MESH = np.array(
+    [(r, o) for r in range(1, OBSERVERS + 1) for o in range(1, OBSERVERS + 1) if r != o]
+)
+RECEIVER = 1
+
+
+def _frames(ok=None):
+    """The step's links as the notes travel on them (receiver i, sender j)."""
+    ok = np.ones(len(MESH), bool) if ok is None else ok
+    return SimpleNamespace(i=MESH[:, 0], j=MESH[:, 1], channel_ok=ok)
+
+
+def _run(steps, make, params=PARAMS, memory=None, ok=None):
+    """Receiver 1's statistic on the suspect after each step's notes arrived (with the
+    frames of the step after)."""
     memory = LinkMemory(OBSERVERS + 1) if memory is None else memory
     out = []
     for k in range(steps):
         record_witness(make(k), params, memory)
-        out.append(float(witness_state(memory, np.array([SUSPECT]))[0]))
+        deliver_witness(params, memory, _frames(ok))
+        out.append(float(witness_state(memory, [RECEIVER], [SUSPECT])[0]))
     return np.array(out), memory
 
 
 def _convicted(memory, params=PARAMS) -> bool:
     ev = Evidence(
-        np.zeros((1, 2)), np.eye(2)[None], np.zeros(1), np.array([1]), np.array([SUSPECT]),
-        np.zeros(1, bool),
+        np.zeros((1, 2)), np.eye(2)[None], np.zeros(1), np.array([RECEIVER]),
+        np.array([SUSPECT]), np.zeros(1, bool),
     )  # fmt: skip
     return bool(WitnessCheck().discard(ev, params, memory)[0])
 
@@ -70,6 +92,22 @@ def test_a_coherent_liar_seen_by_every_observer_is_convicted():
     rng = np.random.default_rng(2)
     # 1.5 sd of one note: every per-link test of one observer passes it most of the time
     S, memory = _run(20, lambda k: _notes(rng, lie=(1.5 * SD_Q, 0.0)))
+    assert S[-1] > PARAMS.witness_h and _convicted(memory)
+
+
+def test_a_receiver_judges_only_the_notes_it_received():
+    """Receiver 1's frames from every other observer are jammed: it holds its own note on
+    the liar only (not judged, f = 2), while receiver 2, which hears everyone, convicts."""
+    rng = np.random.default_rng(2)
+    ok = MESH[:, 0] != RECEIVER
+    S, memory = _run(20, lambda k: _notes(rng, lie=(1.5 * SD_Q, 0.0)), ok=ok)
+    assert S.max() == 0.0 and not _convicted(memory)
+    assert witness_state(memory, [2], [SUSPECT])[0] > PARAMS.witness_h
+    # half of receiver 1's frames get through: it judges on what arrived (5 notes, a
+    # larger lie to convict on them)
+    rng = np.random.default_rng(2)
+    half = ok | (MESH[:, 1] % 2 == 0)
+    S, memory = _run(20, lambda k: _notes(rng, lie=(4.0 * SD_Q, 0.0)), ok=half)
     assert S[-1] > PARAMS.witness_h and _convicted(memory)
 
 
@@ -113,15 +151,14 @@ def test_a_robot_with_at_most_f_notes_is_not_judged():
 
 
 def _ring(liars=(0,)):
-    """Robot 0 at the origin, observers 1..7 on a unit circle (heading 0), every link to
-    robot 0 and back; honest readings exact."""
+    """Robot 0 at the origin, observers 1..7 on a unit circle (heading 0), every pair linked
+    both ways (sensing and radio); honest readings exact."""
     n = 8
     ang = np.linspace(0.0, 2 * np.pi, n - 1, endpoint=False)
     pos = np.vstack([[0.0, 0.0], np.c_[np.cos(ang), np.sin(ang)]])
     x = np.c_[pos, np.zeros(n)]
     P = np.tile(np.diag([1e-4, 1e-4, 1e-5]), (n, 1, 1))
-    i = np.r_[np.arange(1, n), np.zeros(n - 1, int)]
-    j = np.r_[np.zeros(n - 1, int), np.arange(1, n)]
+    i, j = np.array([(a, b) for a in range(n) for b in range(n) if a != b]).T  # every pair
     rel = x[j, :2] - x[i, :2]
     z = np.c_[np.hypot(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 1], rel[:, 0])]
     is_liar = np.isin(np.arange(n), liars)
@@ -140,17 +177,23 @@ def test_the_compromised_robots_lie_sits_on_the_witness_threshold(liars):
         return z[rows][None] - (lied - z[rows][None])
 
     memory = LinkMemory(len(x))
-    memory.stage_statistic("witness").set(np.array([0]), np.array([0]), np.array([20.0]))
+    receivers = np.arange(1, len(x))
+    S0 = np.linspace(12.0, 20.0, len(receivers))  # each receiver's statistic on robot 0
+    memory.stage_statistic(STATE).set(receivers, np.zeros(len(receivers), int), S0)
+    ok = np.ones(len(i), bool)
     a = within_witness(
-        np.ones(len(rows)), path, rows, z, x[i], P[i], x[j], P[j], i, j, is_liar, params, memory
-    )
+        np.ones(len(rows)), path, rows, z, x[i], P[i], x[j], P[j], i, j, ok, is_liar, params,
+        memory,
+    )  # fmt: skip
     assert 0.0 < a.min() and np.ptp(a) == 0.0  # one common factor, a lie is sent
+    now = delivered_store(params, memory, i, j, ok, np.array([0]))
 
     def S_after(frac):
         zz = z.copy()
         zz[rows] = path(frac[None])[0]
         notes = lying_notes(step_notes(zz, x[i], P[i], x[j], P[j], i, j, params), is_liar, params)
-        return updated_state(notes, params, memory, np.array([0]))[1][0]
+        recv, _, S = received_state(notes, params, now, i, j, ok, np.array([0]))
+        return S[~is_liar[recv]].max()  # the honest receivers' largest
 
     assert S_after(a) == pytest.approx(params.witness_h, rel=0.02)
     assert S_after(1.05 * a) > params.witness_h
@@ -222,10 +265,10 @@ def test_the_runtime_refuses_the_witness_in_one_line():
     assert "\n" not in str(err.value)
 
 
-def test_the_compiled_path_refuses_the_stage():
+def test_the_compiled_path_takes_the_stage():
     from resloc.cl.backend import _params_refusal
 
-    assert "witness" in _params_refusal(CLParams(witness=True))
+    assert WitnessCheck.compiled and _params_refusal(CLParams(witness=True)) is None
 
 
 def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch):
@@ -241,9 +284,12 @@ def test_the_compromised_robot_in_a_run_keeps_under_the_witness_test(monkeypatch
 
     def record(notes, params, memory):
         record_witness(notes, params, memory)
-        seen.append(float(witness_state(memory, np.array([5]))[0]))
+        stat = memory.stage_statistic(STATE)
+        r, j = stat.keys // stat.n_nodes, stat.keys % stat.n_nodes
+        seen.append(float(stat.values[(j == 5) & (r != 5)].max(initial=0.0)))
 
-    monkeypatch.setattr(step_module, "record_witness", record)
+    monkeypatch.setattr(step_module, "record_witness", record)  # (either path)
+    monkeypatch.setattr("resloc.cl.kernels_witness.record_witness", record)
     adv = make_attacker("compromised", robots=1, claimed_cov=0.01)
     sc = default_scenario().replace(
         **defence_overrides("zone+full+redundancy+sequence+cap+landmarks+witness"),

@@ -196,12 +196,15 @@ def kernel_refusal(filt, params: CLParams, links: LinkBatch, memory=None) -> str
     refusal = _params_refusal(params)
     if refusal is not None:
         return refusal
-    # (with the redundancy stage or the reciprocal check on, or zone trust without the
-    # partners' readings, the hook is applied to every row before the kernel, as the
-    # reference does: resloc.cl.kernels_redundancy.capped_links,
+    # (with the redundancy stage, the reciprocal check or the witness on, or zone trust
+    # without the partners' readings, the hook is applied to every row before the kernel,
+    # as the reference does: resloc.cl.kernels_redundancy.capped_links,
     # resloc.cl.kernels_reciprocal.partner_readings, resloc.cl.kernels_zone.zone_links)
     materialized = (
-        params.redundancy or params.reciprocal or (params.zone_trust and links.z_reciprocal is None)
+        params.redundancy
+        or params.reciprocal
+        or params.witness
+        or (params.zone_trust and links.z_reciprocal is None)
     )
     hook = links.tamper is not None and not materialized
     if hook and getattr(links.tamper, "kernel_form", None) is None:

@@ -24,10 +24,9 @@ robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note
 readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
 by the receivers (they are sent and counted: a receiver sees where the observer says it is).
 In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
-notes and never judges anyone: it needs the team's notes (the simulator's batch). The
-simulator keeps one statistic per robot for the whole team: every robot is assumed to hear
-every note (not lost to jamming, not limited to radio range), an idealization that favours
-the stage (``docs/attack/witness.md``, "Threat model").
+notes and never judges anyone: it needs the team's notes (the simulator's batch). In the
+simulator each receiver judges the notes it received (:mod:`resloc.cl.detection_witness_frames`:
+the frames travel over the links' channels, jammed in the CDZ like the estimates).
 
 **The aggregate of robot j's notes, robust to f lying observers** (``witness_liars``: the
 compromised robots also send notes, and may exonerate each other or accuse honest robots).
@@ -53,17 +52,20 @@ statistic only decays). When no candidate set is consistent (more than f notes d
 outside the threat model, or j lying inconsistently to its observers) the step counts
 ``witness_h / 2``.
 
-**Sequence test, with recovery.** Per robot ``S_j <- clip(S_j + min(T_j, h / 2) - k, 0,
-2 h)`` (``k = witness_k``, ``h = witness_h``; a step without judgement adds ``-k``). While
-``S_j > h`` every robot discards j's broadcasts (all links ``(i, j)``). The notes keep
-coming (the readings are the observers' own), so a robot that stops lying decays back
-under ``h`` in at most ``h / (k - 2)`` steps on average: no robot is locked out forever.
+**Sequence test, with recovery.** Per receiver r and robot j, over the notes on j that r
+received, ``S_{r,j} <- clip(S_{r,j} + min(T, h / 2) - k, 0, 2 h)`` (``k = witness_k``,
+``h = witness_h``; a step without judgement adds ``-k``). While ``S_{r,j} > h`` receiver r
+discards j's broadcasts (the link ``(r, j)``). The notes keep coming (the readings are the
+observers' own), so a robot that stops lying decays back under ``h`` in at most
+``h / (k - 2)`` steps on average: no robot is locked out forever.
 
-**Latency.** The notes of step ``t`` travel with the broadcasts of step ``t + 1``: the
-verdict applied in step ``t`` is ``S_j`` as it stood after step ``t - 1``; the step's own
-notes update it at the end of the step (:func:`record_witness`). An attacker that knows
-the defence keeps the updated ``S_j`` under ``h`` (the compromised robot's oracle,
-:mod:`resloc.world.attackers.estimates`).
+**Latency.** The notes of step ``t`` travel in the observers' frames of step ``t + 1``
+(:func:`~resloc.cl.detection_witness_frames.record_witness` keeps them at the end of step
+``t``; :func:`~resloc.cl.detection_witness_frames.deliver_witness` delivers them at the
+start of step ``t + 1``, before any verdict): the verdict applied in step ``t + 1`` reads
+the notes up to step ``t``. An attacker that knows the defence keeps every honest
+receiver's ``S_{r,j}`` under ``h`` (the compromised robot's oracle,
+:mod:`resloc.world.attackers.witness`).
 
 What it assumes, where it fails (``docs/attack/witness.md``): at most f of a robot's
 observers lie (in their notes) in any step; the observers' readings of j are honest
@@ -71,8 +73,8 @@ observers lie (in their notes) in any step; the observers' readings of j are hon
 the map an in-zone sensing attack makes honest observers' notes lie); the observers'
 own estimates are not all pulled the same way by the lie (an observer a lie pulled by
 ``delta`` sees every neighbour ``delta`` off: the test compares j with the observers'
-consensus, not with the truth). The compiled kernel does not implement it
-(``compiled = False``: the correction falls back to the numpy path), and the runtime
+consensus, not with the truth). The compiled correction takes the stage's verdict as a
+per-link mask known before its loop (:mod:`resloc.cl.kernels_witness`); the runtime
 refuses it (the notes are not a message of its schema).
 """
 
@@ -92,7 +94,9 @@ if TYPE_CHECKING:
 __all__ = [
     "WitnessCheck",
     "WitnessNotes",
-    "record_witness",
+    "liars_at",
+    "note_groups",
+    "reference_statistic",
     "step_notes",
     "witness_cusum",
     "witness_notes",
@@ -186,8 +190,10 @@ def step_notes(
     compute): readings ``z (E, 2)`` as reported, the observers' predicted estimates, the
     neighbours' broadcast estimates with their claimed covariances ``P_nb (E, 3, 3)``."""
     from resloc.cl.detection_zone import inside_zone_map
+    from resloc.cl.kernels_witness import fast_notes  # numba's import, on first use
 
-    u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R)
+    notes = fast_notes(z, x_obs, P_obs, x_nb, params.R)
+    u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R) if notes is None else notes
     sent = np.ones(len(u), bool)
     if params.zone_trust and params.zone_trust_map:
         sent = ~inside_zone_map(np.asarray(x_obs)[:, :2], params.zone_trust_map)
@@ -208,7 +214,22 @@ def _dropped(m: int, d: int) -> np.ndarray:
     return _COMBINATIONS[key]
 
 
-def _consistency_gate(p: float, dof: int) -> float:
+_GATE_TABLES: dict[tuple[float, int], np.ndarray] = {}
+
+
+def consistency_gates(p: float, largest: int) -> np.ndarray:
+    """``gates[n]``: the consistency gate of a set of ``n`` notes for ``2 <= n <= largest``
+    (at least 16; ``inf`` below 2), kept per ``p``."""
+    key = (float(p), max(int(largest), 16))
+    if key not in _GATE_TABLES:
+        gates = np.full(key[1] + 1, np.inf)
+        for n in range(2, key[1] + 1):
+            gates[n] = consistency_gate(p, 2 * (n - 1))
+        _GATE_TABLES[key] = gates
+    return _GATE_TABLES[key]
+
+
+def consistency_gate(p: float, dof: int) -> float:
     key = (float(p), int(dof))
     if key not in _GATES:
         from resloc.distributions import chi2_isf
@@ -240,17 +261,69 @@ def witness_statistic(
     judged : ndarray of bool, shape (G,)
         More than f notes on the robot this step.
     """
+    from resloc.cl.kernels_witness import fast_statistic  # numba's import, on first use
+
+    fast = fast_statistic(notes, params, robots)
+    if fast is not None:
+        return fast
+    return reference_statistic(notes, params, robots)
+
+
+def note_groups(
+    notes: WitnessNotes, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The sent notes grouped by the robot they are on: ``rows`` (sorted by ``j``, stable),
+    and per group the robot ``ids``, its first position in ``rows`` and its size."""
     rows = np.flatnonzero(notes.sent)
     if robots is not None:
         rows = rows[np.isin(notes.j[rows], robots)]
     rows = rows[np.argsort(notes.j[rows], kind="stable")]
     ids, start, count = np.unique(notes.j[rows], return_index=True, return_counts=True)
+    return rows, ids, start, count
+
+
+def liars_at(params: CLParams, ids: np.ndarray) -> np.ndarray:
+    """``f`` of each robot in ``ids (G,)``: the notes its statistic may drop, int64."""
+    f = np.rint(at_robots(params.witness_liars, ids)).astype(np.int64)
+    return np.ascontiguousarray(np.broadcast_to(f, ids.shape))
+
+
+def reference_statistic(
+    notes: WitnessNotes, params: CLParams, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`witness_statistic` in numpy (its executable specification)."""
+    rows, ids, start, count = note_groups(notes, robots)
+    T, judged = reference_groups(notes, params, rows, start, count, ids)
+    return ids, T, judged
+
+
+def group_statistic(
+    notes: WitnessNotes,
+    params: CLParams,
+    rows: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    ids: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The statistic ``T (G,)`` and ``judged (G,)`` of any groups of notes: group ``g`` is
+    ``rows[start[g] : start[g] + count[g]]`` of ``notes``, all on robot ``ids[g]`` (its
+    ``f`` and ``h``). The compiled twin with the numba backend, else the numpy spec."""
+    from resloc.cl.kernels_witness import fast_groups  # numba's import, on first use
+
+    fast = fast_groups(notes, params, rows, start, count, ids)
+    if fast is not None:
+        return fast
+    return reference_groups(notes, params, rows, start, count, ids)
+
+
+def reference_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`group_statistic` in numpy (its executable specification)."""
     G = len(ids)
     T = np.zeros(G)
-    f = np.broadcast_to(np.rint(at_robots(params.witness_liars, ids)).astype(int), (G,))
+    f = liars_at(params, ids)
     judged = count > f
     if not judged.any():
-        return ids, T, judged
+        return T, judged
     u, Q = notes.u[rows], notes.Q[rows]
     det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
     Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
@@ -286,7 +359,7 @@ def witness_statistic(
                 ok = (
                     np.ones(spread.shape, bool)
                     if size == 1
-                    else spread <= _consistency_gate(p_fa, 2 * (size - 1))
+                    else spread <= consistency_gate(p_fa, 2 * (size - 1))
                 )
                 Ca = Pj[g, 0, 0][:, None] + Ia
                 Cb = 0.5 * (Pj[g, 0, 1] + Pj[g, 1, 0])[:, None] + Ib
@@ -294,7 +367,7 @@ def witness_statistic(
                 stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
                 best = np.minimum(best, np.where(ok, stat, np.inf).min(axis=1))
             T[g] = np.where(np.isfinite(best), best, half_h[g])
-    return ids, T, judged
+    return T, judged
 
 
 def witness_cusum(
@@ -306,46 +379,19 @@ def witness_cusum(
     return np.clip(S + step - k, 0.0, 2.0 * h)
 
 
-def witness_state(memory: LinkMemory, robots: np.ndarray) -> np.ndarray:
-    """``S_j`` of ``robots (G,)`` as it stands (0 for a robot never noted on)."""
-    robots = np.asarray(robots)
-    return memory.stage_statistic(STATE).get(robots, robots)
-
-
-def updated_state(
-    notes: WitnessNotes, params: CLParams, memory: LinkMemory, robots: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """The robots noted on and their ``S_j`` after this step's notes (memory unchanged)."""
-    ids, T, judged = witness_statistic(notes, params, robots)
-    k = np.broadcast_to(np.asarray(at_robots(params.witness_k, ids), float), ids.shape)
-    h = np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), ids.shape)
-    return ids, witness_cusum(witness_state(memory, ids), T, judged, k, h)
-
-
-def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMemory | None):
-    """Update every noted robot's ``S_j`` with the step's notes (at the end of the step:
-    the verdicts of this step were read before); robots with no note decay by ``k``."""
-    if notes is None:
-        return
-    if memory is None:
-        raise ValueError("detector witness (params.witness) needs a LinkMemory")
-    stat = memory.stage_statistic(STATE)
-    ids, S = updated_state(notes, params, memory)
-    silent = stat.keys // stat.n_nodes
-    silent = silent[(stat.keys % stat.n_nodes == silent) & ~np.isin(silent, ids)]
-    if len(silent):
-        k = np.broadcast_to(np.asarray(at_robots(params.witness_k, silent), float), silent.shape)
-        ids = np.concatenate([ids, silent])
-        S = np.concatenate([S, np.maximum(witness_state(memory, silent) - k, 0.0)])
-    stat.set(ids, ids, S)
+def witness_state(memory: LinkMemory, receivers: np.ndarray, robots: np.ndarray) -> np.ndarray:
+    """``S_{r,j}`` of receivers ``r`` on ``robots`` ``j`` (both (G,)) as it stands (0 for a
+    pair never judged)."""
+    return memory.stage_statistic(STATE).get(np.asarray(receivers), np.asarray(robots))
 
 
 class WitnessCheck:
-    """Discard every link from a neighbour whose observers' notes convict it: ``S_j > h``
-    as it stood before this step (``params.witness``)."""
+    """Receiver i discards every link from a neighbour j that the notes i received convict:
+    ``S_{i,j} > h`` after the notes that arrived with this step's frames
+    (``params.witness``)."""
 
     name: ClassVar[str] = "witness"
-    compiled: ClassVar[bool] = False
+    compiled: ClassVar[bool] = True
     overrides: ClassVar[bool] = False
 
     def active(self, params: CLParams) -> bool:
@@ -357,4 +403,4 @@ class WitnessCheck:
         if memory is None:
             raise ValueError("detector witness (params.witness) needs a LinkMemory")
         j = np.asarray(evidence.j)
-        return witness_state(memory, j) > at_robots(params.witness_h, j)
+        return witness_state(memory, evidence.i, j) > at_robots(params.witness_h, j)

@@ -424,6 +424,11 @@ def fast_correct(
     """
     if _refusal(filt, params, links) is not None:
         return None
+    witness = None
+    if params.witness:  # the notes read the claims as sent (kernels_witness)
+        from resloc.cl.kernels_witness import WitnessInputs
+
+        witness = WitnessInputs.of(links)
     if params.redundancy:
         # The redundancy stage judges the links as reported at the predicted estimates
         # (claims capped, a tamper hook applied to every row: kernels_redundancy)
@@ -436,6 +441,14 @@ def fast_correct(
         from resloc.cl.kernels_claims import claimed_links  # compiled on first use
 
         links = claimed_links(params, links)
+    if witness is not None:  # the readings as reported; the verdict known before the loop
+        from resloc.cl.kernels_witness import witness_links, witness_verdict
+
+        strategy = fusion_strategy(params.fusion)
+        links = witness_links(filt, x, P, links, strategy, memory, params.R)
+        witness = witness_verdict(params, memory, x, P, links, witness)
+        if witness is None:
+            return None  # the reference path raises the explanatory error
     if params.reciprocal:
         # The reciprocal check compares the readings as reported with the partners'
         # (a tamper hook applied to every row: kernels_reciprocal)
@@ -534,6 +547,8 @@ def fast_correct(
         detect = detect._replace(fixes=both)
     if zone is not None:
         detect = detect._replace(zone=zone.kernel)
+    if witness is not None:
+        detect = detect._replace(witness=witness.discard)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -593,6 +608,8 @@ def fast_correct(
     P_out = strategy.finish(memory, P_out, lj, delivered)
     if need_memory and delivered.any():
         memory.store_delivered(li, lj, delivered, x_nb, P_nb, nb, out.norm)
+    if witness is not None:  # the step's notes, at its end (as the reference)
+        witness.record(params, memory)
     outcome = LinkOutcome(
         out.norm, out.threshold, detected, triggered, delivered, fused, repaired, compiled=True
     )
@@ -609,7 +626,7 @@ def options_beyond_paper(params: CLParams) -> bool:
         return True
     if strategy.kernel_bookkeeping != "none" or prepared.cached:
         return True
-    if params.redundancy or params.reciprocal or params.zone_trust:
+    if params.redundancy or params.reciprocal or params.zone_trust or params.witness:
         return True  # (the pre-passes' verdicts and zone trust's enter the options' form)
     rows = np.zeros(1, np.int64)
     detection = detector_state(params, None, rows, rows)  # None: a stage needs the memory

@@ -73,6 +73,10 @@ class KernelDetection(NamedTuple):
     # zone-aware trust (resloc.cl.kernels_zone): its map, the partners' readings and each
     # row's verdict, written by the loop (KernelZone.on False when the stage is off)
     zone: KernelZone
+    # (E,) bool: the links the witness stage discards (its neighbour convicted before the
+    # step: resloc.cl.kernels_witness), on every row judged (substituted ones too); empty
+    # when the stage is off
+    witness: np.ndarray
 
 
 class DetectorState(NamedTuple):
@@ -202,7 +206,7 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     else:
         mg, mslot = np.zeros((0, 4)), _NO_SLOTS
     kernel = KernelDetection(
-        cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES, no_zone()
+        cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES, no_zone(), _NO_FIXES
     )
     return DetectorState(kernel, tuple(saved))
 
@@ -306,11 +310,13 @@ def _link_mean_cusum(g, slot, w0, w1, k, h, passed):
 def detect_link(det, e, i, gated, nu0, nu1, n_det, det_norm, l00, l10, l11):
     """Every active stage on link ``e`` of observer ``i`` after the gate's verdict
     ``gated``: whether its measurement is discarded. Twin: :func:`resloc.cl.detection.detect`."""
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone = det
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone, witness = det
     # the redundancy stages' verdict, judged before the loop (kernels_redundancy); not on
     # a row zone trust substituted (fused as the partner's fix, not as this reading)
     fixed = fixes.shape[0] > 0 and fixes[e]
     detected = gated or (fixed and not (zone[0] and zone[3][e] == SUBSTITUTED))
+    if witness.shape[0] > 0 and witness[e]:  # the witness stage's, on every row
+        detected = True
     if cusum:
         if det_norm == NIS_CODE:
             stat = n_det * n_det

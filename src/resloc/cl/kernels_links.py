@@ -251,6 +251,7 @@ def correct_links(
     # the detector stages' block only where one is on (else its verdict is the gate's):
     # inlined, it unpacks its structure, a reference count per array and link
     detecting = detection[0] or detection[6] or detection[11].shape[0] > 0
+    detecting = detecting or detection[13].shape[0] > 0  # the witness stage's verdicts
     fusion_code = fusion[0]
     # tracked / factorized: moments under a correlated joint (kernels_joint_links)
     joint = fusion[3]

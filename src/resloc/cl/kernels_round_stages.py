@@ -187,8 +187,9 @@ def screen_lanes(
     reference-count update per link (measured: the pieces that take the structures, 0.5 us
     a link for the full defence; this loop, 0.05 us)."""
     trigger, det_norm = options[3], options[4]
-    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone = detection
+    cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone, witness = detection
     fixed = fixes.shape[0] > 0  # the redundancy pre-pass's verdict (kernels_redundancy)
+    convicted = witness.shape[0] > 0  # the witness stage's verdict (kernels_witness)
     zoned = zone[0]  # zone-aware trust's verdicts (kernels_zone.zone_lanes)
     verdict = zone[3]
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
@@ -207,6 +208,7 @@ def screen_lanes(
         l11 = update[4, c]
         # (not on a row zone trust substituted: fused as the partner's fix)
         detected = gated or (fixed and fixes[e] and not (zoned and verdict[e] == SUBSTITUTED))
+        detected = detected or (convicted and witness[e])
         if cusum:  # detect_link: the NIS CUSUM of the link
             if det_norm == NIS_CODE:
                 stat = norms[1, c] * norms[1, c]

@@ -148,6 +148,7 @@ def beyond_paper(options, fusion, detection, defence, gauge, tamper):
         or detection[0]  # NIS CUSUM
         or detection[6]  # mean-shift CUSUM
         or detection[11].shape[0] > 0  # the redundancy pre-pass's verdicts
+        or detection[13].shape[0] > 0  # the witness stage's verdicts
         or detection[12][0]  # zone-aware trust
         or defence[0]  # robot CUSUM
         or defence[5]  # recovery
@@ -242,7 +243,7 @@ def _rounds(
     R, jitter = options[0], options[8]
     tampered = tamper[0]
     screening = detection[0] or detection[6] or detection[11].shape[0] > 0 or defence[0]
-    screening = screening or defence[5]
+    screening = screening or defence[5] or detection[13].shape[0] > 0
     recovering = defence[5]
     cached = options[9]
     kalman = fusion[0] == NAIVE_UPDATE

@@ -18,7 +18,8 @@ from resloc.cl.detection import Evidence, detect
 from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
-from resloc.cl.detection_witness import record_witness, step_notes
+from resloc.cl.detection_witness import step_notes
+from resloc.cl.detection_witness_frames import deliver_witness, record_witness
 from resloc.cl.detection_zone import (
     materialize_with_reciprocal,
     reciprocal_position_fix,
@@ -386,8 +387,10 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
             links = dataclasses.replace(links, z_reciprocal=reported(links.z_reciprocal))
     notes = None
     if params.witness:
-        # Every reading's note on its neighbour, sent with the next broadcast: the verdicts
-        # of this step read the notes of the steps before (record_witness, at the end).
+        # The notes of the step before arrive with this step's frames (each receiver's
+        # statistic); every reading's note on its neighbour waits for the next step's
+        # frames (record_witness, at the end).
+        deliver_witness(params, memory, links)
         notes = step_notes(
             links.z, x[links.i], P[links.i], links.x_nb, claimed, links.i, links.j, params
         )

@@ -148,8 +148,8 @@ class CompromisedRobot(Strategy):
                 path, zh, S[hit], links.i[r], links.j[r], judged, memory, context=context
             )
             if params.witness and memory is not None and links.neighbours is not None:
-                # The observers' notes on each liar must keep it under the witness test
-                # after this step (its fellows' notes lying for it).
+                # The notes on each liar must keep it under every honest receiver's
+                # witness test once they arrive (its fellows' notes lying for it).
                 source = links.neighbours
                 a = within_witness(
                     a,
@@ -162,6 +162,7 @@ class CompromisedRobot(Strategy):
                     P_nb,
                     links.i,
                     links.j,
+                    links.channel_ok,
                     is_liar,
                     params,
                     memory,

@@ -1,0 +1,365 @@
+"""Compiled path of the witness stage (:mod:`resloc.cl.detection_witness`).
+
+Receiver i's verdict on a link ``(i, j)`` depends only on ``S_{i,j}`` after the notes of
+the step before arrived with this step's frames
+(:func:`~resloc.cl.detection_witness_frames.delivered_store`): it is known before the link
+loop runs. :func:`witness_verdict` computes it once per step, with the step's notes (the
+readings as reported, the claims as sent), and the compiled loops read it as a per-link
+mask (:attr:`KernelDetection.witness <resloc.cl.kernels_detection.KernelDetection>`: a
+discard on every row the other stages judge, zone trust's substituted rows included, as
+``WitnessCheck.discard`` does). :meth:`WitnessVerdict.record` puts the delivered statistic
+and the step's notes in the memory once the loop has succeeded (nothing to undo before).
+
+=============================  ==========================================================
+function                       numpy twin
+=============================  ==========================================================
+:func:`witness_links`          the head of ``resloc.cl.step._correct_reference`` (an
+                               adversary's hook applied to every row)
+:func:`witness_verdict`        ``deliver_witness``, ``WitnessCheck.discard`` and
+                               ``step_notes`` (plus the adversary's ``notes`` hook)
+:func:`notes_of`               :func:`~resloc.cl.detection_witness.witness_notes`
+:func:`group_statistics`       :func:`~resloc.cl.detection_witness.reference_statistic`
+                               (any grouping of the notes: rows sorted by a group key,
+                               each group its first row and size)
+:func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
+=============================  ==========================================================
+
+``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
+:func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
+notes, every receiver's statistic, and the compromised robot's oracle, which evaluates them
+a dozen times a step), else the numpy spec.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl.backend import backend
+from resloc.cl.detection_witness import (
+    WitnessNotes,
+    consistency_gates,
+    liars_at,
+    note_groups,
+    step_notes,
+)
+from resloc.cl.detection_witness_frames import delivered_store, put_store, record_witness
+from resloc.cl.kernels_math import jit_lanes
+from resloc.cl.links import LinkBatch
+from resloc.cl.memory import LinkStatistic
+from resloc.cl.params import CLParams, at_robots
+
+__all__ = [
+    "WITNESS_RUNS",
+    "WitnessInputs",
+    "WitnessVerdict",
+    "cusum_of",
+    "fast_groups",
+    "fast_notes",
+    "fast_statistic",
+    "group_statistics",
+    "notes_of",
+    "statistic_of_groups",
+    "witness_links",
+    "witness_verdict",
+]
+
+#: How often the compiled path took the stage's verdict, computed notes, statistics (the
+#: tests read it).
+WITNESS_RUNS = {"verdicts": 0, "notes": 0, "statistics": 0}
+
+
+class WitnessInputs(NamedTuple):
+    """What the notes take from the batch as it arrives: the claims as sent ``(E, 3, 3)``
+    (before any cap or landmark weakening) and an adversary's ``notes`` hook (or None)."""
+
+    claimed: np.ndarray
+    lie_notes: object
+
+    @classmethod
+    def of(cls, links: LinkBatch) -> WitnessInputs:
+        return cls(links.P_nb, getattr(links.tamper, "notes", None))
+
+
+class WitnessVerdict(NamedTuple):
+    """The step's verdict ``discard (E,)`` bool, the receivers' statistic after the notes
+    that arrived with this step's frames (``store``) and the step's ``notes``: both put in
+    the memory once the loop has succeeded."""
+
+    discard: np.ndarray
+    store: LinkStatistic
+    notes: WitnessNotes
+
+    def record(self, params: CLParams, memory) -> None:
+        """The delivered statistic and the step's notes into ``memory`` (after the loop)."""
+        put_store(memory, self.store)
+        record_witness(self.notes, params, memory)
+
+
+def witness_links(filt, x, P, links: LinkBatch, strategy, memory, R) -> LinkBatch:
+    """``links`` with an adversary's hook applied to every row at the predicted estimates
+    (the notes carry the readings as reported), as the reference does with the stage on;
+    ``links`` itself without a hook."""
+    from resloc.cl.kernels_reciprocal import partner_readings
+
+    return partner_readings(filt, x, P, links, strategy, memory, R)
+
+
+def witness_verdict(
+    params: CLParams, memory, x: np.ndarray, P: np.ndarray, links: LinkBatch, inputs: WitnessInputs
+) -> WitnessVerdict | None:
+    """Every link's verdict (``S_{i,j} > h`` after the notes that arrived with this step's
+    frames: :func:`~resloc.cl.detection_witness_frames.delivered_store`) and the step's
+    notes; ``x``, ``P`` the predicted estimates, ``links`` with the readings as reported.
+    None without a memory (the reference path raises the explanatory error)."""
+    if memory is None:
+        return None
+    j = np.asarray(links.j)
+    store = delivered_store(params, memory, links.i, j, links.channel_ok)
+    discard = np.ascontiguousarray(store.get(links.i, j) > at_robots(params.witness_h, j))
+    notes = step_notes(
+        links.z, x[links.i], P[links.i], links.x_nb, inputs.claimed, links.i, j, params
+    )
+    if inputs.lie_notes is not None:
+        notes = inputs.lie_notes(notes)
+    WITNESS_RUNS["verdicts"] += 1
+    return WitnessVerdict(discard.astype(np.bool_, copy=False), store, notes)
+
+
+# ---------------------------------------------------------------------------------------
+# The notes and the statistic, compiled (twins of witness_notes, witness_statistic and
+# witness_cusum). The statistic works on groups of notes: rows sorted by a group key, each
+# group given by its first row and its size, so that a group can be "the notes on j" (the
+# team's statistic) or "the notes on j that receiver r received".
+# ---------------------------------------------------------------------------------------
+@jit_lanes
+def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
+    """Each row's note ``u (E, 2)`` and its covariance ``Q (E, 2, 2)``, written in place,
+    from the readings ``z (E, 2)``, the observers' estimates ``x_obs (E, 3)``, ``P_obs
+    (E, 3, 3)`` and the neighbours' broadcasts ``x_nb (E, 3)``. Twin:
+    :func:`~resloc.cl.detection_witness.witness_notes` (the same products)."""
+    Jx = np.zeros((2, 3))
+    Jz = np.zeros((2, 2))
+    T3 = np.zeros((2, 3))
+    T2 = np.zeros((2, 2))
+    for e in range(z.shape[0]):
+        a = x_obs[e, 2] + z[e, 1]
+        r_mean = z[e, 0] * math.exp(0.5 * (R[1, 1] + P_obs[e, 2, 2]))
+        ca = math.cos(a)
+        sa = math.sin(a)
+        u[e, 0] = x_nb[e, 0] - (x_obs[e, 0] + r_mean * ca)
+        u[e, 1] = x_nb[e, 1] - (x_obs[e, 1] + r_mean * sa)
+        rel0 = x_nb[e, 0] - x_obs[e, 0]
+        rel1 = x_nb[e, 1] - x_obs[e, 1]
+        r = math.hypot(rel0, rel1)
+        if r > 0.0:
+            c = rel0 / r
+            s = rel1 / r
+        else:
+            c = ca
+            s = sa
+            r = z[e, 0]
+        Jx[0, 0] = 1.0
+        Jx[1, 1] = 1.0
+        Jx[0, 2] = -r * s
+        Jx[1, 2] = r * c
+        Jz[0, 0] = c
+        Jz[0, 1] = -r * s
+        Jz[1, 0] = s
+        Jz[1, 1] = r * c
+        for p in range(2):
+            for q in range(3):
+                acc = 0.0
+                for t in range(3):
+                    acc += Jx[p, t] * P_obs[e, t, q]
+                T3[p, q] = acc
+            for q in range(2):
+                acc = 0.0
+                for t in range(2):
+                    acc += Jz[p, t] * R[t, q]
+                T2[p, q] = acc
+        for p in range(2):
+            for q in range(2):
+                a3 = 0.0
+                for t in range(3):
+                    a3 += T3[p, t] * Jx[q, t]
+                a2 = 0.0
+                for t in range(2):
+                    a2 += T2[p, t] * Jz[q, t]
+                Q[e, p, q] = a3 + a2
+        off = 0.5 * (Q[e, 0, 1] + Q[e, 1, 0])
+        Q[e, 0, 1] = off
+        Q[e, 1, 0] = off
+
+
+@jit_lanes
+def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
+    """The step's statistic of every group of notes: group ``g`` is rows ``start[g] ..
+    start[g] + count[g] - 1`` of ``u (E, 2)``, ``Q (E, 2, 2)``, ``P_pos (E, 2, 2)``;
+    ``f (G,)`` the notes it may drop, ``half_h (G,)`` what a group with no consistent set
+    counts, ``gates (M,)`` the consistency gate of a set of each size (``gates[n]``, n >= 2).
+    Writes ``T (G,)`` (the smallest ``T_K`` over the consistent sets left after dropping at
+    most ``f[g]`` notes; 0 where not judged) and ``judged (G,)`` (more than ``f[g]``
+    notes). The sets are enumerated (every combination of dropped notes). Twin:
+    :func:`~resloc.cl.detection_witness.witness_statistic` (the same sums in the same
+    order)."""
+    terms = np.zeros((max(count.max() if count.shape[0] else 0, 1), 6))
+    idx = np.zeros(max(f.max() if f.shape[0] else 0, 1) + 1, np.int64)
+    kept = np.zeros(6)
+    for g in range(start.shape[0]):
+        m = count[g]
+        s0 = start[g]
+        T[g] = 0.0
+        judged[g] = m > f[g]
+        if not judged[g]:
+            continue
+        tot = np.zeros(6)
+        big = s0
+        best_trace = -np.inf
+        for k in range(m):
+            e = s0 + k
+            det = Q[e, 0, 0] * Q[e, 1, 1] - Q[e, 0, 1] * Q[e, 1, 0]
+            Ya = Q[e, 1, 1] / det
+            Yb = -0.5 * (Q[e, 0, 1] + Q[e, 1, 0]) / det
+            Yc = Q[e, 0, 0] / det
+            ya = Ya * u[e, 0] + Yb * u[e, 1]
+            yb = Yb * u[e, 0] + Yc * u[e, 1]
+            terms[k, 0] = Ya
+            terms[k, 1] = Yb
+            terms[k, 2] = Yc
+            terms[k, 3] = ya
+            terms[k, 4] = yb
+            terms[k, 5] = u[e, 0] * ya + u[e, 1] * yb
+            for c in range(6):
+                tot[c] += terms[k, c]
+            trace = P_pos[e, 0, 0] + P_pos[e, 1, 1]
+            if trace > best_trace:  # (the first of equal traces, as argmax)
+                best_trace = trace
+                big = e
+        P00 = P_pos[big, 0, 0]
+        P01 = 0.5 * (P_pos[big, 0, 1] + P_pos[big, 1, 0])
+        P11 = P_pos[big, 1, 1]
+        best = np.inf
+        dmax = min(f[g], m - 1)
+        for d in range(dmax + 1):
+            for t in range(d):
+                idx[t] = t
+            while True:
+                for c in range(6):
+                    dropped = 0.0
+                    for t in range(d):
+                        dropped += terms[idx[t], c]
+                    kept[c] = tot[c] - dropped
+                Sa, Sb, Sc, sa, sb, sq = kept[0], kept[1], kept[2], kept[3], kept[4], kept[5]
+                dS = Sa * Sc - Sb * Sb
+                Ia = Sc / dS
+                Ib = -Sb / dS
+                Ic = Sa / dS
+                ma = Ia * sa + Ib * sb
+                mb = Ib * sa + Ic * sb
+                size = m - d
+                ok = True
+                if size > 1:
+                    spread = sq - (ma * sa + mb * sb)
+                    ok = spread <= gates[size]
+                if ok:
+                    Ca = P00 + Ia
+                    Cb = P01 + Ib
+                    Cc = P11 + Ic
+                    stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+                    if math.isnan(stat) or math.isnan(best):
+                        best = np.nan  # (np.minimum propagates a nan)
+                    elif stat < best:
+                        best = stat
+                # the next combination of d of m positions (lexicographic)
+                t = d - 1
+                while t >= 0 and idx[t] == m - d + t:
+                    t -= 1
+                if t < 0:
+                    break
+                idx[t] += 1
+                for t2 in range(t + 1, d):
+                    idx[t2] = idx[t2 - 1] + 1
+        T[g] = best if math.isfinite(best) else half_h[g]
+
+
+@jit_lanes
+def cusum_of(S, T, judged, k, h, out):
+    """``clip(S + min(T, h / 2) - k, 0, 2 h)`` (``T`` counted only where ``judged``), all
+    ``(G,)``, into ``out``. Twin: :func:`~resloc.cl.detection_witness.witness_cusum`."""
+    for g in range(S.shape[0]):
+        step = min(T[g], 0.5 * h[g]) if judged[g] else 0.0
+        v = S[g] + step - k[g]
+        out[g] = min(max(v, 0.0), 2.0 * h[g])
+
+
+def fast_notes(z, x_obs, P_obs, x_nb, R) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`notes_of` on the arrays as :func:`~resloc.cl.detection_witness.witness_notes`
+    takes them: ``(u, Q)``, or None with the numpy backend or shapes it does not take."""
+    if backend() != "numba":
+        return None
+    z, x_obs, P_obs, x_nb, R = (
+        np.ascontiguousarray(a, dtype=float) for a in (z, x_obs, P_obs, x_nb, R)
+    )
+    E = len(z)
+    if z.shape != (E, 2) or x_obs.shape != (E, 3) or P_obs.shape != (E, 3, 3):
+        return None
+    if x_nb.shape != (E, 3) or R.shape != (2, 2):
+        return None
+    u = np.empty((E, 2))
+    Q = np.empty((E, 2, 2))
+    notes_of(z, x_obs, P_obs, x_nb, R, u, Q)
+    WITNESS_RUNS["notes"] += 1
+    return u, Q
+
+
+def statistic_of_groups(
+    notes: WitnessNotes, params: CLParams, rows, start, count, f, half_h
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`group_statistics` of the groups ``start``, ``count`` (G,) of ``rows`` of
+    ``notes`` (each group's notes consecutive in ``rows``): ``(T, judged)``."""
+    G = len(start)
+    T = np.zeros(G)
+    judged = np.zeros(G, np.bool_)
+    if G == 0:
+        return T, judged
+    rows = np.asarray(rows)
+    gates = consistency_gates(float(np.max(params.witness_false_alarm)), int(np.max(count)))
+    group_statistics(
+        np.ascontiguousarray(notes.u[rows], dtype=float),
+        np.ascontiguousarray(notes.Q[rows], dtype=float),
+        np.ascontiguousarray(notes.P_pos[rows], dtype=float),
+        np.ascontiguousarray(start, dtype=np.int64),
+        np.ascontiguousarray(count, dtype=np.int64),
+        np.ascontiguousarray(f, dtype=np.int64),
+        np.ascontiguousarray(half_h, dtype=float),
+        gates,
+        T,
+        judged,
+    )
+    WITNESS_RUNS["statistics"] += 1
+    return T, judged
+
+
+def fast_statistic(
+    notes: WitnessNotes, params: CLParams, robots: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`~resloc.cl.detection_witness.witness_statistic` compiled (the groups: the
+    notes on each robot); None with the numpy backend."""
+    if backend() != "numba":
+        return None
+    rows, ids, start, count = note_groups(notes, robots)
+    T, judged = fast_groups(notes, params, rows, start, count, ids)
+    return ids, T, judged
+
+
+def fast_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`~resloc.cl.detection_witness.group_statistic` compiled (group ``g`` on robot
+    ``ids[g]``); None with the numpy backend."""
+    if backend() != "numba":
+        return None
+    f = liars_at(params, ids)
+    half_h = 0.5 * np.broadcast_to(np.asarray(at_robots(params.witness_h, ids), float), ids.shape)
+    return statistic_of_groups(notes, params, rows, start, count, f, half_h)

@@ -1,0 +1,257 @@
+"""The witness stage on the compiled path (:mod:`resloc.cl.kernels_witness`).
+
+The lockstep case runs the default scenario (two trials batched, 34 robots) with the best
+defence and the witness through three paths, each with its own estimates, memory and
+attacker's view: the rounds, the row-order loop and the numpy reference. Three compromised
+robots lie; their oracle believes the witness threshold is four times what the defence
+uses, so they send lies (and lying notes) the stage convicts: the verdicts then discard
+rows, which the compiled paths must reproduce (1e-9, identical decisions, the same witness
+statistic), having actually run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_witness, predict
+from resloc.cl import kernels_rounds as rounds
+from resloc.cl.backend import kernel_refusal
+from resloc.cl.detection_witness import (
+    STATE,
+    WitnessNotes,
+    reference_statistic,
+    witness_state,
+    witness_statistic,
+)
+from resloc.cl.params import CLParams, at_robots
+from resloc.experiments.config import default_scenario
+from resloc.experiments.defences import DEFENCES
+from resloc.filters import make_filter
+from resloc.world.attackers import AttackStep, make_attacker
+from resloc.world.world import World
+from test_kernels_reciprocal import assert_matches_reference
+from test_kernels_redundancy import links_of_one_step
+from test_kernels_round_options import _path
+from test_kernels_rounds import assert_same_loops
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+DEFENCE = "zone+full+redundancy+sequence+cap+landmarks+witness"
+PATHS = ("rounds", "row_order", "numpy")
+
+
+def _params(**changes):
+    return replace(default_scenario().replace(**DEFENCES[DEFENCE]).cl_params(), **changes)
+
+
+def _witness_states(memory: LinkMemory) -> dict[int, float]:
+    """Every receiver's statistic on every robot, by the pair's key."""
+    stat = memory.stage_statistic(STATE)
+    return dict(zip(stat.keys.tolist(), stat.values.tolist(), strict=True))
+
+
+def lockstep(filt, params, steps: int, seed: int):
+    """``steps`` steps through :data:`PATHS`; checks every step, yields the reference's
+    outcome, memory and which rows come from a compromised robot."""
+    sc = default_scenario()
+    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    N = world.n
+    x0, P0 = world.initial_estimates()
+    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in PATHS}
+    adversary = make_attacker("compromised", robots=3, claimed_cov=0.01)
+    # the attackers aim at a threshold 4x the defence's: the stage convicts them
+    fooled = replace(params, witness_h=4.0 * float(np.max(params.witness_h)))
+    for k in range(steps):
+        ws = world.step()
+        step = AttackStep(k + 1, world.dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
+        step = dataclasses.replace(step, attacked=adversary.mark(ws.attacked, step))
+        res = {}
+        for path, (x, P, memory) in state.items():
+            with _path(path):
+                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                links = LinkBatch.from_predicted(
+                    ws.i, ws.j, ws.z, xp, Pp, ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
+                )
+                links = adversary.attack(links, step, fooled, memory)
+                before = rounds.LOOP_RUNS.copy()
+                runs = kernels_witness.WITNESS_RUNS["verdicts"]
+                res[path] = correct(filt, xp, Pp, links, params, memory)
+                ran = rounds.LOOP_RUNS - before
+                took = kernels_witness.WITNESS_RUNS["verdicts"] - runs
+            if path != "numpy":
+                assert ran == {path: 1}, f"expected the {path} loop, ran {dict(ran)}"
+                assert res[path][2].compiled and took == 1, "the compiled path did not run"
+            state[path] = (res[path][0], res[path][1], memory)
+        assert_same_loops(res["rounds"], res["row_order"])
+        assert_matches_reference(res["rounds"], res["numpy"])
+        reference = _witness_states(state["numpy"][2])
+        for path in ("rounds", "row_order"):
+            got = _witness_states(state[path][2])
+            assert got.keys() == reference.keys()
+            np.testing.assert_allclose(
+                [got[r] for r in reference], list(reference.values()), rtol=0, atol=1e-9
+            )
+        # the verdicts of the step: after the notes of the step before arrived
+        h = at_robots(params.witness_h, ws.j)
+        convicted = witness_state(state["numpy"][2], ws.i, ws.j) > h
+        yield res["numpy"][2], state["numpy"][2], convicted
+
+
+def test_the_stage_runs_compiled():
+    params = _params()
+    links = links_of_one_step()
+    assert kernel_refusal(make_filter("ckf"), params, links) is None
+    tampered = dataclasses.replace(links, tamper=lambda rows, z_hat, S: links.z[rows])
+    assert kernel_refusal(make_filter("ckf"), params, tampered) is None  # a Python hook too
+
+
+def test_compiled_witness_equals_the_reference_through_convictions():
+    params = _params()
+    discarded = 0
+    for out, _memory, convicted in lockstep(make_filter("ckf"), params, 40, 7):
+        assert out.detected[convicted].all()  # (no recovery re-admits a convicted robot here)
+        discarded += int(convicted.sum())
+    assert discarded > 0, "the stage convicted nobody: the case tests nothing"
+
+
+# ---------------------------------------------------------------------------------------
+# The compiled notes and statistic against the numpy spec.
+# ---------------------------------------------------------------------------------------
+def _random_notes(rng, robots: int, per_robot, lie=0.0, spread=1.0) -> WitnessNotes:
+    """Notes on robots 0..robots-1 (``per_robot[j]`` each, rows shuffled), honest noise
+    plus a common ``lie`` on robot 0 and, with ``spread`` > 1, a few notes far off."""
+    j = np.repeat(np.arange(robots), per_robot)
+    E = len(j)
+    i = rng.integers(robots, robots + 20, E)
+    A = rng.normal(0.0, 0.01, (E, 2, 2))
+    Q = A @ np.swapaxes(A, -1, -2) + 1e-5 * np.eye(2)
+    B = rng.normal(0.0, 0.005, (E, 2, 2))
+    P = B @ np.swapaxes(B, -1, -2) + 1e-6 * np.eye(2)
+    u = np.einsum("eab,eb->ea", np.linalg.cholesky(Q), rng.normal(size=(E, 2)))
+    u[j == 0] += lie
+    far = rng.random(E) < 0.15
+    u[far] *= spread
+    order = rng.permutation(E)
+    sent = rng.random(E) > 0.05
+    return WitnessNotes(u[order], Q[order], P[order], i[order], j[order], sent[order])
+
+
+def _both(notes, params, robots=None):
+    with kernels.use_backend("numba"):
+        before = kernels_witness.WITNESS_RUNS["statistics"]
+        fast = witness_statistic(notes, params, robots)
+        assert kernels_witness.WITNESS_RUNS["statistics"] == before + 1, "not compiled"
+    ref = reference_statistic(notes, params, robots)
+    np.testing.assert_array_equal(fast[0], ref[0])
+    np.testing.assert_array_equal(fast[2], ref[2])
+    np.testing.assert_allclose(fast[1], ref[1], rtol=1e-9, atol=1e-12)
+    return ref
+
+
+@pytest.mark.parametrize("liars", [0, 1, 2, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_statistic_equals_the_spec_on_random_notes(liars, seed):
+    rng = np.random.default_rng(seed)
+    params = CLParams(witness=True, witness_liars=float(liars), witness_h=30.0)
+    counts = rng.integers(0, 14, 9)
+    counts[:3] = (liars, liars + 1, 1)  # at most f notes, f + 1, a single note
+    notes = _random_notes(rng, 9, counts, lie=0.03, spread=float(rng.choice([1.0, 30.0])))
+    _, T, judged = _both(notes, params)
+    assert judged.any() and (T[judged] > 0.0).all()
+    _both(notes, params, robots=np.array([0, 4, 7]))
+
+
+def test_the_compiled_statistic_equals_the_spec_on_adversarial_notes():
+    rng = np.random.default_rng(9)
+    params = CLParams(witness=True, witness_liars=2.0, witness_h=30.0)
+    notes = _random_notes(rng, 4, np.array([8, 8, 5, 3]))
+    u = notes.u.copy()
+    on = [np.flatnonzero(notes.j == r) for r in range(4)]
+    u[on[0]] = np.where(np.arange(len(on[0]))[:, None] % 2, 1.0, -1.0)  # no consistent set
+    u[on[1][:2]] += 0.5  # two far liars (droppable)
+    u[on[2]] = u[on[2][0]]  # equal notes (ties between sets)
+    P = notes.P_pos.copy()
+    P[on[3]] = P[on[3][0]]  # equal claimed traces (argmax ties)
+    sent = np.ones(len(u), bool)
+    adversarial = WitnessNotes(u, notes.Q, P, notes.i, notes.j, sent)
+    ids, T, _ = _both(adversarial, params)
+    half_h = 0.5 * params.witness_h
+    assert T[list(ids).index(0)] == half_h  # the "no consistent set" rule
+    # a per-robot f (per-robot arrays of the gains)
+    per_robot = CLParams(witness=True, witness_liars=np.array([0.0, 1.0, 3.0, 2.0]))
+    _both(adversarial, per_robot)
+
+
+def test_the_compiled_notes_and_cusum_equal_the_spec():
+    from resloc.cl.detection_witness import witness_cusum, witness_notes
+
+    rng = np.random.default_rng(3)
+    E = 50
+    z = np.c_[rng.uniform(0.1, 3.0, E), rng.uniform(-np.pi, np.pi, E)]
+    x_obs = np.c_[rng.normal(size=(E, 2)), rng.uniform(-np.pi, np.pi, E)]
+    A = rng.normal(0.0, 0.05, (E, 3, 3))
+    P_obs = A @ np.swapaxes(A, -1, -2) + 1e-6 * np.eye(3)
+    x_nb = x_obs + np.c_[rng.normal(size=(E, 2)), np.zeros(E)]
+    x_nb[0, :2] = x_obs[0, :2]  # a neighbour at the observer's position (r = 0)
+    R = np.diag([0.01**2, 0.02**2])
+    with kernels.use_backend("numba"):
+        u, Q = kernels_witness.fast_notes(z, x_obs, P_obs, x_nb, R)
+    u0, Q0 = witness_notes(z, x_obs, P_obs, x_nb, R)
+    np.testing.assert_allclose(u, u0, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(Q, Q0, rtol=1e-9, atol=1e-15)
+    S = rng.uniform(0.0, 80.0, E)
+    T = rng.exponential(10.0, E)
+    judged = rng.random(E) < 0.7
+    k, h = np.full(E, 4.0), np.full(E, 40.0)
+    out = np.empty(E)
+    kernels_witness.cusum_of(S, T, judged, k, h, out)
+    np.testing.assert_allclose(out, witness_cusum(S, T, judged, k, h), rtol=0, atol=1e-12)
+
+
+def test_the_receivers_statistics_compiled_equal_the_spec():
+    """Each receiver's groups (its own notes and the frames that got through) judged by the
+    compiled twin and by the numpy spec: equal, and the jammed frames change them."""
+    from resloc.cl.detection_witness import reference_groups, witness_cusum
+    from resloc.cl.detection_witness_frames import received_groups, received_state
+    from resloc.cl.memory import LinkStatistic
+
+    rng = np.random.default_rng(11)
+    params = CLParams(witness=True, witness_liars=2.0, witness_h=30.0)
+    n = 12
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    keep = rng.random(len(pairs)) < 0.8  # who observes whom
+    i, j = pairs[keep].T
+    E = len(i)
+    A = rng.normal(0.0, 0.01, (E, 2, 2))
+    Q = A @ np.swapaxes(A, -1, -2) + 1e-5 * np.eye(2)
+    u = rng.normal(0.0, 0.01, (E, 2)) + np.where((j == 0)[:, None], 0.05, 0.0)
+    P = np.tile(1e-5 * np.eye(2), (E, 1, 1))
+    notes = WitnessNotes(u, Q, P, i, j, rng.random(E) > 0.05)
+    state = LinkStatistic(n)
+    low = rng.random(E) < 0.5  # half the pairs at 0 (their sets need no enumeration)
+    state.set(i, j, np.where(low, 0.0, rng.uniform(0.0, 50.0, E)))
+    results = []
+    for ok in (np.ones(E, bool), rng.random(E) > 0.3):
+        # the definition: every group's sets enumerated, then the CUSUM
+        recv, on, rows, start, count = received_groups(notes, i, j, ok)
+        T, judged = reference_groups(notes, params, rows, start, count, on)
+        k, h = params.witness_k, params.witness_h
+        plain = witness_cusum(state.get(recv, on), T, judged, k, h)
+        with kernels.use_backend("numba"):
+            before = kernels_witness.WITNESS_RUNS["statistics"]
+            fast = received_state(notes, params, state, i, j, ok)
+            assert kernels_witness.WITNESS_RUNS["statistics"] == before + 1, "not compiled"
+        with kernels.use_backend("numpy"):
+            ref = received_state(notes, params, state, i, j, ok)
+        for a, b in zip(fast[:2], ref[:2], strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(fast[2], ref[2], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ref[2], plain, rtol=1e-12, atol=1e-12)
+        assert (plain == 0.0).sum() > 0.2 * len(plain)  # pairs the shortcut settles
+        results.append(ref)
+    assert len(results[0][0]) > len(np.unique(j))  # one group per receiver and robot
+    assert not np.array_equal(results[0][2][: len(results[1][2])], results[1][2])
