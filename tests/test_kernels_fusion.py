@@ -106,7 +106,7 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
     here directly) gives the reference's cost at every candidate weight, for both
     criteria, with and without independent parts."""
     from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
-    from resloc.cl.kernels_fusion import _grid_costs
+    from resloc.cl.kernels_fusion import _GRID, _grid_costs
     from resloc.models.measurement import range_bearing_jacobians
 
     rng = np.random.default_rng(5)
@@ -127,8 +127,9 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
         b, bi = H_j @ Dj @ H_j.T, (H_j @ Ij @ H_j.T + R if split else np.zeros((2, 2)))
         quad = [a, ai, b, bi, Cd.T @ Cd, Cd.T @ Ci, Ci.T @ Ci]
         cost = np.full(CI_GRID.size, np.nan)
+        np.testing.assert_array_equal(_GRID[0], CI_GRID)
         _grid_costs(
-            CI_GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
+            _GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
             *(tuple(m.ravel()) for m in quad), tuple(Di.ravel()), tuple(Ii.ravel()),
             np.trace(Ii), tuple(R.ravel()), cost,
         )  # fmt: skip

@@ -80,7 +80,7 @@ class KernelFusion(NamedTuple):
 
     code: int  # a KERNEL_UPDATES code
     det: bool  # CI weight by the posterior determinant (else its trace)
-    grid: np.ndarray  # (G,) candidate CI weights
+    grid: np.ndarray  # (3, G) candidate CI weights w, 1 / w, 1 / (1 - w)
     joint: KernelJoint  # tracked / factorized: the cross-covariance bookkeeping
     independent: np.ndarray  # (B, 3, 3) split CI: the robots' independent parts
     P_nb_ind: np.ndarray  # (E, 3, 3) split CI: the transmitted independent parts
@@ -88,7 +88,9 @@ class KernelFusion(NamedTuple):
     costs: np.ndarray  # (G,) ci, split CI: scratch, the cost at each candidate weight
 
 
-_GRID = np.ascontiguousarray(CI_GRID, dtype=float)
+#: The candidate weights as the kernels take them, ``(3, G)``: the weights ``w``, ``1 / w``
+#: and ``1 / (1 - w)`` (the same divisions as the reference's, done once, not per link).
+_GRID = np.ascontiguousarray(np.stack([CI_GRID, 1.0 / CI_GRID, 1.0 / (1.0 - CI_GRID)]), dtype=float)
 _NONE3 = np.zeros((0, 3, 3))
 
 
@@ -97,7 +99,7 @@ def kernel_fusion(code: int, criterion: CICriterion, E: int = 0) -> KernelFusion
     keeps no per-link state."""
     return KernelFusion(
         int(code), CICriterion(criterion) is CICriterion.DET, _GRID, no_joint(E), _NONE3,
-        _NONE3, np.zeros((8, 3, 3)), np.empty(_GRID.shape[0]),
+        _NONE3, np.zeros((8, 3, 3)), np.empty(_GRID.shape[1]),
     )  # fmt: skip
 
 
@@ -134,9 +136,11 @@ def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray
 
 
 @jit_inline
-def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
+def _ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
-    weight ``w`` from the link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
+    weight ``w`` given as ``u = 1 / w`` and ``v = 1 / (1 - w)`` (the grid's are computed
+    once, :data:`_GRID`: one division per evaluation is left, that of ``S^-1``) from the
+    link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
     ``a = H_i D_i H_i^T``, ``b = H_j D_j H_j^T``, ``g = C^T C`` with ``C = D_i H_i^T``
     (``D``: the covariances, or their dependent parts with ``split``), and with ``split``
     the independent parts' ``ai = H_i I_i H_i^T``, ``bi = H_j I_j H_j^T + R``, ``gdi =
@@ -146,8 +150,6 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_i
     each array an inlined call receives costs a reference-count update, and the weight's
     search calls this 34 times a link (33 of them in :func:`_grid_costs`).
     Twin: ``resloc.cl.fusion._posterior_cost``."""
-    u = 1.0 / w
-    v = 1.0 / (1.0 - w)
     if split:
         sj00 = b[0] * v + bi[0]
         sj01 = b[1] * v + bi[1]
@@ -176,13 +178,13 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_i
         q01 = g[1] * u * u + (gdi[1] + gdi[2]) * u + gii[1]
         q10 = g[2] * u * u + (gdi[2] + gdi[1]) * u + gii[2]
         q11 = g[3] * u * u + (gdi[3] + gdi[3]) * u + gii[3]
-        tr_a = tr_i / w + tr_ip
+        tr_a = tr_i * u + tr_ip
     else:
         q00 = g[0] * u * u
         q01 = g[1] * u * u
         q10 = g[2] * u * u
         q11 = g[3] * u * u
-        tr_a = tr_i / w
+        tr_a = tr_i * u
     tr_gsinv = (q00 * s11 + q11 * s00 - q01 * s10 - q10 * s01) / det_s
     return tr_a - tr_gsinv
 
@@ -272,27 +274,45 @@ def _gram(c, d):
 
 @jit_lanes
 def _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost):
-    """The cost (:func:`_ci_cost`) at every candidate weight of ``grid`` into ``cost: (G,)``.
+    """The cost (:func:`_ci_cost`) at every candidate weight of ``grid: (3, G)`` (rows ``w``,
+    ``1 / w``, ``1 / (1 - w)``, :data:`_GRID`) into ``cost: (G,)``.
     A loop of its own, free of branches and compiled with IEEE division (``jit_lanes``),
     so that LLVM evaluates several weights per SIMD instruction; the same arithmetic per
     weight as one evaluation, so the same costs to the bit."""
-    for t in range(grid.shape[0]):
+    for t in range(grid.shape[1]):
         cost[t] = _ci_cost(
-            grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R
+            grid[1, t],
+            grid[2, t],
+            det,
+            split,
+            tr_i,
+            det_i,
+            a,
+            ai,
+            b,
+            bi,
+            g,
+            gdi,
+            gii,
+            Dp,
+            Ip,
+            tr_ip,
+            R,
         )
 
 
 @jit_lanes
 def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R,
                    prior, cost):  # fmt: skip
-    """The weight minimising the cost (arguments of :func:`_ci_cost`; ``prior``: the cost
+    """The weight minimising the cost (arguments of :func:`_ci_cost`, ``grid`` of
+    :func:`_grid_costs`; ``prior``: the cost
     of ``w = 1``, the prior kept; ``cost: (G,)``: scratch): the first best of the grid
     (:func:`_grid_costs`), refined by the parabola through it and its neighbours (the first
     or last three points when it is at an end) where that helps; 1.0 when no weight beats
     the prior. A call of its own, not inlined: the link loops' bodies stay small, and the
     grid's loop is vectorized (measured: the weight of a ``ci`` link about 2.3x faster
     than by the inlined scalar search that kept the best as it went)."""
-    n = grid.shape[0]
+    n = grid.shape[1]
     _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost)
     # the first best (a NaN first cost stays the best, as in the scalar search)
     best = cost[0]
@@ -305,19 +325,22 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
     c0 = cost[kc - 1]
     c1 = cost[kc]
     c2 = cost[kc + 1]
-    h = grid[1] - grid[0]
+    h = grid[0, 1] - grid[0, 0]
     denom = c0 - 2.0 * c1 + c2
     shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
     if k == kc:
         shift = min(max(shift, -h), h)
-        w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
+        w = min(max(grid[0, kc] + shift, grid[0, 0]), grid[0, n - 1])
     else:
-        w = grid[k]
-    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R)
+        w = grid[0, k]
+    refined = _ci_cost(
+        1.0 / w, 1.0 / (1.0 - w), det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip,
+        tr_ip, R,
+    )  # fmt: skip
     if refined <= best:
         best = refined
     else:
-        w = grid[k]
+        w = grid[0, k]
     return w if best < prior else 1.0
 
 
@@ -325,7 +348,8 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
 def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
     from the covariances ``Di``, ``Dj`` (``ci``) or, with ``split``, their dependent parts
-    and independent parts ``Ii``, ``Ij`` (``cost: (G,)``: scratch).
+    and independent parts ``Ii``, ``Ij`` (``grid: (3, G)``, :data:`_GRID`; ``cost: (G,)``:
+    scratch).
     Twin: :func:`resloc.cl.fusion.ci_weights`."""
     a, cd = _reduce_i(Di, Hi)
     g = _gram(cd, cd)
