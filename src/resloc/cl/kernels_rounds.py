@@ -82,13 +82,7 @@ from resloc.cl.kernels_link_stages import (
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
-from resloc.cl.kernels_round_cached import (
-    cached_lanes,
-    fresh_moments,
-    fresh_scratch,
-    sent_lanes,
-    transmitted_lanes,
-)
+from resloc.cl.kernels_round_cached import cached_lanes, sent_lanes, transmitted_lanes
 from resloc.cl.kernels_round_stages import (
     gauge_lanes,
     inflated_moments,
@@ -276,7 +270,6 @@ def _rounds(
         retry = retry_lanes(m, C if recovering or cached else 1)
         sent = np.empty(C)  # cached: delivered (decision[3] then holds fused)
         fresh = np.zeros(C)  # cached: delivered with a cached estimate (stays 0 otherwise)
-        second = fresh_scratch(C if cached else 1, m if cached else 0)  # its moments
         work = link_scratch()
         zone_pxz = np.empty((3, 2))
         zone_h = np.empty((2, 3))
@@ -343,13 +336,6 @@ def _rounds(
                 )  # fmt: skip
             if beyond is not None and cached:  # decision[3]: fused from here on
                 cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
-            if beyond is not None and cached:  # the fresh moments of delivered lanes
-                status = fresh_moments(
-                    x, li, nb, x_nb, P_nb, z, lane_e, n, decision, inflation, fresh, zl, Li,
-                    moments, pxz, update, axis, value, Wm, Wc, circular, R, jitter, P, second,
-                )  # fmt: skip
-                if status != OK:
-                    return status
             if beyond is not None and (recovering or cached):
                 status = inflated_moments(
                     P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj,
