@@ -136,6 +136,8 @@ def claim_scales(li, P_nb, nb, scale, scratch):
     :func:`~resloc.cl.detection_redundancy.weight_capped_covariance` and
     :func:`~resloc.cl.detection_redundancy.capped_claims` (``_group_median``)."""
     E = li.shape[0]
+    for e in range(E):  # the traces, once (the rows' own, then their factors, in scale)
+        scale[e] = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
     start = 0
     while start < E:
         if start > 0 and li[start] < li[start - 1]:
@@ -145,15 +147,15 @@ def claim_scales(li, P_nb, nb, scale, scratch):
             stop += 1
         count = stop - start
         for e in range(start, stop):  # insertion sort of the group's traces (a few rows)
-            t = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
-            k = e - start
-            while k > 0 and scratch[start + k - 1] > t:
-                scratch[start + k] = scratch[start + k - 1]
+            t = scale[e]
+            k = e
+            while k > start and scratch[k - 1] > t:
+                scratch[k] = scratch[k - 1]
                 k -= 1
-            scratch[start + k] = t
+            scratch[k] = t
         median = 0.5 * (scratch[start + (count - 1) // 2] + scratch[start + count // 2])
         for e in range(start, stop):
-            t = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
+            t = scale[e]
             s = 1.0
             if t > 0.0:
                 s = median / t
