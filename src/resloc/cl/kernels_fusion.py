@@ -20,11 +20,17 @@ kernel function                numpy twin
 =============================  ==========================================================
 :func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
 :func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
+:func:`_first_best`           ``np.argmin`` of the grid's costs
 :func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
 :func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
+:func:`_weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
 :func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
+:func:`_inflated_update`       the same from the inflations' 2 x 2 reductions
 =============================  ==========================================================
+
+``ci_update`` computes the 2 x 2 reductions of ``P_i`` and ``P_j`` once and uses them for
+the weight and, times the inflation factors, for the update.
 """
 
 from __future__ import annotations
@@ -391,8 +397,16 @@ def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     scratch).
     Twin: :func:`resloc.cl.fusion.ci_weights`."""
     a, cd = _reduce_i(Di, Hi)
-    g = _gram(cd, cd)
     b = _reduce_j(Dj, Hj)
+    return _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost)
+
+
+@jit_inline
+def _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
+    """:func:`ci_weight` from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
+    (:func:`_reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`_reduce_j`), which
+    :func:`ci_update` reuses for the update."""
+    g = _gram(cd, cd)
     zero = (0.0, 0.0, 0.0, 0.0)
     ai = zero
     bi = zero
@@ -435,15 +449,23 @@ def ci_update(
     ``Hj``: the range/bearing Jacobians at the means, ``(S, Pxz)``: the filter's moments
     under ``blockdiag(P_i, P_j)``, ``re``: its ``R_eff`` (EKF). Returns False when the
     inflated ``S`` has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`."""
-    w = ci_weight(Pi, Pj, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
+    # the reductions once, for the weight and the update (D_i = P_i, D_j = P_j)
+    hph, ph = _reduce_i(Pi, Hi)
+    hpj = _reduce_j(Pj, Hj)
+    w = _weight_of(hph, ph, hpj, Pi, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
     if w >= 1.0:  # j adds nothing: the prior is kept
         for a in range(3):
             for b in range(3):
                 Pn[a, b] = Pi[a, b]
         return True
-    return ci_posterior(
-        x, i, xi0, xi1, xi2, Pi, Pi, Pj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-        re00, re01, re11, R, jitter, K, A3, T3, Pn,
+    fi = 1.0 / w - 1.0
+    fj = 1.0 / (1.0 - w) - 1.0
+    d = (hph[0] * fi, hph[1] * fi, hph[2] * fi, hph[3] * fi)
+    e = (hpj[0] * fj, hpj[1] * fj, hpj[2] * fj, hpj[3] * fj)
+    c = (ph[0] * fi, ph[1] * fi, ph[2] * fi, ph[3] * fi, ph[4] * fi, ph[5] * fi)
+    return _inflated_update(
+        x, i, xi0, xi1, xi2, Pi, Pi, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized,
+        Hi, re00, re01, re11, jitter, K, A3, T3, Pn,
     )  # fmt: skip
 
 
@@ -459,10 +481,7 @@ def ci_posterior(
     Twin: :func:`resloc.cl.fusion.fused_update` (after the weights)."""
     fi = 1.0 / w - 1.0
     fj = 1.0 / (1.0 - w) - 1.0
-    # A = sym(P_i + D_i), D_i = f_i P_i; extra_j = H_j D_j H_j^T; H_i D_i H_i^T
-    for a in range(3):
-        for b in range(3):
-            A3[a, b] = 0.5 * ((Pi[a, b] + Di[a, b] * fi) + (Pi[b, a] + Di[b, a] * fi))
+    # extra_j = H_j (f_j D_j) H_j^T; H_i (f_i D_i) H_i^T
     e00 = e01 = e10 = e11 = 0.0
     d00 = d01 = d10 = d11 = 0.0
     for k in range(3):
@@ -483,20 +502,54 @@ def ci_posterior(
         d01 += u0 * Hi[1, k]
         d10 += u1 * Hi[0, k]
         d11 += u1 * Hi[1, k]
+    # f_i D_i H_i^T by row (each entry summed in the order of the earlier loop)
+    c00 = c01 = c10 = c11 = c20 = c21 = 0.0
+    for k in range(3):
+        c00 += (Di[0, k] * fi) * Hi[0, k]
+        c01 += (Di[0, k] * fi) * Hi[1, k]
+        c10 += (Di[1, k] * fi) * Hi[0, k]
+        c11 += (Di[1, k] * fi) * Hi[1, k]
+        c20 += (Di[2, k] * fi) * Hi[0, k]
+        c21 += (Di[2, k] * fi) * Hi[1, k]
+    return _inflated_update(
+        x, i, xi0, xi1, xi2, Pi, Di, fi, (d00, d01, d10, d11), (e00, e01, e10, e11),
+        (c00, c01, c10, c11, c20, c21), nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, re00,
+        re01, re11, jitter, K, A3, T3, Pn,
+    )  # fmt: skip
+
+
+@jit_inline
+def _inflated_update(
+    x, i, xi0, xi1, xi2, Pi, Di, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
+    re00, re01, re11, jitter, K, A3, T3, Pn,
+):  # fmt: skip
+    """The tail of :func:`ci_posterior` from the inflations' reductions: ``d = H_i (f_i
+    D_i) H_i^T``, ``e = H_j (f_j D_j) H_j^T`` (4-tuples ``00, 01, 10, 11``) and ``c``, the
+    rows of ``f_i D_i H_i^T`` (a 6-tuple); :func:`ci_update` passes its weight's
+    reductions times ``f`` (the same products in another order: within an ulp; a ``ci``
+    link's update 262 -> 217 ns with the weight's changes), split CI the ones
+    :func:`ci_posterior` computes. Writes and returns as :func:`ci_posterior`. (At most
+    30 arguments: CPython passes more as ``*args``, which numba's inliner refuses.)"""
+    d00, d01, d10, d11 = d
+    e00, e01, e10, e11 = e
+    c00, c01, c10, c11, c20, c21 = c
+    # A = sym(P_i + f_i D_i)
+    for a in range(3):
+        for b in range(3):
+            A3[a, b] = 0.5 * ((Pi[a, b] + Di[a, b] * fi) + (Pi[b, a] + Di[b, a] * fi))
     s00 = S00 + d00 + e00
     s11 = S11 + d11 + e11
     s01 = 0.5 * ((S01 + d01 + e01) + (S01 + d10 + e10))
     l00, l10, l11 = chol2(s00, s01, s11, jitter)
     if l00 == 0.0:
         return False
-    for a in range(3):  # P^xz + D_i H_i^T, then K by the Cholesky factor of S
-        p0 = 0.0
-        p1 = 0.0
-        for c in range(3):
-            p0 += (Di[a, c] * fi) * Hi[0, c]
-            p1 += (Di[a, c] * fi) * Hi[1, c]
-        Pxz[a, 0] += p0
-        Pxz[a, 1] += p1
+    Pxz[0, 0] += c00  # P^xz + f_i D_i H_i^T, then K by the Cholesky factor of S
+    Pxz[0, 1] += c01
+    Pxz[1, 0] += c10
+    Pxz[1, 1] += c11
+    Pxz[2, 0] += c20
+    Pxz[2, 1] += c21
+    for a in range(3):
         k0, k1 = solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
         K[a, 0] = k0
         K[a, 1] = k1
