@@ -106,7 +106,7 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
     here directly) gives the reference's cost at every candidate weight, for both
     criteria, with and without independent parts."""
     from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
-    from resloc.cl.kernels_fusion import _grid_costs
+    from resloc.cl.kernels_fusion import _GRID, _grid_costs
     from resloc.models.measurement import range_bearing_jacobians
 
     rng = np.random.default_rng(5)
@@ -127,8 +127,9 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
         b, bi = H_j @ Dj @ H_j.T, (H_j @ Ij @ H_j.T + R if split else np.zeros((2, 2)))
         quad = [a, ai, b, bi, Cd.T @ Cd, Cd.T @ Ci, Ci.T @ Ci]
         cost = np.full(CI_GRID.size, np.nan)
+        np.testing.assert_array_equal(_GRID[0], CI_GRID)
         _grid_costs(
-            CI_GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
+            _GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
             *(tuple(m.ravel()) for m in quad), tuple(Di.ravel()), tuple(Ii.ravel()),
             np.trace(Ii), tuple(R.ravel()), cost,
         )  # fmt: skip
@@ -137,3 +138,26 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
             Ij[None] if split else None, R, CI_GRID, CICriterion(criterion),
         )[0]  # fmt: skip
         np.testing.assert_allclose(cost, ref, rtol=1e-12, atol=0)
+
+
+def test_first_best_is_the_scalar_search():
+    """``kernels_fusion._first_best`` (four interleaved searches, merged) finds the index
+    the scalar search ``best = cost[0]; cost[t] < best`` finds, with ties, infinities and
+    NaNs (first or later), for every length."""
+    from resloc.cl.kernels_fusion import _first_best
+
+    rng = np.random.default_rng(8)
+    values = np.array([0.0, -0.0, 1.0, 2.0, -1.0, np.inf, -np.inf, np.nan])
+    for trial in range(2000):
+        n = int(rng.integers(1, 40))
+        if trial % 2:
+            cost = rng.choice(values, size=n)
+        else:
+            cost = rng.normal(size=n)
+        best, k = cost[0], 0
+        for t in range(1, n):
+            if cost[t] < best:
+                best, k = cost[t], t
+        got_best, got_k = _first_best(cost, n)
+        assert got_k == k, (cost, got_k, k)
+        assert got_best == best or (np.isnan(got_best) and np.isnan(best))

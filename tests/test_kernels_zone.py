@@ -316,3 +316,35 @@ def test_partner_readings_equal_the_reference_pairing() -> None:
     np.testing.assert_array_equal(got, want)
     assert np.isnan(got[:, 0]).any() and np.isfinite(got[:, 0]).any()
     assert not kernels_zone.partner_readings(li[::-1].copy(), lj[::-1].copy(), z, got)
+    # ids far beyond the rows' count: a binary search per row, not the table of first rows
+    far = np.empty((E, 2))
+    assert kernels_zone.partner_readings(li + 10**6, lj + 10**6, z, far)
+    np.testing.assert_array_equal(far, want)
+
+
+def test_inside_map_is_the_reference_test() -> None:
+    """``kernels_zone.inside_map`` (the squares where they decide, else hypot) is
+    ``inside_zone_map`` at random points and at points on, just inside and just outside
+    the edges, for a disc of radius 0 or below, far away and non-finite points."""
+    from resloc.cl.detection_zone import inside_zone_map
+
+    rng = np.random.default_rng(4)
+    discs = ((0.0, 0.0, 5.0), (10.0, -2.0, 0.5), (3.0, 3.0, 0.0), (-4.0, 6.0, -1.0))
+    d = np.asarray(discs)
+    angle = rng.uniform(0, 2 * np.pi, 400)
+    edge = []
+    for cx, cy, r in discs:
+        for f in (1.0, 1 - 1e-15, 1 + 1e-15, 1 - 1e-9, 1 + 1e-9, 1 - 1e-6, 1 + 1e-6):
+            edge.append(np.column_stack([cx + f * r * np.cos(angle), cy + f * r * np.sin(angle)]))
+    points = np.vstack(
+        [
+            rng.uniform(-15, 15, (2000, 2)),
+            *edge,
+            [[3.0, 4.0], [3.0, 3.0], [1e200, 0.0], [1e-200, 1e-200], [np.nan, 0.0]],
+            [[np.inf, 0.0], [10.0, -1.5], [10.5, -2.0]],
+        ]
+    )
+    want = inside_zone_map(points, discs)
+    got = np.array([kernels_zone.inside_map(d, px, py) for px, py in points])
+    np.testing.assert_array_equal(got, want)
+    assert want.any() and not want.all()

@@ -176,7 +176,7 @@ def _posterior_cost(
         - G[..., 1, 0] * S[..., 0, 1]
     ) / det_s
     tr_a = (
-        np.trace(Pi_dep, axis1=-2, axis2=-1)[:, None] / w
+        np.trace(Pi_dep, axis1=-2, axis2=-1)[:, None] * u[..., 0, 0]
         + np.trace(Pii, axis1=-2, axis2=-1)[:, None]
     )
     return tr_a - tr_gsinv

@@ -426,4 +426,8 @@ FUSION_STRATEGIES: dict[str, FusionStrategy] = {
 def fusion_strategy(method: FusionMethod | str) -> FusionStrategy:
     """The strategy of fusion ``method`` (``ValueError`` naming the registered methods when
     there is none)."""
+    if isinstance(method, str):  # a registered name (a FusionMethod is its string): no
+        strategy = FUSION_STRATEGIES.get(method)  # FusionMethod(...), 1 us a call per step
+        if strategy is not None:
+            return strategy
     return FUSION_STRATEGIES[FusionMethod(method).value]

@@ -20,11 +20,17 @@ kernel function                numpy twin
 =============================  ==========================================================
 :func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
 :func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
+:func:`_first_best`           ``np.argmin`` of the grid's costs
 :func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
 :func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
+:func:`_weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
 :func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
+:func:`_inflated_update`       the same from the inflations' 2 x 2 reductions
 =============================  ==========================================================
+
+``ci_update`` computes the 2 x 2 reductions of ``P_i`` and ``P_j`` once and uses them for
+the weight and, times the inflation factors, for the update.
 """
 
 from __future__ import annotations
@@ -80,7 +86,7 @@ class KernelFusion(NamedTuple):
 
     code: int  # a KERNEL_UPDATES code
     det: bool  # CI weight by the posterior determinant (else its trace)
-    grid: np.ndarray  # (G,) candidate CI weights
+    grid: np.ndarray  # (3, G) candidate CI weights w, 1 / w, 1 / (1 - w)
     joint: KernelJoint  # tracked / factorized: the cross-covariance bookkeeping
     independent: np.ndarray  # (B, 3, 3) split CI: the robots' independent parts
     P_nb_ind: np.ndarray  # (E, 3, 3) split CI: the transmitted independent parts
@@ -88,7 +94,9 @@ class KernelFusion(NamedTuple):
     costs: np.ndarray  # (G,) ci, split CI: scratch, the cost at each candidate weight
 
 
-_GRID = np.ascontiguousarray(CI_GRID, dtype=float)
+#: The candidate weights as the kernels take them, ``(3, G)``: the weights ``w``, ``1 / w``
+#: and ``1 / (1 - w)`` (the same divisions as the reference's, done once, not per link).
+_GRID = np.ascontiguousarray(np.stack([CI_GRID, 1.0 / CI_GRID, 1.0 / (1.0 - CI_GRID)]), dtype=float)
 _NONE3 = np.zeros((0, 3, 3))
 
 
@@ -97,7 +105,7 @@ def kernel_fusion(code: int, criterion: CICriterion, E: int = 0) -> KernelFusion
     keeps no per-link state."""
     return KernelFusion(
         int(code), CICriterion(criterion) is CICriterion.DET, _GRID, no_joint(E), _NONE3,
-        _NONE3, np.zeros((8, 3, 3)), np.empty(_GRID.shape[0]),
+        _NONE3, np.zeros((8, 3, 3)), np.empty(_GRID.shape[1]),
     )  # fmt: skip
 
 
@@ -134,9 +142,11 @@ def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray
 
 
 @jit_inline
-def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
+def _ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
-    weight ``w`` from the link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
+    weight ``w`` given as ``u = 1 / w`` and ``v = 1 / (1 - w)`` (the grid's are computed
+    once, :data:`_GRID`: one division per evaluation is left, that of ``S^-1``) from the
+    link's 2 x 2 reductions (4-tuples ``(m00, m01, m10, m11)``):
     ``a = H_i D_i H_i^T``, ``b = H_j D_j H_j^T``, ``g = C^T C`` with ``C = D_i H_i^T``
     (``D``: the covariances, or their dependent parts with ``split``), and with ``split``
     the independent parts' ``ai = H_i I_i H_i^T``, ``bi = H_j I_j H_j^T + R``, ``gdi =
@@ -146,8 +156,6 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_i
     each array an inlined call receives costs a reference-count update, and the weight's
     search calls this 34 times a link (33 of them in :func:`_grid_costs`).
     Twin: ``resloc.cl.fusion._posterior_cost``."""
-    u = 1.0 / w
-    v = 1.0 / (1.0 - w)
     if split:
         sj00 = b[0] * v + bi[0]
         sj01 = b[1] * v + bi[1]
@@ -176,13 +184,13 @@ def _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_i
         q01 = g[1] * u * u + (gdi[1] + gdi[2]) * u + gii[1]
         q10 = g[2] * u * u + (gdi[2] + gdi[1]) * u + gii[2]
         q11 = g[3] * u * u + (gdi[3] + gdi[3]) * u + gii[3]
-        tr_a = tr_i / w + tr_ip
+        tr_a = tr_i * u + tr_ip
     else:
         q00 = g[0] * u * u
         q01 = g[1] * u * u
         q10 = g[2] * u * u
         q11 = g[3] * u * u
-        tr_a = tr_i / w
+        tr_a = tr_i * u
     tr_gsinv = (q00 * s11 + q11 * s00 - q01 * s10 - q10 * s01) / det_s
     return tr_a - tr_gsinv
 
@@ -272,52 +280,112 @@ def _gram(c, d):
 
 @jit_lanes
 def _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost):
-    """The cost (:func:`_ci_cost`) at every candidate weight of ``grid`` into ``cost: (G,)``.
+    """The cost (:func:`_ci_cost`) at every candidate weight of ``grid: (3, G)`` (rows ``w``,
+    ``1 / w``, ``1 / (1 - w)``, :data:`_GRID`) into ``cost: (G,)``.
     A loop of its own, free of branches and compiled with IEEE division (``jit_lanes``),
     so that LLVM evaluates several weights per SIMD instruction; the same arithmetic per
     weight as one evaluation, so the same costs to the bit."""
-    for t in range(grid.shape[0]):
+    for t in range(grid.shape[1]):
         cost[t] = _ci_cost(
-            grid[t], det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R
+            grid[1, t],
+            grid[2, t],
+            det,
+            split,
+            tr_i,
+            det_i,
+            a,
+            ai,
+            b,
+            bi,
+            g,
+            gdi,
+            gii,
+            Dp,
+            Ip,
+            tr_ip,
+            R,
         )
+
+
+@jit_inline
+def _first_best(cost, n):
+    """``(cost[k], k)``: the first smallest of ``cost[:n]`` as the scalar search finds it
+    (``best = cost[0]``, then ``cost[t] < best`` replaces it: a NaN first cost stays the
+    best, a later NaN never becomes it). Four interleaved searches (``t = 1, 5, ...``,
+    ``t = 2, 6, ...``, ...) merged by value then index: the same ``k``, in a quarter of
+    the scalar search's chain of dependent compares (measured with the grid's inverses,
+    :data:`_GRID`: a ``ci`` link's weight 119 -> 108 ns)."""
+    b0 = b1 = b2 = b3 = np.inf
+    k0 = k1 = k2 = k3 = -1
+    t = 1
+    while t + 3 < n:
+        c = cost[t]
+        if c < b0:
+            b0 = c
+            k0 = t
+        c = cost[t + 1]
+        if c < b1:
+            b1 = c
+            k1 = t + 1
+        c = cost[t + 2]
+        if c < b2:
+            b2 = c
+            k2 = t + 2
+        c = cost[t + 3]
+        if c < b3:
+            b3 = c
+            k3 = t + 3
+        t += 4
+    while t < n:  # the rest, in index order, by the first search
+        c = cost[t]
+        if c < b0:
+            b0 = c
+            k0 = t
+        t += 1
+    best = cost[0]
+    k = 0
+    if best == best:  # (not NaN)
+        for m, q in ((b0, k0), (b1, k1), (b2, k2), (b3, k3)):
+            if q >= 0 and (m < best or (m == best and q < k)):
+                best = m
+                k = q
+    return best, k
 
 
 @jit_lanes
 def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R,
                    prior, cost):  # fmt: skip
-    """The weight minimising the cost (arguments of :func:`_ci_cost`; ``prior``: the cost
+    """The weight minimising the cost (arguments of :func:`_ci_cost`, ``grid`` of
+    :func:`_grid_costs`; ``prior``: the cost
     of ``w = 1``, the prior kept; ``cost: (G,)``: scratch): the first best of the grid
     (:func:`_grid_costs`), refined by the parabola through it and its neighbours (the first
     or last three points when it is at an end) where that helps; 1.0 when no weight beats
     the prior. A call of its own, not inlined: the link loops' bodies stay small, and the
     grid's loop is vectorized (measured: the weight of a ``ci`` link about 2.3x faster
     than by the inlined scalar search that kept the best as it went)."""
-    n = grid.shape[0]
+    n = grid.shape[1]
     _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost)
-    # the first best (a NaN first cost stays the best, as in the scalar search)
-    best = cost[0]
-    k = 0
-    for t in range(1, n):
-        if cost[t] < best:
-            best = cost[t]
-            k = t
+    best, k = _first_best(cost, n)
     kc = min(max(k, 1), n - 2)
     c0 = cost[kc - 1]
     c1 = cost[kc]
     c2 = cost[kc + 1]
-    h = grid[1] - grid[0]
+    h = grid[0, 1] - grid[0, 0]
     denom = c0 - 2.0 * c1 + c2
     shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
     if k == kc:
         shift = min(max(shift, -h), h)
-        w = min(max(grid[kc] + shift, grid[0]), grid[n - 1])
+        w = min(max(grid[0, kc] + shift, grid[0, 0]), grid[0, n - 1])
     else:
-        w = grid[k]
-    refined = _ci_cost(w, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R)
+        w = grid[0, k]
+    refined = _ci_cost(
+        1.0 / w, 1.0 / (1.0 - w), det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip,
+        tr_ip, R,
+    )  # fmt: skip
     if refined <= best:
         best = refined
     else:
-        w = grid[k]
+        w = grid[0, k]
     return w if best < prior else 1.0
 
 
@@ -325,11 +393,20 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
 def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
     from the covariances ``Di``, ``Dj`` (``ci``) or, with ``split``, their dependent parts
-    and independent parts ``Ii``, ``Ij`` (``cost: (G,)``: scratch).
+    and independent parts ``Ii``, ``Ij`` (``grid: (3, G)``, :data:`_GRID`; ``cost: (G,)``:
+    scratch).
     Twin: :func:`resloc.cl.fusion.ci_weights`."""
     a, cd = _reduce_i(Di, Hi)
-    g = _gram(cd, cd)
     b = _reduce_j(Dj, Hj)
+    return _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost)
+
+
+@jit_inline
+def _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
+    """:func:`ci_weight` from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
+    (:func:`_reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`_reduce_j`), which
+    :func:`ci_update` reuses for the update."""
+    g = _gram(cd, cd)
     zero = (0.0, 0.0, 0.0, 0.0)
     ai = zero
     bi = zero
@@ -372,15 +449,23 @@ def ci_update(
     ``Hj``: the range/bearing Jacobians at the means, ``(S, Pxz)``: the filter's moments
     under ``blockdiag(P_i, P_j)``, ``re``: its ``R_eff`` (EKF). Returns False when the
     inflated ``S`` has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`."""
-    w = ci_weight(Pi, Pj, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
+    # the reductions once, for the weight and the update (D_i = P_i, D_j = P_j)
+    hph, ph = _reduce_i(Pi, Hi)
+    hpj = _reduce_j(Pj, Hj)
+    w = _weight_of(hph, ph, hpj, Pi, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
     if w >= 1.0:  # j adds nothing: the prior is kept
         for a in range(3):
             for b in range(3):
                 Pn[a, b] = Pi[a, b]
         return True
-    return ci_posterior(
-        x, i, xi0, xi1, xi2, Pi, Pi, Pj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-        re00, re01, re11, R, jitter, K, A3, T3, Pn,
+    fi = 1.0 / w - 1.0
+    fj = 1.0 / (1.0 - w) - 1.0
+    d = (hph[0] * fi, hph[1] * fi, hph[2] * fi, hph[3] * fi)
+    e = (hpj[0] * fj, hpj[1] * fj, hpj[2] * fj, hpj[3] * fj)
+    c = (ph[0] * fi, ph[1] * fi, ph[2] * fi, ph[3] * fi, ph[4] * fi, ph[5] * fi)
+    return _inflated_update(
+        x, i, xi0, xi1, xi2, Pi, Pi, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized,
+        Hi, re00, re01, re11, jitter, K, A3, T3, Pn,
     )  # fmt: skip
 
 
@@ -396,10 +481,7 @@ def ci_posterior(
     Twin: :func:`resloc.cl.fusion.fused_update` (after the weights)."""
     fi = 1.0 / w - 1.0
     fj = 1.0 / (1.0 - w) - 1.0
-    # A = sym(P_i + D_i), D_i = f_i P_i; extra_j = H_j D_j H_j^T; H_i D_i H_i^T
-    for a in range(3):
-        for b in range(3):
-            A3[a, b] = 0.5 * ((Pi[a, b] + Di[a, b] * fi) + (Pi[b, a] + Di[b, a] * fi))
+    # extra_j = H_j (f_j D_j) H_j^T; H_i (f_i D_i) H_i^T
     e00 = e01 = e10 = e11 = 0.0
     d00 = d01 = d10 = d11 = 0.0
     for k in range(3):
@@ -420,20 +502,54 @@ def ci_posterior(
         d01 += u0 * Hi[1, k]
         d10 += u1 * Hi[0, k]
         d11 += u1 * Hi[1, k]
+    # f_i D_i H_i^T by row (each entry summed in the order of the earlier loop)
+    c00 = c01 = c10 = c11 = c20 = c21 = 0.0
+    for k in range(3):
+        c00 += (Di[0, k] * fi) * Hi[0, k]
+        c01 += (Di[0, k] * fi) * Hi[1, k]
+        c10 += (Di[1, k] * fi) * Hi[0, k]
+        c11 += (Di[1, k] * fi) * Hi[1, k]
+        c20 += (Di[2, k] * fi) * Hi[0, k]
+        c21 += (Di[2, k] * fi) * Hi[1, k]
+    return _inflated_update(
+        x, i, xi0, xi1, xi2, Pi, Di, fi, (d00, d01, d10, d11), (e00, e01, e10, e11),
+        (c00, c01, c10, c11, c20, c21), nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, re00,
+        re01, re11, jitter, K, A3, T3, Pn,
+    )  # fmt: skip
+
+
+@jit_inline
+def _inflated_update(
+    x, i, xi0, xi1, xi2, Pi, Di, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
+    re00, re01, re11, jitter, K, A3, T3, Pn,
+):  # fmt: skip
+    """The tail of :func:`ci_posterior` from the inflations' reductions: ``d = H_i (f_i
+    D_i) H_i^T``, ``e = H_j (f_j D_j) H_j^T`` (4-tuples ``00, 01, 10, 11``) and ``c``, the
+    rows of ``f_i D_i H_i^T`` (a 6-tuple); :func:`ci_update` passes its weight's
+    reductions times ``f`` (the same products in another order: within an ulp; a ``ci``
+    link's update 262 -> 217 ns with the weight's changes), split CI the ones
+    :func:`ci_posterior` computes. Writes and returns as :func:`ci_posterior`. (At most
+    30 arguments: CPython passes more as ``*args``, which numba's inliner refuses.)"""
+    d00, d01, d10, d11 = d
+    e00, e01, e10, e11 = e
+    c00, c01, c10, c11, c20, c21 = c
+    # A = sym(P_i + f_i D_i)
+    for a in range(3):
+        for b in range(3):
+            A3[a, b] = 0.5 * ((Pi[a, b] + Di[a, b] * fi) + (Pi[b, a] + Di[b, a] * fi))
     s00 = S00 + d00 + e00
     s11 = S11 + d11 + e11
     s01 = 0.5 * ((S01 + d01 + e01) + (S01 + d10 + e10))
     l00, l10, l11 = chol2(s00, s01, s11, jitter)
     if l00 == 0.0:
         return False
-    for a in range(3):  # P^xz + D_i H_i^T, then K by the Cholesky factor of S
-        p0 = 0.0
-        p1 = 0.0
-        for c in range(3):
-            p0 += (Di[a, c] * fi) * Hi[0, c]
-            p1 += (Di[a, c] * fi) * Hi[1, c]
-        Pxz[a, 0] += p0
-        Pxz[a, 1] += p1
+    Pxz[0, 0] += c00  # P^xz + f_i D_i H_i^T, then K by the Cholesky factor of S
+    Pxz[0, 1] += c01
+    Pxz[1, 0] += c10
+    Pxz[1, 1] += c11
+    Pxz[2, 0] += c20
+    Pxz[2, 1] += c21
+    for a in range(3):
         k0, k1 = solve2(l00, l10, l11, Pxz[a, 0], Pxz[a, 1])
         K[a, 0] = k0
         K[a, 1] = k1

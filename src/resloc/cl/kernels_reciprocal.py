@@ -52,6 +52,7 @@ from resloc.cl.kernels_detection import (
     store_slots,
 )
 from resloc.cl.kernels_math import gain_array, jit_inline, jit_lanes, per_params, stamp_with_pieces
+from resloc.cl.kernels_zone import inside_map
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -98,12 +99,10 @@ def _options(params: CLParams) -> ReciprocalOptions:
 # ---------------------------------------------------------------------------------------
 @jit_inline
 def inside_discs(px, py, discs):
-    """Whether ``(px, py)`` lies inside any disc ``(cx, cy, r)`` of ``discs: (Z, 3)``.
+    """Whether ``(px, py)`` lies inside any disc ``(cx, cy, r)`` of ``discs: (Z, 3)``
+    (:func:`resloc.cl.kernels_zone.inside_map`: no libm call where the squares decide).
     Twin: :func:`~resloc.cl.detection_zone.inside_zone_map` (``hypot(.) - r <= 0``)."""
-    for z in range(discs.shape[0]):
-        if math.hypot(px - discs[z, 0], py - discs[z, 1]) - discs[z, 2] <= 0.0:
-            return True
-    return False
+    return inside_map(discs, px, py)
 
 
 @jit_lanes

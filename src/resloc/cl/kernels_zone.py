@@ -241,16 +241,34 @@ def partner_readings(li, lj, z, out):
     for e in range(1, E):
         if li[e] < li[e - 1]:
             return False
+    # the first row of each observer id, one walk over the rows (in place of a binary
+    # search per row: half of the pass), where the ids are small non-negative integers
+    top = -1
+    low = 0
+    for e in range(E):
+        top = max(top, max(li[e], lj[e]))
+        low = min(low, min(li[e], lj[e]))
+    table = low >= 0 and top < 4 * E + 64
+    first = np.empty(top + 2 if table else 0, np.int64)
+    if table:
+        p = 0
+        for r in range(top + 2):
+            while p < E and li[p] < r:
+                p += 1
+            first[r] = p
     for e in range(E):
         j = lj[e]
-        lo = 0  # the first row of observer j (binary search of the sorted observers)
-        hi = E
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if li[mid] < j:
-                lo = mid + 1
-            else:
-                hi = mid
+        if table:
+            lo = first[j]
+        else:  # binary search of the sorted observers
+            lo = 0
+            hi = E
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if li[mid] < j:
+                    lo = mid + 1
+                else:
+                    hi = mid
         out[e, 0] = math.nan
         out[e, 1] = math.nan
         while lo < E and li[lo] == j:
@@ -279,7 +297,20 @@ def inside_map(discs, px, py):
     """Whether ``(px, py)`` lies inside (or on) a disc of ``discs: (Z, 3)``.
     Twin: :func:`~resloc.cl.detection_zone.inside_zone_map`."""
     for k in range(discs.shape[0]):
-        if math.hypot(px - discs[k, 0], py - discs[k, 1]) - discs[k, 2] <= 0.0:
+        dx = px - discs[k, 0]
+        dy = py - discs[k, 1]
+        r = discs[k, 2]
+        # clearly outside or inside by the squares (exact to a few ulps: a margin of 1e-9
+        # leaves no doubt where neither under- nor overflows), else by hypot itself; one
+        # libm call a lane was a tenth of the stage
+        d2 = dx * dx + dy * dy
+        r2 = r * r
+        if r > 0.0 and 1e-280 < d2 < 1e280 and 1e-280 < r2 < 1e280:
+            if d2 > r2 * (1.0 + 1e-9):
+                continue
+            if d2 < r2 * (1.0 - 1e-9):
+                return True
+        if math.hypot(dx, dy) - r <= 0.0:
             return True
     return False
 
