@@ -251,10 +251,11 @@ _WARMED: list = []
 
 def warm_up_joint_form() -> None:
     """Load (or compile) the link loop's form of the correlated joints
-    (:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`) once per process, by one small
-    ``tracked`` correction: the strategies call it when they set up their state, before a
-    run times its steps (the runner's warm-up loads the forms every option shares; this
-    one only a run of ``tracked`` or ``factorized`` needs)."""
+    (:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`) and their rounds
+    (:mod:`resloc.cl.kernels_joint_rounds`) once per process, by a small ``tracked``
+    correction and one of a ring of robots: the strategies call it when they set up their
+    state, before a run times its steps (the runner's warm-up loads the forms every option
+    shares; these only a run of ``tracked`` or ``factorized`` needs)."""
     from resloc.cl.backend import backend
 
     if _WARMED or backend() != "numba":
@@ -274,4 +275,11 @@ def warm_up_joint_form() -> None:
     )  # fmt: skip
     memory = LinkMemory(2)
     memory.joint = JointCovariance(P, 2)
+    fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)
+    # and the joints' rounds (kernels_joint_rounds), which a team's step takes
+    from resloc.cl.kernels_rounds import rounds_warm_up_batch
+
+    x, P, links = rounds_warm_up_batch()
+    memory = LinkMemory(len(x))
+    memory.joint = JointCovariance(P, len(x))
     fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)

@@ -19,8 +19,10 @@ __all__ = [
     "JOINT_FORM",
     "NO_JOINT",
     "TRACKED",
+    "chol6",
     "correlated_linearized_moments",
     "correlated_offsets",
+    "joint6",
     "joint_cross",
     "joint_form",
     "joint_record",
@@ -281,7 +283,7 @@ def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
 
 
 @jit_inline
-def _joint6(work, J6):
+def joint6(work, J6):
     """``J = sym([[P_i, C], [C^T, P_j]])`` from ``work`` into ``J6[0]``."""
     for a in range(3):
         for b in range(3):
@@ -292,7 +294,7 @@ def _joint6(work, J6):
 
 
 @jit_inline
-def _chol6(J6, jitter):
+def chol6(J6, jitter):
     """Lower Cholesky factor of the 6 x 6 ``J6[0]`` into ``J6[1]`` with the escalating
     jitter of :func:`resloc.linalg.cholesky_jitter`. False if none succeeds."""
     n = 6
@@ -333,8 +335,8 @@ def correlated_offsets(joint, nz_idx, nz_val, nz_cnt, off, jitter):
     (:func:`joint_cross`'s blocks) into ``off: (6, m)``. False when the joint has no
     Cholesky factor. Twin: :func:`resloc.cl.tracking.joint_moments` (its offsets)."""
     J6 = joint[12]
-    _joint6(joint[11], J6)
-    if not _chol6(J6, jitter):
+    joint6(joint[11], J6)
+    if not chol6(J6, jitter):
         return False
     for k in range(off.shape[1]):
         for a in range(6):
@@ -354,7 +356,7 @@ def correlated_linearized_moments(joint, xi0, xi1, xi2, xj0, xj1, R, Hi, Hj, Pxz
     fills ``Hi``, ``Hj``, ``Pxz``. Returns ``(zh0, zh1, S00, S01, S11)``.
     Twin: :func:`resloc.cl.tracking.joint_moments` (EKF)."""
     J6 = joint[12]  # the joint in J6[0], H J in the first rows of J6[1]
-    _joint6(joint[11], J6)
+    joint6(joint[11], J6)
     dx = xj0 - xi0
     dy = xj1 - xi1
     range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
