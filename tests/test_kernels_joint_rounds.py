@@ -1,0 +1,83 @@
+"""The ``tracked`` and ``factorized`` joints in the link rounds
+(:mod:`resloc.cl.kernels_joint_rounds`) against the numpy reference: same estimates,
+covariances, decisions and method state to 1e-9, with the rounds asserted to have run
+(:data:`resloc.cl.kernels_rounds.LOOP_RUNS`), and a fall back to the row-order loop
+after some rounds recorded updates starting from the joint as the step began."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkMemory, kernels
+from resloc.cl.fusion_methods import fusion_strategy
+from resloc.cl.kernels_joint import warm_up_joint_form
+from resloc.cl.kernels_rounds import LOOP_RUNS
+from resloc.experiments.config import default_scenario
+from test_engine import assert_equivalent, random_batch, run_both
+from test_kernels_joint import FILTERS, assert_same_state, lockstep
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+JOINTS = ["tracked", "factorized"]
+
+
+@pytest.mark.parametrize("name", ["ckf", "ukf"])
+@pytest.mark.parametrize("method", JOINTS)
+def test_joint_rounds_match_the_reference_over_a_run(method: str, name: str) -> None:
+    """Two teams of the default scenario: every correction of the compiled side ran the
+    joints' rounds (none fell back, none ran in row order)."""
+    params = replace(default_scenario().cl_params(), fusion=method)
+    warm_up_joint_form()  # (its corrections are not the run's)
+    before = dict(LOOP_RUNS)
+    steps = 40
+    fused, _ = lockstep(method, FILTERS[name], params, steps, seed=21)
+    assert fused > 0
+    ran = {k: LOOP_RUNS[k] - before.get(k, 0) for k in LOOP_RUNS}
+    assert ran.get("joint_rounds", 0) == steps
+    assert ran.get("rounds_fallback", 0) == 0 and ran.get("row_order", 0) == 0
+
+
+@pytest.mark.parametrize("method", JOINTS)
+def test_joint_rounds_with_the_cusums_and_jamming(method: str) -> None:
+    """A tight NIS gate with the link, mean-shift and robot CUSUMs (stages of the rounds;
+    the recovery is not) and a third of the channels jammed."""
+    base = default_scenario().cl_params()
+    params = replace(
+        base, fusion=method, detector_norm="nis", rho=1.2, cusum=True, mean_cusum=True,
+        robot_cusum=True,
+    )  # fmt: skip
+    warm_up_joint_form()
+    before = LOOP_RUNS["joint_rounds"]
+    fused, detected = lockstep(method, FILTERS["ckf"], params, 60, seed=22, jam=0.35)
+    assert fused > 0 and detected > 0
+    assert LOOP_RUNS["joint_rounds"] - before == 60
+
+
+@pytest.mark.parametrize("method", JOINTS)
+def test_a_fall_back_after_recorded_rounds_starts_from_the_step_s_joint(method: str) -> None:
+    """A measured bearing out of ``(-2 pi, 2 pi)`` on a robot's third link makes the rounds
+    give way to the row-order loop after two rounds recorded updates: the row-order loop
+    must start from the joint's working copies as the step began."""
+    x, P, links = random_batch(5, outliers=0.0, fail=0.0)
+    counts = np.bincount(links.i, minlength=len(x))
+    robot = int(np.flatnonzero(counts >= 3)[0])
+    row = int(np.flatnonzero(links.i == robot)[2])
+    z = links.z.copy()
+    z[row, 1] += 4.0 * np.pi  # the same direction, out of the rounds' range
+    links = replace(links, z=z)
+    params = replace(default_scenario().cl_params(), fusion=method)
+    memories = []
+    for _ in range(2):
+        memory = LinkMemory(len(x))
+        fusion_strategy(method).init(memory, x, P, len(x))
+        memories.append(memory)
+    warm_up_joint_form()
+    before = dict(LOOP_RUNS)
+    fast, ref = run_both(FILTERS["ckf"], x, P, links, params, tuple(memories))
+    assert LOOP_RUNS["rounds_fallback"] - before.get("rounds_fallback", 0) == 1
+    assert LOOP_RUNS["row_order"] - before.get("row_order", 0) == 1
+    assert_equivalent(fast, ref)
+    assert_same_state(method, *memories)
