@@ -52,9 +52,10 @@ from resloc.cl.kernels_joint_links import (
     NO_JOINT,
     TRACKED,
     chol6,
+    factorized_cross,
     joint6,
-    joint_cross,
     joint_record,
+    tracked_cross,
 )
 from resloc.cl.kernels_lanes import (
     CHUNK,
@@ -160,17 +161,19 @@ def joint_factor_lanes(
     for c in range(n):
         e = lane_e[c]
         i = obs[c]
-        first = lane_first[c]
-        if tracked and e != first:
-            for a in range(3):
-                for b in range(3):
-                    work[4, a, b] = now[i, a, b]
-        if not joint_cross(joint, e, first, fused, i, P[i], P_ref[src[c]], jitter):
-            return False
+        # a loop per method (the lane's method is the step's), each inlining its own cross:
+        # the two in one loop cost 7x (kernels_joint_links.tracked_cross)
         if tracked:
+            if e != lane_first[c]:
+                for a in range(3):
+                    for b in range(3):
+                        work[4, a, b] = now[i, a, b]
+            tracked_cross(joint, e, lane_first[c], fused, i)
             for a in range(3):
                 for b in range(3):
                     now[i, a, b] = work[4, a, b]
+        elif not factorized_cross(joint, e, i, P[i], P_ref[src[c]], jitter):
+            return False
         for k in range(3):
             for a in range(3):
                 for b in range(3):
