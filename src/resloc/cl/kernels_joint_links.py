@@ -23,12 +23,14 @@ __all__ = [
     "correlated_linearized_moments",
     "correlated_offsets",
     "factorized_cross",
+    "factorized_record",
     "joint6",
     "joint_cross",
     "joint_form",
     "joint_record",
     "scaled_unit_minus_is_pd",
     "tracked_cross",
+    "tracked_record",
 ]
 
 #: Codes of the cross-covariance bookkeeping.
@@ -473,46 +475,66 @@ def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G,
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
     the update into ``Pn``. Twin: ``JointCovariance.update`` /
-    ``FactorizedCovariance.update``. Indexes the arrays, takes no view of them (a view
-    costs a reference count, and this runs per link)."""
-    code = joint[0]
-    N = joint[1]
-    j = joint[2][e]
-    Bij = joint[6]
+    ``FactorizedCovariance.update`` (:func:`tracked_record`, :func:`factorized_record`)."""
+    if joint[0] == TRACKED:
+        tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn)
+    else:
+        factorized_record(joint, e, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
+
+
+@jit_inline
+def _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3):
+    """The Jacobians, ``G = I - K H_i`` and robot i's ``A_i <- G A_i``."""
     range_bearing_jacobians_into(xi0, xi1, xj0, xj1, Hi, Hj)
     for a in range(3):  # G = I - K H_i
         for b in range(3):
             G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
     _left_multiply_row(G, joint[5], i, T3)
-    if code == TRACKED:  # the blocks of M_i, the noise, then P_i
-        noise = joint[4]
-        for r in range(first, e):
-            if fused[r]:
-                _left_multiply_row(G, Bij, r, T3)
-        for a in range(3):
-            for b in range(3):
-                Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
-        for a in range(3):  # N_i <- G N_i G^T + K R K^T
-            for b in range(3):
-                T3[a, b] = (
-                    G[a, 0] * noise[i, 0, b] + G[a, 1] * noise[i, 1, b] + G[a, 2] * noise[i, 2, b]
-                )
-        for a in range(3):
-            t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
-            t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
-            for b in range(3):
-                s = 0.0
-                for c in range(3):
-                    s += T3[a, c] * G[b, c]
-                Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
-        for a in range(3):
-            for b in range(3):
-                noise[i, a, b] = Pn[a, b]
-        _tracked_update(G, K, R, Bij, e, joint[11], joint[12], Pn, T3)
-        return
-    # FACTORIZED: the factors and B's products with G are deferred to the commit
-    # (kernels_joint.joint_commit): record G and -K H_j
+
+
+@jit_inline
+def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
+    """:func:`joint_record` of ``tracked``: the blocks of ``M_i``, the noise, then
+    ``P_i`` into ``Pn``. Indexes the arrays, takes no view of them (a view costs a
+    reference count, and this runs per link)."""
+    Bij = joint[6]
+    noise = joint[4]
+    _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
+    for r in range(first, e):
+        if fused[r]:
+            _left_multiply_row(G, Bij, r, T3)
+    for a in range(3):
+        for b in range(3):
+            Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
+    for a in range(3):  # N_i <- G N_i G^T + K R K^T
+        for b in range(3):
+            T3[a, b] = (
+                G[a, 0] * noise[i, 0, b] + G[a, 1] * noise[i, 1, b] + G[a, 2] * noise[i, 2, b]
+            )
+    for a in range(3):
+        t0 = K[a, 0] * R[0, 0] + K[a, 1] * R[1, 0]
+        t1 = K[a, 0] * R[0, 1] + K[a, 1] * R[1, 1]
+        for b in range(3):
+            s = 0.0
+            for c in range(3):
+                s += T3[a, c] * G[b, c]
+            Pn[a, b] = s + (t0 * K[b, 0] + t1 * K[b, 1])
+    for a in range(3):
+        for b in range(3):
+            noise[i, a, b] = Pn[a, b]
+    _tracked_update(G, K, R, Bij, e, joint[11], joint[12], Pn, T3)
+
+
+@jit_inline
+def factorized_record(joint, e, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3):
+    """:func:`joint_record` of ``factorized``: the factors and B's products with G are
+    deferred to the commit (:func:`resloc.cl.kernels_joint.joint_commit`): records ``G``
+    and ``-K H_j``."""
+    N = joint[1]
+    j = joint[2][e]
+    Bij = joint[6]
     gains = joint[13]
+    _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
     for a in range(3):
         for b in range(3):
             gains[e, a, b] = G[a, b]

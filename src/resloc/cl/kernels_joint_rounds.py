@@ -53,9 +53,10 @@ from resloc.cl.kernels_joint_links import (
     TRACKED,
     chol6,
     factorized_cross,
+    factorized_record,
     joint6,
-    joint_record,
     tracked_cross,
+    tracked_record,
 )
 from resloc.cl.kernels_lanes import (
     CHUNK,
@@ -273,15 +274,20 @@ def joint_record_lanes(
         for a in range(3):
             K[a, 0] = update[16 + 2 * a, c]
             K[a, 1] = update[17 + 2 * a, c]
-        joint_record(
-            joint, e, lane_first[c], fused, i, xi[0, c], xi[1, c], xr[0, c], xr[1, c], K, R,
-            Hi, Hj, G3, T3, Pn,
-        )  # fmt: skip
-        if tracked:  # the Schur update apply_lanes stored gives way to the joint's
+        if tracked:  # (each method's record inlined apart, see joint_factor_lanes)
+            tracked_record(
+                joint, e, lane_first[c], fused, i, xi[0, c], xi[1, c], xr[0, c], xr[1, c], K,
+                R, Hi, Hj, G3, T3, Pn,
+            )  # fmt: skip
+            # the Schur update apply_lanes stored gives way to the joint's
             for a in range(3):
                 for b in range(3):
                     now[i, a, b] = jwork[4, a, b]
             flags[4, e] = store_covariance(P, i, Pn, T3)
+        else:
+            factorized_record(
+                joint, e, i, xi[0, c], xi[1, c], xr[0, c], xr[1, c], K, Hi, Hj, G3, T3
+            )
 
 
 @_jit
