@@ -81,3 +81,32 @@ def test_a_fall_back_after_recorded_rounds_starts_from_the_step_s_joint(method: 
     assert LOOP_RUNS["row_order"] - before.get("row_order", 0) == 1
     assert_equivalent(fast, ref)
     assert_same_state(method, *memories)
+
+
+def test_cholesky_lanes_match_numpy_and_flag_what_needs_jitter() -> None:
+    """:func:`~resloc.cl.kernels_joint_rounds.chol6_lanes` (the first level of ``chol6``
+    over lanes) equals numpy's factor of every positive definite lane and flags the lanes
+    that are not (singular, indefinite, not finite) for the jitter's levels."""
+    from resloc.cl.kernels_joint_rounds import chol6_lanes
+    from resloc.cl.kernels_lanes import CHUNK
+
+    rng = np.random.default_rng(3)
+    n = 40
+    A = rng.normal(size=(n, 6, 6))
+    M = A @ np.swapaxes(A, -1, -2) + 1e-3 * np.eye(6)
+    M[5] = np.outer(A[5, 0], A[5, 0])  # rank one
+    M[6, 2, 2] = -1.0  # indefinite
+    M[7, 4, 1] = M[7, 1, 4] = np.inf
+    M[8, 5, 5] = 0.0  # only the last pivot fails
+    rows, cols = np.tril_indices(6)
+    J = np.zeros((21, CHUNK))
+    J[:, :n] = M[:, rows, cols].T
+    L = np.zeros((21, CHUNK))
+    ok = np.zeros(CHUNK)
+    chol6_lanes(J, n, L, ok)
+    bad = [5, 6, 7, 8]
+    assert (ok[:n][bad] == 0.0).all()
+    good = np.setdiff1d(np.arange(n), bad)
+    assert (ok[good] == 1.0).all()
+    expected = np.linalg.cholesky(M[good])[:, rows, cols].T
+    np.testing.assert_allclose(L[:, good], expected, rtol=1e-12, atol=1e-12)

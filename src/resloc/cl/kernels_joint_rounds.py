@@ -92,6 +92,7 @@ from resloc.cl.kernels_round_stages import (
 _jit = jit_lanes
 
 __all__ = [
+    "chol6_lanes",
     "correct_joint_rounds",
     "correlated_points_lanes",
     "joint_factor_lanes",
@@ -147,14 +148,16 @@ def reset_joint(joint):
 
 @_jit
 def joint_factor_lanes(
-    joint, P, P_ref, lane_e, lane_first, obs, src, n, fused, jitter, now, blocks, Li, X, Ls
+    joint, P, P_ref, lane_e, lane_first, obs, src, n, fused, jitter, now, blocks, J, L, ok,
+    Li, X, Ls,
 ):  # fmt: skip
     """Per lane: the blocks of the correlated joint (:func:`joint_cross`, kept in
     ``blocks: (27, C)`` for the record) and the Cholesky factor of the joint
     (:func:`chol6`, the row-order loop's), split into ``Li``, ``X`` and ``Ls`` (3, 3, C)
     (``Li``, ``Ls``: lower triangles). ``tracked``: robot i's covariance now comes from
-    ``now`` after its first link and goes back there. False when a covariance or the
-    joint has no Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
+    ``now`` after its first link and goes back there. The factors by :func:`chol6_lanes`
+    (SIMD), the lanes that need jitter by :func:`chol6` itself. False when a covariance or
+    the joint has no Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
     ``correct_links``."""
     tracked = joint[0] == TRACKED
     work = joint[11]
@@ -180,15 +183,144 @@ def joint_factor_lanes(
                 for b in range(3):
                     blocks[9 * k + 3 * a + b, c] = work[k, a, b]
         joint6(work, J6)
-        if not chol6(J6, jitter):
-            return False
+        for r in range(6):  # its lower triangle, row by row (chol6_lanes' layout)
+            for b in range(r + 1):
+                J[r * (r + 1) // 2 + b, c] = J6[0, r, b]
+    chol6_lanes(J, n, L, ok)
+    for c in range(n):
+        if ok[c] != 1.0:  # the jitter's levels: chol6 itself
+            for r in range(6):
+                for b in range(r + 1):
+                    J6[0, r, b] = J6[0, b, r] = J[r * (r + 1) // 2 + b, c]
+            if not chol6(J6, jitter):
+                return False
+            for r in range(6):
+                for b in range(r + 1):
+                    L[r * (r + 1) // 2 + b, c] = J6[1, r, b]
         for a in range(3):
             for b in range(a + 1):
-                Li[a, b, c] = J6[1, a, b]
-                Ls[a, b, c] = J6[1, 3 + a, 3 + b]
+                Li[a, b, c] = L[a * (a + 1) // 2 + b, c]
+                Ls[a, b, c] = L[(3 + a) * (4 + a) // 2 + 3 + b, c]
             for b in range(3):
-                X[a, b, c] = J6[1, 3 + a, b]
+                X[a, b, c] = L[(3 + a) * (4 + a) // 2 + b, c]
     return True
+
+
+@_jit
+def chol6_lanes(J, n, L, ok):
+    """Lower Cholesky factors of the lanes' symmetric 6 x 6 joints, ``J: (21, C)`` (the
+    lower triangle row by row, entry ``(r, c)`` at row ``r (r + 1) / 2 + c``), into ``L``
+    (same layout) without jitter, and whether each succeeded (1.0; all entries finite, every
+    pivot positive): the first level of :func:`~resloc.cl.kernels_joint_links.chol6`, same
+    operations, same order. The arrays have CHUNK columns (flat rows CHUNK apart, see
+    :func:`~resloc.cl.kernels_link_stages.kalman_lanes`)."""
+    Jf = J.reshape(J.size)
+    Lf = L.reshape(L.size)
+    for c in range(n):
+        j00 = Jf[c]
+        j10 = Jf[1 * CHUNK + c]
+        j11 = Jf[2 * CHUNK + c]
+        j20 = Jf[3 * CHUNK + c]
+        j21 = Jf[4 * CHUNK + c]
+        j22 = Jf[5 * CHUNK + c]
+        j30 = Jf[6 * CHUNK + c]
+        j31 = Jf[7 * CHUNK + c]
+        j32 = Jf[8 * CHUNK + c]
+        j33 = Jf[9 * CHUNK + c]
+        j40 = Jf[10 * CHUNK + c]
+        j41 = Jf[11 * CHUNK + c]
+        j42 = Jf[12 * CHUNK + c]
+        j43 = Jf[13 * CHUNK + c]
+        j44 = Jf[14 * CHUNK + c]
+        j50 = Jf[15 * CHUNK + c]
+        j51 = Jf[16 * CHUNK + c]
+        j52 = Jf[17 * CHUNK + c]
+        j53 = Jf[18 * CHUNK + c]
+        j54 = Jf[19 * CHUNK + c]
+        j55 = Jf[20 * CHUNK + c]
+        good = True
+        good = good & (abs(j00) < math.inf)
+        good = good & (abs(j10) < math.inf)
+        good = good & (abs(j11) < math.inf)
+        good = good & (abs(j20) < math.inf)
+        good = good & (abs(j21) < math.inf)
+        good = good & (abs(j22) < math.inf)
+        good = good & (abs(j30) < math.inf)
+        good = good & (abs(j31) < math.inf)
+        good = good & (abs(j32) < math.inf)
+        good = good & (abs(j33) < math.inf)
+        good = good & (abs(j40) < math.inf)
+        good = good & (abs(j41) < math.inf)
+        good = good & (abs(j42) < math.inf)
+        good = good & (abs(j43) < math.inf)
+        good = good & (abs(j44) < math.inf)
+        good = good & (abs(j50) < math.inf)
+        good = good & (abs(j51) < math.inf)
+        good = good & (abs(j52) < math.inf)
+        good = good & (abs(j53) < math.inf)
+        good = good & (abs(j54) < math.inf)
+        good = good & (abs(j55) < math.inf)
+        s0 = j00
+        good = good & (s0 > 0.0)
+        d0 = math.sqrt(s0)
+        l00 = d0
+        l10 = (j10) / d0
+        l20 = (j20) / d0
+        l30 = (j30) / d0
+        l40 = (j40) / d0
+        l50 = (j50) / d0
+        s1 = (j11) - l10 * l10
+        good = good & (s1 > 0.0)
+        d1 = math.sqrt(s1)
+        l11 = d1
+        l21 = ((j21) - l20 * l10) / d1
+        l31 = ((j31) - l30 * l10) / d1
+        l41 = ((j41) - l40 * l10) / d1
+        l51 = ((j51) - l50 * l10) / d1
+        s2 = ((j22) - l20 * l20) - l21 * l21
+        good = good & (s2 > 0.0)
+        d2 = math.sqrt(s2)
+        l22 = d2
+        l32 = (((j32) - l30 * l20) - l31 * l21) / d2
+        l42 = (((j42) - l40 * l20) - l41 * l21) / d2
+        l52 = (((j52) - l50 * l20) - l51 * l21) / d2
+        s3 = (((j33) - l30 * l30) - l31 * l31) - l32 * l32
+        good = good & (s3 > 0.0)
+        d3 = math.sqrt(s3)
+        l33 = d3
+        l43 = ((((j43) - l40 * l30) - l41 * l31) - l42 * l32) / d3
+        l53 = ((((j53) - l50 * l30) - l51 * l31) - l52 * l32) / d3
+        s4 = ((((j44) - l40 * l40) - l41 * l41) - l42 * l42) - l43 * l43
+        good = good & (s4 > 0.0)
+        d4 = math.sqrt(s4)
+        l44 = d4
+        l54 = (((((j54) - l50 * l40) - l51 * l41) - l52 * l42) - l53 * l43) / d4
+        s5 = (((((j55) - l50 * l50) - l51 * l51) - l52 * l52) - l53 * l53) - l54 * l54
+        good = good & (s5 > 0.0)
+        d5 = math.sqrt(s5)
+        l55 = d5
+        Lf[c] = l00
+        Lf[1 * CHUNK + c] = l10
+        Lf[2 * CHUNK + c] = l11
+        Lf[3 * CHUNK + c] = l20
+        Lf[4 * CHUNK + c] = l21
+        Lf[5 * CHUNK + c] = l22
+        Lf[6 * CHUNK + c] = l30
+        Lf[7 * CHUNK + c] = l31
+        Lf[8 * CHUNK + c] = l32
+        Lf[9 * CHUNK + c] = l33
+        Lf[10 * CHUNK + c] = l40
+        Lf[11 * CHUNK + c] = l41
+        Lf[12 * CHUNK + c] = l42
+        Lf[13 * CHUNK + c] = l43
+        Lf[14 * CHUNK + c] = l44
+        Lf[15 * CHUNK + c] = l50
+        Lf[16 * CHUNK + c] = l51
+        Lf[17 * CHUNK + c] = l52
+        Lf[18 * CHUNK + c] = l53
+        Lf[19 * CHUNK + c] = l54
+        Lf[20 * CHUNK + c] = l55
+        ok[c] = 1.0 if good else 0.0
 
 
 @_jit
@@ -332,6 +464,9 @@ def _joint_rounds(
      pxz, mean) = moment_scratch(C, m)  # fmt: skip
     X = np.zeros((3, 3, C))
     blocks = np.empty((27, C))
+    J = np.empty((21, C))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
+    L = np.empty((21, C))
+    ok = np.empty(C)
     now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     Pi = np.empty((9, C))
     update = np.empty((UPDATE_ROWS, C))
@@ -367,7 +502,7 @@ def _joint_rounds(
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             if not joint_factor_lanes(
                 joint, P, P_ref, lane_e, lane_first, obs, src, n, fused, jitter, now, blocks,
-                Li, X, Ls,
+                J, L, ok, Li, X, Ls,
             ):  # fmt: skip
                 return NOT_PD
             correlated_points_lanes(
@@ -402,6 +537,7 @@ def _joint_rounds(
 for _dispatcher in (
     reset_joint,
     joint_factor_lanes,
+    chol6_lanes,
     correlated_points_lanes,
     joint_record_lanes,
     correct_joint_rounds,
