@@ -87,7 +87,7 @@ def test_cholesky_lanes_match_numpy_and_flag_what_needs_jitter() -> None:
     """:func:`~resloc.cl.kernels_joint_rounds.chol6_lanes` (the first level of ``chol6``
     over lanes) equals numpy's factor of every positive definite lane and flags the lanes
     that are not (singular, indefinite, not finite) for the jitter's levels."""
-    from resloc.cl.kernels_joint_rounds import chol6_lanes
+    from resloc.cl.kernels_joint_lanes import chol6_lanes
     from resloc.cl.kernels_lanes import CHUNK
 
     rng = np.random.default_rng(3)
@@ -110,3 +110,34 @@ def test_cholesky_lanes_match_numpy_and_flag_what_needs_jitter() -> None:
     assert (ok[good] == 1.0).all()
     expected = np.linalg.cholesky(M[good])[:, rows, cols].T
     np.testing.assert_allclose(L[:, good], expected, rtol=1e-12, atol=1e-12)
+
+
+def test_factorized_lanes_that_need_the_shrink_take_the_full_cross() -> None:
+    """Factors whose product is a correlation above the cap on some of the first round's
+    links: those lanes take ``factorized_cross`` itself (the shrink), the others the
+    certified scalar cross, and the correction equals the reference."""
+    from resloc.cl.factorized import valid_cross
+
+    x, P, links = random_batch(6, outliers=0.0, fail=0.0)
+    B = len(x)
+    rng = np.random.default_rng(6)
+    sig = rng.normal(size=(B, B, 3, 3)) * 0.05
+    memories = []
+    for _ in range(2):
+        memory = LinkMemory(B)
+        fusion_strategy("factorized").init(memory, x, P, B)
+        memory.joint.sig = sig.copy()
+        memory.joint.sig_pred = sig.copy()
+        memories.append(memory)
+    first = np.flatnonzero(np.r_[True, links.i[1:] != links.i[:-1]])
+    i, j = links.i[first], links.j[first]
+    C = sig[i, j] @ np.swapaxes(sig[j, i], -1, -2)  # A_i = I at a robot's first link
+    shrunk = ~np.all(valid_cross(P[i], P[j], C) == C, axis=(1, 2))
+    assert 0 < shrunk.sum() < len(first)
+    params = replace(default_scenario().cl_params(), fusion="factorized")
+    warm_up_joint_form()
+    before = LOOP_RUNS["joint_rounds"]
+    fast, ref = run_both(FILTERS["ckf"], x, P, links, params, tuple(memories))
+    assert LOOP_RUNS["joint_rounds"] - before == 1
+    assert_equivalent(fast, ref)
+    assert_same_state("factorized", *memories)
