@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 from resloc.cl import kernels_joint_links as _kernels_joint_links
-from resloc.cl.kernels_joint_links import _CAP
+from resloc.cl.kernels_joint_links import CROSS_CAP
 from resloc.cl.kernels_lanes import (
     CHUNK,
     SINCOS_LANES_MAX,
@@ -335,14 +335,14 @@ def factorized_cross_lane(joint, e, i, P, P_ref, s):
         frob += x20 * x20
         frob += x21 * x21
         frob += x22 * x22
-        if not math.sqrt(frob) <= _CAP:  # X^T X below cap^2 (Sylvester), else shrink
+        if not math.sqrt(frob) <= CROSS_CAP:  # X^T X below cap^2 (Sylvester), else shrink
             m00 = x00 * x00 + x10 * x10 + x20 * x20
             m01 = x00 * x01 + x10 * x11 + x20 * x21
             m02 = x00 * x02 + x10 * x12 + x20 * x22
             m11 = x01 * x01 + x11 * x11 + x21 * x21
             m12 = x01 * x02 + x11 * x12 + x21 * x22
             m22 = x02 * x02 + x12 * x12 + x22 * x22
-            certified = _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, _CAP * _CAP)
+            certified = _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, CROSS_CAP * CROSS_CAP)
     if not certified:
         return False
     for a in range(3):

@@ -15,6 +15,7 @@ from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_math import chol3, jit_inline, wrap
 
 __all__ = [
+    "CROSS_CAP",
     "FACTORIZED",
     "JOINT_FORM",
     "NO_JOINT",
@@ -68,7 +69,9 @@ if HAVE_NUMBA:  # the optional extra ``fast``
         return constant
 
 
-_CAP = 1.0 - 1e-6  # valid_cross's default cap on the correlation's singular values
+#: ``valid_cross``'s default cap on the correlation's singular values.
+CROSS_CAP = 1.0 - 1e-6
+_CAP = CROSS_CAP
 
 
 @jit_inline

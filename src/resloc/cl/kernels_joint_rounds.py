@@ -266,11 +266,14 @@ def joint_record_lanes(
 
 @_jit
 def correct_joint_rounds(
-    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
+    x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out,
+    beyond,
 ):  # fmt: skip
     """Every link of one step of ``tracked`` or ``factorized`` fusion in rounds; arguments
     and statuses as :func:`resloc.cl.kernels_rounds.correct_rounds` (the configuration must
-    be one :func:`joint_rounds_cover` accepts). On ``FALLBACK`` the options' stores and
+    be one :func:`joint_rounds_cover` accepts; ``beyond``, the loops' switch, is
+    :data:`~resloc.cl.kernels_joint_links.JOINT_FORM` here, taken for the loops' common
+    call and not read: these rounds have one form). On ``FALLBACK`` the options' stores and
     the joint's working copies are as they were on entry. Twin:
     :func:`resloc.cl.kernels_links.correct_links` (form ``JOINT_FORM``)."""
     saved = save_state(detection, defence, fusion, gauge)

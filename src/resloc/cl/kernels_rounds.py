@@ -195,7 +195,7 @@ def run_link_loop(
     args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond)
     if len(links[0]) >= ROUNDS_MIN_LINKS and joint_rounds_cover(*args[2:-2]):
         # the tracked / factorized joints' rounds (kernels_joint_rounds)
-        status = correct_joint_rounds(x_out, P_out, *args[:-1])
+        status = correct_joint_rounds(x_out, P_out, *args)
         if status != FALLBACK:
             LOOP_RUNS["joint_rounds"] += 1
             return status
