@@ -106,16 +106,22 @@ def joint_rounds_cover(filt, options, fusion, detection, defence, gauge, tamper)
     sigma-point filter whose points have at most one non-zero entry, and none of the
     recovery, ``cached`` neighbour estimates, zone trust, the gauge bookkeeping."""
     del tamper  # the stealthy attacker is a stage of the rounds
-    linearized, nz_cnt = filt[0], filt[3]
-    return bool(
-        fusion[3][0] != NO_JOINT
-        and not linearized
-        and not np.any(nz_cnt > 1)
-        and not options[9]  # cached
-        and not defence[5]  # recovery
-        and not detection[12][0]  # zone trust
-        and not gauge[0]
-    )
+    if fusion[3][0] == NO_JOINT or filt[0]:  # (filt[0]: linearized, the EKF)
+        return False
+    if options[9] or defence[5] or detection[12][0] or gauge[0]:
+        return False  # cached, the recovery, zone trust, gauge
+    return _one_axis_points(filt[3])
+
+
+_ONE_AXIS: list = [None, False]
+
+
+def _one_axis_points(nz_cnt: np.ndarray) -> bool:
+    """Every sigma point has at most one non-zero entry (``nz_cnt``: the filter spec's
+    counts, the same array every step: the answer kept for the last one)."""
+    if _ONE_AXIS[0] is not nz_cnt:
+        _ONE_AXIS[0], _ONE_AXIS[1] = nz_cnt, not bool(np.any(nz_cnt > 1))
+    return _ONE_AXIS[1]
 
 
 @_jit
