@@ -25,8 +25,10 @@ differ in where ``C_ij`` comes from and what an update records:
     by the gains of i's later links), not ``N`` matrix products per update. The
     end-of-step pair exchange is :mod:`resloc.cl.kernels_fusion_step`'s.
 
-The per-link pieces are in :mod:`resloc.cl.kernels_joint_links`; this module holds the
-state the link loop works on and its hand-over to the numpy bookkeeping.
+The per-link pieces are in :mod:`resloc.cl.kernels_joint_links` and
+:mod:`resloc.cl.kernels_joint_records` (``joint_record``), their rounds in
+:mod:`resloc.cl.kernels_joint_rounds`; this module holds the state the link loops work on
+and its hand-over to the numpy bookkeeping.
 
 ====================================================  ===================================
 kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
@@ -42,7 +44,7 @@ kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
                                                       (points)
 ``correlated_linearized_moments``                     :func:`resloc.cl.tracking.joint_moments`
                                                       (EKF)
-``joint_record``                                      ``JointCovariance.update`` /
+``joint_record`` (``kernels_joint_records``)           ``JointCovariance.update`` /
                                                       ``FactorizedCovariance.update`` (with
                                                       :func:`~resloc.cl.tracking.update_map`)
 ====================================================  ===================================

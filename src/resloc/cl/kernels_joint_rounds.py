@@ -46,6 +46,7 @@ import numpy as np
 
 from resloc.cl import kernels_joint_lanes as _kernels_joint_lanes
 from resloc.cl import kernels_joint_links as _kernels_joint_links
+from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl.kernels_joint_lanes import (
     chol6_lanes,
@@ -57,11 +58,10 @@ from resloc.cl.kernels_joint_links import (
     TRACKED,
     chol6,
     factorized_cross,
-    factorized_record,
     joint6,
     tracked_cross,
-    tracked_record,
 )
+from resloc.cl.kernels_joint_records import factorized_record, tracked_record
 from resloc.cl.kernels_lanes import (
     CHUNK,
     FALLBACK,
@@ -396,5 +396,6 @@ for _dispatcher in (
         _dispatcher,
         _kernels_joint_links,
         _kernels_joint_lanes,
+        _kernels_joint_records,
         *_kernels_round_stages.PIECE_MODULES,
     )
