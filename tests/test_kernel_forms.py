@@ -47,7 +47,11 @@ CASES = {
 def _forms_seen():
     """The ``beyond`` argument of every loop call within (the loops themselves run)."""
     seen: list = []
-    loops = {"correct_links": rounds.correct_links, "correct_rounds": rounds.correct_rounds}
+    loops = {
+        "correct_links": rounds.correct_links,
+        "correct_rounds": rounds.correct_rounds,
+        "correct_joint_rounds": rounds.correct_joint_rounds,
+    }
 
     def spy(name):
         def call(*args):

@@ -25,8 +25,10 @@ differ in where ``C_ij`` comes from and what an update records:
     by the gains of i's later links), not ``N`` matrix products per update. The
     end-of-step pair exchange is :mod:`resloc.cl.kernels_fusion_step`'s.
 
-The per-link pieces are in :mod:`resloc.cl.kernels_joint_links`; this module holds the
-state the link loop works on and its hand-over to the numpy bookkeeping.
+The per-link pieces are in :mod:`resloc.cl.kernels_joint_links` and
+:mod:`resloc.cl.kernels_joint_records` (``joint_record``), their rounds in
+:mod:`resloc.cl.kernels_joint_rounds`; this module holds the state the link loops work on
+and its hand-over to the numpy bookkeeping.
 
 ====================================================  ===================================
 kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
@@ -42,7 +44,7 @@ kernel function (``resloc.cl.kernels_joint_links``)   numpy twin
                                                       (points)
 ``correlated_linearized_moments``                     :func:`resloc.cl.tracking.joint_moments`
                                                       (EKF)
-``joint_record``                                      ``JointCovariance.update`` /
+``joint_record`` (``kernels_joint_records``)           ``JointCovariance.update`` /
                                                       ``FactorizedCovariance.update`` (with
                                                       :func:`~resloc.cl.tracking.update_map`)
 ====================================================  ===================================
@@ -251,10 +253,11 @@ _WARMED: list = []
 
 def warm_up_joint_form() -> None:
     """Load (or compile) the link loop's form of the correlated joints
-    (:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`) once per process, by one small
-    ``tracked`` correction: the strategies call it when they set up their state, before a
-    run times its steps (the runner's warm-up loads the forms every option shares; this
-    one only a run of ``tracked`` or ``factorized`` needs)."""
+    (:data:`~resloc.cl.kernels_joint_links.JOINT_FORM`) and their rounds
+    (:mod:`resloc.cl.kernels_joint_rounds`) once per process, by a small ``tracked``
+    correction and one of a ring of robots: the strategies call it when they set up their
+    state, before a run times its steps (the runner's warm-up loads the forms every option
+    shares; these only a run of ``tracked`` or ``factorized`` needs)."""
     from resloc.cl.backend import backend
 
     if _WARMED or backend() != "numba":
@@ -274,4 +277,11 @@ def warm_up_joint_form() -> None:
     )  # fmt: skip
     memory = LinkMemory(2)
     memory.joint = JointCovariance(P, 2)
+    fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)
+    # and the joints' rounds (kernels_joint_rounds), which a team's step takes
+    from resloc.cl.kernels_rounds import rounds_warm_up_batch
+
+    x, P, links = rounds_warm_up_batch()
+    memory = LinkMemory(len(x))
+    memory.joint = JointCovariance(P, len(x))
     fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)

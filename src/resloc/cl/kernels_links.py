@@ -24,6 +24,7 @@ from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_joint_links as _kernels_joint_links
+from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
@@ -39,8 +40,8 @@ from resloc.cl.kernels_joint_links import (
     correlated_offsets,
     joint_cross,
     joint_form,
-    joint_record,
 )
+from resloc.cl.kernels_joint_records import joint_record
 from resloc.cl.kernels_math import (
     chol2,
     chol3,
@@ -468,6 +469,7 @@ stamp_with_pieces(
     _kernels_fusion,
     _kernels_gauge,
     _kernels_joint_links,
+    _kernels_joint_records,
     _kernels_split,
     _kernels_tamper,
     _kernels_zone,

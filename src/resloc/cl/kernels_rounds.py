@@ -62,6 +62,7 @@ from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
 from resloc.cl.kernels_joint_links import JOINT_FORM, NO_JOINT
+from resloc.cl.kernels_joint_rounds import correct_joint_rounds, joint_rounds_cover
 from resloc.cl.kernels_lanes import CHUNK, FALLBACK
 from resloc.cl.kernels_link_stages import (
     UPDATE_ROWS,
@@ -113,8 +114,10 @@ __all__ = [
 #: The rounds run from this many links on; below, the row-order loop (measured, CKF, one
 #: correction: 28 links 1.09x the row order's time, 64 links 0.94x, 313 links 0.41x).
 ROUNDS_MIN_LINKS = 64
-#: How many corrections each loop ran (``rounds``, ``rounds_fallback``: the rounds gave
-#: way to the row-order loop, ``row_order``), for tests and benchmarks.
+#: How many corrections each loop ran (``rounds``; ``joint_rounds``: the ``tracked`` /
+#: ``factorized`` joints' rounds, :mod:`resloc.cl.kernels_joint_rounds`;
+#: ``rounds_fallback``: the rounds gave way to the row-order loop; ``row_order``), for
+#: tests and benchmarks.
 LOOP_RUNS: Counter = Counter()
 
 
@@ -191,7 +194,17 @@ def run_link_loop(
     if _EVERY_STAGE[0] and beyond is None:
         beyond = True
     args = (links, robots, filt, options, fusion, detection, defence, gauge, tamper, out, beyond)
-    if len(links[0]) >= ROUNDS_MIN_LINKS and rounds_cover(
+    if len(links[0]) >= ROUNDS_MIN_LINKS and joint_rounds_cover(*args[2:-2]):
+        # the tracked / factorized joints' rounds (kernels_joint_rounds)
+        status = correct_joint_rounds(x_out, P_out, *args)
+        if status != FALLBACK:
+            LOOP_RUNS["joint_rounds"] += 1
+            return status
+        LOOP_RUNS["rounds_fallback"] += 1
+        x_out[...] = x
+        P_out[...] = P
+        out.flags[...] = False
+    elif len(links[0]) >= ROUNDS_MIN_LINKS and rounds_cover(
         filt, options, fusion, detection, defence, gauge, tamper
     ):
         status = correct_rounds(x_out, P_out, *args)
