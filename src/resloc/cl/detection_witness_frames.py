@@ -42,6 +42,8 @@ __all__ = [
     "received_state",
     "received_statistic",
     "record_witness",
+    "reference_delivered_store",
+    "row_words",
     "whole_set_statistic",
 ]
 
@@ -49,6 +51,7 @@ __all__ = [
 #: ``u`` (2), ``Q`` (4), ``P_pos`` (4), then 1 for a note waiting (0: none).
 PENDING = "witness_pending"
 _PENDING_WIDTH = 11
+PENDING_WIDTH = _PENDING_WIDTH
 
 
 def pending_notes(memory: LinkMemory) -> WitnessNotes:
@@ -73,7 +76,8 @@ def pending_notes(memory: LinkMemory) -> WitnessNotes:
 _ROW_WORDS: list[np.ndarray] = [np.zeros(0, np.uint64)]
 
 
-def _row_words(n: int) -> np.ndarray:
+def row_words(n: int) -> np.ndarray:
+    """A random odd 64-bit word per note row ``0 .. n - 1`` (fixed for the run)."""
     if len(_ROW_WORDS[0]) < n:
         rng = np.random.default_rng(20261127)
         size = max(n, 2 * len(_ROW_WORDS[0]), 1024)
@@ -154,7 +158,7 @@ def received_statistic(
     G = len(start)
     if G == 0:
         return np.zeros(0), np.zeros(0, bool)
-    words = _row_words(len(notes))[rows]
+    words = row_words(len(notes))[rows]
     sums = np.add.reduceat(words, start) if len(rows) else np.zeros(G, np.uint64)
     # one word per group: the rows' sum mixed with the robot and the size (a collision of
     # two different sets has probability ~G^2 / 2^64)
@@ -248,7 +252,26 @@ def delivered_store(
     with this step's frames (the step's links: receivers ``i``, senders ``j``,
     ``channel_ok``, shapes (E,)); pairs that received no note decay by ``k``. ``memory`` is
     unchanged (the CL step puts the result in it: :func:`deliver_witness`). ``robots``:
-    only the statistics on these robots (the store then holds no other)."""
+    only the statistics on these robots (the store then holds no other). The compiled
+    pass with the numba backend (:func:`~resloc.cl.kernels_witness_frames.fast_delivered`),
+    else the numpy spec."""
+    from resloc.cl.kernels_witness_frames import fast_delivered  # numba's import, on first use
+
+    fast = fast_delivered(params, memory, i, j, channel_ok, robots)
+    if fast is not None:
+        return fast
+    return reference_delivered_store(params, memory, i, j, channel_ok, robots)
+
+
+def reference_delivered_store(
+    params: CLParams,
+    memory: LinkMemory,
+    i: np.ndarray,
+    j: np.ndarray,
+    channel_ok: np.ndarray,
+    robots: np.ndarray | None = None,
+) -> LinkStatistic:
+    """:func:`delivered_store` in numpy (its executable specification)."""
     stat = memory.stage_statistic(STATE)
     recv, on, S = received_state(pending_notes(memory), params, stat, i, j, channel_ok, robots)
     n = stat.n_nodes

@@ -66,9 +66,10 @@ __all__ = [
     "witness_verdict",
 ]
 
-#: How often the compiled path took the stage's verdict, computed notes, statistics (the
-#: tests read it).
-WITNESS_RUNS = {"verdicts": 0, "notes": 0, "statistics": 0}
+#: How often the compiled path took the stage's verdict, computed notes, statistics, the
+#: receivers' delivered statistic (:mod:`resloc.cl.kernels_witness_frames`) and how many
+#: distinct sets of notes that pass enumerated (the tests read it).
+WITNESS_RUNS = {"verdicts": 0, "notes": 0, "statistics": 0, "delivered": 0, "enumerated": 0}
 
 
 class WitnessInputs(NamedTuple):
@@ -235,7 +236,9 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
             for c in range(6):
                 tot[c] += terms[k, c]
             trace = P_pos[e, 0, 0] + P_pos[e, 1, 1]
-            if trace > best_trace:  # (the first of equal traces, as argmax)
+            if math.isnan(best_trace):
+                pass  # (argmax: the first nan wins)
+            elif math.isnan(trace) or trace > best_trace:  # (the first of equal traces)
                 best_trace = trace
                 big = e
         P00 = P_pos[big, 0, 0]
