@@ -311,17 +311,12 @@ def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMem
     if memory is None:
         raise ValueError("detector witness (params.witness) needs a LinkMemory")
     store = memory.stage_statistic(PENDING, width=_PENDING_WIDTH)
-    if len(store):
-        store.values[:, 10] = 0.0
     rows = np.flatnonzero(notes.sent)
     n = len(rows)
-    values = np.concatenate(
-        [
-            notes.u[rows],
-            notes.Q[rows].reshape(n, 4),
-            notes.P_pos[rows].reshape(n, 4),
-            np.ones((n, 1)),
-        ],
-        axis=1,
-    )
-    store.set(notes.i[rows], notes.j[rows], values)
+    pos = store.slots(notes.i[rows], notes.j[rows])  # (the missing links inserted)
+    v = store.values
+    v[:, 10] = 0.0
+    v[pos, 0:2] = notes.u[rows]
+    v[pos, 2:6] = notes.Q[rows].reshape(n, 4)
+    v[pos, 6:10] = notes.P_pos[rows].reshape(n, 4)
+    v[pos, 10] = 1.0

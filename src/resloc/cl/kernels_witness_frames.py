@@ -314,9 +314,10 @@ def delivered_pass(
 
 def _per_robot(value, n: int, dtype=float) -> np.ndarray:
     """A parameter at every robot id ``0 .. n - 1``, shape (n,)."""
-    return np.ascontiguousarray(
-        np.broadcast_to(np.asarray(at_robots(value, np.arange(n)), float), (n,)), dtype=dtype
-    )
+    a = np.asarray(value, float)
+    if a.ndim == 0:
+        return np.full(n, a, dtype)
+    return np.ascontiguousarray(at_robots(a, np.arange(n)), dtype=dtype)
 
 
 def fast_delivered(params: CLParams, memory, i, j, channel_ok, robots=None) -> LinkStatistic | None:
@@ -334,7 +335,7 @@ def fast_delivered(params: CLParams, memory, i, j, channel_ok, robots=None) -> L
     if robots is not None:
         on_ok[:] = False
         on_ok[np.asarray(robots, np.int64)] = True
-    f_at = np.rint(_per_robot(params.witness_liars, n)).astype(np.int64)
+    f_at = _per_robot(np.rint(params.witness_liars), n, np.int64)
     k_at, h_at = _per_robot(params.witness_k, n), _per_robot(params.witness_h, n)
     p_fa = float(np.max(params.witness_false_alarm))
     largest = 16
