@@ -196,6 +196,30 @@ def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
 
 
 @jit_lanes
+def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
+    """``best`` and the statistic of the set ``tot (6,)`` minus the dropped notes' sums
+    ``d0 .. d5``, of ``size`` notes, when it is consistent (a nan propagates, as
+    ``np.minimum``)."""
+    Sa, Sb, Sc = tot[0] - d0, tot[1] - d1, tot[2] - d2
+    sa, sb, sq = tot[3] - d3, tot[4] - d4, tot[5] - d5
+    dS = Sa * Sc - Sb * Sb
+    Ia = Sc / dS
+    Ib = -Sb / dS
+    Ic = Sa / dS
+    ma = Ia * sa + Ib * sb
+    mb = Ib * sa + Ic * sb
+    if size > 1 and not sq - (ma * sa + mb * sb) <= gates[size]:
+        return best
+    Ca = P00 + Ia
+    Cb = P01 + Ib
+    Cc = P11 + Ic
+    stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+    if math.isnan(stat) or math.isnan(best):
+        return np.nan
+    return min(stat, best)
+
+
+@jit_lanes
 def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
     """The step's statistic of every group of notes: group ``g`` is rows ``start[g] ..
     start[g] + count[g] - 1`` of ``u (E, 2)``, ``Q (E, 2, 2)``, ``P_pos (E, 2, 2)``;
@@ -246,7 +270,37 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
         P11 = P_pos[big, 1, 1]
         best = np.inf
         dmax = min(f[g], m - 1)
-        for d in range(dmax + 1):
+        # up to three notes dropped (the usual f): nested loops, the outer drops' sum kept
+        # (the same sums in the same order as the generic enumeration below)
+        best = _merge_set(best, tot, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, m, gates, P00, P01, P11)
+        for a in range(m if dmax >= 1 else 0):
+            ta = terms[a]
+            best = _merge_set(
+                best, tot, ta[0], ta[1], ta[2], ta[3], ta[4], ta[5], m - 1, gates, P00, P01, P11
+            )
+            for b in range(a + 1, m if dmax >= 2 else 0):
+                tb = terms[b]
+                d0, d1, d2 = ta[0] + tb[0], ta[1] + tb[1], ta[2] + tb[2]
+                d3, d4, d5 = ta[3] + tb[3], ta[4] + tb[4], ta[5] + tb[5]
+                best = _merge_set(best, tot, d0, d1, d2, d3, d4, d5, m - 2, gates, P00, P01, P11)
+                for c in range(b + 1, m if dmax >= 3 else 0):
+                    tc = terms[c]
+                    best = _merge_set(
+                        best,
+                        tot,
+                        d0 + tc[0],
+                        d1 + tc[1],
+                        d2 + tc[2],
+                        d3 + tc[3],
+                        d4 + tc[4],
+                        d5 + tc[5],
+                        m - 3,
+                        gates,
+                        P00,
+                        P01,
+                        P11,
+                    )
+        for d in range(4, dmax + 1):
             for t in range(d):
                 idx[t] = t
             while True:
@@ -254,28 +308,22 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
                     dropped = 0.0
                     for t in range(d):
                         dropped += terms[idx[t], c]
-                    kept[c] = tot[c] - dropped
-                Sa, Sb, Sc, sa, sb, sq = kept[0], kept[1], kept[2], kept[3], kept[4], kept[5]
-                dS = Sa * Sc - Sb * Sb
-                Ia = Sc / dS
-                Ib = -Sb / dS
-                Ic = Sa / dS
-                ma = Ia * sa + Ib * sb
-                mb = Ib * sa + Ic * sb
-                size = m - d
-                ok = True
-                if size > 1:
-                    spread = sq - (ma * sa + mb * sb)
-                    ok = spread <= gates[size]
-                if ok:
-                    Ca = P00 + Ia
-                    Cb = P01 + Ib
-                    Cc = P11 + Ic
-                    stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
-                    if math.isnan(stat) or math.isnan(best):
-                        best = np.nan  # (np.minimum propagates a nan)
-                    elif stat < best:
-                        best = stat
+                    kept[c] = dropped
+                best = _merge_set(
+                    best,
+                    tot,
+                    kept[0],
+                    kept[1],
+                    kept[2],
+                    kept[3],
+                    kept[4],
+                    kept[5],
+                    m - d,
+                    gates,
+                    P00,
+                    P01,
+                    P11,
+                )
                 # the next combination of d of m positions (lexicographic)
                 t = d - 1
                 while t >= 0 and idx[t] == m - d + t:
