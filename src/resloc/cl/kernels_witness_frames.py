@@ -14,7 +14,9 @@ pending rows are sorted by (observer, on)); a per-robot counter, reset only wher
 places them by the robot they are on. Each group's whole set is judged; a group left at 0
 by a consistent whole set skips the enumeration (the spec's rule), the others are
 enumerated by :func:`~resloc.cl.kernels_witness.group_statistics`, each distinct set of
-notes once (identified, as the spec does, by the sum of a random 64-bit word per row).
+notes once (identified, as the spec does, by the sum of a random 64-bit word per row),
+stopping at the first consistent set whose statistic clips every group holding the set at
+0 (``S + T - k <= 0``: the smallest would give the same 0; the spec enumerates them all).
 """
 
 from __future__ import annotations
@@ -252,6 +254,13 @@ def delivered_pass(
         ncount = np.empty(n_need, np.int64)
         nf = np.empty(n_need, np.int64)
         nhalf = np.empty(n_need)
+        # a set may stop at a statistic that clips every group holding it at 0
+        stop = np.full(n_need, np.inf)
+        for g in range(G):
+            a = rep[g]
+            if a >= 0:
+                v = k_at[gkey[g] % n] - S[g]
+                stop[a] = -np.inf if math.isnan(v) else min(stop[a], v)
         q2 = 0
         for a in range(n_need):
             g = dgroup[a]
@@ -274,7 +283,7 @@ def delivered_pass(
                 q2 += 1
         Tn = np.zeros(n_need)
         jn = np.zeros(n_need, np.bool_)
-        group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, Tn, jn)
+        group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, stop, Tn, jn)
         for g in range(G):
             if rep[g] >= 0:
                 T[g] = Tn[rep[g]]
