@@ -34,6 +34,7 @@ from resloc.cl.detection_witness_frames import (
     put_store,
     record_witness,
     reference_delivered_store,
+    reference_record,
 )
 from resloc.cl.params import CLParams, at_robots
 from resloc.experiments.config import default_scenario
@@ -320,3 +321,37 @@ def test_the_delivered_statistic_compiled_equals_the_spec(robots):
             assert np.isin(ref.keys % n, robots).all()
         put_store(memory, ref)
     assert enumerated > 0 and skipped > 0 and convicted > 0, "the case tests nothing"
+
+
+def test_the_notes_recorded_in_place_equal_the_spec():
+    """The pending store after recording each step's notes, in place (compiled) and by the
+    numpy spec: equal, the compiled record ran once every link was stored, and a step with
+    a new link falls back to the spec (which inserts it)."""
+    rng = np.random.default_rng(8)
+    params = CLParams(witness=True)
+    n = 9
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    memories = {"fast": LinkMemory(n), "numpy": LinkMemory(n)}
+    ran = []
+    first = rng.random(len(pairs)) < 0.5
+    more = first | (rng.random(len(pairs)) < 0.5)
+    for step in range(6):
+        i, j = pairs[first if step < 4 else more].T  # new links at step 4
+        E = len(i)
+        notes = WitnessNotes(
+            rng.normal(size=(E, 2)),
+            rng.normal(size=(E, 2, 2)),
+            rng.normal(size=(E, 2, 2)),
+            i,
+            j,
+            rng.random(E) < (1.0 if step in (0, 4) else 0.8),  # a link stored once sent
+        )
+        before = kernels_witness.WITNESS_RUNS["records"]
+        with kernels.use_backend("numba"):
+            record_witness(notes, params, memories["fast"])
+        ran.append(kernels_witness.WITNESS_RUNS["records"] - before)
+        reference_record(notes, memories["numpy"])
+        fast, ref = (m.stage_statistic(PENDING, width=PENDING_WIDTH) for m in memories.values())
+        np.testing.assert_array_equal(fast.keys, ref.keys)
+        np.testing.assert_array_equal(fast.values, ref.values)
+    assert ran == [0, 1, 1, 1, 0, 1], f"the compiled record ran {ran}"

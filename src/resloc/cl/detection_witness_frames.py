@@ -43,6 +43,7 @@ __all__ = [
     "received_statistic",
     "record_witness",
     "reference_delivered_store",
+    "reference_record",
     "row_words",
     "whole_set_statistic",
 ]
@@ -310,6 +311,14 @@ def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMem
         return
     if memory is None:
         raise ValueError("detector witness (params.witness) needs a LinkMemory")
+    from resloc.cl.kernels_witness_frames import fast_record  # numba's import, on first use
+
+    if not fast_record(notes, memory):
+        reference_record(notes, memory)
+
+
+def reference_record(notes: WitnessNotes, memory: LinkMemory) -> None:
+    """:func:`record_witness` in numpy (its executable specification)."""
     store = memory.stage_statistic(PENDING, width=_PENDING_WIDTH)
     rows = np.flatnonzero(notes.sent)
     n = len(rows)

@@ -68,8 +68,16 @@ __all__ = [
 
 #: How often the compiled path took the stage's verdict, computed notes, statistics, the
 #: receivers' delivered statistic (:mod:`resloc.cl.kernels_witness_frames`) and how many
-#: distinct sets of notes that pass enumerated (the tests read it).
-WITNESS_RUNS = {"verdicts": 0, "notes": 0, "statistics": 0, "delivered": 0, "enumerated": 0}
+#: distinct sets of notes that pass enumerated, the notes recorded in place (the tests
+#: read it).
+WITNESS_RUNS = {
+    "verdicts": 0,
+    "notes": 0,
+    "statistics": 0,
+    "delivered": 0,
+    "enumerated": 0,
+    "records": 0,
+}
 
 
 class WitnessInputs(NamedTuple):
