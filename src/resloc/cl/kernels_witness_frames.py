@@ -89,8 +89,26 @@ def delivered_pass(
             m += 1
     # each observer's rows: rows[ofirst[o]:ofirst[o + 1]] (keys sorted: by observer, on)
     ofirst = np.zeros(n + 1, np.int64)
+    row_on = np.empty(m, np.int64)  # the robot each row is on (one division a row)
+    pterm = np.empty((P, 6))  # each row's information terms (once a row, not a receiver)
     for t in range(m):
-        ofirst[pkeys[rows[t]] // n + 1] += 1
+        e = rows[t]
+        ofirst[pkeys[e] // n + 1] += 1
+        row_on[t] = pkeys[e] % n
+        Q00, Q01, Q10, Q11 = pvals[e, 2], pvals[e, 3], pvals[e, 4], pvals[e, 5]
+        u0, u1 = pvals[e, 0], pvals[e, 1]
+        det = Q00 * Q11 - Q01 * Q10
+        Ya = Q11 / det
+        Yb = -0.5 * (Q01 + Q10) / det
+        Yc = Q00 / det
+        ya = Ya * u0 + Yb * u1
+        yb = Yb * u0 + Yc * u1
+        pterm[e, 0] = Ya
+        pterm[e, 1] = Yb
+        pterm[e, 2] = Yc
+        pterm[e, 3] = ya
+        pterm[e, 4] = yb
+        pterm[e, 5] = u0 * ya + u1 * yb
     for o in range(n):
         ofirst[o + 1] += ofirst[o]
     # each receiver's senders: itself and the links' senders whose channel is ok (ascending)
@@ -131,7 +149,7 @@ def delivered_pass(
         for s in range(rfirst[r], rfirst[r + 1]):
             o = senders[s]
             for t in range(ofirst[o], ofirst[o + 1]):
-                on = pkeys[rows[t]] % n
+                on = row_on[t]
                 if on == r:
                     continue
                 if per_on[on] == 0:
@@ -153,7 +171,7 @@ def delivered_pass(
         for s in range(rfirst[r], rfirst[r + 1]):
             o = senders[s]
             for t in range(ofirst[o], ofirst[o + 1]):
-                on = pkeys[rows[t]] % n
+                on = row_on[t]
                 if on == r:
                     continue
                 grows[per_on[on]] = rows[t]
@@ -181,20 +199,12 @@ def delivered_pass(
         big = grows[gstart[g]]
         for q in range(gstart[g], gstart[g] + gcount[g]):
             e = grows[q]
-            Q00, Q01, Q10, Q11 = pvals[e, 2], pvals[e, 3], pvals[e, 4], pvals[e, 5]
-            u0, u1 = pvals[e, 0], pvals[e, 1]
-            det = Q00 * Q11 - Q01 * Q10
-            Ya = Q11 / det
-            Yb = -0.5 * (Q01 + Q10) / det
-            Yc = Q00 / det
-            ya = Ya * u0 + Yb * u1
-            yb = Yb * u0 + Yc * u1
-            Sa += Ya
-            Sb += Yb
-            Sc += Yc
-            sa += ya
-            sb += yb
-            sq += u0 * ya + u1 * yb
+            Sa += pterm[e, 0]
+            Sb += pterm[e, 1]
+            Sc += pterm[e, 2]
+            sa += pterm[e, 3]
+            sb += pterm[e, 4]
+            sq += pterm[e, 5]
             trace = pvals[e, 6] + pvals[e, 9]
             if math.isnan(trace):
                 nan_trace = True
