@@ -15,6 +15,9 @@ by ``k``); receiver r discards the links (r, j) while ``S_{r,j} > h``
 
 Most receivers hold the same notes on a robot (the default team is nearly fully
 connected): :func:`received_statistic` judges each distinct set of notes once.
+:func:`delivered_store` and :func:`record_witness` run their compiled twins
+(:mod:`resloc.cl.kernels_witness_frames`) with the numba backend; the numpy functions here
+are their specification (:func:`reference_delivered_store`, :func:`reference_record`).
 """
 
 from __future__ import annotations

@@ -24,6 +24,9 @@ function                       numpy twin
 :func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
 =============================  ==========================================================
 
+The receivers' delivery and the record of the notes are compiled in
+:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``).
+
 ``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
 :func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
 notes, every receiver's statistic, and the compromised robot's oracle, which evaluates them
