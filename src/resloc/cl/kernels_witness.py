@@ -320,8 +320,9 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
     counts, ``gates (M,)`` the consistency gate of a set of each size (``gates[n]``, n >= 2),
     ``enough (G,)``: the enumeration of group g may stop at a set whose statistic is at
     most ``enough[g]`` (its CUSUM then clips at 0 whatever the smallest: the receivers'
-    pass), when the group's notes cannot make a nan (finite, bounded, ``Q`` positive
-    definite, the claim positive semi-definite); ``-inf``: the smallest (the spec's ``T``).
+    pass), when the group's notes cannot make a nan short of an overflow (terms finite and
+    under 1e100, ``Q`` positive definite, the claim positive semi-definite: every set's
+    information and ``C`` positive definite); ``-inf``: the smallest (the spec's ``T``).
     Writes ``T (G,)`` (the smallest ``T_K`` over the consistent sets left after dropping at
     most ``f[g]`` notes; 0 where not judged) and ``judged (G,)`` (more than ``f[g]``
     notes). The sets are enumerated (every combination of dropped notes). Twin:
