@@ -27,6 +27,15 @@ from resloc.cl.detection_witness import (
     witness_state,
     witness_statistic,
 )
+from resloc.cl.detection_witness_frames import (
+    PENDING,
+    PENDING_WIDTH,
+    delivered_store,
+    put_store,
+    record_witness,
+    reference_delivered_store,
+    reference_record,
+)
 from resloc.cl.params import CLParams, at_robots
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
@@ -78,13 +87,16 @@ def lockstep(filt, params, steps: int, seed: int):
                 )
                 links = adversary.attack(links, step, fooled, memory)
                 before = rounds.LOOP_RUNS.copy()
-                runs = kernels_witness.WITNESS_RUNS["verdicts"]
+                runs = kernels_witness.WITNESS_RUNS.copy()
                 res[path] = correct(filt, xp, Pp, links, params, memory)
                 ran = rounds.LOOP_RUNS - before
-                took = kernels_witness.WITNESS_RUNS["verdicts"] - runs
+                took = kernels_witness.WITNESS_RUNS["verdicts"] - runs["verdicts"]
+                passes = kernels_witness.WITNESS_RUNS["delivered"] - runs["delivered"]
             if path != "numpy":
                 assert ran == {path: 1}, f"expected the {path} loop, ran {dict(ran)}"
                 assert res[path][2].compiled and took == 1, "the compiled path did not run"
+                # (the step's pass, and the compromised robots' oracle's inside the hook)
+                assert passes >= 1, "the receivers' statistic was not compiled"
             state[path] = (res[path][0], res[path][1], memory)
         assert_same_loops(res["rounds"], res["row_order"])
         assert_matches_reference(res["rounds"], res["numpy"])
@@ -152,7 +164,7 @@ def _both(notes, params, robots=None):
     return ref
 
 
-@pytest.mark.parametrize("liars", [0, 1, 2, 3])
+@pytest.mark.parametrize("liars", [0, 1, 2, 3, 4])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_compiled_statistic_equals_the_spec_on_random_notes(liars, seed):
     rng = np.random.default_rng(seed)
@@ -255,3 +267,91 @@ def test_the_receivers_statistics_compiled_equal_the_spec():
         results.append(ref)
     assert len(results[0][0]) > len(np.unique(j))  # one group per receiver and robot
     assert not np.array_equal(results[0][2][: len(results[1][2])], results[1][2])
+
+
+def _record_random_notes(rng, params, memory, n: int) -> None:
+    """A step's notes of a team of ``n`` (most observers see most robots; robot 0 lied to
+    by a common offset, a few notes far off) kept in ``memory`` for the next frames."""
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    i, j = pairs[rng.random(len(pairs)) < 0.8].T
+    E = len(i)
+    A = rng.normal(0.0, 0.01, (E, 2, 2))
+    Q = A @ np.swapaxes(A, -1, -2) + 1e-5 * np.eye(2)
+    u = rng.normal(0.0, 0.01, (E, 2)) + np.where((j == 0)[:, None], 0.05, 0.0)
+    u[rng.random(E) < 0.05] *= 30.0
+    B = rng.normal(0.0, 0.003, (E, 2, 2))
+    P = B @ np.swapaxes(B, -1, -2) + 1e-6 * np.eye(2)
+    notes = WitnessNotes(u, Q, P, i, j, rng.random(E) > 0.05)
+    record_witness(notes, params, memory)
+
+
+@pytest.mark.parametrize("robots", [None, np.array([0, 3, 5])])
+def test_the_delivered_statistic_compiled_equals_the_spec(robots):
+    """The receivers' statistic after the frames (grouping, whole sets, skip rule, the
+    enumeration of distinct sets, the CUSUM, the silent pairs' decay) by the compiled pass
+    and by the numpy spec, over steps (duplicate links, jammed frames, a claim that is not
+    a number): the same pairs, values to 1e-9, the same convictions."""
+    rng = np.random.default_rng(5)
+    params = CLParams(witness=True, witness_liars=2.0, witness_h=30.0, witness_k=4.0)
+    n = 11
+    memory = LinkMemory(n)
+    enumerated = skipped = convicted = 0
+    for step in range(8):
+        _record_random_notes(rng, params, memory, n)
+        if step == 5:  # a claim that is not a number: every set enumerated
+            pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
+            pending.values[3, 6] = np.nan
+        i, j = rng.integers(0, n, (2, 90))
+        i, j = i[i != j], j[i != j]
+        i, j = np.r_[i, i[:5]], np.r_[j, j[:5]]  # duplicate links
+        ok = rng.random(len(i)) < 0.75
+        with kernels.use_backend("numpy"):
+            ref = reference_delivered_store(params, memory, i, j, ok, robots)
+        runs = kernels_witness.WITNESS_RUNS.copy()
+        with kernels.use_backend("numba"):
+            fast = delivered_store(params, memory, i, j, ok, robots)
+        assert kernels_witness.WITNESS_RUNS["delivered"] == runs["delivered"] + 1, "not compiled"
+        enumerated += kernels_witness.WITNESS_RUNS["enumerated"] - runs["enumerated"]
+        np.testing.assert_array_equal(fast.keys, ref.keys)
+        np.testing.assert_allclose(fast.values, ref.values, rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(fast.values > 30.0, ref.values > 30.0)
+        skipped += int((ref.values == 0.0).sum())
+        convicted += int((ref.values > 30.0).sum())
+        if robots is not None:
+            assert np.isin(ref.keys % n, robots).all()
+        put_store(memory, ref)
+    assert enumerated > 0 and skipped > 0 and convicted > 0, "the case tests nothing"
+
+
+def test_the_notes_recorded_in_place_equal_the_spec():
+    """The pending store after recording each step's notes, in place (compiled) and by the
+    numpy spec: equal, the compiled record ran once every link was stored, and a step with
+    a new link falls back to the spec (which inserts it)."""
+    rng = np.random.default_rng(8)
+    params = CLParams(witness=True)
+    n = 9
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    memories = {"fast": LinkMemory(n), "numpy": LinkMemory(n)}
+    ran = []
+    first = rng.random(len(pairs)) < 0.5
+    more = first | (rng.random(len(pairs)) < 0.5)
+    for step in range(6):
+        i, j = pairs[first if step < 4 else more].T  # new links at step 4
+        E = len(i)
+        notes = WitnessNotes(
+            rng.normal(size=(E, 2)),
+            rng.normal(size=(E, 2, 2)),
+            rng.normal(size=(E, 2, 2)),
+            i,
+            j,
+            rng.random(E) < (1.0 if step in (0, 4) else 0.8),  # a link stored once sent
+        )
+        before = kernels_witness.WITNESS_RUNS["records"]
+        with kernels.use_backend("numba"):
+            record_witness(notes, params, memories["fast"])
+        ran.append(kernels_witness.WITNESS_RUNS["records"] - before)
+        reference_record(notes, memories["numpy"])
+        fast, ref = (m.stage_statistic(PENDING, width=PENDING_WIDTH) for m in memories.values())
+        np.testing.assert_array_equal(fast.keys, ref.keys)
+        np.testing.assert_array_equal(fast.values, ref.values)
+    assert ran == [0, 1, 1, 1, 0, 1], f"the compiled record ran {ran}"

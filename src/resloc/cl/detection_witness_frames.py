@@ -15,6 +15,9 @@ by ``k``); receiver r discards the links (r, j) while ``S_{r,j} > h``
 
 Most receivers hold the same notes on a robot (the default team is nearly fully
 connected): :func:`received_statistic` judges each distinct set of notes once.
+:func:`delivered_store` and :func:`record_witness` run their compiled twins
+(:mod:`resloc.cl.kernels_witness_frames`) with the numba backend; the numpy functions here
+are their specification (:func:`reference_delivered_store`, :func:`reference_record`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ __all__ = [
     "received_state",
     "received_statistic",
     "record_witness",
+    "reference_delivered_store",
+    "reference_record",
+    "row_words",
     "whole_set_statistic",
 ]
 
@@ -49,6 +55,7 @@ __all__ = [
 #: ``u`` (2), ``Q`` (4), ``P_pos`` (4), then 1 for a note waiting (0: none).
 PENDING = "witness_pending"
 _PENDING_WIDTH = 11
+PENDING_WIDTH = _PENDING_WIDTH
 
 
 def pending_notes(memory: LinkMemory) -> WitnessNotes:
@@ -73,7 +80,8 @@ def pending_notes(memory: LinkMemory) -> WitnessNotes:
 _ROW_WORDS: list[np.ndarray] = [np.zeros(0, np.uint64)]
 
 
-def _row_words(n: int) -> np.ndarray:
+def row_words(n: int) -> np.ndarray:
+    """A random odd 64-bit word per note row ``0 .. n - 1`` (fixed for the run)."""
     if len(_ROW_WORDS[0]) < n:
         rng = np.random.default_rng(20261127)
         size = max(n, 2 * len(_ROW_WORDS[0]), 1024)
@@ -154,7 +162,7 @@ def received_statistic(
     G = len(start)
     if G == 0:
         return np.zeros(0), np.zeros(0, bool)
-    words = _row_words(len(notes))[rows]
+    words = row_words(len(notes))[rows]
     sums = np.add.reduceat(words, start) if len(rows) else np.zeros(G, np.uint64)
     # one word per group: the rows' sum mixed with the robot and the size (a collision of
     # two different sets has probability ~G^2 / 2^64)
@@ -248,7 +256,26 @@ def delivered_store(
     with this step's frames (the step's links: receivers ``i``, senders ``j``,
     ``channel_ok``, shapes (E,)); pairs that received no note decay by ``k``. ``memory`` is
     unchanged (the CL step puts the result in it: :func:`deliver_witness`). ``robots``:
-    only the statistics on these robots (the store then holds no other)."""
+    only the statistics on these robots (the store then holds no other). The compiled
+    pass with the numba backend (:func:`~resloc.cl.kernels_witness_frames.fast_delivered`),
+    else the numpy spec."""
+    from resloc.cl.kernels_witness_frames import fast_delivered  # numba's import, on first use
+
+    fast = fast_delivered(params, memory, i, j, channel_ok, robots)
+    if fast is not None:
+        return fast
+    return reference_delivered_store(params, memory, i, j, channel_ok, robots)
+
+
+def reference_delivered_store(
+    params: CLParams,
+    memory: LinkMemory,
+    i: np.ndarray,
+    j: np.ndarray,
+    channel_ok: np.ndarray,
+    robots: np.ndarray | None = None,
+) -> LinkStatistic:
+    """:func:`delivered_store` in numpy (its executable specification)."""
     stat = memory.stage_statistic(STATE)
     recv, on, S = received_state(pending_notes(memory), params, stat, i, j, channel_ok, robots)
     n = stat.n_nodes
@@ -287,18 +314,21 @@ def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMem
         return
     if memory is None:
         raise ValueError("detector witness (params.witness) needs a LinkMemory")
+    from resloc.cl.kernels_witness_frames import fast_record  # numba's import, on first use
+
+    if not fast_record(notes, memory):
+        reference_record(notes, memory)
+
+
+def reference_record(notes: WitnessNotes, memory: LinkMemory) -> None:
+    """:func:`record_witness` in numpy (its executable specification)."""
     store = memory.stage_statistic(PENDING, width=_PENDING_WIDTH)
-    if len(store):
-        store.values[:, 10] = 0.0
     rows = np.flatnonzero(notes.sent)
     n = len(rows)
-    values = np.concatenate(
-        [
-            notes.u[rows],
-            notes.Q[rows].reshape(n, 4),
-            notes.P_pos[rows].reshape(n, 4),
-            np.ones((n, 1)),
-        ],
-        axis=1,
-    )
-    store.set(notes.i[rows], notes.j[rows], values)
+    pos = store.slots(notes.i[rows], notes.j[rows])  # (the missing links inserted)
+    v = store.values
+    v[:, 10] = 0.0
+    v[pos, 0:2] = notes.u[rows]
+    v[pos, 2:6] = notes.Q[rows].reshape(n, 4)
+    v[pos, 6:10] = notes.P_pos[rows].reshape(n, 4)
+    v[pos, 10] = 1.0

@@ -24,6 +24,9 @@ function                       numpy twin
 :func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
 =============================  ==========================================================
 
+The receivers' delivery and the record of the notes are compiled in
+:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``).
+
 ``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
 :func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
 notes, every receiver's statistic, and the compromised robot's oracle, which evaluates them
@@ -66,9 +69,18 @@ __all__ = [
     "witness_verdict",
 ]
 
-#: How often the compiled path took the stage's verdict, computed notes, statistics (the
-#: tests read it).
-WITNESS_RUNS = {"verdicts": 0, "notes": 0, "statistics": 0}
+#: How often the compiled path took the stage's verdict, computed notes, statistics, the
+#: receivers' delivered statistic (:mod:`resloc.cl.kernels_witness_frames`) and how many
+#: distinct sets of notes that pass enumerated, the notes recorded in place (the tests
+#: read it).
+WITNESS_RUNS = {
+    "verdicts": 0,
+    "notes": 0,
+    "statistics": 0,
+    "delivered": 0,
+    "enumerated": 0,
+    "records": 0,
+}
 
 
 class WitnessInputs(NamedTuple):
@@ -195,11 +207,122 @@ def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
 
 
 @jit_lanes
-def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
+def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
+    """``best`` and the statistic of the set ``tot (6,)`` minus the dropped notes' sums
+    ``d0 .. d5``, of ``size`` notes, when it is consistent (a nan propagates, as
+    ``np.minimum``)."""
+    Sa, Sb, Sc = tot[0] - d0, tot[1] - d1, tot[2] - d2
+    sa, sb, sq = tot[3] - d3, tot[4] - d4, tot[5] - d5
+    dS = Sa * Sc - Sb * Sb
+    Ia = Sc / dS
+    Ib = -Sb / dS
+    Ic = Sa / dS
+    ma = Ia * sa + Ib * sb
+    mb = Ib * sa + Ic * sb
+    if size > 1 and not sq - (ma * sa + mb * sb) <= gates[size]:
+        return best
+    Ca = P00 + Ia
+    Cb = P01 + Ib
+    Cc = P11 + Ic
+    stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+    if math.isnan(stat) or math.isnan(best):
+        return np.nan
+    return min(stat, best)
+
+
+@jit_lanes
+def _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, enough):
+    """The smallest statistic over the consistent sets of the ``m`` notes ``terms (m, 6)``
+    (their sums ``tot (6,)``) left after dropping at most ``dmax``; the enumeration stops
+    at the first set at most ``enough`` (-inf: every set)."""
+    best = np.inf
+    # up to three notes dropped (the usual f): nested loops, the outer drops' sum kept
+    # (the same sums in the same order as the generic enumeration below)
+    best = _merge_set(best, tot, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, m, gates, P00, P01, P11)
+    if best <= enough:
+        return best
+    for a in range(m if dmax >= 1 else 0):
+        ta = terms[a]
+        best = _merge_set(
+            best, tot, ta[0], ta[1], ta[2], ta[3], ta[4], ta[5], m - 1, gates, P00, P01, P11
+        )
+        if best <= enough:
+            return best
+        for b in range(a + 1, m if dmax >= 2 else 0):
+            tb = terms[b]
+            d0, d1, d2 = ta[0] + tb[0], ta[1] + tb[1], ta[2] + tb[2]
+            d3, d4, d5 = ta[3] + tb[3], ta[4] + tb[4], ta[5] + tb[5]
+            best = _merge_set(best, tot, d0, d1, d2, d3, d4, d5, m - 2, gates, P00, P01, P11)
+            if best <= enough:
+                return best
+            for c in range(b + 1, m if dmax >= 3 else 0):
+                tc = terms[c]
+                best = _merge_set(
+                    best,
+                    tot,
+                    d0 + tc[0],
+                    d1 + tc[1],
+                    d2 + tc[2],
+                    d3 + tc[3],
+                    d4 + tc[4],
+                    d5 + tc[5],
+                    m - 3,
+                    gates,
+                    P00,
+                    P01,
+                    P11,
+                )
+                if best <= enough:
+                    return best
+    for d in range(4, dmax + 1):
+        for t in range(d):
+            idx[t] = t
+        while True:
+            for c in range(6):
+                dropped = 0.0
+                for t in range(d):
+                    dropped += terms[idx[t], c]
+                kept[c] = dropped
+            best = _merge_set(
+                best,
+                tot,
+                kept[0],
+                kept[1],
+                kept[2],
+                kept[3],
+                kept[4],
+                kept[5],
+                m - d,
+                gates,
+                P00,
+                P01,
+                P11,
+            )
+            if best <= enough:
+                return best
+            # the next combination of d of m positions (lexicographic)
+            t = d - 1
+            while t >= 0 and idx[t] == m - d + t:
+                t -= 1
+            if t < 0:
+                break
+            idx[t] += 1
+            for t2 in range(t + 1, d):
+                idx[t2] = idx[t2 - 1] + 1
+    return best
+
+
+@jit_lanes
+def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, judged):
     """The step's statistic of every group of notes: group ``g`` is rows ``start[g] ..
     start[g] + count[g] - 1`` of ``u (E, 2)``, ``Q (E, 2, 2)``, ``P_pos (E, 2, 2)``;
     ``f (G,)`` the notes it may drop, ``half_h (G,)`` what a group with no consistent set
-    counts, ``gates (M,)`` the consistency gate of a set of each size (``gates[n]``, n >= 2).
+    counts, ``gates (M,)`` the consistency gate of a set of each size (``gates[n]``, n >= 2),
+    ``enough (G,)``: the enumeration of group g may stop at a set whose statistic is at
+    most ``enough[g]`` (its CUSUM then clips at 0 whatever the smallest: the receivers'
+    pass), when the group's notes cannot make a nan short of an overflow (terms finite and
+    under 1e100, ``Q`` positive definite, the claim positive semi-definite: every set's
+    information and ``C`` positive definite); ``-inf``: the smallest (the spec's ``T``).
     Writes ``T (G,)`` (the smallest ``T_K`` over the consistent sets left after dropping at
     most ``f[g]`` notes; 0 where not judged) and ``judged (G,)`` (more than ``f[g]``
     notes). The sets are enumerated (every combination of dropped notes). Twin:
@@ -218,9 +341,11 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
         tot = np.zeros(6)
         big = s0
         best_trace = -np.inf
+        tame = True
         for k in range(m):
             e = s0 + k
             det = Q[e, 0, 0] * Q[e, 1, 1] - Q[e, 0, 1] * Q[e, 1, 0]
+            tame = tame and Q[e, 0, 0] > 0.0 and det > 0.0
             Ya = Q[e, 1, 1] / det
             Yb = -0.5 * (Q[e, 0, 1] + Q[e, 1, 0]) / det
             Yc = Q[e, 0, 0] / det
@@ -234,54 +359,22 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, T, judged):
             terms[k, 5] = u[e, 0] * ya + u[e, 1] * yb
             for c in range(6):
                 tot[c] += terms[k, c]
+                tame = tame and abs(terms[k, c]) < 1e100
             trace = P_pos[e, 0, 0] + P_pos[e, 1, 1]
-            if trace > best_trace:  # (the first of equal traces, as argmax)
+            if math.isnan(best_trace):
+                pass  # (argmax: the first nan wins)
+            elif math.isnan(trace) or trace > best_trace:  # (the first of equal traces)
                 best_trace = trace
                 big = e
         P00 = P_pos[big, 0, 0]
         P01 = 0.5 * (P_pos[big, 0, 1] + P_pos[big, 1, 0])
         P11 = P_pos[big, 1, 1]
-        best = np.inf
         dmax = min(f[g], m - 1)
-        for d in range(dmax + 1):
-            for t in range(d):
-                idx[t] = t
-            while True:
-                for c in range(6):
-                    dropped = 0.0
-                    for t in range(d):
-                        dropped += terms[idx[t], c]
-                    kept[c] = tot[c] - dropped
-                Sa, Sb, Sc, sa, sb, sq = kept[0], kept[1], kept[2], kept[3], kept[4], kept[5]
-                dS = Sa * Sc - Sb * Sb
-                Ia = Sc / dS
-                Ib = -Sb / dS
-                Ic = Sa / dS
-                ma = Ia * sa + Ib * sb
-                mb = Ib * sa + Ic * sb
-                size = m - d
-                ok = True
-                if size > 1:
-                    spread = sq - (ma * sa + mb * sb)
-                    ok = spread <= gates[size]
-                if ok:
-                    Ca = P00 + Ia
-                    Cb = P01 + Ib
-                    Cc = P11 + Ic
-                    stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
-                    if math.isnan(stat) or math.isnan(best):
-                        best = np.nan  # (np.minimum propagates a nan)
-                    elif stat < best:
-                        best = stat
-                # the next combination of d of m positions (lexicographic)
-                t = d - 1
-                while t >= 0 and idx[t] == m - d + t:
-                    t -= 1
-                if t < 0:
-                    break
-                idx[t] += 1
-                for t2 in range(t + 1, d):
-                    idx[t2] = idx[t2 - 1] + 1
+        # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
+        safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
+        safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
+        stop = enough[g] if safe else -np.inf
+        best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
         T[g] = best if math.isfinite(best) else half_h[g]
 
 
@@ -336,6 +429,7 @@ def statistic_of_groups(
         np.ascontiguousarray(f, dtype=np.int64),
         np.ascontiguousarray(half_h, dtype=float),
         gates,
+        np.full(G, -np.inf),
         T,
         judged,
     )
