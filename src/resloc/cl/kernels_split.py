@@ -2,11 +2,12 @@
 
 Each covariance is kept as ``P = P_dep + P_ind``; only the dependent parts are inflated by
 the CI weight (:func:`resloc.cl.fusion.fused_update` with ``split_ci``). The link loop
-(:mod:`resloc.cl.kernels_links`) calls :func:`split_ci_update` for a fused link: the
-independent parts (robot i's, from :class:`~resloc.cl.kernels_fusion.KernelFusion`'s
-working copy of ``memory.independent``, and j's transmitted one, ``LinkBatch.P_nb_ind``)
-clipped to their covariances, the weight and the inflated update shared with ``ci``
-(:mod:`resloc.cl.kernels_fusion`), then robot i's new independent part. The once-per-step
+(:mod:`resloc.cl.kernels_links`) and the rounds inline :func:`split_ci_update` for a fused
+link, which calls :func:`_split_ci_link`: the independent parts (robot i's, from
+:class:`~resloc.cl.kernels_fusion.KernelFusion`'s working copy of ``memory.independent``,
+and j's transmitted one, ``LinkBatch.P_nb_ind``) clipped to their covariances, the weight
+and the inflated update shared with ``ci`` (:mod:`resloc.cl.kernels_fusion`), then robot
+i's new independent part. The once-per-step
 parts: the prediction of the independent parts is compiled too
 (:func:`resloc.cl.kernels_fusion_step.compiled_propagate_independent`); a delivered
 sender's part turned dependent stays the strategy's one numpy assignment.
@@ -16,6 +17,7 @@ kernel function                numpy twin
 =============================  ==========================================================
 :func:`_clip_independent`      :func:`resloc.cl.fusion.clip_independent` (one matrix)
 :func:`split_ci_update`        :func:`resloc.cl.fusion.fused_update` (``split_ci``)
+:func:`_split_ci_link`         the same, from the fields of the fusion it reads
 =============================  ==========================================================
 """
 
