@@ -22,11 +22,9 @@ kernel function                numpy twin
 :func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
 :func:`_first_best`           ``np.argmin`` of the grid's costs
 :func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
-:func:`ci_weight`              :func:`resloc.cl.fusion.ci_weights`
 :func:`_weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
-:func:`ci_posterior`           :func:`resloc.cl.fusion.fused_update` after the weights
-:func:`_inflated_update`       the same from the inflations' 2 x 2 reductions
+:func:`_inflated_update`       :func:`resloc.cl.fusion.fused_update` after the weights
 =============================  ==========================================================
 
 ``ci_update`` computes the 2 x 2 reductions of ``P_i`` and ``P_j`` once and uses them for
@@ -390,20 +388,9 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
 
 
 @jit_inline
-def ci_weight(Di, Dj, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
-    """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
-    from the covariances ``Di``, ``Dj`` (``ci``) or, with ``split``, their dependent parts
-    and independent parts ``Ii``, ``Ij`` (``grid: (3, G)``, :data:`_GRID`; ``cost: (G,)``:
-    scratch).
-    Twin: :func:`resloc.cl.fusion.ci_weights`."""
-    a, cd = _reduce_i(Di, Hi)
-    b = _reduce_j(Dj, Hj)
-    return _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost)
-
-
-@jit_inline
 def _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
-    """:func:`ci_weight` from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
+    """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
+    from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
     (:func:`_reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`_reduce_j`), which
     :func:`ci_update` reuses for the update."""
     g = _gram(cd, cd)
@@ -470,66 +457,21 @@ def ci_update(
 
 
 @jit_inline
-def ci_posterior(
-    x, i, xi0, xi1, xi2, Pi, Di, Dj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-    re00, re01, re11, R, jitter, K, A3, T3, Pn,
-):  # fmt: skip
-    """The update with weight ``w < 1``: inflations ``D_i (1/w - 1)`` and ``D_j (1/(1-w) -
-    1)`` of the (dependent parts of the) covariances added to the filter's moments; writes
-    ``x[i]``, ``K``, the prior ``A3 = sym(P_i + D_i (1/w - 1))`` and the unsymmetrized
-    posterior ``Pn``. False when the inflated ``S`` has no Cholesky factor.
-    Twin: :func:`resloc.cl.fusion.fused_update` (after the weights)."""
-    fi = 1.0 / w - 1.0
-    fj = 1.0 / (1.0 - w) - 1.0
-    # extra_j = H_j (f_j D_j) H_j^T; H_i (f_i D_i) H_i^T
-    e00 = e01 = e10 = e11 = 0.0
-    d00 = d01 = d10 = d11 = 0.0
-    for k in range(3):
-        t0 = 0.0
-        t1 = 0.0
-        u0 = 0.0
-        u1 = 0.0
-        for c in range(3):
-            t0 += Hj[0, c] * (Dj[c, k] * fj)
-            t1 += Hj[1, c] * (Dj[c, k] * fj)
-            u0 += Hi[0, c] * (Di[c, k] * fi)
-            u1 += Hi[1, c] * (Di[c, k] * fi)
-        e00 += t0 * Hj[0, k]
-        e01 += t0 * Hj[1, k]
-        e10 += t1 * Hj[0, k]
-        e11 += t1 * Hj[1, k]
-        d00 += u0 * Hi[0, k]
-        d01 += u0 * Hi[1, k]
-        d10 += u1 * Hi[0, k]
-        d11 += u1 * Hi[1, k]
-    # f_i D_i H_i^T by row (each entry summed in the order of the earlier loop)
-    c00 = c01 = c10 = c11 = c20 = c21 = 0.0
-    for k in range(3):
-        c00 += (Di[0, k] * fi) * Hi[0, k]
-        c01 += (Di[0, k] * fi) * Hi[1, k]
-        c10 += (Di[1, k] * fi) * Hi[0, k]
-        c11 += (Di[1, k] * fi) * Hi[1, k]
-        c20 += (Di[2, k] * fi) * Hi[0, k]
-        c21 += (Di[2, k] * fi) * Hi[1, k]
-    return _inflated_update(
-        x, i, xi0, xi1, xi2, Pi, Di, fi, (d00, d01, d10, d11), (e00, e01, e10, e11),
-        (c00, c01, c10, c11, c20, c21), nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, re00,
-        re01, re11, jitter, K, A3, T3, Pn,
-    )  # fmt: skip
-
-
-@jit_inline
 def _inflated_update(
     x, i, xi0, xi1, xi2, Pi, Di, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
     re00, re01, re11, jitter, K, A3, T3, Pn,
 ):  # fmt: skip
-    """The tail of :func:`ci_posterior` from the inflations' reductions: ``d = H_i (f_i
-    D_i) H_i^T``, ``e = H_j (f_j D_j) H_j^T`` (4-tuples ``00, 01, 10, 11``) and ``c``, the
-    rows of ``f_i D_i H_i^T`` (a 6-tuple); :func:`ci_update` passes its weight's
-    reductions times ``f`` (the same products in another order: within an ulp; a ``ci``
-    link's update 262 -> 217 ns with the weight's changes), split CI the ones
-    :func:`ci_posterior` computes. Writes and returns as :func:`ci_posterior`. (At most
-    30 arguments: CPython passes more as ``*args``, which numba's inliner refuses.)"""
+    """The update with weight ``w < 1`` from the inflations' reductions, ``f_i = 1/w - 1``,
+    ``d = H_i (f_i D_i) H_i^T``, ``e = H_j (f_j D_j) H_j^T`` (4-tuples ``00, 01, 10, 11``)
+    and ``c``, the rows of ``f_i D_i H_i^T`` (a 6-tuple), with ``D`` the covariances
+    (``ci``) or their dependent parts (split CI): :func:`ci_update` and
+    :func:`resloc.cl.kernels_split.split_ci_update` pass their weight's reductions times
+    ``f`` (the reference's products in another order: within an ulp; a ``ci`` link's update
+    262 -> 217 ns with the weight's changes). Writes ``x[i]``, ``K``, the prior ``A3 =
+    sym(P_i + f_i D_i)`` and the unsymmetrized posterior ``Pn``; False when the inflated
+    ``S`` has no Cholesky factor. (At most 30 arguments: CPython passes more as ``*args``,
+    which numba's inliner refuses.) Twin: :func:`resloc.cl.fusion.fused_update` (after the
+    weights)."""
     d00, d01, d10, d11 = d
     e00, e01, e10, e11 = e
     c00, c01, c10, c11, c20, c21 = c

@@ -2,11 +2,12 @@
 
 Each covariance is kept as ``P = P_dep + P_ind``; only the dependent parts are inflated by
 the CI weight (:func:`resloc.cl.fusion.fused_update` with ``split_ci``). The link loop
-(:mod:`resloc.cl.kernels_links`) calls :func:`split_ci_update` for a fused link: the
-independent parts (robot i's, from :class:`~resloc.cl.kernels_fusion.KernelFusion`'s
-working copy of ``memory.independent``, and j's transmitted one, ``LinkBatch.P_nb_ind``)
-clipped to their covariances, the weight and the inflated update shared with ``ci``
-(:mod:`resloc.cl.kernels_fusion`), then robot i's new independent part. The once-per-step
+(:mod:`resloc.cl.kernels_links`) and the rounds inline :func:`split_ci_update` for a fused
+link, which calls :func:`_split_ci_link`: the independent parts (robot i's, from
+:class:`~resloc.cl.kernels_fusion.KernelFusion`'s working copy of ``memory.independent``,
+and j's transmitted one, ``LinkBatch.P_nb_ind``) clipped to their covariances, the weight
+and the inflated update shared with ``ci`` (:mod:`resloc.cl.kernels_fusion`), then robot
+i's new independent part. The once-per-step
 parts: the prediction of the independent parts is compiled too
 (:func:`resloc.cl.kernels_fusion_step.compiled_propagate_independent`); a delivered
 sender's part turned dependent stays the strategy's one numpy assignment.
@@ -16,6 +17,7 @@ kernel function                numpy twin
 =============================  ==========================================================
 :func:`_clip_independent`      :func:`resloc.cl.fusion.clip_independent` (one matrix)
 :func:`split_ci_update`        :func:`resloc.cl.fusion.fused_update` (``split_ci``)
+:func:`_split_ci_link`         the same, from the fields of the fusion it reads
 =============================  ==========================================================
 """
 
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_fusion import ci_posterior, ci_weight
+from resloc.cl.kernels_fusion import _inflated_update, _reduce_i, _reduce_j, _weight_of
 from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 
@@ -34,7 +36,34 @@ __all__ = ["sandwich3", "split_ci_update"]
 def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
     """``P_ind`` shrunk so that ``0 <= P_ind <= P``, into ``out`` (``L``, ``Linv``, ``M``:
     scratch). False when ``P`` has no Cholesky factor.
-    Twin: :func:`resloc.cl.fusion.clip_independent` (one matrix)."""
+    Twin: :func:`resloc.cl.fusion.clip_independent` (one matrix).
+
+    First the certificate ``0 < P_ind < P`` by Sylvester's criterion on ``sym(P_ind)`` and
+    ``sym(P - P_ind)``: by congruence the same as ``0 < L^-1 P_ind L^-T < I``, so no
+    eigenvalue to clip and ``P`` positive definite; ``sym(P_ind)`` is the reference's result
+    up to its round-off (its ``1 / lambda_max`` within an ulp of 1), without the Cholesky
+    factor, ``L^-1`` and the sandwich (98.7% of the clips of the paper's scenario)."""
+    i00 = P_ind[0, 0]
+    i11 = P_ind[1, 1]
+    i22 = P_ind[2, 2]
+    i01 = 0.5 * (P_ind[0, 1] + P_ind[1, 0])
+    i02 = 0.5 * (P_ind[0, 2] + P_ind[2, 0])
+    i12 = 0.5 * (P_ind[1, 2] + P_ind[2, 1])
+    if _is_pd6(i00, i01, i02, i11, i12, i22) and _is_pd6(
+        P[0, 0] - i00,
+        0.5 * (P[0, 1] + P[1, 0]) - i01,
+        0.5 * (P[0, 2] + P[2, 0]) - i02,
+        P[1, 1] - i11,
+        0.5 * (P[1, 2] + P[2, 1]) - i12,
+        P[2, 2] - i22,
+    ):
+        out[0, 0] = i00
+        out[1, 1] = i11
+        out[2, 2] = i22
+        out[0, 1] = out[1, 0] = i01
+        out[0, 2] = out[2, 0] = i02
+        out[1, 2] = out[2, 1] = i12
+        return True
     if not chol3(P, L, jitter):
         return False
     for col in range(3):  # L^-1 by forward substitution of I (twin: forward_substitution)
@@ -82,6 +111,18 @@ def _clip_independent(P, P_ind, out, L, Linv, M, jitter):
 
 
 @jit_inline
+def _is_pd6(m00, m01, m02, m11, m12, m22):
+    """Sylvester's criterion on the symmetric 3 x 3 matrix of upper entries ``m``."""
+    m2 = m00 * m11 - m01 * m01
+    det = (
+        m00 * (m11 * m22 - m12 * m12)
+        - m01 * (m01 * m22 - m12 * m02)
+        + m02 * (m01 * m12 - m11 * m02)
+    )
+    return m00 > 0.0 and m2 > 0.0 and det > 0.0
+
+
+@jit_inline
 def _is_pd_sym(M):
     """Sylvester's criterion on a symmetric 3 x 3 ``M``."""
     m2 = M[0, 0] * M[1, 1] - M[0, 1] * M[0, 1]
@@ -104,7 +145,7 @@ def sandwich3(A, B, out, T):
             out[a, b] = T[a, 0] * A[b, 0] + T[a, 1] * A[b, 1] + T[a, 2] * A[b, 2]
 
 
-@jit
+@jit_inline
 def split_ci_update(
     x, e, i, xi0, xi1, xi2, Pi, Pj, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
     re00, re01, re11, R, fusion, jitter, K, A3, T3, Pn,
@@ -114,10 +155,27 @@ def split_ci_update(
     ``fusion.independent``) updated, ``(I - K H) I_i (I - K H)^T + K R K^T`` clipped to the
     posterior, with ``H`` the Jacobian (EKF) or the statistical linearization ``(A^-1
     P^xz)^T``. j's transmitted independent part is ``fusion.P_nb_ind[e]``. False when a
-    covariance has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`
-    (``split_ci``)."""
-    independent = fusion[4]
-    work = fusion[6]
+    covariance has no Cholesky factor. Inlined into the link loops: it hands
+    :func:`_split_ci_link` only the fields of ``fusion`` it reads (the whole tuple carries
+    the joints' 14 arrays, each a reference count and an argument of the call).
+    Twin: :func:`resloc.cl.fusion.fused_update` (``split_ci``)."""
+    return _split_ci_link(
+        x, e, i, (xi0, xi1, xi2), Pi, Pj, (nu0, nu1), (S00, S01, S11), Pxz, linearized, Hi,
+        Hj, (re00, re01, re11), R, fusion[4], fusion[5], fusion[6], fusion[1], fusion[2],
+        fusion[7], jitter, K, A3, T3, Pn,
+    )  # fmt: skip
+
+
+@jit
+def _split_ci_link(
+    x, e, i, xi, Pi, Pj, nu, S, Pxz, linearized, Hi, Hj, re, R, independent, P_nb_ind, work,
+    det, grid, cost, jitter, K, A3, T3, Pn,
+):  # fmt: skip
+    """:func:`split_ci_update` with the fields of the fusion it reads (``xi``, ``nu``,
+    ``S``, ``re``: tuples of the scalars of :func:`ci_update`). A call of its own, not
+    inlined: compiled once for the row-order loop and the SIMD rounds. The weight's 2 x 2
+    reductions of the dependent parts are computed once and reused, times the inflation
+    factors, for the update (as :func:`ci_update` does)."""
     Ii = work[0]
     Ij = work[1]
     Di = work[2]
@@ -128,22 +186,29 @@ def split_ci_update(
     Q = work[7]
     if not _clip_independent(Pi, independent[i], Ii, L, Linv, M, jitter):
         return False
-    if not _clip_independent(Pj, fusion[5][e], Ij, L, Linv, M, jitter):
+    if not _clip_independent(Pj, P_nb_ind[e], Ij, L, Linv, M, jitter):
         return False
     for a in range(3):
         for b in range(3):
             Di[a, b] = Pi[a, b] - Ii[a, b]
             Dj[a, b] = Pj[a, b] - Ij[a, b]
-    w = ci_weight(Di, Dj, Ii, Ij, True, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
+    hdh, dh = _reduce_i(Di, Hi)
+    hdj = _reduce_j(Dj, Hj)
+    w = _weight_of(hdh, dh, hdj, Di, Ii, Ij, True, Hi, Hj, R, det, grid, cost)
     if w >= 1.0:  # j adds nothing: the prior (and its clipped independent part) is kept
         for a in range(3):
             for b in range(3):
                 Pn[a, b] = Pi[a, b]
                 M[a, b] = 0.5 * (Ii[a, b] + Ii[b, a])
         return _clip_independent(Pi, M, independent[i], L, Linv, Q, jitter)
-    if not ci_posterior(
-        x, i, xi0, xi1, xi2, Pi, Di, Dj, w, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi, Hj,
-        re00, re01, re11, R, jitter, K, A3, T3, Pn,
+    fi = 1.0 / w - 1.0
+    fj = 1.0 / (1.0 - w) - 1.0
+    d = (hdh[0] * fi, hdh[1] * fi, hdh[2] * fi, hdh[3] * fi)
+    ej = (hdj[0] * fj, hdj[1] * fj, hdj[2] * fj, hdj[3] * fj)
+    c = (dh[0] * fi, dh[1] * fi, dh[2] * fi, dh[3] * fi, dh[4] * fi, dh[5] * fi)
+    if not _inflated_update(
+        x, i, xi[0], xi[1], xi[2], Pi, Di, fi, d, ej, c, nu[0], nu[1], S[0], S[1], S[2], Pxz,
+        linearized, Hi, re[0], re[1], re[2], jitter, K, A3, T3, Pn,
     ):  # fmt: skip
         return False
     # H_eff: the Jacobian (EKF) or the statistical linearization (A^-1 P^xz)^T, 2 x 3 in Dj
@@ -180,6 +245,7 @@ def split_ci_update(
     return _clip_independent(Q, M, independent[i], L, Linv, Di, jitter)
 
 
-# split_ci_update inlines kernels_fusion's weight and posterior and kernels_joint_links'
-# bound check, and links kernels_math's chol3: its cache must go stale with them.
+# _split_ci_link inlines kernels_fusion's weight and update and kernels_joint_links' bound
+# check, and links kernels_math's chol3: its cache (and its inliner's) must go stale with them.
 stamp_with_pieces(split_ci_update)
+stamp_with_pieces(_split_ci_link)
