@@ -22,9 +22,9 @@ kernel function                numpy twin
 :func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
 :func:`_first_best`           ``np.argmin`` of the grid's costs
 :func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
-:func:`_weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
+:func:`weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
-:func:`_inflated_update`       :func:`resloc.cl.fusion.fused_update` after the weights
+:func:`inflated_update`       :func:`resloc.cl.fusion.fused_update` after the weights
 =============================  ==========================================================
 
 ``ci_update`` computes the 2 x 2 reductions of ``P_i`` and ``P_j`` once and uses them for
@@ -236,7 +236,7 @@ def _row_times_ht(D, r, H):
 
 
 @jit_inline
-def _reduce_i(D, Hi):
+def reduce_i(D, Hi):
     """``a = H_i D H_i^T`` (a 4-tuple) and the rows of ``C = D H_i^T`` (a 6-tuple
     ``(c00, c01, c10, c11, c20, c21)``)."""
     c00, c01 = _row_times_ht(D, 0, Hi)
@@ -250,7 +250,7 @@ def _reduce_i(D, Hi):
 
 
 @jit_inline
-def _reduce_j(D, Hj):
+def reduce_j(D, Hj):
     """``H_j D H_j^T`` as a 4-tuple."""
     b00 = b01 = b10 = b11 = 0.0
     for k in range(3):
@@ -268,7 +268,7 @@ def _reduce_j(D, Hj):
 
 @jit_inline
 def _gram(c, d):
-    """``c^T d`` of two 3 x 2 matrices (6-tuples of rows, :func:`_reduce_i`) as a 4-tuple."""
+    """``c^T d`` of two 3 x 2 matrices (6-tuples of rows, :func:`reduce_i`) as a 4-tuple."""
     g00 = c[0] * d[0] + c[2] * d[2] + c[4] * d[4]
     g01 = c[0] * d[1] + c[2] * d[3] + c[4] * d[5]
     g10 = c[1] * d[0] + c[3] * d[2] + c[5] * d[4]
@@ -388,10 +388,10 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
 
 
 @jit_inline
-def _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
+def weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     """The CI weight of one link (1.0: no weight makes the posterior smaller than the prior)
     from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
-    (:func:`_reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`_reduce_j`), which
+    (:func:`reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`reduce_j`), which
     :func:`ci_update` reuses for the update."""
     g = _gram(cd, cd)
     zero = (0.0, 0.0, 0.0, 0.0)
@@ -400,10 +400,10 @@ def _weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     gdi = zero
     gii = zero
     if split:
-        ai, ci = _reduce_i(Ii, Hi)
+        ai, ci = reduce_i(Ii, Hi)
         gdi = _gram(cd, ci)
         gii = _gram(ci, ci)
-        bj = _reduce_j(Ij, Hj)
+        bj = reduce_j(Ij, Hj)
         bi = (bj[0] + R[0, 0], bj[1] + R[0, 1], bj[2] + R[1, 0], bj[3] + R[1, 1])
     tr_i = Di[0, 0] + Di[1, 1] + Di[2, 2]
     det_i = (
@@ -437,9 +437,9 @@ def ci_update(
     under ``blockdiag(P_i, P_j)``, ``re``: its ``R_eff`` (EKF). Returns False when the
     inflated ``S`` has no Cholesky factor. Twin: :func:`resloc.cl.fusion.fused_update`."""
     # the reductions once, for the weight and the update (D_i = P_i, D_j = P_j)
-    hph, ph = _reduce_i(Pi, Hi)
-    hpj = _reduce_j(Pj, Hj)
-    w = _weight_of(hph, ph, hpj, Pi, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
+    hph, ph = reduce_i(Pi, Hi)
+    hpj = reduce_j(Pj, Hj)
+    w = weight_of(hph, ph, hpj, Pi, Pi, Pj, False, Hi, Hj, R, fusion[1], fusion[2], fusion[7])
     if w >= 1.0:  # j adds nothing: the prior is kept
         for a in range(3):
             for b in range(3):
@@ -450,14 +450,14 @@ def ci_update(
     d = (hph[0] * fi, hph[1] * fi, hph[2] * fi, hph[3] * fi)
     e = (hpj[0] * fj, hpj[1] * fj, hpj[2] * fj, hpj[3] * fj)
     c = (ph[0] * fi, ph[1] * fi, ph[2] * fi, ph[3] * fi, ph[4] * fi, ph[5] * fi)
-    return _inflated_update(
+    return inflated_update(
         x, i, xi0, xi1, xi2, Pi, Pi, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized,
         Hi, re00, re01, re11, jitter, K, A3, T3, Pn,
     )  # fmt: skip
 
 
 @jit_inline
-def _inflated_update(
+def inflated_update(
     x, i, xi0, xi1, xi2, Pi, Di, fi, d, e, c, nu0, nu1, S00, S01, S11, Pxz, linearized, Hi,
     re00, re01, re11, jitter, K, A3, T3, Pn,
 ):  # fmt: skip

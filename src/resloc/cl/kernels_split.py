@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_fusion import _inflated_update, _reduce_i, _reduce_j, _weight_of
+from resloc.cl.kernels_fusion import inflated_update, reduce_i, reduce_j, weight_of
 from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 
@@ -192,9 +192,9 @@ def _split_ci_link(
         for b in range(3):
             Di[a, b] = Pi[a, b] - Ii[a, b]
             Dj[a, b] = Pj[a, b] - Ij[a, b]
-    hdh, dh = _reduce_i(Di, Hi)
-    hdj = _reduce_j(Dj, Hj)
-    w = _weight_of(hdh, dh, hdj, Di, Ii, Ij, True, Hi, Hj, R, det, grid, cost)
+    hdh, dh = reduce_i(Di, Hi)
+    hdj = reduce_j(Dj, Hj)
+    w = weight_of(hdh, dh, hdj, Di, Ii, Ij, True, Hi, Hj, R, det, grid, cost)
     if w >= 1.0:  # j adds nothing: the prior (and its clipped independent part) is kept
         for a in range(3):
             for b in range(3):
@@ -206,7 +206,7 @@ def _split_ci_link(
     d = (hdh[0] * fi, hdh[1] * fi, hdh[2] * fi, hdh[3] * fi)
     ej = (hdj[0] * fj, hdj[1] * fj, hdj[2] * fj, hdj[3] * fj)
     c = (dh[0] * fi, dh[1] * fi, dh[2] * fi, dh[3] * fi, dh[4] * fi, dh[5] * fi)
-    if not _inflated_update(
+    if not inflated_update(
         x, i, xi[0], xi[1], xi[2], Pi, Di, fi, d, ej, c, nu[0], nu[1], S[0], S[1], S[2], Pxz,
         linearized, Hi, re[0], re[1], re[2], jitter, K, A3, T3, Pn,
     ):  # fmt: skip
