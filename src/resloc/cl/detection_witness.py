@@ -96,7 +96,9 @@ __all__ = [
     "WitnessNotes",
     "liars_at",
     "note_groups",
+    "note_information",
     "reference_statistic",
+    "set_statistic",
     "step_notes",
     "witness_cusum",
     "witness_notes",
@@ -316,6 +318,34 @@ def group_statistic(
     return reference_groups(notes, params, rows, start, count, ids)
 
 
+def note_information(u: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Each note's information terms ``[Y_a, Y_b, Y_c, y_a, y_b, q]``, shape (E, 6), from
+    ``u (E, 2)``, ``Q (E, 2, 2)``: ``Y = Q^-1`` (entries a, b, c of the symmetric 2 x 2),
+    ``y = Y u``, ``q = u^T Y u``; a set's terms are their sums (module docstring)."""
+    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
+    Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
+    ya = Ya * u[:, 0] + Yb * u[:, 1]
+    yb = Yb * u[:, 0] + Yc * u[:, 1]
+    q = u[:, 0] * ya + u[:, 1] * yb
+    return np.stack([Ya, Yb, Yc, ya, yb, q], axis=1)
+
+
+def set_statistic(
+    sums: np.ndarray, Pa: np.ndarray, Pb: np.ndarray, Pc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A set's spread ``c_K`` and statistic ``T_K`` (module docstring) from its summed
+    information terms ``sums (..., 6)`` (:func:`note_information`) and j's claimed position
+    covariance entries ``Pa, Pb, Pc`` (broadcastable to ``sums[..., 0]``); shapes (...)."""
+    Sa, Sb, Sc, sa, sb, sq = np.moveaxis(sums, -1, 0)
+    dS = Sa * Sc - Sb * Sb
+    Ia, Ib, Ic = Sc / dS, -Sb / dS, Sa / dS  # Y_K^-1
+    ma, mb = Ia * sa + Ib * sb, Ib * sa + Ic * sb
+    spread = sq - (ma * sa + mb * sb)
+    Ca, Cb, Cc = Pa + Ia, Pb + Ib, Pc + Ic
+    T = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+    return spread, T
+
+
 def reference_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray, np.ndarray]:
     """:func:`group_statistic` in numpy (its executable specification)."""
     G = len(ids)
@@ -324,13 +354,7 @@ def reference_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray
     judged = count > f
     if not judged.any():
         return T, judged
-    u, Q = notes.u[rows], notes.Q[rows]
-    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
-    Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
-    ya = Ya * u[:, 0] + Yb * u[:, 1]
-    yb = Yb * u[:, 0] + Yc * u[:, 1]
-    q = u[:, 0] * ya + u[:, 1] * yb
-    per_note = np.stack([Ya, Yb, Yc, ya, yb, q], axis=1)  # (E', 6)
+    per_note = note_information(notes.u[rows], notes.Q[rows])  # (E', 6)
     # j's claimed position covariance: the largest claim among its notes (per-link claims
     # could differ; the largest is the most lenient to j).
     P = notes.P_pos[rows]
@@ -350,21 +374,18 @@ def reference_groups(notes, params, rows, start, count, ids) -> tuple[np.ndarray
             for d in range(int(min(fg, m - 1)) + 1):
                 drop = _dropped(int(m), d)  # (K, d)
                 kept = total[:, None, :] - members[:, drop, :].sum(axis=2)  # (n_g, K, 6)
-                Sa, Sb, Sc, sa, sb, sq = np.moveaxis(kept, -1, 0)
-                dS = Sa * Sc - Sb * Sb
-                Ia, Ib, Ic = Sc / dS, -Sb / dS, Sa / dS  # Y_K^-1
-                ma, mb = Ia * sa + Ib * sb, Ib * sa + Ic * sb
-                spread = sq - (ma * sa + mb * sb)
+                spread, stat = set_statistic(
+                    kept,
+                    Pj[g, 0, 0][:, None],
+                    0.5 * (Pj[g, 0, 1] + Pj[g, 1, 0])[:, None],
+                    Pj[g, 1, 1][:, None],
+                )
                 size = int(m) - d
                 ok = (
                     np.ones(spread.shape, bool)
                     if size == 1
                     else spread <= consistency_gate(p_fa, 2 * (size - 1))
                 )
-                Ca = Pj[g, 0, 0][:, None] + Ia
-                Cb = 0.5 * (Pj[g, 0, 1] + Pj[g, 1, 0])[:, None] + Ib
-                Cc = Pj[g, 1, 1][:, None] + Ic
-                stat = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
                 best = np.minimum(best, np.where(ok, stat, np.inf).min(axis=1))
             T[g] = np.where(np.isfinite(best), best, half_h[g])
     return T, judged

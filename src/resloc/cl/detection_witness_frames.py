@@ -30,6 +30,8 @@ from resloc.cl.detection_witness import (
     consistency_gates,
     group_statistic,
     liars_at,
+    note_information,
+    set_statistic,
     witness_cusum,
 )
 from resloc.cl.memory import LinkMemory, LinkStatistic
@@ -215,20 +217,8 @@ def whole_set_statistic(
     G = len(start)
     if G == 0:
         return np.zeros(0), np.zeros(0, bool)
-    u, Q, P = notes.u[rows], notes.Q[rows], notes.P_pos[rows]
-    det = Q[:, 0, 0] * Q[:, 1, 1] - Q[:, 0, 1] * Q[:, 1, 0]
-    Ya, Yb, Yc = Q[:, 1, 1] / det, -0.5 * (Q[:, 0, 1] + Q[:, 1, 0]) / det, Q[:, 0, 0] / det
-    ya = Ya * u[:, 0] + Yb * u[:, 1]
-    yb = Yb * u[:, 0] + Yc * u[:, 1]
-    q = u[:, 0] * ya + u[:, 1] * yb
-    Sa, Sb, Sc, sa, sb, sq = np.add.reduceat(np.stack([Ya, Yb, Yc, ya, yb, q], 1), start).T
-    dS = Sa * Sc - Sb * Sb
-    Ia, Ib, Ic = Sc / dS, -Sb / dS, Sa / dS
-    ma, mb = Ia * sa + Ib * sb, Ib * sa + Ic * sb
-    spread = sq - (ma * sa + mb * sb)
-    p_fa = float(np.max(params.witness_false_alarm))
-    gate = consistency_gates(p_fa, int(count.max()))[count]
-    consistent = (count < 2) | (spread <= gate)
+    P = notes.P_pos[rows]
+    sums = np.add.reduceat(note_information(notes.u[rows], notes.Q[rows]), start)
     # j's claim: the first largest trace of the group's claims
     trace = P[:, 0, 0] + P[:, 1, 1]
     group = np.repeat(np.arange(G), count)
@@ -237,10 +227,10 @@ def whole_set_statistic(
     if len(first) != G:  # a claim that is not a number: every set enumerated
         return np.full(G, np.nan), np.zeros(G, bool)
     Pj = P[top[first]]
-    Ca = Pj[:, 0, 0] + Ia
-    Cb = 0.5 * (Pj[:, 0, 1] + Pj[:, 1, 0]) + Ib
-    Cc = Pj[:, 1, 1] + Ic
-    T = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+    spread, T = set_statistic(sums, Pj[:, 0, 0], 0.5 * (Pj[:, 0, 1] + Pj[:, 1, 0]), Pj[:, 1, 1])
+    p_fa = float(np.max(params.witness_false_alarm))
+    gate = consistency_gates(p_fa, int(count.max()))[count]
+    consistent = (count < 2) | (spread <= gate)
     return T, consistent & np.isfinite(T)
 
 
