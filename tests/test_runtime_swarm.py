@@ -209,8 +209,11 @@ def test_realtime_swarm_completes_and_counts_late_messages(tmp_path, fusion) -> 
     # realtime never waits: a step takes about dt of wall time
     assert runtime["wall_time_per_step_s"]["median"] == pytest.approx(sc.world.motion.dt, rel=0.5)
     assert runtime["wire_by_kind"]["estimate"]["messages"] > 0.9 * 5 * 90
-    if fusion == "factorized":  # both rounds of the pair exchange ran in their windows
-        assert runtime["wire_by_kind"]["ack"]["messages"] > 0.9 * 2 * 5 * 90
+    if fusion == "factorized":
+        # both rounds of the pair exchange ran: one round alone sends at most 5 * 90 acks;
+        # under load a robot misses some second-round windows (realtime does not wait):
+        # 84 % was seen on a loaded machine, so the bound is well above one round, not 90 %
+        assert runtime["wire_by_kind"]["ack"]["messages"] > 0.6 * 2 * 5 * 90
         assert counters["pair_messages_received"] > 0
 
 
