@@ -8,16 +8,34 @@ the cached estimate (``update_without_transmission``), and a delivered message i
 with the estimate it carries: a second pass with the transmitted rows ``x_nb``, ``P_nb``,
 which :func:`~resloc.cl.kernels_round_stages.inflated_moments` runs beside the recovery's.
 
+The second pass runs ahead of the decisions, in the first pass's SIMD lanes
+(:func:`fresh_lanes`, :func:`take_fresh`): with ``n`` robots' lanes in a round, lanes
+``n .. 2n - 1`` are the same links with j's transmitted estimate, through the same
+vectorized stages (factors, points, moments, Kalman update); a lane whose link turns out
+delivered takes its twin's moments and update, the others' are dropped. Measured on a
+captured step of the paper's scenario (17 robots, 260 links, ~80 delivered): the lanes'
+loops enter their SIMD bodies from about 24 lanes, so 34 lanes cost little more than 17,
+where the second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
+special case (a factor with jitter, a point or innovation the lanes cannot take), a
+re-admission on an inflated covariance, the stealthy attacker's or zone trust's changes
+of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass of
+:func:`~resloc.cl.kernels_round_stages.inflated_moments`.
+
 =========================  =============================================================
 function                   piece of ``correct_links``
 =========================  =============================================================
 :func:`cached_lanes`       ``_cached_decision``, ``fresh``
+:func:`fresh_lanes`        the second pass's inputs (``attempt == 1``, ``fresh``)
+:func:`fresh_covariances`  the second pass's ``P_j``
+:func:`take_fresh`         the second pass's moments and update
 :func:`transmitted_lanes`  ``xj0``, ``xj1`` (the update stages' ``j``)
 :func:`sent_lanes`         the ``delivered`` flag
 =========================  =============================================================
 """
 
 from __future__ import annotations
+
+import math
 
 from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
@@ -26,7 +44,14 @@ from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
 
 _jit = jit_lanes
 
-__all__ = ["cached_lanes", "sent_lanes", "transmitted_lanes"]
+__all__ = [
+    "cached_lanes",
+    "fresh_covariances",
+    "fresh_lanes",
+    "sent_lanes",
+    "take_fresh",
+    "transmitted_lanes",
+]
 
 
 @_jit
@@ -52,6 +77,74 @@ def cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh):
 
 
 @_jit
+def fresh_lanes(x_nb, n, obs, src, xi, xr, zl, sin_cos, bad):
+    """Lanes ``n .. 2n - 1`` (the caller checks ``2n <= CHUNK``): lane ``n + c`` is lane
+    ``c``'s link with j's transmitted position (``x_nb`` at row ``src[c]``); robot i, its
+    estimate, the measurement, the heading's sine and cosine and ``bad`` copied from lane
+    ``c``."""
+    for c in range(n):
+        d = n + c
+        s = src[c]
+        obs[d] = obs[c]
+        src[d] = s
+        xi[0, d] = xi[0, c]
+        xi[1, d] = xi[1, c]
+        xi[2, d] = xi[2, c]
+        xr[0, d] = x_nb[s, 0]
+        xr[1, d] = x_nb[s, 1]
+        zl[0, d] = zl[0, c]
+        zl[1, d] = zl[1, c]
+        sin_cos[0, d] = sin_cos[0, c]
+        sin_cos[1, d] = sin_cos[1, c]
+        bad[d] = bad[c]
+
+
+@_jit
+def fresh_covariances(P_nb, src, n, cov):
+    """j's transmitted covariance of lanes ``n .. 2n - 1`` (row ``src[c]`` of ``P_nb`` for
+    lane ``n + c``) as :func:`load_covariances
+    <resloc.cl.kernels_link_stages.load_covariances>` writes lanes: the lower triangle, and
+    whether all nine entries are finite."""
+    for c in range(n):
+        d = n + c
+        s = src[c]
+        cov[0, d] = P_nb[s, 0, 0]
+        cov[1, d] = P_nb[s, 1, 0]
+        cov[2, d] = P_nb[s, 2, 0]
+        cov[3, d] = P_nb[s, 1, 1]
+        cov[4, d] = P_nb[s, 2, 1]
+        cov[5, d] = P_nb[s, 2, 2]
+        finite = True
+        for a in range(3):
+            for b in range(3):
+                finite = finite and math.isfinite(P_nb[s, a, b])
+        cov[6, d] = 1.0 if finite else 0.0
+
+
+@_jit
+def take_fresh(n, inflation, decision, fresh, ok_j, bad, moments, pxz, update):
+    """Each fused lane ``c`` whose second pass is the transmitted estimate's (``fresh[c]``,
+    no inflation) takes lane ``n + c``'s moments, ``P^xz`` and update (:func:`fresh_lanes`)
+    and is done (``fresh[c] = 0``); a twin whose factor needed jitter (``ok_j``), or with
+    a point or innovation the lanes cannot take (``bad``, ``update[15]``), is left to
+    :func:`~resloc.cl.kernels_round_stages.inflated_moments` (``fresh[c]`` stays 1).
+    Twin: the second pass of ``correct_links`` (``attempt == 1`` with ``fresh``)."""
+    for c in range(n):
+        d = n + c
+        if not (decision[3, c] == 1.0 and fresh[c] == 1.0 and inflation[c] == 1.0):
+            continue
+        if ok_j[d] != 1.0 or bad[d] != 0.0 or update[15, d] != 0.0:
+            continue
+        for a in range(moments.shape[0]):
+            moments[a, c] = moments[a, d]
+        for a in range(pxz.shape[0]):
+            pxz[a, c] = pxz[a, d]
+        for a in range(update.shape[0]):
+            update[a, c] = update[a, d]
+        fresh[c] = 0.0
+
+
+@_jit
 def transmitted_lanes(x_nb, src, n, xr):
     """``j``'s transmitted position per lane in ``xr`` (the update stages' Jacobians and
     records use it, whichever estimate the moments used)."""
@@ -70,5 +163,7 @@ def sent_lanes(lane_e, n, sent, out):
         delivered[lane_e[c]] = sent[c] == 1.0
 
 
-for _dispatcher in (cached_lanes, transmitted_lanes, sent_lanes):
+for _dispatcher in (
+    cached_lanes, fresh_lanes, fresh_covariances, take_fresh, transmitted_lanes, sent_lanes
+):  # fmt: skip
     stamp_with_pieces(_dispatcher, _kernels_math, _kernels_links)
