@@ -41,7 +41,7 @@ def _round(n: int, singular: int | None, seed: int):
         point_axes,
         points_lanes,
     )
-    from resloc.cl.kernels_round_cached import fresh_covariances, fresh_lanes
+    from resloc.cl.kernels_round_cached import fresh_covariances, fresh_lanes, lanes_ahead
     from resloc.cl.kernels_round_stages import retry_lanes
 
     rng = np.random.default_rng(seed)
@@ -72,19 +72,21 @@ def _round(n: int, singular: int | None, seed: int):
     update = np.empty((UPDATE_ROWS, C))
     lane_e[:n] = np.arange(n)
     n = np.int64(n)
+    n2 = lanes_ahead(n, C)
+    assert n2 >= 2 * n and n2 % 8 == 0
     gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
-    fresh_lanes(x_nb, n, obs, src, xi, xr, zl, sin_cos, bad)
-    load_covariances(P, obs, 2 * n, cov)
-    chol_lanes(cov, 2 * n, Li, ok_i)
+    fresh_lanes(x_nb, n, n2, obs, src, xi, xr, zl, sin_cos, bad)
+    load_covariances(P, obs, n2, cov)
+    chol_lanes(cov, n2, Li, ok_i)
     load_covariances(P_ref, src, n, cov)
-    fresh_covariances(P_nb, src, n, cov)
-    chol_lanes(cov, 2 * n, Lj, ok_j)
-    assert chol_jitter_lanes(P, obs, 2 * n, Li, ok_i, jitter, s_in, s_out)
+    fresh_covariances(P_nb, src, n, n2, cov)
+    chol_lanes(cov, n2, Lj, ok_j)
+    assert chol_jitter_lanes(P, obs, n2, Li, ok_i, jitter, s_in, s_out)
     assert chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, s_in, s_out)
-    points_lanes(axis, value, Wm, 2 * n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
-    moments_lanes(axis, value, Wm, Wc, circular, 2 * n, Li, Z0, Z1, sums, moments, pxz, mean, bad)
-    load_robot_covariances(P, obs, 2 * n, Pi)
-    kalman_lanes(2 * n, zl, R, moments, pxz, Pi, update)
+    points_lanes(axis, value, Wm, n2, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
+    moments_lanes(axis, value, Wm, Wc, circular, n2, Li, Z0, Z1, sums, moments, pxz, mean, bad)
+    load_robot_covariances(P, obs, n2, Pi)
+    kalman_lanes(n2, zl, R, moments, pxz, Pi, update)
     lanes = (P, obs, src, n, xi, xr, zl, sin_cos, Li, Lj, moments, pxz, update)
     return lanes, ok_j, bad, retry_lanes(m, C), filt, R, jitter, x_nb, P_nb
 

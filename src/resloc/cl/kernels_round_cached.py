@@ -14,8 +14,9 @@ The second pass runs ahead of the decisions, in the first pass's SIMD lanes
 vectorized stages (factors, points, moments, Kalman update); a lane whose link turns out
 delivered takes its twin's moments and update, the others' are dropped. Measured on a
 captured step of the paper's scenario (17 robots, 260 links, ~80 delivered): the lanes'
-loops enter their SIMD bodies from about 24 lanes, so 34 lanes cost little more than 17,
-where the second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
+loops run their SIMD bodies on blocks of :data:`LANE_BLOCK` lanes (and from about 24
+lanes on), the rest lane by lane, so 40 lanes (34 padded) cost less than 17, where the
+second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
 special case (a factor with jitter, a point or innovation the lanes cannot take), a
 re-admission on an inflated covariance, the stealthy attacker's or zone trust's changes
 of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass of
@@ -25,6 +26,7 @@ of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass 
 function                   piece of ``correct_links``
 =========================  =============================================================
 :func:`cached_lanes`       ``_cached_decision``, ``fresh``
+:func:`lanes_ahead`        (how many lanes)
 :func:`fresh_lanes`        the second pass's inputs (``attempt == 1``, ``fresh``)
 :func:`fresh_covariances`  the second pass's ``P_j``
 :func:`take_fresh`         the second pass's moments and update
@@ -45,9 +47,11 @@ from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
 _jit = jit_lanes
 
 __all__ = [
+    "LANE_BLOCK",
     "cached_lanes",
     "fresh_covariances",
     "fresh_lanes",
+    "lanes_ahead",
     "sent_lanes",
     "take_fresh",
     "transmitted_lanes",
@@ -76,14 +80,31 @@ def cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh):
         fresh[c] = 1.0 if delivered and known[e] else 0.0
 
 
+#: The vectorized stages' loops run their SIMD bodies on blocks of this many lanes and
+#: the rest lane by lane (~0.3 us a lane through the points and moments): the lanes ahead
+#: are padded to a multiple (measured on the bench machine, AVX-512: 34 lanes 3.4 us,
+#: 40 lanes 2.6 us).
+LANE_BLOCK = 8
+
+
 @_jit
-def fresh_lanes(x_nb, n, obs, src, xi, xr, zl, sin_cos, bad):
-    """Lanes ``n .. 2n - 1`` (the caller checks ``2n <= CHUNK``): lane ``n + c`` is lane
-    ``c``'s link with j's transmitted position (``x_nb`` at row ``src[c]``); robot i, its
-    estimate, the measurement, the heading's sine and cosine and ``bad`` copied from lane
-    ``c``."""
-    for c in range(n):
-        d = n + c
+def lanes_ahead(n, C):
+    """How many lanes the vectorized stages run with ``cached``'s second pass ahead of
+    ``n`` robots' lanes: ``2n`` padded to a multiple of :data:`LANE_BLOCK` (at most ``C``);
+    ``n`` (no lanes ahead) when ``2n > C``."""
+    if 2 * n > C:
+        return n
+    return min(C, (2 * n + LANE_BLOCK - 1) // LANE_BLOCK * LANE_BLOCK)
+
+
+@_jit
+def fresh_lanes(x_nb, n, n2, obs, src, xi, xr, zl, sin_cos, bad):
+    """Lanes ``n .. n2 - 1`` (``n2 = lanes_ahead(n, CHUNK)``): lane ``n + c`` (``c < n``)
+    is lane ``c``'s link with j's transmitted position (``x_nb`` at row ``src[c]``), robot
+    i, its estimate, the measurement, the heading's sine and cosine and ``bad`` copied from
+    lane ``c``; the lanes from ``2n`` on (padding, never read) copy lane ``n``."""
+    for d in range(n, n2):
+        c = d - n if d < 2 * n else 0
         s = src[c]
         obs[d] = obs[c]
         src[d] = s
@@ -100,14 +121,13 @@ def fresh_lanes(x_nb, n, obs, src, xi, xr, zl, sin_cos, bad):
 
 
 @_jit
-def fresh_covariances(P_nb, src, n, cov):
-    """j's transmitted covariance of lanes ``n .. 2n - 1`` (row ``src[c]`` of ``P_nb`` for
-    lane ``n + c``) as :func:`load_covariances
+def fresh_covariances(P_nb, src, n, n2, cov):
+    """j's transmitted covariance of lanes ``n .. n2 - 1`` (row ``src[d]`` of ``P_nb``, as
+    :func:`fresh_lanes` set it) as :func:`load_covariances
     <resloc.cl.kernels_link_stages.load_covariances>` writes lanes: the lower triangle, and
     whether all nine entries are finite."""
-    for c in range(n):
-        d = n + c
-        s = src[c]
+    for d in range(n, n2):
+        s = src[d]
         cov[0, d] = P_nb[s, 0, 0]
         cov[1, d] = P_nb[s, 1, 0]
         cov[2, d] = P_nb[s, 2, 0]
@@ -164,6 +184,7 @@ def sent_lanes(lane_e, n, sent, out):
 
 
 for _dispatcher in (
-    cached_lanes, fresh_lanes, fresh_covariances, take_fresh, transmitted_lanes, sent_lanes
+    cached_lanes, lanes_ahead, fresh_lanes, fresh_covariances, take_fresh, transmitted_lanes,
+    sent_lanes,
 ):  # fmt: skip
     stamp_with_pieces(_dispatcher, _kernels_math, _kernels_links)

@@ -87,6 +87,7 @@ from resloc.cl.kernels_round_cached import (
     cached_lanes,
     fresh_covariances,
     fresh_lanes,
+    lanes_ahead,
     sent_lanes,
     take_fresh,
     transmitted_lanes,
@@ -324,17 +325,17 @@ def _rounds(
                     n += 1
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             # n2: the lanes of the vectorized stages; cached: lanes n .. 2n - 1 are the
-            # second pass with j's transmitted estimate, ahead of the decisions
+            # second pass with j's transmitted estimate, ahead of the decisions (padded)
             n2 = n
-            if beyond is not None and ahead and 2 * n <= C:
-                n2 = 2 * n
+            if beyond is not None and ahead:
+                n2 = lanes_ahead(n, C)
             if beyond is not None and n2 > n:
-                fresh_lanes(x_nb, n, obs, src, xi, xr, zl, sin_cos, bad)
+                fresh_lanes(x_nb, n, n2, obs, src, xi, xr, zl, sin_cos, bad)
             load_covariances(P, obs, n2, cov)
             chol_lanes(cov, n2, Li, ok_i)
             load_covariances(P_ref, src, n, cov)
             if beyond is not None and n2 > n:
-                fresh_covariances(P_nb, src, n, cov)
+                fresh_covariances(P_nb, src, n, n2, cov)
             chol_lanes(cov, n2, Lj, ok_j)
             if not chol_jitter_lanes(P, obs, n2, Li, ok_i, jitter, scratch_in, scratch_out):
                 return NOT_PD
