@@ -14,9 +14,9 @@ The second pass runs ahead of the decisions, in the first pass's SIMD lanes
 vectorized stages (factors, points, moments, Kalman update); a lane whose link turns out
 delivered takes its twin's moments and update, the others' are dropped. Measured on a
 captured step of the paper's scenario (17 robots, 260 links, ~80 delivered): the lanes'
-loops run their SIMD bodies on blocks of :data:`LANE_BLOCK` lanes (and from about 24
-lanes on), the rest lane by lane, so 40 lanes (34 padded) cost less than 17, where the
-second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
+loops run their SIMD bodies on blocks of :data:`LANE_BLOCK` lanes from :data:`LANE_MIN`
+lanes on, the rest lane by lane, so 40 lanes (34 padded, :func:`padded_lanes`) cost less
+than 17, where the second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
 special case (a factor with jitter, a point or innovation the lanes cannot take), a
 re-admission on an inflated covariance, the stealthy attacker's or zone trust's changes
 of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass of
@@ -48,10 +48,12 @@ _jit = jit_lanes
 
 __all__ = [
     "LANE_BLOCK",
+    "LANE_MIN",
     "cached_lanes",
     "fresh_covariances",
     "fresh_lanes",
     "lanes_ahead",
+    "padded_lanes",
     "sent_lanes",
     "take_fresh",
     "transmitted_lanes",
@@ -80,21 +82,34 @@ def cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh):
         fresh[c] = 1.0 if delivered and known[e] else 0.0
 
 
-#: The vectorized stages' loops run their SIMD bodies on blocks of this many lanes and
-#: the rest lane by lane (~0.3 us a lane through the points and moments): the lanes ahead
-#: are padded to a multiple (measured on the bench machine, AVX-512: 34 lanes 3.4 us,
-#: 40 lanes 2.6 us).
+#: The vectorized stages' loops (points, moments, Kalman update) run their SIMD bodies on
+#: blocks of this many lanes, and only from :data:`LANE_MIN` lanes on; the other lanes run
+#: one by one (~0.3 us a lane through the points and moments). Measured on the bench
+#: machine (AVX-512), points and moments of n lanes: 12 lanes 3.7 us, 17 lanes 3.1 us,
+#: 24 lanes 2.2 us, 34 lanes 3.4 us, 40 lanes 2.6 us.
 LANE_BLOCK = 8
+LANE_MIN = 24
+
+
+@_jit
+def padded_lanes(n, C):
+    """How many lanes the vectorized stages run for ``n`` lanes of work: ``n`` padded to a
+    multiple of :data:`LANE_BLOCK` and to at least :data:`LANE_MIN` (at most ``C``), or
+    ``n`` itself below one block (padding would cost more than it saves). The padding
+    lanes are computed and never read."""
+    if n < LANE_BLOCK:
+        return n
+    return min(C, max(LANE_MIN, (n + LANE_BLOCK - 1) // LANE_BLOCK * LANE_BLOCK))
 
 
 @_jit
 def lanes_ahead(n, C):
     """How many lanes the vectorized stages run with ``cached``'s second pass ahead of
-    ``n`` robots' lanes: ``2n`` padded to a multiple of :data:`LANE_BLOCK` (at most ``C``);
-    ``n`` (no lanes ahead) when ``2n > C``."""
+    ``n`` robots' lanes: ``2n`` padded (:func:`padded_lanes`); ``n`` (no lanes ahead) when
+    ``2n > C``."""
     if 2 * n > C:
         return n
-    return min(C, (2 * n + LANE_BLOCK - 1) // LANE_BLOCK * LANE_BLOCK)
+    return padded_lanes(2 * n, C)
 
 
 @_jit
@@ -184,7 +199,7 @@ def sent_lanes(lane_e, n, sent, out):
 
 
 for _dispatcher in (
-    cached_lanes, lanes_ahead, fresh_lanes, fresh_covariances, take_fresh, transmitted_lanes,
-    sent_lanes,
+    cached_lanes, padded_lanes, lanes_ahead, fresh_lanes, fresh_covariances, take_fresh,
+    transmitted_lanes, sent_lanes,
 ):  # fmt: skip
     stamp_with_pieces(_dispatcher, _kernels_math, _kernels_links)
