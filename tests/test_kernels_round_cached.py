@@ -132,3 +132,20 @@ def test_the_lanes_ahead_are_the_second_pass(n: int) -> None:
     # the lanes not fused, or fused with the cached estimate, keep the first pass
     kept = decision[3, :n] != 1.0
     np.testing.assert_array_equal(ahead[0][:, kept], moments[:, :n][:, kept])
+
+
+def test_padded_lanes_fill_whole_simd_blocks() -> None:
+    from resloc.cl.kernels_lanes import CHUNK
+    from resloc.cl.kernels_round_cached import LANE_BLOCK, LANE_MIN, lanes_ahead, padded_lanes
+
+    for n in range(1, CHUNK + 1):
+        p = padded_lanes(n, CHUNK)
+        if n < LANE_BLOCK:
+            assert p == n
+        else:
+            assert n <= p <= CHUNK and p >= min(LANE_MIN, CHUNK)
+            assert p % LANE_BLOCK == 0 or p == CHUNK
+            assert p - n < LANE_BLOCK or p == LANE_MIN
+        a = lanes_ahead(n, CHUNK)
+        assert a == (n if 2 * n > CHUNK else padded_lanes(2 * n, CHUNK))
+    assert padded_lanes(17, CHUNK) == 24 and lanes_ahead(17, CHUNK) == 40
