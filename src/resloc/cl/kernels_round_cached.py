@@ -16,9 +16,9 @@ delivered takes its twin's moments and update, the others' are dropped. Measured
 captured step of the paper's scenario (17 robots, 260 links, ~80 delivered): the lanes'
 loops run their SIMD bodies on blocks of :data:`LANE_BLOCK` lanes from :data:`LANE_MIN`
 lanes on, the rest lane by lane, so 40 lanes (34 padded, :func:`padded_lanes`) cost less
-than 17, where the second pass lane by lane cost ~0.45 us a delivered link. A twin that needs a
-special case (a factor with jitter, a point or innovation the lanes cannot take), a
-re-admission on an inflated covariance, the stealthy attacker's or zone trust's changes
+than 17, where the second pass lane by lane cost ~0.45 us a delivered link. A twin that
+needs a special case (a factor with jitter, a point or innovation the lanes cannot take),
+a re-admission on an inflated covariance, the stealthy attacker's or zone trust's changes
 of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass of
 :func:`~resloc.cl.kernels_round_stages.inflated_moments`.
 
@@ -26,6 +26,7 @@ of the lanes, and chunks of more than ``CHUNK / 2`` robots keep the second pass 
 function                   piece of ``correct_links``
 =========================  =============================================================
 :func:`cached_lanes`       ``_cached_decision``, ``fresh``
+:func:`padded_lanes`       (how many lanes; also the joints' rounds)
 :func:`lanes_ahead`        (how many lanes)
 :func:`fresh_lanes`        the second pass's inputs (``attempt == 1``, ``fresh``)
 :func:`fresh_covariances`  the second pass's ``P_j``
