@@ -122,6 +122,52 @@ def test_compiled_store_is_the_numpy_store(monkeypatch) -> None:
     assert True in calls and False in calls, calls
 
 
+def test_gathered_store_is_the_numpy_store(monkeypatch) -> None:
+    """``cached``'s per-link inputs (``LinkMemory.cached_rows``) are the reference's
+    look-up and ``np.where``, and the step's store at the positions they found is the
+    numpy store, until a delivered link is new (the search path then inserts it)."""
+    rng = np.random.default_rng(7)
+    calls = _spy(monkeypatch, "store_gathered")
+    memories = {b: LinkMemory(9) for b in ("numba", "numpy")}
+    for step in range(8):
+        i, j = _links(rng, 9, 30, memories["numpy"].keys if step >= 2 else None)
+        E = len(i)
+        x_nb = rng.normal(size=(9, 3))
+        P_nb = rng.normal(size=(9, 3, 3))
+        rows = rng.integers(0, 9, E).astype(np.int64)
+        norm = rng.random(E)
+        delivered = rng.random(E) < 0.5
+        ref = memories["numpy"]
+        found, pos = ref.lookup(i, j)
+        expected = (
+            x_nb[rows],
+            P_nb[rows],
+            np.where(found[:, None], ref.x[pos] if len(ref) else 0.0, x_nb[rows]),
+            np.where(found[:, None, None], ref.P[pos] if len(ref) else 0.0, P_nb[rows]),
+            found,
+            np.where(found, ref.last_norm[pos] if len(ref) else 0.0, 0.0),
+        )
+        memory = memories["numba"]
+        got = memory.cached_rows(i.astype(np.int64), j.astype(np.int64), rows, x_nb, P_nb, True)
+        for name, a, b in zip(
+            ("x", "P", "x_ref", "P_ref", "known", "last"), got, expected, strict=True
+        ):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        with use_backend("numba"):
+            memory.store_delivered(
+                i.astype(np.int64), j.astype(np.int64), delivered, got[0], got[1],
+                np.arange(E, dtype=np.int64), norm,
+            )  # fmt: skip
+        with use_backend("numpy"):
+            ref.store(i[delivered], j[delivered], x_nb[rows][delivered], P_nb[rows][delivered],
+                      norm[delivered])  # fmt: skip
+        for name in ("keys", "x", "P", "last_norm"):
+            np.testing.assert_array_equal(getattr(memory, name), getattr(ref, name), name)
+        if step >= 2:  # every link stored: the store at the gathered positions
+            assert calls[-1] is True, (step, calls)
+    assert False in calls, "a new delivered link never gave way to the search path"
+
+
 @pytest.mark.parametrize("method", ["tracked", "factorized"])
 def test_the_joints_run_their_own_form_of_the_loop(method: str) -> None:
     params = replace(PARAMS, fusion=method)

@@ -65,7 +65,6 @@ from resloc.cl.kernels_detection import NORM_CODE, detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, NAIVE_UPDATE, fusion_commit, fusion_state
 from resloc.cl.kernels_gauge import gauge_commit, gauge_state, gauge_undo, no_gauge
 from resloc.cl.kernels_links import OK
-from resloc.cl.kernels_math import jit
 from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
@@ -355,57 +354,14 @@ def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours)
 
 
 def _cached_rows(memory, li, lj, nb, x_nb, P_nb, last_sent: bool):
-    """The per-link inputs of ``cached`` neighbour estimates by one compiled pass
-    (:func:`_gather_cached`): the transmitted estimates per link ``(E, 3)``, ``(E, 3, 3)``,
-    the estimates the moments use (j's last received where robot i has one, else the
-    transmitted: twin ``resloc.cl.step._decide``), whether there is one ``(E,)`` and, with
-    ``last_sent``, the last delivered norms ``(E,)`` (else ``(0,)``)."""
-    E = len(li)
-    rows = np.arange(E, dtype=np.int64) if nb is None else _contiguous(nb, np.int64)
-    x_link, x_ref = np.empty((2, E, 3))
-    P_link, P_ref = np.empty((2, E, 3, 3))
-    known = np.empty(E, dtype=np.bool_)
-    last = np.empty(E if last_sent else 0)
-    _gather_cached(
-        memory.keys, memory.n_nodes, _contiguous(memory.x), _contiguous(memory.P),
-        _contiguous(memory.last_norm), li, lj, rows, _contiguous(x_nb), _contiguous(P_nb),
-        x_link, P_link, x_ref, P_ref, known, last,
-    )  # fmt: skip
-    return x_link, P_link, x_ref, P_ref, known, last
-
-
-@jit
-def _gather_cached(
-    keys, n_nodes, mem_x, mem_P, mem_last, li, lj, rows, x_nb, P_nb, x_link, P_link, x_ref,
-    P_ref, known, last,
-):  # fmt: skip
-    """Per link ``e``: ``x_link[e] = x_nb[rows[e]]`` (``P`` alike) and, by a binary search
-    of the key ``li[e] * n_nodes + lj[e]`` in the memory's sorted ``keys``, ``known[e]``,
-    ``x_ref[e]`` (the stored estimate, else the transmitted one; ``P`` alike) and, when
-    ``last`` is not empty, the stored last norm (else 0). Twin: ``LinkMemory.lookup`` and
-    the ``np.where`` of the stored and transmitted rows."""
-    K = keys.shape[0]
-    for e in range(li.shape[0]):
-        n = rows[e]
-        key = li[e] * n_nodes + lj[e]
-        lo = 0
-        hi = K
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if keys[mid] < key:
-                lo = mid + 1
-            else:
-                hi = mid
-        found = lo < K and keys[lo] == key
-        known[e] = found
-        for a in range(3):
-            x_link[e, a] = x_nb[n, a]
-            x_ref[e, a] = mem_x[lo, a] if found else x_nb[n, a]
-            for b in range(3):
-                P_link[e, a, b] = P_nb[n, a, b]
-                P_ref[e, a, b] = mem_P[lo, a, b] if found else P_nb[n, a, b]
-        if last.shape[0] > 0:
-            last[e] = mem_last[lo] if found else 0.0
+    """The per-link inputs of ``cached`` neighbour estimates
+    (:meth:`~resloc.cl.memory.LinkMemory.cached_rows`, one compiled pass): the transmitted
+    estimates per link ``(E, 3)``, ``(E, 3, 3)``, the estimates the moments use (j's last
+    received where robot i has one, else the transmitted: twin ``resloc.cl.step._decide``),
+    whether there is one ``(E,)`` and, with ``last_sent``, the last delivered norms
+    ``(E,)`` (else ``(0,)``)."""
+    rows = np.arange(len(li), dtype=np.int64) if nb is None else _contiguous(nb, np.int64)
+    return memory.cached_rows(li, lj, rows, _contiguous(x_nb), _contiguous(P_nb), last_sent)
 
 
 def fast_correct(

@@ -47,6 +47,7 @@ import numpy as np
 from resloc.cl import kernels_joint_lanes as _kernels_joint_lanes
 from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_joint_records as _kernels_joint_records
+from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl.kernels_joint_lanes import (
     chol6_lanes,
@@ -81,6 +82,7 @@ from resloc.cl.kernels_link_stages import (
 )
 from resloc.cl.kernels_links import NOT_PD, OK
 from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces, store_covariance
+from resloc.cl.kernels_round_cached import padded_lanes
 from resloc.cl.kernels_round_stages import (
     link_scratch,
     restore_state,
@@ -96,6 +98,7 @@ __all__ = [
     "joint_factor_lanes",
     "joint_record_lanes",
     "joint_rounds_cover",
+    "pad_lanes",
     "reset_joint",
 ]
 
@@ -356,14 +359,18 @@ def _joint_rounds(
                 J, L, ok, Li, X, Ls,
             ):  # fmt: skip
                 return NOT_PD
+            # the vectorized stages on padded lanes (copies of lane 0, never read): their
+            # SIMD bodies take blocks of lanes (kernels_round_cached.padded_lanes)
+            n2 = padded_lanes(n, C)
+            pad_lanes(n, n2, obs, xi, xr, zl, sin_cos, bad, Li, X, Ls)
             correlated_points_lanes(
-                axis, value, Wm, n, xi, xr, sin_cos, Li, X, Ls, Z0, Z1, sums, bad
+                axis, value, Wm, n2, xi, xr, sin_cos, Li, X, Ls, Z0, Z1, sums, bad
             )
             moments_lanes(
-                axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad
+                axis, value, Wm, Wc, circular, n2, Li, Z0, Z1, sums, moments, pxz, mean, bad
             )
-            load_robot_covariances(P, obs, n, Pi)
-            kalman_lanes(n, zl, R, moments, pxz, Pi, update)
+            load_robot_covariances(P, obs, n2, Pi)
+            kalman_lanes(n2, zl, R, moments, pxz, Pi, update)
             for c in range(n):
                 if bad[c] != 0.0 or update[15, c] != 0.0:
                     return FALLBACK
@@ -385,7 +392,29 @@ def _joint_rounds(
     return OK
 
 
+@_jit
+def pad_lanes(n, n2, obs, xi, xr, zl, sin_cos, bad, Li, X, Ls):
+    """Lanes ``n .. n2 - 1`` copies of lane 0 (the inputs of the vectorized stages): work
+    for the SIMD bodies whose results are never read."""
+    for d in range(n, n2):
+        obs[d] = obs[0]
+        for a in range(3):
+            xi[a, d] = xi[a, 0]
+            for b in range(3):
+                Li[a, b, d] = Li[a, b, 0]
+                X[a, b, d] = X[a, b, 0]
+                Ls[a, b, d] = Ls[a, b, 0]
+        xr[0, d] = xr[0, 0]
+        xr[1, d] = xr[1, 0]
+        zl[0, d] = zl[0, 0]
+        zl[1, d] = zl[1, 0]
+        sin_cos[0, d] = sin_cos[0, 0]
+        sin_cos[1, d] = sin_cos[1, 0]
+        bad[d] = bad[0]
+
+
 for _dispatcher in (
+    pad_lanes,
     reset_joint,
     joint_factor_lanes,
     joint_record_lanes,
@@ -397,5 +426,6 @@ for _dispatcher in (
         _kernels_joint_links,
         _kernels_joint_lanes,
         _kernels_joint_records,
+        _kernels_round_cached,
         *_kernels_round_stages.PIECE_MODULES,
     )

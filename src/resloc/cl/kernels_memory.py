@@ -17,6 +17,10 @@ kernel function                numpy twin
 :func:`overwrite_stored`       ``LinkMemory.store`` when every link is stored
 :func:`overwrite_delivered`    ``LinkMemory.store`` of a step's delivered links
 :func:`same_keys`              ``np.array_equal`` of two stores' keys
+:func:`gather_cached`          ``LinkMemory.lookup`` and the ``np.where`` of the
+                               stored and transmitted rows (``cached``)
+:func:`store_gathered`         ``LinkMemory.store`` of the delivered links at the
+                               positions :func:`gather_cached` found
 =============================  ==================================================
 """
 
@@ -26,7 +30,14 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["overwrite_delivered", "overwrite_stored", "same_keys", "stored_positions"]
+__all__ = [
+    "gather_cached",
+    "overwrite_delivered",
+    "overwrite_stored",
+    "same_keys",
+    "store_gathered",
+    "stored_positions",
+]
 
 
 @jit
@@ -152,4 +163,67 @@ def overwrite_delivered(keys, n_nodes, i, j, delivered, rows, x, P, norm, mem, p
                 mem_P[p, a, b] = P[r, a, b]
         mem_last[p] = norm[e]
         d += 1
+    return True
+
+
+@jit
+def gather_cached(
+    keys, n_nodes, mem_x, mem_P, mem_last, li, lj, rows, x_nb, P_nb, x_link, P_link, x_ref,
+    P_ref, known, last, pos,
+):  # fmt: skip
+    """The per-link inputs of ``cached`` neighbour estimates in one pass (``mem_x``,
+    ``mem_P``, ``mem_last``: the store's arrays; the others written): per link ``e``,
+    ``x_link[e] = x_nb[rows[e]]`` (``P`` alike), the position ``pos[e]`` of ``(li[e],
+    lj[e])`` in the sorted ``keys`` (-1: not stored; a binary search), ``known[e] = pos[e]
+    >= 0``, ``x_ref[e]`` the stored estimate where known, else the transmitted one (``P``
+    alike), and, when ``last`` is not empty, the stored last norm (else 0).
+    Twin: ``LinkMemory.lookup`` and the ``np.where`` of the stored and transmitted rows
+    (``resloc.cl.step._decide``)."""
+    K = keys.shape[0]
+    for e in range(li.shape[0]):
+        n = rows[e]
+        key = li[e] * n_nodes + lj[e]
+        lo = 0  # binary search, inline (a call of _position per link costs more)
+        hi = K
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if keys[mid] < key:
+                lo = mid + 1
+            else:
+                hi = mid
+        found = lo < K and keys[lo] == key
+        q = lo if found else -1
+        pos[e] = q
+        known[e] = found
+        for a in range(3):
+            x_link[e, a] = x_nb[n, a]
+            x_ref[e, a] = mem_x[q, a] if found else x_nb[n, a]
+            for b in range(3):
+                P_link[e, a, b] = P_nb[n, a, b]
+                P_ref[e, a, b] = mem_P[q, a, b] if found else P_nb[n, a, b]
+        if last.shape[0] > 0:
+            last[e] = mem_last[q] if found else 0.0
+
+
+@jit
+def store_gathered(pos, delivered, rows, x, P, norm, mem_x, mem_P, mem_last):
+    """For every link ``e`` with ``delivered[e]``: ``mem_x[pos[e]] = x[rows[e]]``,
+    ``mem_P[pos[e]] = P[rows[e]]``, ``mem_last[pos[e]] = norm[e]`` (``pos``: the positions
+    :func:`gather_cached` found in the same keys; ``mem_x``, ``mem_P``, ``mem_last``: the
+    store's arrays).
+    False, nothing written, when a delivered link was not stored (``pos[e] < 0``).
+    Twin: ``LinkMemory.store`` of the rows ``delivered`` selects."""
+    for e in range(pos.shape[0]):
+        if delivered[e] and pos[e] < 0:
+            return False
+    for e in range(pos.shape[0]):
+        if not delivered[e]:
+            continue
+        p = pos[e]
+        r = rows[e]
+        for a in range(3):
+            mem_x[p, a] = x[r, a]
+            for b in range(3):
+                mem_P[p, a, b] = P[r, a, b]
+        mem_last[p] = norm[e]
     return True

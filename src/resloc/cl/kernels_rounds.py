@@ -83,7 +83,15 @@ from resloc.cl.kernels_link_stages import (
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
-from resloc.cl.kernels_round_cached import cached_lanes, sent_lanes, transmitted_lanes
+from resloc.cl.kernels_round_cached import (
+    cached_lanes,
+    fresh_covariances,
+    fresh_lanes,
+    lanes_ahead,
+    sent_lanes,
+    take_fresh,
+    transmitted_lanes,
+)
 from resloc.cl.kernels_round_stages import (
     gauge_lanes,
     inflated_moments,
@@ -259,6 +267,9 @@ def _rounds(
     screening = screening or defence[5] or detection[13].shape[0] > 0
     recovering = defence[5]
     cached = options[9]
+    # cached: the second pass in the first pass's lanes (kernels_round_cached), unless the
+    # attacker or zone trust change the lanes between the two
+    ahead = cached and not tamper[0] and not detection[12][0]
     kalman = fusion[0] == NAIVE_UPDATE
     record_gauge = gauge[0]
     axis, value = point_axes(nz_idx, nz_val, nz_cnt)
@@ -313,20 +324,29 @@ def _rounds(
                     lane_first[n] = block_start[b]
                     n += 1
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
-            load_covariances(P, obs, n, cov)
-            chol_lanes(cov, n, Li, ok_i)
+            # n2: the lanes of the vectorized stages; cached: lanes n .. 2n - 1 are the
+            # second pass with j's transmitted estimate, ahead of the decisions (padded)
+            n2 = n
+            if beyond is not None and ahead:
+                n2 = lanes_ahead(n, C)
+            if beyond is not None and n2 > n:
+                fresh_lanes(x_nb, n, n2, obs, src, xi, xr, zl, sin_cos, bad)
+            load_covariances(P, obs, n2, cov)
+            chol_lanes(cov, n2, Li, ok_i)
             load_covariances(P_ref, src, n, cov)
-            chol_lanes(cov, n, Lj, ok_j)
-            if not chol_jitter_lanes(P, obs, n, Li, ok_i, jitter, scratch_in, scratch_out):
+            if beyond is not None and n2 > n:
+                fresh_covariances(P_nb, src, n, n2, cov)
+            chol_lanes(cov, n2, Lj, ok_j)
+            if not chol_jitter_lanes(P, obs, n2, Li, ok_i, jitter, scratch_in, scratch_out):
                 return NOT_PD
             if not chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, scratch_in, scratch_out):
                 return NOT_PD
-            points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
+            points_lanes(axis, value, Wm, n2, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
             moments_lanes(
-                axis, value, Wm, Wc, circular, n, Li, Z0, Z1, sums, moments, pxz, mean, bad
+                axis, value, Wm, Wc, circular, n2, Li, Z0, Z1, sums, moments, pxz, mean, bad
             )
-            load_robot_covariances(P, obs, n, Pi)
-            kalman_lanes(n, zl, R, moments, pxz, Pi, update)
+            load_robot_covariances(P, obs, n2, Pi)
+            kalman_lanes(n2, zl, R, moments, pxz, Pi, update)
             for c in range(n):
                 if bad[c] != 0.0 or update[15, c] != 0.0:
                     return FALLBACK
@@ -350,6 +370,8 @@ def _rounds(
                 )  # fmt: skip
             if beyond is not None and cached:  # decision[3]: fused from here on
                 cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
+                if n2 > n:  # the delivered lanes' second pass from lanes n .. 2n - 1
+                    take_fresh(n, inflation, decision, fresh, ok_j, bad, moments, pxz, update)
             if beyond is not None and (recovering or cached):
                 status = inflated_moments(
                     P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj,

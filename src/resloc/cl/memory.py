@@ -22,6 +22,14 @@ def _compiled_lookups():
     return kernels_memory if backend() == "numba" else None
 
 
+def _memory_kernels():
+    """:mod:`resloc.cl.kernels_memory`, whatever the backend (for callers on the compiled
+    path already)."""
+    if not _COMPILED:
+        _compiled_lookups()
+    return _COMPILED[1]
+
+
 def _float_rows(a, shape: tuple) -> bool:
     return (
         type(a) is np.ndarray
@@ -68,6 +76,9 @@ class LinkMemory:
         # One robot's process: end-of-step exchanges arrive as messages, not from the batch.
         self.local = False
         self._stage_statistics: dict[str, LinkStatistic] = {}
+        # cached_rows' last gather: (keys, stores, x_link, P_link, positions), what
+        # store_delivered needs to store by those positions (None: none to use)
+        self._gathered: tuple | None = None
 
     def stage_statistic(self, name: str, width: int | None = None) -> LinkStatistic:
         """The per-link statistic a detector stage keeps under ``name`` (created empty on
@@ -136,6 +147,38 @@ class LinkMemory:
             self.P = np.concatenate([self.P, P[new]])[order]
             self.last_norm = np.concatenate([self.last_norm, norm[new]])[order]
 
+    def cached_rows(self, i, j, rows, x_nb, P_nb, last_sent: bool) -> tuple:
+        """The per-link inputs of ``cached`` neighbour estimates for the compiled link loop,
+        by one compiled pass (:func:`resloc.cl.kernels_memory.gather_cached`): the
+        transmitted estimates per link ``x_link: (E, 3)``, ``P_link: (E, 3, 3)``
+        (``x_nb[rows]``, ``P_nb[rows]``), the estimates the moments use (j's last received
+        where robot i has one, else the transmitted), whether there is one ``(E,)`` and,
+        with ``last_sent``, the last delivered norms ``(E,)`` (else ``(0,)``). The links'
+        positions are kept for :meth:`store_delivered` of the same step. Numba only; the
+        arguments as the compiled path passes them (``i``, ``j``, ``rows``: int64 (E,),
+        sorted by key for speed; ``x_nb``, ``P_nb``: C-contiguous float64).
+
+        Returns ``(x_link, P_link, x_ref, P_ref, known, last)``.
+        """
+        kernels_memory = _memory_kernels()
+        E = len(i)
+        x_link, x_ref = np.empty((2, E, 3))
+        P_link, P_ref = np.empty((2, E, 3, 3))
+        known = np.empty(E, dtype=np.bool_)
+        last = np.empty(E if last_sent else 0)
+        pos = np.empty(E, np.int64)
+        stores = (
+            np.ascontiguousarray(self.x),
+            np.ascontiguousarray(self.P),
+            np.ascontiguousarray(self.last_norm),
+        )
+        kernels_memory.gather_cached(
+            self.keys, self.n_nodes, *stores, i, j, rows, x_nb, P_nb, x_link, P_link, x_ref,
+            P_ref, known, last, pos,
+        )  # fmt: skip
+        self._gathered = (self.keys, stores, x_link, P_link, pos)
+        return x_link, P_link, x_ref, P_ref, known, last
+
     def store_delivered(
         self,
         i: np.ndarray,
@@ -153,11 +196,36 @@ class LinkMemory:
 
         Shapes: ``i, j, delivered, rows, norm: (E,)``, ``x: (S, 3)``, ``P: (S, 3, 3)``.
         """
+        if self._store_gathered(delivered, x, P, rows, norm):
+            return
         if self._overwrite_delivered(i, j, delivered, x, P, rows, norm):
             return
         d = np.flatnonzero(delivered)
         r = np.asarray(rows)[d]
         self.store(np.asarray(i)[d], np.asarray(j)[d], x[r], P[r], np.asarray(norm)[d])
+
+    def _store_gathered(self, delivered, x, P, rows, norm) -> bool:
+        """:meth:`store_delivered` at the positions :meth:`cached_rows` found, by one
+        compiled call (no search), when ``x``, ``P`` are the rows it gathered and neither
+        the keys nor the store's arrays changed since; False, nothing written, otherwise
+        (or when a delivered link was not stored then). The gather is used once."""
+        gathered, self._gathered = self._gathered, None
+        if gathered is None:
+            return False
+        keys, stores, x_link, P_link, pos = gathered
+        if not (x is x_link and P is P_link and keys is self.keys):
+            return False
+        if not (stores[0] is self.x and stores[1] is self.P and stores[2] is self.last_norm):
+            return False  # not the store's own arrays (cached_rows read copies)
+        E = len(pos)
+        if not (type(delivered) is np.ndarray and delivered.dtype == np.bool_):
+            return False
+        rows = _memory_kernels().int64_rows(rows)
+        if rows is None or len(rows) != E or delivered.shape != (E,):
+            return False
+        if not _float_rows(norm, (E,)):
+            return False
+        return _memory_kernels().store_gathered(pos, delivered, rows, x, P, norm, *stores)
 
     def _overwrite_delivered(self, i, j, delivered, x, P, rows, norm) -> bool:
         """:meth:`store_delivered` by one compiled call; False, nothing written, when a
