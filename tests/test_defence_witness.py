@@ -404,7 +404,7 @@ def test_a_victim_inside_the_map_keeps_its_whole_lie():
 def test_giving_up_a_receiver_buys_a_larger_lie():
     """With ``give_up = 1`` one honest receiver (the one starting highest) may exceed h: the
     next one sits at h, and the lie is larger than when every receiver is kept."""
-    kept, S_kept, params, _ = _ring_budget("common", f=1.0)
+    kept, _, params, _ = _ring_budget("common", f=1.0)
     a, S_after, _, _ = _ring_budget("common", f=1.0, give_up=1)
     assert a.sum() > kept.sum()
     S = S_after(a)

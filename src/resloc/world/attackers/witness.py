@@ -145,9 +145,7 @@ def within_witness(
     statistics) may exceed ``h`` (they convict it; the constraint is the next one's).
     """
     if budget not in WITNESS_BUDGETS:
-        raise ValueError(
-            f"witness budget {budget!r}: unknown; known: {', '.join(WITNESS_BUDGETS)}"
-        )
+        raise ValueError(f"witness budget {budget!r}: unknown; known: {', '.join(WITNESS_BUDGETS)}")
     liars = np.unique(j[rows])
     where = np.searchsorted(liars, j[rows])
     h_of = np.broadcast_to(np.asarray(at_robots(params.witness_h, liars), float), liars.shape)
