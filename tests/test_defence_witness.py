@@ -339,7 +339,7 @@ def test_the_liar_receives_its_victims_honest_readings_of_it(monkeypatch):
     assert len(checked) == 5 and max(checked) > 1e-3  # the victims' rows did carry lies
 
 
-def _ring_budget(budget, liars=(0,), f=1.0, give_up=0, inside=None):
+def _ring_budget(budget, liars=(0,), f=1.0, give_up=0, inside=None, convicting=0):
     """Robot 0's lies to its observers on the ring, scaled by ``budget``; also the honest
     receivers' statistics on it after those lies (a function of the fractions sent)."""
     params = CLParams(witness=True, witness_liars=f, witness_k=4.0, witness_h=20.0)
@@ -359,6 +359,7 @@ def _ring_budget(budget, liars=(0,), f=1.0, give_up=0, inside=None):
     memory = LinkMemory(len(x))
     receivers = np.arange(1, len(x))
     S0 = np.linspace(12.0, 20.0, len(receivers))
+    S0[:convicting] = 40.0  # receivers that convict the liar whatever it sends
     memory.stage_statistic(STATE).set(receivers, np.zeros(len(receivers), int), S0)
     ok = np.ones(len(i), bool)
     a = within_witness(
@@ -409,6 +410,11 @@ def test_giving_up_a_receiver_buys_a_larger_lie():
     assert a.sum() > kept.sum()
     S = S_after(a)
     assert S[0] > params.witness_h and S[1] == pytest.approx(params.witness_h, rel=0.02)
+    # A receiver that already convicts it counts: no second one is given up.
+    again, S_again, *_ = _ring_budget("common", f=1.0, give_up=1, convicting=1)
+    S = S_again(again)
+    assert S[0] > params.witness_h and S[1] <= params.witness_h * (1 + 1e-9)
+    assert S[1] == pytest.approx(params.witness_h, rel=0.02)
 
 
 def test_an_unknown_witness_budget_is_a_one_line_error():

@@ -141,8 +141,9 @@ def within_witness(
     whose notes carry the largest share of the lie, ``a |Q^-1 e_x|``) are filled first, then
     the rest by one common factor (one bisection along that path); per liar, when the spared
     links alone cannot be filled, the common factor is also tried and the larger total lie
-    (``sum a c``) kept. ``give_up``: per liar, that many honest receivers (the largest
-    statistics) may exceed ``h`` (they convict it; the constraint is the next one's).
+    (``sum a c``) kept. ``give_up``: per liar, at most that many honest receivers may be
+    above ``h`` (convicting it) at any time, those already above counted (the constraint is
+    on the next largest statistic; without the count, each step would give up one more).
     """
     if budget not in WITNESS_BUDGETS:
         raise ValueError(f"witness budget {budget!r}: unknown; known: {', '.join(WITNESS_BUDGETS)}")
@@ -164,7 +165,9 @@ def within_witness(
     savable = S0 <= h0
     n = len(is_liar)
     keys0 = recv0 * n + on0  # sorted (receiver, then robot)
-    rank = int(give_up)
+    # At most ``give_up`` receivers convict a liar at any time: those already above h count.
+    above = np.bincount(np.searchsorted(liars, on0[~savable]), minlength=len(liars))
+    rank = np.maximum(int(give_up) - above, 0)
 
     def fits(c_rows: np.ndarray) -> np.ndarray:  # (len(rows),) factors -> (L,) all kept
         recv, on, S = after(c_rows)
@@ -174,7 +177,7 @@ def within_witness(
         worst = np.zeros(len(liars))  # a liar nobody received a note on is not judged
         for k in range(len(liars)):
             mine = np.sort(S[counted][liar_of == k])[::-1]
-            worst[k] = mine[rank] if len(mine) > rank else 0.0
+            worst[k] = mine[rank[k]] if len(mine) > rank[k] else 0.0
         return worst <= h_of
 
     def bisect(factors: Callable[[np.ndarray], np.ndarray], top: float) -> np.ndarray:
