@@ -32,12 +32,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--defence", required=True)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON")
+    ap.add_argument(
+        "--attack", action="append", default=[], metavar="KEY=JSON",
+        help="an attacker parameter added to every point (e.g. give_up=1)",
+    )  # fmt: skip
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--points", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
     base = default_scenario().replace(
         **defence_overrides(args.defence),
         **extra,
@@ -50,10 +55,12 @@ def main() -> None:
     )
     clean = run_scenario(base.replace(sdz=[])).estimators["ckf"].per_trial("msle_mean")
     out = {"defence": args.defence, "set": extra, "seeds": args.seeds, "steps": args.steps}
+    if attack:
+        out["attack"] = attack
     out["clean"] = clean.tolist()
     print(f"{args.defence} {extra}: clean MSLE {clean.mean():.4g}", flush=True)
     for p in args.points:
-        params = POINTS[p]
+        params = {**POINTS[p], **attack}
         adv = make_attacker("compromised", **params)
         res = run_scenario(base.replace(**adv.overrides), adversary=adv)
         msle = res.estimators["ckf"].per_trial("msle_mean")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -183,7 +184,7 @@ def test_the_compromised_robots_lie_sits_on_the_witness_threshold(liars):
     ok = np.ones(len(i), bool)
     a = within_witness(
         np.ones(len(rows)), path, rows, z, x[i], P[i], x[j], P[j], i, j, ok, is_liar, params,
-        memory,
+        memory, budget="common",
     )  # fmt: skip
     assert 0.0 < a.min() and np.ptp(a) == 0.0  # one common factor, a lie is sent
     now = delivered_store(params, memory, i, j, ok, np.array([0]))
@@ -336,3 +337,89 @@ def test_the_liar_receives_its_victims_honest_readings_of_it(monkeypatch):
     with use_backend("numpy"):  # (the compiled path applies the same hook in its kernels)
         run_scenario(sc.replace(**adv.overrides), adversary=adv)
     assert len(checked) == 5 and max(checked) > 1e-3  # the victims' rows did carry lies
+
+
+def _ring_budget(budget, liars=(0,), f=1.0, give_up=0, inside=None, convicting=0):
+    """Robot 0's lies to its observers on the ring, scaled by ``budget``; also the honest
+    receivers' statistics on it after those lies (a function of the fractions sent)."""
+    params = CLParams(witness=True, witness_liars=f, witness_k=4.0, witness_h=20.0)
+    if inside is not None:  # a zone-trust map around the observers ``inside``
+        x0, *_ = _ring(liars)
+        params = dataclasses.replace(
+            params, zone_trust=True, zone_trust_map=tuple((*x0[o, :2], 0.2) for o in inside)
+        )
+    x, P, i, j, z, is_liar = _ring(liars)
+    rows = np.flatnonzero(j == 0)
+    shift = np.array([0.3, 0.0])
+
+    def path(frac):
+        lied = shifted_prediction(z[rows], frac[..., None] * shift[None])
+        return z[rows][None] - (lied - z[rows][None])
+
+    memory = LinkMemory(len(x))
+    receivers = np.arange(1, len(x))
+    S0 = np.linspace(12.0, 20.0, len(receivers))
+    S0[:convicting] = 40.0  # receivers that convict the liar whatever it sends
+    memory.stage_statistic(STATE).set(receivers, np.zeros(len(receivers), int), S0)
+    ok = np.ones(len(i), bool)
+    a = within_witness(
+        np.ones(len(rows)), path, rows, z, x[i], P[i], x[j], P[j], i, j, ok, is_liar, params,
+        memory, budget=budget, give_up=give_up,
+    )  # fmt: skip
+    now = delivered_store(params, memory, i, j, ok, np.array([0]))
+
+    def S_after(frac):
+        zz = z.copy()
+        zz[rows] = path(frac[None])[0]
+        notes = lying_notes(step_notes(zz, x[i], P[i], x[j], P[j], i, j, params), is_liar, params)
+        recv, _, S = received_state(notes, params, now, i, j, ok, np.array([0]))
+        return np.sort(S[~is_liar[recv]])[::-1]  # the honest receivers', largest first
+
+    return a, S_after, params, i[rows]
+
+
+@pytest.mark.parametrize("liars", [(0,), (0, 1)])
+def test_the_spared_budget_lies_more_than_one_common_factor(liars):
+    """The default budget fills the links the drop-any-f rule can discard (the f victims
+    whose notes weigh most, a fellow liar's links) and still keeps every honest receiver
+    under h: more lie in total than one common factor, the f victims at their whole lie."""
+    a, S_after, params, observer = _ring_budget("spared", liars, f=2.0)
+    common, *_ = _ring_budget("common", liars, f=2.0)
+    assert S_after(a)[0] <= params.witness_h * (1 + 1e-9)
+    assert a.sum() > 1.5 * common.sum()
+    honest = ~np.isin(observer, liars)
+    assert (a[honest] == 1.0).sum() >= 2  # f honest victims lied to in full
+    assert (a[~honest] == 1.0).all()  # the fellow's lie costs nothing: its note exonerates
+
+
+def test_a_victim_inside_the_map_keeps_its_whole_lie():
+    """Nobody reads the notes of an observer inside the zone-trust map: the lie to it is
+    not scaled (the common factor scales it with the others)."""
+    a, S_after, params, observer = _ring_budget("spared", f=1.0, inside=(3, 5))
+    common, *_ = _ring_budget("common", f=1.0, inside=(3, 5))
+    inside = np.isin(observer, (3, 5))
+    assert (a[inside] == 1.0).all() and (common[inside] < 1.0).all()
+    assert S_after(a)[0] <= params.witness_h * (1 + 1e-9)
+
+
+def test_giving_up_a_receiver_buys_a_larger_lie():
+    """With ``give_up = 1`` one honest receiver (the one starting highest) may exceed h: the
+    next one sits at h, and the lie is larger than when every receiver is kept."""
+    kept, _, params, _ = _ring_budget("common", f=1.0)
+    a, S_after, _, _ = _ring_budget("common", f=1.0, give_up=1)
+    assert a.sum() > kept.sum()
+    S = S_after(a)
+    assert S[0] > params.witness_h and S[1] == pytest.approx(params.witness_h, rel=0.02)
+    # A receiver that already convicts it counts: no second one is given up.
+    again, S_again, *_ = _ring_budget("common", f=1.0, give_up=1, convicting=1)
+    S = S_again(again)
+    assert S[0] > params.witness_h and S[1] <= params.witness_h * (1 + 1e-9)
+    assert S[1] == pytest.approx(params.witness_h, rel=0.02)
+
+
+def test_an_unknown_witness_budget_is_a_one_line_error():
+    from resloc.world.attackers import make_attacker
+
+    with pytest.raises(ValueError, match="budget") as err:
+        make_attacker("compromised", budget="lavish")
+    assert "\n" not in str(err.value)

@@ -13,7 +13,7 @@ from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
 from resloc.world.attackers.oracle import fix_context, largest_accepted_along
 from resloc.world.attackers.sensing import measurement_difference
-from resloc.world.attackers.witness import lying_notes, within_witness
+from resloc.world.attackers.witness import WITNESS_BUDGETS, lying_notes, within_witness
 
 __all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
 
@@ -57,6 +57,13 @@ class CompromisedRobot(Strategy):
     other robots cannot see. With ``claimed_cov < 1`` the covariance sent is scaled down
     too (the victims give the false estimate more weight; they cannot check it).
 
+    Against the witness stage the lies are then scaled to keep every honest receiver's
+    statistic on the liar under its threshold
+    (:func:`~resloc.world.attackers.witness.within_witness`): ``budget`` says how
+    (``"spared"``, the default: the links whose notes nobody reads or the statistic can drop
+    keep their whole lie, the rest share one factor; ``"common"``: one factor on every lie),
+    ``give_up`` how many receivers per liar it lets convict it.
+
     The victim's innovation is computed exactly for the false position (the relative
     position ``r (cos b, sin b)`` plus the shift in the victim's frame, back to range and
     bearing) and injected through the link batch's ``tamper`` hook, which is where the
@@ -71,14 +78,29 @@ class CompromisedRobot(Strategy):
         "{robots:g} compromised robot(s) broadcast false estimates of themselves: to each "
         "neighbour the largest shift along world +x (at most {reach:g} m a step, "
         "compounding) its detector accepts, claimed covariance x{claimed_cov:g}; every "
-        "sensor honest"
+        "sensor honest (against the witness stage: budget {budget}, giving up {give_up:g} "
+        "receiver(s))"
     )
-    defaults: ClassVar[dict] = {"robots": 1, "reach": 2.0, "claimed_cov": 1.0}
+    defaults: ClassVar[dict] = {
+        "robots": 1,
+        "reach": 2.0,
+        "claimed_cov": 1.0,
+        "budget": "spared",
+        "give_up": 0,
+    }
     grid: ClassVar[tuple] = (
         {"robots": 1},
         {"robots": 1, "claimed_cov": 0.01},
         {"robots": 3, "claimed_cov": 0.01},
     )
+
+    def __init__(self, **params) -> None:
+        super().__init__(**params)
+        if self.budget not in WITNESS_BUDGETS:
+            raise ValueError(
+                f"attacker 'compromised', parameter budget: {self.budget!r} is not one of "
+                f"{', '.join(WITNESS_BUDGETS)}"
+            )
 
     def targets(self, robots: int) -> np.ndarray:
         """The compromised robots' ids in a team of ``robots``."""
@@ -166,6 +188,8 @@ class CompromisedRobot(Strategy):
                     is_liar,
                     params,
                     memory,
+                    budget=str(self.budget),
+                    give_up=int(self.give_up),
                 )
             out[hit] = path(a[None])[0]
             injected[r] = out[hit, 0] - z[:, 0]
