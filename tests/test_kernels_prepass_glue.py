@@ -128,3 +128,32 @@ def test_the_defence_stores_share_slots_and_undo_puts_them_back(monkeypatch) -> 
     state.undo()
     for s, b in zip(stores, before, strict=True):
         np.testing.assert_array_equal(s, b)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_stored_positions_is_searchsorted(seed: int) -> None:
+    """The compiled look-up of a step's links in a store (``kernels_memory.stored_positions``,
+    one walk over both sorted lists) gives ``np.searchsorted``'s positions: a per-robot
+    store's key repeated on a robot's rows, links in key order with gaps, keys out of order
+    (searched), and False when a key is missing."""
+    rng = np.random.default_rng(seed)
+    keys = np.unique(rng.integers(0, 400, 60)).astype(np.int64)
+    n_nodes = 20
+    cases = [
+        np.repeat(keys[::3], rng.integers(1, 5, len(keys[::3]))),  # (i, i): repeated
+        keys[rng.random(len(keys)) < 0.4],  # in order, with gaps
+        rng.permutation(keys)[:25],  # out of order
+        keys[[5, 5, 2, 9, 9, 9, 0, len(keys) - 1]],  # back and forth, the ends
+    ]
+    for wanted in cases:
+        i, j = wanted // n_nodes, wanted % n_nodes
+        pos = np.full(len(wanted), -7, np.int64)
+        assert kernels_memory.stored_positions(keys, n_nodes, i, j, pos)
+        np.testing.assert_array_equal(pos, np.searchsorted(keys, wanted))
+        missing = np.setdiff1d(np.arange(keys[-1] + 2), keys)[rng.integers(0, 5)]
+        for at in (0, len(wanted) // 2, len(wanted)):  # a key not stored: False
+            bad = np.insert(wanted, at, missing)
+            pos = np.empty(len(bad), np.int64)
+            assert not kernels_memory.stored_positions(
+                keys, n_nodes, bad // n_nodes, bad % n_nodes, pos
+            )
