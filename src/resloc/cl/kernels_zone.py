@@ -243,13 +243,25 @@ def partner_readings(li, lj, z, out):
     for e in range(1, E):
         if li[e] < li[e - 1]:
             return False
-    # the first row of each observer id, one walk over the rows (in place of a binary
-    # search per row: half of the pass), where the ids are small non-negative integers
     top = -1
     low = 0
     for e in range(E):
         top = max(top, max(li[e], lj[e]))
         low = min(low, min(li[e], lj[e]))
+    T = top + 1
+    if low >= 0 and T <= 4 * E + 64 and T * T <= 16 * E + 1024:
+        # ids of a team (small non-negative integers): a table of every pair's row, one
+        # write and one read a row (the walks below: 2.5 us for a step's 260 rows, 1.0)
+        pair = np.full(T * T, -1, np.int64)
+        for e in range(E - 1, -1, -1):  # (the first row of a pair wins, as below)
+            pair[li[e] * T + lj[e]] = e
+        for e in range(E):
+            r = pair[lj[e] * T + li[e]]
+            out[e, 0] = z[r, 0] if r >= 0 else math.nan
+            out[e, 1] = z[r, 1] if r >= 0 else math.nan
+        return True
+    # the first row of each observer id, one walk over the rows (in place of a binary
+    # search per row: half of the pass), where the ids are small non-negative integers
     table = low >= 0 and top < 4 * E + 64
     first = np.empty(top + 2 if table else 0, np.int64)
     if table:
