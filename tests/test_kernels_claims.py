@@ -99,3 +99,25 @@ def test_the_compiled_correction_runs_the_claims_pass(cap: bool) -> None:
     np.testing.assert_allclose(fast[1], ref[1], rtol=0, atol=1e-9)
     for name in ("detected", "triggered", "delivered", "fused"):
         np.testing.assert_array_equal(getattr(fast[2], name), getattr(ref[2], name))
+
+
+def test_the_claimed_batch_shares_every_other_field() -> None:
+    """``claimed_links`` gives a new batch whose claims are the pass's and whose every
+    other field is the original's (a shallow copy, as ``dataclasses.replace``), the
+    original untouched."""
+    from resloc.cl.kernels_claims import claimed_links
+
+    links, _, _, _ = _scene()
+    before = dict(links.__dict__)
+    P_nb = links.P_nb.copy()
+    params = CLParams(redundancy=True, redundancy_cap_fusion=True)
+    claimed = claimed_links(params, links)
+    assert type(claimed) is LinkBatch and claimed is not links
+    np.testing.assert_array_equal(claimed.P_nb, capped_claims(P_nb, links.i))
+    assert links.__dict__.keys() == before.keys()
+    assert all(links.__dict__[k] is v for k, v in before.items())  # the original untouched
+    np.testing.assert_array_equal(links.P_nb, P_nb)
+    shared = [k for k in before if k != "_P_nb"]
+    assert all(claimed.__dict__[k] is before[k] for k in shared), shared
+    assert claimed.__dict__.keys() == before.keys()
+    assert len(claimed) == len(links) and claimed.x_nb is links.x_nb

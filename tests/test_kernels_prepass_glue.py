@@ -128,3 +128,65 @@ def test_the_defence_stores_share_slots_and_undo_puts_them_back(monkeypatch) -> 
     state.undo()
     for s, b in zip(stores, before, strict=True):
         np.testing.assert_array_equal(s, b)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_stored_positions_is_searchsorted(seed: int) -> None:
+    """The compiled look-up of a step's links in a store (``kernels_memory.stored_positions``,
+    one walk over both sorted lists) gives ``np.searchsorted``'s positions: a per-robot
+    store's key repeated on a robot's rows, links in key order with gaps, keys out of order
+    (searched), and False when a key is missing."""
+    rng = np.random.default_rng(seed)
+    keys = np.unique(rng.integers(0, 400, 60)).astype(np.int64)
+    n_nodes = 20
+    cases = [
+        np.repeat(keys[::3], rng.integers(1, 5, len(keys[::3]))),  # (i, i): repeated
+        keys[rng.random(len(keys)) < 0.4],  # in order, with gaps
+        rng.permutation(keys)[:25],  # out of order
+        keys[[5, 5, 2, 9, 9, 9, 0, len(keys) - 1]],  # back and forth, the ends
+    ]
+    for wanted in cases:
+        i, j = wanted // n_nodes, wanted % n_nodes
+        pos = np.full(len(wanted), -7, np.int64)
+        assert kernels_memory.stored_positions(keys, n_nodes, i, j, pos)
+        np.testing.assert_array_equal(pos, np.searchsorted(keys, wanted))
+        missing = np.setdiff1d(np.arange(keys[-1] + 2), keys)[rng.integers(0, 5)]
+        for at in (0, len(wanted) // 2, len(wanted)):  # a key not stored: False
+            bad = np.insert(wanted, at, missing)
+            pos = np.empty(len(bad), np.int64)
+            assert not kernels_memory.stored_positions(
+                keys, n_nodes, bad // n_nodes, bad % n_nodes, pos
+            )
+
+
+def test_same_keys_are_compared_once_per_pair_of_key_arrays(monkeypatch) -> None:
+    """Stores that keep their key arrays (a run's steady state) are compared once: the
+    answer is remembered for that pair of arrays; a store that inserts gets a new array,
+    which is compared again (its answer may change), and ``undo`` puts the old array back,
+    whose pair is judged again too."""
+    calls = _spy_same_keys(monkeypatch)
+    i, j = np.array([0, 0, 1, 2, 2]), np.array([1, 2, 0, 0, 1])
+    store, other = LinkStatistic(3), LinkStatistic(3)
+    slots = other.slots(i, j)
+    assert kernels_detection.shared_slots(store, other, slots, []) is None  # (empty)
+    store.slots(i, j)
+    for _ in range(5):  # the steady state: one compiled comparison
+        assert kernels_detection.shared_slots(store, other, slots, []) is slots
+    assert calls == [True], calls
+    other_keys = other.keys
+    other.slots(np.array([1]), np.array([1]))  # an insertion: a new array
+    assert kernels_detection.shared_slots(store, other, slots, []) is None  # (shapes)
+    store.slots(np.array([1]), np.array([1]))
+    for _ in range(3):  # both new arrays, equal: compared once
+        assert kernels_detection.shared_slots(store, other, other.slots(i, j), []) is not None
+    assert calls == [True, True], calls
+    other.keys = other_keys  # as undo puts it back
+    assert kernels_detection.shared_slots(store, other, slots, []) is None
+    different = LinkStatistic(3)
+    different.slots(np.array([0, 0, 1, 2, 2, 2]), np.array([1, 2, 0, 0, 1, 2]))
+    for _ in range(3):  # as many keys, one different: compared once, False
+        assert kernels_detection.shared_slots(different, store, slots, []) is None
+    assert calls == [True, True, False], calls
+    for a, b in ((store.keys, different.keys), (store.keys, store.keys.copy())):
+        pair = type("S", (), {"keys": a})(), type("S", (), {"keys": b})()
+        assert kernels_detection._same_keys(*pair) == np.array_equal(a, b)

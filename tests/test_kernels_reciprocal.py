@@ -298,3 +298,31 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
 def test_zone_trust_with_the_check_runs_compiled() -> None:
     params = replace(_params("zone+full+redundancy+sequence+reciprocal"))
     assert kernel_refusal(FILTERS["ckf"], params, links_of_one_step()) is None
+
+
+def test_partner_rows_are_the_reference_rows() -> None:
+    """``kernels_reciprocal.partner_rows`` (the reverse link's row: a table of every pair
+    for a team's ids, else a binary search in the partner's rows, or a scan where an
+    observer's neighbours do not ascend) is ``reciprocal_rows``, with reverses missing;
+    rows not sorted by observer are refused."""
+    from resloc.cl.kernels_reciprocal import partner_rows
+
+    links = links_of_one_step()
+    keep = np.ones(len(links), bool)
+    keep[::7] = False  # some pairs lose one direction
+    li = links.i[keep].astype(np.int64)
+    lj = links.j[keep].astype(np.int64)
+    E = len(li)
+    want = reciprocal_rows(li, lj)
+    assert (want >= 0).any() and (want < 0).any()
+    swapped = np.arange(E)  # each observer's first two neighbours swapped: not ascending
+    starts = np.flatnonzero(np.r_[True, li[1:] != li[:-1]])
+    for s in starts:
+        if s + 1 < E and li[s + 1] == li[s]:
+            swapped[[s, s + 1]] = swapped[[s + 1, s]]
+    for offset in (0, 3 * E, 10**6):  # the table; the searches (ids far beyond E)
+        for order in (np.arange(E), swapped):
+            got = np.full(E, -7, np.int64)
+            assert partner_rows(li[order] + offset, lj[order] + offset, got)
+            np.testing.assert_array_equal(got, reciprocal_rows(li[order], lj[order]))
+    assert not partner_rows(li[::-1].copy(), lj[::-1].copy(), np.empty(E, np.int64))

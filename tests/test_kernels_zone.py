@@ -316,10 +316,22 @@ def test_partner_readings_equal_the_reference_pairing() -> None:
     np.testing.assert_array_equal(got, want)
     assert np.isnan(got[:, 0]).any() and np.isfinite(got[:, 0]).any()
     assert not kernels_zone.partner_readings(li[::-1].copy(), lj[::-1].copy(), z, got)
-    # ids far beyond the rows' count: a binary search per row, not the table of first rows
-    far = np.empty((E, 2))
-    assert kernels_zone.partner_readings(li + 10**6, lj + 10**6, z, far)
-    np.testing.assert_array_equal(far, want)
+    # the three ways: a team's ids (a table of every pair), ids up to ~4 E (a table of
+    # each observer's first row), ids far beyond the rows' count (a binary search per row)
+    for offset in (0, 3 * E, 10**6):
+        far = np.full((E, 2), -1.0)
+        assert kernels_zone.partner_readings(li + offset, lj + offset, z, far)
+        np.testing.assert_array_equal(far, want, err_msg=str(offset))
+    # a pair twice (not a batch the loops take; the first row's reading, as the walk's)
+    twice = np.insert(np.arange(E), 3, 3)
+    lt, jt, zt = li[twice], lj[twice], z[twice].copy()
+    zt[4] += 1.0  # the second row of the pair reads differently
+    for offset in (0, 3 * E, 10**6):
+        got = np.empty((E + 1, 2))
+        assert kernels_zone.partner_readings(lt + offset, jt + offset, zt, got)
+        partner = (lt == jt[3]) & (jt == lt[3])
+        assert partner.any()
+        np.testing.assert_array_equal(got[partner], np.broadcast_to(zt[3], got[partner].shape))
 
 
 def test_inside_map_is_the_reference_test() -> None:

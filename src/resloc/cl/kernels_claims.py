@@ -135,6 +135,17 @@ def claimed_links(params: CLParams, links: LinkBatch) -> LinkBatch | None:
         return None if cap else landmark_links(params, links)
     if inside == CLAIMS_UNCHANGED:
         return links
-    claimed = copy.copy(links)  # the other fields shared, as dataclasses.replace shares them
+    claimed = _shallow_copy(links)  # the other fields shared, as dataclasses.replace does
     claimed.P_nb = out
+    return claimed
+
+
+def _shallow_copy(links: LinkBatch) -> LinkBatch:
+    """``copy.copy(links)``: a new batch sharing every field's value (its ``__dict__``
+    copied; ``copy.copy`` goes through ``__reduce_ex__``: 1.4 us, here 0.3)."""
+    fields = getattr(links, "__dict__", None)
+    if fields is None:
+        return copy.copy(links)
+    claimed = object.__new__(type(links))
+    claimed.__dict__.update(fields)
     return claimed

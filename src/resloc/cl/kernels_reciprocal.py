@@ -113,6 +113,8 @@ def partner_rows(li, lj, row):
     Twin: :func:`~resloc.cl.detection_zone.reciprocal_rows` (links distinct)."""
     E = li.shape[0]
     B = 0
+    T = 0
+    low = 0
     ascending = True  # each observer's neighbours in ascending order (the usual batch)
     for e in range(E):
         if e > 0 and li[e] < li[e - 1]:
@@ -121,6 +123,18 @@ def partner_rows(li, lj, row):
             ascending = False
         if li[e] + 1 > B:
             B = li[e] + 1
+        T = max(T, lj[e] + 1)
+        low = min(low, lj[e])
+    T = max(T, B)
+    if low >= 0 and T <= 4 * E + 64 and T * T <= 16 * E + 1024:
+        # ids of a team: a table of every pair's row, one write and one read a row (the
+        # searches below: 1.2 us for a step's 260 rows, 0.5; kernels_zone.partner_readings)
+        pair = np.full(T * T, -1, np.int64)
+        for e in range(E - 1, -1, -1):  # (the first row of a pair, as the scan's)
+            pair[li[e] * T + lj[e]] = e
+        for e in range(E):
+            row[e] = pair[lj[e] * T + li[e]]
+        return True
     first = np.zeros(B, np.int64)
     stop = np.zeros(B, np.int64)
     for e in range(E - 1, -1, -1):  # each observer's rows (contiguous: sorted)

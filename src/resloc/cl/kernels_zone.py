@@ -28,8 +28,9 @@ rows its stages judged.
 kernel function                numpy twin
 =============================  ==========================================================
 :func:`inside_map`             :func:`~resloc.cl.detection_zone.inside_zone_map`
+                               (:func:`inside_disc`: one disc)
 :func:`zone_verdict`           :func:`~resloc.cl.detection_zone.substitute_reciprocal` and
-                               ``ZoneTrust.discard``
+                               ``ZoneTrust.discard`` (written out in :func:`zone_lanes`)
 :func:`position_fix_of_link`   :func:`~resloc.cl.detection_zone.reciprocal_position_fix`
 :func:`zone_lanes`             the ``position_fixes`` of ``resloc.cl.step._decide`` and the
                                Kalman update of the fix
@@ -68,6 +69,7 @@ __all__ = [
     "SUBSTITUTED",
     "WITHHELD",
     "KernelZone",
+    "inside_disc",
     "inside_map",
     "keep_unjudged_state",
     "no_zone",
@@ -241,13 +243,25 @@ def partner_readings(li, lj, z, out):
     for e in range(1, E):
         if li[e] < li[e - 1]:
             return False
-    # the first row of each observer id, one walk over the rows (in place of a binary
-    # search per row: half of the pass), where the ids are small non-negative integers
     top = -1
     low = 0
     for e in range(E):
         top = max(top, max(li[e], lj[e]))
         low = min(low, min(li[e], lj[e]))
+    T = top + 1
+    if low >= 0 and T <= 4 * E + 64 and T * T <= 16 * E + 1024:
+        # ids of a team (small non-negative integers): a table of every pair's row, one
+        # write and one read a row (the walks below: 2.5 us for a step's 260 rows, 1.0)
+        pair = np.full(T * T, -1, np.int64)
+        for e in range(E - 1, -1, -1):  # (the first row of a pair wins, as below)
+            pair[li[e] * T + lj[e]] = e
+        for e in range(E):
+            r = pair[lj[e] * T + li[e]]
+            out[e, 0] = z[r, 0] if r >= 0 else math.nan
+            out[e, 1] = z[r, 1] if r >= 0 else math.nan
+        return True
+    # the first row of each observer id, one walk over the rows (in place of a binary
+    # search per row: half of the pass), where the ids are small non-negative integers
     table = low >= 0 and top < 4 * E + 64
     first = np.empty(top + 2 if table else 0, np.int64)
     if table:
@@ -293,24 +307,32 @@ def restore_unjudged(verdict, slots, values, old):
 
 
 @jit_inline
+def inside_disc(px, py, cx, cy, r):
+    """Whether ``(px, py)`` lies inside (or on) the disc of centre ``(cx, cy)`` and radius
+    ``r``: ``hypot(px - cx, py - cy) - r <= 0``. Scalars only: a loop over lanes that
+    passes an array to a function, even an inlined one, pays a reference count up and
+    down (two atomic operations) per call."""
+    dx = px - cx
+    dy = py - cy
+    # clearly outside or inside by the squares (exact to a few ulps: a margin of 1e-9
+    # leaves no doubt where neither under- nor overflows), else by hypot itself; one
+    # libm call a lane was a tenth of the stage
+    d2 = dx * dx + dy * dy
+    r2 = r * r
+    if r > 0.0 and 1e-280 < d2 < 1e280 and 1e-280 < r2 < 1e280:
+        if d2 > r2 * (1.0 + 1e-9):
+            return False
+        if d2 < r2 * (1.0 - 1e-9):
+            return True
+    return math.hypot(dx, dy) - r <= 0.0
+
+
+@jit_inline
 def inside_map(discs, px, py):
-    """Whether ``(px, py)`` lies inside (or on) a disc of ``discs: (Z, 3)``.
-    Twin: :func:`~resloc.cl.detection_zone.inside_zone_map`."""
+    """Whether ``(px, py)`` lies inside (or on) a disc of ``discs: (Z, 3)``
+    (:func:`inside_disc`). Twin: :func:`~resloc.cl.detection_zone.inside_zone_map`."""
     for k in range(discs.shape[0]):
-        dx = px - discs[k, 0]
-        dy = py - discs[k, 1]
-        r = discs[k, 2]
-        # clearly outside or inside by the squares (exact to a few ulps: a margin of 1e-9
-        # leaves no doubt where neither under- nor overflows), else by hypot itself; one
-        # libm call a lane was a tenth of the stage
-        d2 = dx * dx + dy * dy
-        r2 = r * r
-        if r > 0.0 and 1e-280 < d2 < 1e280 and 1e-280 < r2 < 1e280:
-            if d2 > r2 * (1.0 + 1e-9):
-                continue
-            if d2 < r2 * (1.0 - 1e-9):
-                return True
-        if math.hypot(dx, dy) - r <= 0.0:
+        if inside_disc(px, py, discs[k, 0], discs[k, 1], discs[k, 2]):
             return True
     return False
 
@@ -397,8 +419,13 @@ def zone_lanes(
     ``FALLBACK`` where the fix's ``S`` needs jitter (the row-order loop then runs the step),
     else 0. Twin: the zone blocks of ``correct_links`` (the Kalman update: ``kalman_lanes``'s
     operations)."""
-    verdict = zone[3]
+    # the stage's arrays taken out of the tuple once, and the verdict (zone_verdict's)
+    # written out below with no array passed to a function: per lane, each take or pass
+    # of an array was a reference count up and down, ~20 us a step for 260 lanes
+    discs = zone[1]
     z_rec = zone[2]
+    verdict = zone[3]
+    Z = discs.shape[0]
     for c in range(n):
         e = lane_e[c]
         s = src[c]
@@ -407,8 +434,21 @@ def zone_lanes(
             if not (verdict[e] == SUBSTITUTED and inflation[c] > 1.0 and decision[3, c] == 1.0):
                 continue
             f = inflation[c]
-        elif zone_verdict(zone, e, xi[0, c], xi[1, c], x_nb[s, 0], x_nb[s, 1]) != SUBSTITUTED:
-            continue
+        else:
+            v = OUTSIDE
+            for k in range(Z):  # inside_map at the lane's running estimate
+                if inside_disc(xi[0, c], xi[1, c], discs[k, 0], discs[k, 1], discs[k, 2]):
+                    v = WITHHELD
+                    break
+            if v == WITHHELD and math.isfinite(z_rec[e, 0]) and math.isfinite(z_rec[e, 1]):
+                v = SUBSTITUTED  # unless the partner's transmitted position is inside
+                for k in range(Z):
+                    if inside_disc(x_nb[s, 0], x_nb[s, 1], discs[k, 0], discs[k, 1], discs[k, 2]):
+                        v = WITHHELD
+                        break
+            verdict[e] = v
+            if v != SUBSTITUTED:
+                continue
         i = obs[c]
         Pi = P[i]
         nu0, nu1, s00, s01, s11, _c00, _c01, _c11 = position_fix_of_link(
