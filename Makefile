@@ -28,7 +28,7 @@ run: $(STAMP_RUN)
 test: $(STAMP_TEST)
 	$(BIN)/ruff check src tests
 	$(BIN)/ruff format --check src tests
-	$(BIN)/python -m pytest -q -n 2
+	RESLOC_TEST_WARM_SHARES=1 $(BIN)/python -m pytest -q -n 2
 
 lint: $(STAMP_TEST)
 	$(BIN)/ruff check src tests

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 from collections.abc import Callable
 
@@ -49,3 +50,51 @@ def pytest_configure(config):
     # closed terminal, so SIGHUP gets its default action back (the commands catch it).
     if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
         signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
+#: The big compiled forms (tiny runs of the default scenario that reach them), in shares
+#: for the xdist workers, balanced by their cold compile CPU (docs/performance.md, "Cold
+#: compile": the options' form ~96 s, the joints' ~76 s, the paper's ~24 s, summed ~22 s,
+#: the witness pass ~8 s).
+_WARM_SHARES = (("options", "witness"), ("paper", "joints", "summed"))
+_WARM_RUNS = {
+    "paper": {},
+    "options": {"defence": "full+redundancy+sequence+reciprocal"},
+    "joints": {"estimator.fusion": "tracked"},
+    "summed": {"estimator.update_mode": "summed"},
+    "witness": {"defence": "zone+full+redundancy+sequence+cap+landmarks+witness"},
+}
+
+
+def pytest_sessionstart(session):
+    """With ``RESLOC_TEST_WARM_SHARES`` set (``make test``), each xdist worker first compiles
+    its share of the big forms into numba's on-disk cache. On a cold cache (a fresh clone,
+    CI) each worker would otherwise compile nearly every form its tests reach, the same ones
+    in both (~4 min of CPU each); this way each compiles about half and loads the rest. On a
+    warm cache it only loads them (a few seconds)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if not os.environ.get("RESLOC_TEST_WARM_SHARES") or not worker or count < 2:
+        return
+    from resloc.cl.kernels import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        return
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import DEFENCES
+    from resloc.experiments.runner import run_scenario
+
+    base = default_scenario().replace(
+        **{"run.steps": 3, "run.trials": 1, "run.dead_reckoning": False,
+           "run.filters": ["ckf", "ekf"]}
+    )  # fmt: skip
+    index = int(worker.removeprefix("gw"))
+    for k, share in enumerate(_WARM_SHARES):
+        if k % count != index:
+            continue
+        for name in share:
+            overrides = dict(_WARM_RUNS[name])
+            defence = overrides.pop("defence", None)
+            if defence is not None:
+                overrides.update(DEFENCES[defence])
+            run_scenario(base.replace(**overrides))
