@@ -35,9 +35,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--points", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument(
+        "--attack", action="append", default=[], metavar="KEY=JSON", help="added to every point"
+    )
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
     base = default_scenario().replace(
         **defence_overrides(args.defence),
         **extra,
@@ -50,11 +54,12 @@ def main() -> None:
     )
     clean = run_scenario(base.replace(sdz=[])).estimators["ckf"].per_trial("msle_mean")
     out = {"defence": args.defence, "set": extra, "seeds": args.seeds, "steps": args.steps}
+    out["attack"] = attack
     out["clean"] = clean.tolist()
     print(f"{args.defence} {extra}: clean MSLE {clean.mean():.4g}", flush=True)
     for p in args.points:
         params = POINTS[p]
-        adv = make_attacker("compromised", **params)
+        adv = make_attacker("compromised", **params, **attack)
         res = run_scenario(base.replace(**adv.overrides), adversary=adv)
         msle = res.estimators["ckf"].per_trial("msle_mean")
         ratio = msle / clean

@@ -73,7 +73,7 @@ __all__ = ["Outvoted", "applied_factors", "outvoted_statistic", "widen_outvoted"
 
 #: Per robot (keyed (j, j)): its sequence test ``S_j`` and the factor it widened its
 #: covariance by in its last step (1: none).
-STATE = "outvoted"
+OUTVOTED_STATE = "outvoted"
 
 
 def outvoted_statistic(
@@ -145,7 +145,7 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
         return P
     from resloc.cl.detection_witness_frames import pending_notes
 
-    state = memory.stage_statistic(STATE, width=2)
+    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
     robots, T, offset = outvoted_statistic(
         params, pending_notes(memory), links.i, links.j, links.channel_ok
     )
@@ -181,7 +181,7 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
 def applied_factors(memory: LinkMemory, B: int) -> np.ndarray:
     """The factor ``(B,)`` each robot's covariance was widened by in its last correction
     (1: none; what a full-knowledge attacker reads to see the covariances the step uses)."""
-    state = memory.stage_statistic(STATE, width=2)
+    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
     robots = np.arange(B)
     f = state.get(robots, robots)[:, 1]
     return np.where(f > 1.0, f, 1.0)

@@ -74,7 +74,9 @@ class CompromisedRobot(Strategy):
         "compounding) its detector accepts, claimed covariance x{claimed_cov:g}; every "
         "sensor honest"
     )
-    defaults: ClassVar[dict] = {"robots": 1, "reach": 2.0, "claimed_cov": 1.0}
+    #: ``shield`` (0 or 1): the liars' notes shield their honest victims (the response to
+    #: the outvoted stage, :mod:`resloc.world.attackers.outvoted`; always on against it).
+    defaults: ClassVar[dict] = {"robots": 1, "reach": 2.0, "claimed_cov": 1.0, "shield": 0.0}
     grid: ClassVar[tuple] = (
         {"robots": 1},
         {"robots": 1, "claimed_cov": 0.01},
@@ -176,7 +178,7 @@ class CompromisedRobot(Strategy):
             tamper.reported = reported
         if params.witness:  # the liars' own notes on their neighbours lie too
             tamper.notes = lambda notes: lying_notes(notes, is_liar, params)
-        if params.witness and params.outvoted:  # and shield their victims
+        if params.witness and (params.outvoted or self.shield):  # and shield their victims
             tamper.notes = lambda notes: shielding_notes(notes, is_liar, params)
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
