@@ -6,9 +6,9 @@ first steps) and whose covariance then shrank is not: its honest neighbours' rea
 look like attacks to its NIS gate, it discards most of them, and the few it fuses are those
 whose geometry cannot see its error. The recovery stage (:mod:`resloc.cl.detection_recovery`)
 does not fire: some measurements still pass. Measured on the default scenario against three
-compromised robots (seed 4, ``docs/attack/outvoted.md``): an honest robot 32 mm off its
-honest neighbours with a claimed 1.5 mm standard deviation, stuck there for hundreds of
-steps, rejecting 80-100 % of its honest neighbours.
+compromised robots (seed 4, ``docs/attack/outvoted.md``): an honest robot with two liars
+among its nearer neighbours, pulled in the first steps, then a few mm off with a 1.2-2 mm
+standard deviation for a few hundred steps, discarding most of its honest neighbours.
 
 The witness stage's notes (:mod:`resloc.cl.detection_witness`) already carry it: each
 observer o of robot j sends ``u_oj = p_j - g_oj``, j's broadcast position minus where o's
