@@ -32,6 +32,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     Discards every link from a robot whose observers' notes on it (its broadcast position
     against the position each observer's estimate and reading imply), summed over time and
     robust to f lying observers, convict it (:mod:`resloc.cl.detection_witness`).
+``outvoted``
+    Discards nothing: a robot whose observers' witness notes on itself place it elsewhere
+    than its covariance allows widens its own covariance before the correction
+    (:mod:`resloc.cl.detection_outvoted`).
 ``zone_landmarks``
     Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
     is weighed, in every test and in the fusion, with its claimed covariance inflated
@@ -60,6 +64,7 @@ import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_landmark import ZoneLandmarks
+from resloc.cl.detection_outvoted import Outvoted
 from resloc.cl.detection_reciprocal import ReciprocalCheck
 from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
@@ -272,8 +277,9 @@ NORM_GATE = NormGate()
 REDUNDANCY = RedundancyCheck()
 REDUNDANCY_SEQUENCE = RedundancySequence()
 RECIPROCAL = ReciprocalCheck()
+OUTVOTED = Outvoted()
 #: The stages that check the scenario's ``[detector]`` options (``problem(options)``).
-OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE, RECIPROCAL)
+OPTION_CHECKS = (NORM_GATE, REDUNDANCY, REDUNDANCY_SEQUENCE, RECIPROCAL, OUTVOTED)
 DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     ZoneTrust(),
     ZoneLandmarks(),
@@ -282,6 +288,7 @@ DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     REDUNDANCY_SEQUENCE,
     RECIPROCAL,
     WitnessCheck(),
+    OUTVOTED,
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

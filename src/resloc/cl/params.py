@@ -181,6 +181,13 @@ class CLParams:
         The sequence test's drift and alarm threshold, in chi-square (2 dof) units.
     witness_false_alarm : float
         Consistency gate of a set of notes (chi-square, 2 (n - 1) dof, this probability).
+    outvoted : bool
+        A robot whose observers' notes on itself (the witness notes, robust to
+        ``witness_liars`` lying ones, summed with ``witness_k`` and ``witness_h``) convict
+        it widens its own covariance before the correction
+        (:mod:`resloc.cl.detection_outvoted`; needs ``witness``).
+    outvoted_cap : float
+        Largest widening factor in one step.
     """
 
     range_std: float = 0.005
@@ -240,6 +247,8 @@ class CLParams:
     witness_k: float | np.ndarray = 4.0
     witness_h: float | np.ndarray = 40.0
     witness_false_alarm: float = 1e-3
+    outvoted: bool = False
+    outvoted_cap: float = 100.0
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -16,6 +16,7 @@ import numpy as np
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
 from resloc.cl.detection_landmark import landmark_links
+from resloc.cl.detection_outvoted import widen_outvoted
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_witness import step_notes
@@ -350,6 +351,9 @@ def correct(
         return (*_into(buffers, x, P), LinkOutcome.empty(E))
     from resloc.cl.kernels import fast_correct  # numba's import, on first use
 
+    # A robot its observers' notes outvote widens its covariance first (both paths, and the
+    # adversary's hook, see the widened one).
+    P = widen_outvoted(params, memory, links, P)
     fast = fast_correct(filt, x, P, links, params, memory, buffers)
     if fast is not None:
         return fast

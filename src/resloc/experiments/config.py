@@ -278,6 +278,14 @@ class DetectorSpec:
     witness_false_alarm: float = option(
         1e-3, "witness: consistency gate of a set of notes at this probability", gt=0.0, max=0.5
     )
+    outvoted: bool = option(
+        False,
+        "a robot whose observers' witness notes on itself convict it (the witness test) "
+        "widens its own covariance (docs/attack/outvoted.md; needs witness)",
+    )
+    outvoted_cap: float = option(
+        100.0, "outvoted: the largest widening of its covariance in one step", min=1.0, max=1e6
+    )
 
 
 @dataclass(frozen=True)
@@ -401,6 +409,8 @@ class Scenario:
             witness_k=float(d.witness_k),
             witness_h=float(d.witness_h),
             witness_false_alarm=float(d.witness_false_alarm),
+            outvoted=d.outvoted,
+            outvoted_cap=float(d.outvoted_cap),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -108,6 +108,17 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.zone_landmarks": True,
                 "detector.witness": True,
             },
+            # + a robot the notes on itself outvote widens its covariance
+            # (cl/detection_outvoted.py).
+            "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+                "detector.witness": True,
+                "detector.outvoted": True,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

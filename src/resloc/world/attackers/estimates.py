@@ -12,6 +12,7 @@ from resloc.cl.detection_zone import reciprocal_rows
 from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
 from resloc.world.attackers.oracle import fix_context, largest_accepted_along
+from resloc.world.attackers.outvoted import shielding_notes, widened
 from resloc.world.attackers.sensing import measurement_difference
 from resloc.world.attackers.witness import WITNESS_BUDGETS, lying_notes, within_witness
 
@@ -81,12 +82,15 @@ class CompromisedRobot(Strategy):
         "sensor honest (against the witness stage: budget {budget}, giving up {give_up:g} "
         "receiver(s))"
     )
+    #: ``shield`` (0 or 1): the liars' notes shield their honest victims (the response to
+    #: the outvoted stage, :mod:`resloc.world.attackers.outvoted`; always on against it).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
         "claimed_cov": 1.0,
         "budget": "spared",
         "give_up": 0,
+        "shield": 0.0,
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -179,7 +183,7 @@ class CompromisedRobot(Strategy):
                     r,
                     z_all if len(rows) == len(z_all) else _with_rows(z_all, rows, out),
                     source.x[links.i],
-                    source.P[links.i],
+                    widened(source.P, memory, params)[links.i],
                     links.x_nb,
                     P_nb,
                     links.i,
@@ -199,6 +203,8 @@ class CompromisedRobot(Strategy):
             tamper.reported = reported
         if params.witness:  # the liars' own notes on their neighbours lie too
             tamper.notes = lambda notes: lying_notes(notes, is_liar, params)
+        if params.witness and (params.outvoted or self.shield):  # and shield their victims
+            tamper.notes = lambda notes: shielding_notes(notes, is_liar, params)
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
 
