@@ -39,9 +39,6 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--points", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument(
-        "--attack", action="append", default=[], metavar="KEY=JSON", help="added to every point"
-    )
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
