@@ -82,6 +82,9 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+cap+landmarks+witness": dict(
         DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 

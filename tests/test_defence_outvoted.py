@@ -171,3 +171,17 @@ def test_the_attacker_sees_the_widened_covariances():
     assert used is not P  # it widened (the comparison above saw a widened step)
     f = applied_factors(memory, OBSERVERS + 1)
     assert f[ROBOT] > 1.0 and (f[1:] == 1.0).all()
+
+
+def test_the_shield_is_a_choice_with_auto_against_the_stage_only():
+    from resloc.world.attackers import make_attacker
+    from resloc.world.attackers.estimates import SHIELDS
+
+    against = CLParams(witness=True, outvoted=True)
+    witness_only = CLParams(witness=True)
+    assert SHIELDS["auto"](against) and not SHIELDS["auto"](witness_only)
+    assert SHIELDS["on"](witness_only) and not SHIELDS["off"](against)
+    assert make_attacker("compromised").shield == "auto"
+    with pytest.raises(ValueError, match="shield") as err:
+        make_attacker("compromised", shield="sometimes")
+    assert "\n" not in str(err.value)

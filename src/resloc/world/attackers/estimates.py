@@ -16,7 +16,14 @@ from resloc.world.attackers.outvoted import shielding_notes, widened
 from resloc.world.attackers.sensing import measurement_difference
 from resloc.world.attackers.witness import WITNESS_BUDGETS, lying_notes, within_witness
 
-__all__ = ["CompromisedRobot", "Replay", "shifted_prediction"]
+__all__ = ["SHIELDS", "CompromisedRobot", "Replay", "shifted_prediction"]
+
+#: When the compromised robots' notes shield their honest victims, by the defence's params.
+SHIELDS = {
+    "auto": lambda params: bool(params.outvoted),
+    "on": lambda params: True,
+    "off": lambda params: False,
+}
 
 #: Robots compromised first, second, ... (spread over the default 17-robot lattice).
 COMPROMISED_ORDER = (5, 10, 15, 2, 8, 13)
@@ -82,15 +89,17 @@ class CompromisedRobot(Strategy):
         "sensor honest (against the witness stage: budget {budget}, giving up {give_up:g} "
         "receiver(s))"
     )
-    #: ``shield`` (0 or 1): the liars' notes shield their honest victims (the response to
-    #: the outvoted stage, :mod:`resloc.world.attackers.outvoted`; always on against it).
+    #: ``shield``: whether the liars' notes shield their honest victims (the response to the
+    #: outvoted stage, :mod:`resloc.world.attackers.outvoted`): ``"auto"`` against that
+    #: stage only, ``"on"``, ``"off"`` (neither is stronger on every seed: the worst case
+    #: is taken over both).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
         "claimed_cov": 1.0,
         "budget": "spared",
         "give_up": 0,
-        "shield": 0.0,
+        "shield": "auto",
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -100,6 +109,11 @@ class CompromisedRobot(Strategy):
 
     def __init__(self, **params) -> None:
         super().__init__(**params)
+        if str(self.shield) not in SHIELDS:
+            raise ValueError(
+                f"attacker 'compromised', parameter shield: {self.shield!r} is not one of "
+                f"{', '.join(SHIELDS)}"
+            )
         if self.budget not in WITNESS_BUDGETS:
             raise ValueError(
                 f"attacker 'compromised', parameter budget: {self.budget!r} is not one of "
@@ -203,7 +217,7 @@ class CompromisedRobot(Strategy):
             tamper.reported = reported
         if params.witness:  # the liars' own notes on their neighbours lie too
             tamper.notes = lambda notes: lying_notes(notes, is_liar, params)
-        if params.witness and (params.outvoted or self.shield):  # and shield their victims
+        if params.witness and SHIELDS[str(self.shield)](params):  # and shield their victims
             tamper.notes = lambda notes: shielding_notes(notes, is_liar, params)
         return dataclasses.replace(links, P_nb=P_nb, tamper=tamper)
 
