@@ -185,3 +185,18 @@ def test_the_shield_is_a_choice_with_auto_against_the_stage_only():
     with pytest.raises(ValueError, match="shield") as err:
         make_attacker("compromised", shield="sometimes")
     assert "\n" not in str(err.value)
+
+
+def test_group_medians_are_numpys_median_per_group_to_the_bit():
+    from resloc.cl.detection_outvoted import group_medians
+
+    rng = np.random.default_rng(7)
+    count = rng.integers(1, 9, size=40)
+    start = np.r_[0, np.cumsum(count)[:-1]]
+    u = rng.normal(size=(int(count.sum()), 2))
+    u[rng.integers(0, len(u), 6)] = u[rng.integers(0, len(u), 6)]  # ties
+    u[start[5] + 1 if count[5] > 1 else start[5], 1] = np.nan  # a nan in group 5
+    want = np.stack([np.median(u[a : a + c], axis=0) for a, c in zip(start, count, strict=True)])
+    got = group_medians(u, start, count)
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.isnan(got[5, 1]) and not np.isnan(got[5, 0])

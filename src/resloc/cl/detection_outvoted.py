@@ -69,7 +69,7 @@ from resloc.cl.params import CLParams
 if TYPE_CHECKING:
     from resloc.cl.detection import Evidence
 
-__all__ = ["Outvoted", "applied_factors", "outvoted_statistic", "widen_outvoted"]
+__all__ = ["Outvoted", "applied_factors", "group_medians", "outvoted_statistic", "widen_outvoted"]
 
 #: Per robot (keyed (j, j)): its sequence test ``S_j`` and the factor it widened its
 #: covariance by in its last step (1: none).
@@ -130,10 +130,24 @@ def outvoted_statistic(
     T, judged = group_statistic(notes, params, rows, start, count, ids)
     T = np.where(np.asarray(judged, bool), np.asarray(T, float), np.nan)
     T = np.where(np.asarray(judged, bool) & np.isnan(T), np.inf, T)
-    offset = np.stack(
-        [np.median(notes.u[rows[a : a + c]], axis=0) for a, c in zip(start, count, strict=True)]
-    )
-    return ids, T, offset
+    return ids, T, group_medians(notes.u[rows], start, count)
+
+
+def group_medians(u: np.ndarray, start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The coordinatewise median ``(G, 2)`` of each group of rows of ``u (E, 2)``: group
+    ``g`` is rows ``start[g] : start[g] + count[g]`` (contiguous, every count > 0). Equal to
+    ``np.median`` per group, to the bit (the middle element, or the mean of the two middle
+    ones; nan where the group holds a nan), in one sort instead of a call per group (a
+    loop of ``np.median`` cost ~0.4 ms a step at 17 robots)."""
+    group = np.repeat(np.arange(len(start)), count)
+    lo, hi = start + (count - 1) // 2, start + count // 2
+    out = np.empty((len(start), 2))
+    for c in range(2):
+        v = u[:, c]
+        sorted_v = v[np.lexsort((v, group))]
+        out[:, c] = (sorted_v[lo] + sorted_v[hi]) / 2.0
+        out[np.add.reduceat(np.isnan(v), start) > 0, c] = np.nan
+    return out
 
 
 def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.ndarray) -> np.ndarray:
