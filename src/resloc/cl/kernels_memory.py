@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_math import jit
+from resloc.cl.kernels_math import jit, jit_inline
 
 __all__ = [
     "gather_cached",
@@ -169,13 +169,7 @@ def overwrite_delivered(keys, n_nodes, i, j, delivered, rows, x, P, norm, mem, p
     for e in range(i.shape[0]):
         if not delivered[e]:
             continue
-        p = pos[d]
-        r = rows[e]
-        for a in range(3):
-            mem_x[p, a] = x[r, a]
-            for b in range(3):
-                mem_P[p, a, b] = P[r, a, b]
-        mem_last[p] = norm[e]
+        _write_row(pos[d], rows[e], norm[e], x, P, mem_x, mem_P, mem_last)
         d += 1
     return True
 
@@ -233,11 +227,15 @@ def store_gathered(pos, delivered, rows, x, P, norm, mem_x, mem_P, mem_last):
     for e in range(pos.shape[0]):
         if not delivered[e]:
             continue
-        p = pos[e]
-        r = rows[e]
-        for a in range(3):
-            mem_x[p, a] = x[r, a]
-            for b in range(3):
-                mem_P[p, a, b] = P[r, a, b]
-        mem_last[p] = norm[e]
+        _write_row(pos[e], rows[e], norm[e], x, P, mem_x, mem_P, mem_last)
     return True
+
+
+@jit_inline
+def _write_row(p, r, norm, x, P, mem_x, mem_P, mem_last):
+    """The store's row ``p`` takes ``x[r]``, ``P[r]`` and the link's ``norm``."""
+    for a in range(3):
+        mem_x[p, a] = x[r, a]
+        for b in range(3):
+            mem_P[p, a, b] = P[r, a, b]
+    mem_last[p] = norm
