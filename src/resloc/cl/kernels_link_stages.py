@@ -18,7 +18,7 @@ from resloc.cl.kernels_links import (
     gate_link,
     innovation_norm_of_link,
 )
-from resloc.cl.kernels_math import chol3, jit_lanes, repair3, wrap
+from resloc.cl.kernels_math import chol3, jit_inline, jit_lanes, repair3, wrap
 
 _jit = jit_lanes
 
@@ -32,6 +32,7 @@ __all__ = [
     "gather_lanes",
     "kalman_lanes",
     "load_covariances",
+    "load_lane",
     "load_robot_covariances",
     "moment_scratch",
     "moments_lanes",
@@ -123,18 +124,24 @@ def load_covariances(P, rows, n, A):
     """The lower triangle of ``P[rows[c]]`` per lane, and whether all nine entries are
     finite (what :func:`chol_lanes` factors)."""
     for c in range(n):
-        r = rows[c]
-        A[0, c] = P[r, 0, 0]
-        A[1, c] = P[r, 1, 0]
-        A[2, c] = P[r, 2, 0]
-        A[3, c] = P[r, 1, 1]
-        A[4, c] = P[r, 2, 1]
-        A[5, c] = P[r, 2, 2]
-        finite = True
-        for a in range(3):
-            for b in range(3):
-                finite = finite and math.isfinite(P[r, a, b])
-        A[6, c] = 1.0 if finite else 0.0
+        load_lane(P, rows[c], c, A)
+
+
+@jit_inline
+def load_lane(P, r, c, A):
+    """Lane ``c`` of ``A``: the lower triangle of ``P[r]`` (rows 0-5) and whether all nine
+    entries are finite (row 6: 1 or 0)."""
+    A[0, c] = P[r, 0, 0]
+    A[1, c] = P[r, 1, 0]
+    A[2, c] = P[r, 2, 0]
+    A[3, c] = P[r, 1, 1]
+    A[4, c] = P[r, 2, 1]
+    A[5, c] = P[r, 2, 2]
+    finite = True
+    for a in range(3):
+        for b in range(3):
+            finite = finite and math.isfinite(P[r, a, b])
+    A[6, c] = 1.0 if finite else 0.0
 
 
 @_jit

@@ -38,10 +38,9 @@ function                   piece of ``correct_links``
 
 from __future__ import annotations
 
-import math
-
 from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
+from resloc.cl.kernels_link_stages import load_lane
 from resloc.cl.kernels_links import cached_decision
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
 
@@ -143,18 +142,7 @@ def fresh_covariances(P_nb, src, n, n2, cov):
     <resloc.cl.kernels_link_stages.load_covariances>` writes lanes: the lower triangle, and
     whether all nine entries are finite."""
     for d in range(n, n2):
-        s = src[d]
-        cov[0, d] = P_nb[s, 0, 0]
-        cov[1, d] = P_nb[s, 1, 0]
-        cov[2, d] = P_nb[s, 2, 0]
-        cov[3, d] = P_nb[s, 1, 1]
-        cov[4, d] = P_nb[s, 2, 1]
-        cov[5, d] = P_nb[s, 2, 2]
-        finite = True
-        for a in range(3):
-            for b in range(3):
-                finite = finite and math.isfinite(P_nb[s, a, b])
-        cov[6, d] = 1.0 if finite else 0.0
+        load_lane(P_nb, src[d], d, cov)
 
 
 @_jit
