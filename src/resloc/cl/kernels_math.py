@@ -276,6 +276,20 @@ def repair3(P):
 
 
 @jit_inline
+def lower_bound(a, key, lo, hi):
+    """The first position in the sorted ``a[lo:hi]`` whose value is not below ``key``
+    (``lo + np.searchsorted(a[lo:hi], key)``, side left); ``hi`` when there is none.
+    Inlined into its callers (a call per link costs more than the search)."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@jit_inline
 def store_covariance(P, i, Pn, T3):
     """``P[i]`` = the symmetric part of the updated covariance ``Pn``, repaired when it is
     not positive definite (``T3``: 3 x 3 scratch); returns whether it was repaired. Twin:

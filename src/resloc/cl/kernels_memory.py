@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_math import jit, jit_inline
+from resloc.cl.kernels_math import jit, jit_inline, lower_bound
 
 __all__ = [
     "gather_cached",
@@ -44,14 +44,7 @@ __all__ = [
 def _position(keys, key):
     """Position of ``key`` in the sorted ``keys`` (``np.searchsorted``, side left), -1 when
     it is not there."""
-    lo = 0
-    hi = keys.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
+    lo = lower_bound(keys, key, 0, keys.shape[0])
     if lo < keys.shape[0] and keys[lo] == key:
         return lo
     return -1
@@ -88,15 +81,7 @@ def stored_positions(keys, n_nodes, i, j, pos):
     for e in range(i.shape[0]):
         key = i[e] * n_nodes + j[e]
         if e == 0 or key < last:  # binary search (np.searchsorted, side left)
-            lo = 0
-            hi = K
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if keys[mid] < key:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            p = lo
+            p = lower_bound(keys, key, 0, K)
         while p < K and keys[p] < key:
             p += 1
         if p >= K or keys[p] != key:
@@ -191,14 +176,7 @@ def gather_cached(
     for e in range(li.shape[0]):
         n = rows[e]
         key = li[e] * n_nodes + lj[e]
-        lo = 0  # binary search, inline (a call of _position per link costs more)
-        hi = K
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if keys[mid] < key:
-                lo = mid + 1
-            else:
-                hi = mid
+        lo = lower_bound(keys, key, 0, K)
         found = lo < K and keys[lo] == key
         q = lo if found else -1
         pos[e] = q

@@ -51,7 +51,14 @@ from resloc.cl.kernels_detection import (
     shared_slots,
     store_slots,
 )
-from resloc.cl.kernels_math import gain_array, jit_inline, jit_lanes, per_params, stamp_with_pieces
+from resloc.cl.kernels_math import (
+    gain_array,
+    jit_inline,
+    jit_lanes,
+    lower_bound,
+    per_params,
+    stamp_with_pieces,
+)
 from resloc.cl.kernels_zone import inside_map
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
@@ -150,12 +157,7 @@ def partner_rows(li, lj, row):
         lo = first[j]
         hi = stop[j]
         if ascending:
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if lj[mid] < want:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            lo = lower_bound(lj, want, lo, hi)
             if lo < stop[j] and lj[lo] == want:
                 row[e] = lo
         else:

@@ -60,7 +60,7 @@ import numpy as np
 
 from resloc.cl.detection_zone import materialize_with_reciprocal
 from resloc.cl.kernels_lanes import FALLBACK
-from resloc.cl.kernels_math import jit, jit_inline, per_params
+from resloc.cl.kernels_math import jit, jit_inline, lower_bound, per_params
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -275,14 +275,7 @@ def partner_readings(li, lj, z, out):
         if table:
             lo = first[j]
         else:  # binary search of the sorted observers
-            lo = 0
-            hi = E
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if li[mid] < j:
-                    lo = mid + 1
-                else:
-                    hi = mid
+            lo = lower_bound(li, j, 0, E)
         out[e, 0] = math.nan
         out[e, 1] = math.nan
         while lo < E and li[lo] == j:
