@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -200,3 +201,18 @@ def test_group_medians_are_numpys_median_per_group_to_the_bit():
     got = group_medians(u, start, count)
     assert np.array_equal(got, want, equal_nan=True)
     assert np.isnan(got[5, 1]) and not np.isnan(got[5, 0])
+
+
+def test_no_widening_goes_beyond_the_largest_standard_deviation():
+    rng = np.random.default_rng(4)
+    offset, sd_p = np.array([0.1, 0.0]), 0.02  # matching asks ~12.5: std 0.02 -> 0.07
+    f = _run(120, lambda k: _notes(rng, offset, sd_p=sd_p), sd_p=sd_p)
+    assert (f > 1.0).any()
+    bound = (PARAMS.outvoted_max_std / sd_p) ** 2  # 6.25: std 0.05
+    assert f.max() == pytest.approx(bound)
+    unbounded = replace(PARAMS, outvoted_max_std=1e3)
+    g = _run(120, lambda k: _notes(rng, offset, sd_p=sd_p), params=unbounded, sd_p=sd_p)
+    assert g.max() > 2 * bound  # the bound is what stopped it
+    # a robot already beyond the bound is not widened at all
+    wide = 0.06
+    assert (_run(120, lambda k: _notes(rng, 4 * offset, sd_p=wide), sd_p=wide) == 1.0).all()

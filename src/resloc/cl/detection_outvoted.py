@@ -32,7 +32,8 @@ error, and it widens it before the step's correction (covariance matching, the a
 filter's fading factor, on the offset the notes show, their coordinatewise median ``m_j``,
 robust to ``f`` of them):
 
-``P_j <- lambda P_j``,  ``lambda = min(max(m_j^T P_j,pos^-1 m_j / 2, 1), outvoted_cap)``
+``P_j <- lambda P_j``,  ``lambda = min(max(m_j^T P_j,pos^-1 m_j / 2, 1), outvoted_cap,
+max(s^2 / max(P_j,xx, P_j,yy), 1))``, ``s = outvoted_max_std``
 
 (the whole 3 x 3 block: a robot pulled off in position is usually off in heading too). Its
 gate then admits its honest neighbours, which pull it back. The notes were computed in the
@@ -183,6 +184,10 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
         # notes show (covariance matching, 2 dof): lambda = m^T P^-1 m / 2.
         w = np.linalg.solve(Pp, m[a][..., None])[..., 0]
         factor[a] = np.clip(np.einsum("ni,ni->n", m[a], w) / 2.0, 1.0, params.outvoted_cap)
+        # Bounded: unbounded, repeated widenings let the displaced robot's consistent lies
+        # run the team's estimates away (kilometres; docs/attack/outvoted.md, section 7).
+        largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
+        factor[a] = np.minimum(factor[a], np.maximum(params.outvoted_max_std**2 / largest, 1.0))
     widen = factor > 1.0
     state.set(robots_all, robots_all, np.column_stack([S, factor]))
     if not widen.any():

@@ -188,6 +188,9 @@ class CLParams:
         (:mod:`resloc.cl.detection_outvoted`; needs ``witness``).
     outvoted_cap : float
         Largest widening factor in one step.
+    outvoted_max_std : float
+        No widening takes a robot's position standard deviation (the larger diagonal
+        entry) beyond this, in metres; a robot already beyond it is not widened.
     """
 
     range_std: float = 0.005
@@ -249,6 +252,7 @@ class CLParams:
     witness_false_alarm: float = 1e-3
     outvoted: bool = False
     outvoted_cap: float = 100.0
+    outvoted_max_std: float = 0.05
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -286,6 +286,12 @@ class DetectorSpec:
     outvoted_cap: float = option(
         100.0, "outvoted: the largest widening of its covariance in one step", min=1.0, max=1e6
     )
+    outvoted_max_std: float = option(
+        0.05,
+        "outvoted: no widening takes a position standard deviation beyond this (m)",
+        gt=0.0,
+        max=1e6,
+    )
 
 
 @dataclass(frozen=True)
@@ -411,6 +417,7 @@ class Scenario:
             witness_false_alarm=float(d.witness_false_alarm),
             outvoted=d.outvoted,
             outvoted_cap=float(d.outvoted_cap),
+            outvoted_max_std=float(d.outvoted_max_std),
         )
 
     def replace(self, **changes: Any) -> Scenario:
