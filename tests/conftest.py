@@ -10,6 +10,15 @@ import numpy as np
 import pytest
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _session_result_store(tmp_path_factory):
+    """Module-scoped fixtures run before function-scoped ones: without a session-wide store a
+    study started by one (a quick report) would write its cells into ./runs/.store."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("RESLOC_STORE", str(tmp_path_factory.mktemp("session-store")))
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _private_result_store(tmp_path_factory, monkeypatch):
     """Studies run by tests keep their cells in a temporary store, never in ./runs/.store."""
