@@ -1,6 +1,7 @@
 """The content-addressed result store: keys, atomic writes, corrupt entries."""
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,6 +40,26 @@ def test_cell_key_covers_scenario_seed_filter_and_version(monkeypatch):
     assert k != cell_key("sim", scenario=other, trial=0, estimator="ckf")
     monkeypatch.setattr(store_mod, "__version__", "999.0")
     assert k != cell_key("sim", scenario=s, trial=0, estimator="ckf")
+
+
+def test_cell_key_follows_the_source(monkeypatch, tmp_path):
+    (tmp_path / "cl").mkdir()
+    (tmp_path / "cl" / "step.py").write_text("x = 1\n")
+    (tmp_path / "cl" / "cache.nbi").write_bytes(b"not a source")
+    before = store_mod.fingerprint_sources(tmp_path)
+    (tmp_path / "cl" / "cache.nbi").write_bytes(b"recompiled")
+    assert store_mod.fingerprint_sources(tmp_path) == before  # caches are not sources
+    (tmp_path / "cl" / "step.py").write_text("x = 2\n")
+    edited = store_mod.fingerprint_sources(tmp_path)
+    assert edited != before
+    (tmp_path / "cl" / "step.py").rename(tmp_path / "step.py")  # same text, moved
+    assert store_mod.fingerprint_sources(tmp_path) != edited
+    # the installed package's own sources key every cell
+    package = Path(store_mod.__file__).resolve().parents[1]
+    assert store_mod.source_fingerprint() == store_mod.fingerprint_sources(package)
+    k = cell_key("sim", trial=0)
+    monkeypatch.setattr(store_mod, "source_fingerprint", lambda: "0" * 64)
+    assert k != cell_key("sim", trial=0)
 
 
 def test_put_get_roundtrip_and_atomic_layout(tmp_path):

@@ -11,7 +11,7 @@ batched with it, and the world does not depend on the estimators), runs the task
 
 The store key of a cell (:func:`sim_key`) is the scenario without ``run.trials``,
 ``run.filters``, ``run.name`` and ``run.dead_reckoning`` (they select cells, they do not
-change one), the trial index, the estimator and the package version.
+change one), the trial index, the estimator, the package version and its source fingerprint.
 """
 
 from __future__ import annotations

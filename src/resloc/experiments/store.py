@@ -1,10 +1,12 @@
 """A content-addressed result store: every study cell is computed once.
 
 A cell's key is the SHA-256 of a canonical serialization of what determines its result
-(:func:`cell_key`): the resolved scenario, the seed (trial index), the filter and the
-package version. Its value is written once, atomically (a temporary file in the same
-directory, then ``os.replace``), with a SHA-256 checksum of the payload in the header; a
-truncated or corrupt entry is detected on read, reported with a warning and recomputed.
+(:func:`cell_key`): the resolved scenario, the seed (trial index), the filter, the
+package version and a fingerprint of the package's source (:func:`source_fingerprint`), so a
+code change never returns cells computed by the old code. Its value is written once,
+atomically (a temporary file in the same directory, then ``os.replace``), with a SHA-256
+checksum of the payload in the header; a truncated or corrupt entry is detected on read,
+reported with a warning and recomputed.
 
 Layout: ``<root>/v1/<key[:2]>/<key>.cell``; each file is ``RESLOC-CELL 1 <sha256>\\n``
 followed by the pickled result. The store holds pickles: only point ``--store`` at a
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import hashlib
 import json
 import math
@@ -36,6 +39,7 @@ __all__ = [
     "canonical_json",
     "cell_key",
     "default_store",
+    "source_fingerprint",
 ]
 
 #: Default store directory (relative to the working directory); ``$RESLOC_STORE`` overrides it.
@@ -84,9 +88,31 @@ def canonical_json(value: Any) -> str:
     return json.dumps(_canonical(value), sort_keys=True, separators=(",", ":"))
 
 
+def fingerprint_sources(root: Path) -> str:
+    """SHA-256 (hex) of every ``*.py`` file under ``root``: relative paths and contents, in
+    sorted order (compiled caches are not sources and are left out)."""
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode("utf-8") + b"\0")
+        digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+@functools.cache
+def source_fingerprint() -> str:
+    """The installed package's :func:`fingerprint_sources`, once per process (~20 ms).
+
+    The version alone keys cells too coarsely while developing: an edit to the estimator
+    without a version bump would read the old code's cells back."""
+    return fingerprint_sources(Path(__file__).resolve().parents[1])
+
+
 def cell_key(kind: str, **parts: Any) -> str:
-    """The store key of a cell: SHA-256 (hex) of its kind, parts and the package version."""
-    text = canonical_json({"kind": kind, "resloc": __version__, **parts})
+    """The store key of a cell: SHA-256 (hex) of its kind, parts, the package version and
+    the package's source fingerprint."""
+    text = canonical_json(
+        {"kind": kind, "resloc": __version__, "source": source_fingerprint(), **parts}
+    )
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
