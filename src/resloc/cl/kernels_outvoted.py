@@ -16,8 +16,8 @@ robot's statistic is the witness stage's enumeration
 whose statistic clips the robot's sequence test at 0 (``S + T - k <= 0``: the smallest
 gives the same 0; the spec enumerates them all, and its ``T`` is read nowhere else). The
 widening's 2 x 2 solve is written out (the spec calls LAPACK: equal to rounding); a
-position block that is not positive definite goes to the spec (which raises on a singular
-one).
+position block that is not symmetric positive definite goes to the spec (which raises on a
+singular one).
 """
 
 from __future__ import annotations
@@ -211,7 +211,7 @@ def outvoted_pass(
         step = 0.0  # no judgement: decays by k
         if judged[g]:
             step = T[g] if (math.isnan(T[g]) or T[g] < 0.5 * h) else 0.5 * h
-            if gcount[g] > f[g] and not (T[g] <= stop[g]):
+            if not (T[g] <= stop[g]):
                 enumerated += 1
         v = S0[g] + step - k
         if not math.isnan(v):
