@@ -216,3 +216,19 @@ def test_no_widening_goes_beyond_the_largest_standard_deviation():
     # a robot already beyond the bound is not widened at all
     wide = 0.06
     assert (_run(120, lambda k: _notes(rng, 4 * offset, sd_p=wide), sd_p=wide) == 1.0).all()
+
+
+def test_the_runtime_refuses_the_outvoted_defence_in_one_line():
+    """Robot processes do not exchange the witness notes the stage reads: the defence is
+    refused by name before any process starts (no runtime run to compare with the
+    simulator's)."""
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import DEFENCES
+    from resloc.runtime.team import check_supported
+
+    defence = DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"]
+    sc = default_scenario().replace(**{"run.trials": 1, **defence})
+    assert sc.detector.outvoted
+    with pytest.raises(ConfigError, match=r"detector\.witness") as err:
+        check_supported(sc)
+    assert "\n" not in str(err.value)

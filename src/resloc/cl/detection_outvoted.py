@@ -54,8 +54,10 @@ Why the notes, and what an attacker can do with them:
 * **What it needs**: the witness stage's notes (``detector.witness``); a robot with at most
   ``f`` notes on itself in a step is not judged.
 
-It runs before the correction, in numpy, on both paths (:func:`resloc.cl.step.correct`):
-the compiled correction is handed the widened covariances (``compiled = True``).
+It runs before the correction, on both paths (:func:`resloc.cl.step.correct`): the
+compiled correction is handed the widened covariances (``compiled = True``). With the numba
+backend the stage itself runs compiled in one pass (:mod:`resloc.cl.kernels_outvoted`);
+the numpy functions here are its specification (:func:`reference_widen`).
 """
 
 from __future__ import annotations
@@ -70,7 +72,14 @@ from resloc.cl.params import CLParams
 if TYPE_CHECKING:
     from resloc.cl.detection import Evidence
 
-__all__ = ["Outvoted", "applied_factors", "group_medians", "outvoted_statistic", "widen_outvoted"]
+__all__ = [
+    "Outvoted",
+    "applied_factors",
+    "group_medians",
+    "outvoted_statistic",
+    "reference_widen",
+    "widen_outvoted",
+]
 
 #: Per robot (keyed (j, j)): its sequence test ``S_j`` and the factor it widened its
 #: covariance by in its last step (1: none).
@@ -155,9 +164,21 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
     """``P (B, 3, 3)`` with the covariance of every robot its observers' notes outvote
     widened; ``P`` itself when none is (or the stage is off). Reads the notes waiting in
     ``memory`` for this step's frames, updates each robot's sequence test (module
-    docstring) and records which robots widened (they skip the next step)."""
+    docstring) and records which robots widened (they skip the next step). The compiled
+    twin with the numba backend (:func:`resloc.cl.kernels_outvoted.fast_widen`), else the
+    numpy spec (:func:`reference_widen`)."""
     if not params.outvoted or not params.witness or memory is None:
         return P
+    from resloc.cl.kernels_outvoted import fast_widen  # numba's import, on first use
+
+    fast = fast_widen(params, memory, links, P)
+    if fast is not None:
+        return fast
+    return reference_widen(params, memory, links, P)
+
+
+def reference_widen(params: CLParams, memory: LinkMemory, links, P: np.ndarray) -> np.ndarray:
+    """:func:`widen_outvoted` in numpy (its executable specification; the stage on)."""
     from resloc.cl.detection_witness_frames import pending_notes
 
     state = memory.stage_statistic(OUTVOTED_STATE, width=2)

@@ -1,0 +1,340 @@
+"""The outvoted stage compiled in one pass per step.
+
+Twin of :func:`~resloc.cl.detection_outvoted.reference_widen` (the numpy specification:
+``pending_notes``, :func:`~resloc.cl.detection_outvoted.outvoted_statistic` with
+:func:`~resloc.cl.detection_outvoted.group_medians`, the sequence test and the widening).
+:func:`outvoted_pass` reads the pending notes and the stage's per-robot store as they lie in
+the memory; the numpy glue per step (``isin``, ``lexsort``, the stores' searches, the
+medians' sorts) was most of the stage's cost.
+
+The grouping is a counting sort, the ids being small ints: the pending rows (keys sorted by
+(observer, on)) are bucketed by the robot they are on, in ascending row order, so each
+robot's rows come sorted by observer (the spec's ``lexsort``); robot r keeps the rows of the
+observers whose frame reached it (the links (r, o) with their channel through). Each
+robot's statistic is the witness stage's enumeration
+(:func:`~resloc.cl.kernels_witness.group_statistics`), stopped at the first consistent set
+whose statistic clips the robot's sequence test at 0 (``S + T - k <= 0``: the smallest
+gives the same 0; the spec enumerates them all, and its ``T`` is read nowhere else). The
+widening's 2 x 2 solve is written out (the spec calls LAPACK: equal to rounding); a
+position block that is not symmetric positive definite goes to the spec (which raises on a
+singular one).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl.backend import backend
+from resloc.cl.kernels_math import jit_lanes, per_params
+from resloc.cl.kernels_witness import group_statistics
+from resloc.cl.params import CLParams, at_robots
+
+__all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass"]
+
+#: How often the compiled pass ran, fell back to the spec, and how many judged robots' sets
+#: of notes it enumerated in full, without the early stop (the tests read it).
+OUTVOTED_RUNS = {"passes": 0, "fallbacks": 0, "enumerated": 0}
+
+#: :func:`outvoted_pass`'s status: done; refused (a position block the 2 x 2 solve does
+#: not take, or an id out of range: the spec decides); ``-c`` (c > 0): ``gates`` stops
+#: short of a group of ``c`` notes.
+DONE, REFUSED = 0, 1
+
+
+@jit_lanes
+def _sorted_median(buf, c):
+    """The median of ``buf[:c]`` (sorted in place; c > 0): the middle element or the mean of
+    the two middle ones, nan when one is nan (``np.median``)."""
+    for t in range(c):
+        if math.isnan(buf[t]):
+            return np.nan
+    for t in range(1, c):
+        v = buf[t]
+        s = t - 1
+        while s >= 0 and buf[s] > v:
+            buf[s + 1] = buf[s]
+            s -= 1
+        buf[s + 1] = v
+    return (buf[(c - 1) // 2] + buf[c // 2]) / 2.0
+
+
+@jit_lanes
+def outvoted_pass(
+    pkeys, pvals, n, li, lj, ok, skeys, svals, P, f_at, half_h_at, k, h, gates, cap, max_std
+):
+    """Every receiver's sequence test and widening factor after the pending notes on it.
+
+    Parameters
+    ----------
+    pkeys, pvals : ndarray, shapes (Np,), (Np, 11)
+        The witness stage's pending store (keys ``observer * n + on``, sorted; values ``u``,
+        ``Q``, ``P_pos``, waiting flag: :data:`~resloc.cl.detection_witness_frames.PENDING`).
+    n : int
+        The id space.
+    li, lj, ok : ndarray, shape (E,)
+        The step's links: receiver, sender, channel ok.
+    skeys, svals : ndarray, shapes (S,), (S, 2)
+        The stage's store keyed ``r * n + r`` (sorted): ``S_r`` and the last factor.
+    P : ndarray, shape (B, 3, 3)
+        The covariances before the stage (B >= every receiver's id + 1).
+    f_at, half_h_at : ndarray, shape (n,)
+        ``witness_liars`` (int64) and ``witness_h / 2`` of each robot.
+    k, h, cap, max_std : float
+        ``witness_k``, ``witness_h``, ``outvoted_cap``, ``outvoted_max_std``.
+    gates : ndarray, shape (M,)
+        ``gates[c]``: the consistency gate of ``c`` notes.
+
+    Returns
+    -------
+    robots : ndarray of int, shape (G,)
+        The receivers (ascending).
+    values : ndarray, shape (G, 2)
+        Their new ``S`` and factor (1: none), the store's rows.
+    slot : ndarray of int, shape (G,)
+        Each receiver's row in ``skeys`` (-1: not stored yet).
+    status : int
+        :data:`DONE`, :data:`REFUSED` or ``-c`` (module docstring).
+    enumerated : int
+        Judged receivers whose enumeration did not stop early (every set of notes).
+    """
+    E = li.shape[0]
+    empty = np.empty(0, np.int64)
+    for e in range(E):  # ids the spec would index with (or fail on): the spec decides
+        if li[e] < 0 or lj[e] < 0 or li[e] >= n or lj[e] >= n or li[e] >= P.shape[0]:
+            return empty, np.zeros((0, 2)), empty, REFUSED, 0
+    # the receivers (ascending) and each one's senders whose frame got through
+    is_recv = np.zeros(n, np.bool_)
+    rfirst = np.zeros(n + 1, np.int64)
+    for e in range(E):
+        is_recv[li[e]] = True
+        if ok[e]:
+            rfirst[li[e] + 1] += 1
+    for r in range(n):
+        rfirst[r + 1] += rfirst[r]
+    senders = np.empty(rfirst[n], np.int64)
+    fill = rfirst[:n].copy()
+    for e in range(E):
+        if ok[e]:
+            senders[fill[li[e]]] = lj[e]
+            fill[li[e]] += 1
+    G = 0
+    for r in range(n):
+        if is_recv[r]:
+            G += 1
+    robots = np.empty(G, np.int64)
+    G = 0
+    for r in range(n):
+        if is_recv[r]:
+            robots[G] = r
+            G += 1
+    # the waiting rows bucketed by the robot they are on (ascending rows: by observer)
+    Np = pkeys.shape[0]
+    onfirst = np.zeros(n + 1, np.int64)
+    for p in range(Np):
+        if pvals[p, 10] > 0.0:
+            onfirst[pkeys[p] % n + 1] += 1
+    for r in range(n):
+        onfirst[r + 1] += onfirst[r]
+    by_on = np.empty(onfirst[n], np.int64)
+    fill = onfirst[:n].copy()
+    for p in range(Np):
+        if pvals[p, 10] > 0.0:
+            on = pkeys[p] % n
+            by_on[fill[on]] = p
+            fill[on] += 1
+    # each receiver's group: the notes on it from the observers it heard
+    heard = np.full(n, -1, np.int64)
+    grows = np.empty(onfirst[n], np.int64)
+    gstart = np.empty(G, np.int64)
+    gcount = np.empty(G, np.int64)
+    M = 0
+    largest = 0
+    for g in range(G):
+        r = robots[g]
+        for s in range(rfirst[r], rfirst[r + 1]):
+            heard[senders[s]] = r
+        gstart[g] = M
+        for t in range(onfirst[r], onfirst[r + 1]):
+            p = by_on[t]
+            if heard[pkeys[p] // n] == r:
+                grows[M] = p
+                M += 1
+        gcount[g] = M - gstart[g]
+        largest = max(largest, gcount[g])
+    values = np.zeros((G, 2))
+    slot = np.full(G, -1, np.int64)
+    if largest >= gates.shape[0]:
+        return robots, values, slot, -largest, 0
+    # the stored S and factor (0 for a robot never stored), and where to stop enumerating
+    ns = skeys.shape[0]
+    S0 = np.zeros(G)
+    f0 = np.zeros(G)
+    stop = np.empty(G)
+    f = np.empty(G, np.int64)
+    half = np.empty(G)
+    for g in range(G):
+        r = robots[g]
+        q = np.searchsorted(skeys, r * n + r)
+        if q < ns and skeys[q] == r * n + r:
+            slot[g] = q
+            S0[g] = svals[q, 0]
+            f0[g] = svals[q, 1]
+        v = k - S0[g]
+        stop[g] = -np.inf if math.isnan(v) else v
+        f[g] = f_at[r]
+        half[g] = half_h_at[r]
+    u = np.empty((M, 2))
+    Q = np.empty((M, 2, 2))
+    Pp = np.empty((M, 2, 2))
+    for q in range(M):
+        p = grows[q]
+        u[q, 0] = pvals[p, 0]
+        u[q, 1] = pvals[p, 1]
+        Q[q, 0, 0] = pvals[p, 2]
+        Q[q, 0, 1] = pvals[p, 3]
+        Q[q, 1, 0] = pvals[p, 4]
+        Q[q, 1, 1] = pvals[p, 5]
+        Pp[q, 0, 0] = pvals[p, 6]
+        Pp[q, 0, 1] = pvals[p, 7]
+        Pp[q, 1, 0] = pvals[p, 8]
+        Pp[q, 1, 1] = pvals[p, 9]
+    T = np.zeros(G)
+    judged = np.zeros(G, np.bool_)
+    group_statistics(u, Q, Pp, gstart, gcount, f, half, gates, stop, T, judged)
+    enumerated = 0
+    buf = np.empty(max(largest, 1))
+    for g in range(G):
+        r = robots[g]
+        step = 0.0  # no judgement: decays by k
+        if judged[g]:
+            step = T[g] if (math.isnan(T[g]) or T[g] < 0.5 * h) else 0.5 * h
+            if not (T[g] <= stop[g]):
+                enumerated += 1
+        v = S0[g] + step - k
+        if not math.isnan(v):
+            v = min(max(v, 0.0), 2.0 * h)
+        values[g, 0] = v
+        values[g, 1] = 1.0
+        if not (v > h and f0[g] <= 1.0) or not judged[g]:
+            continue
+        c = gcount[g]
+        for t in range(c):
+            buf[t] = u[gstart[g] + t, 0]
+        m0 = _sorted_median(buf, c)
+        for t in range(c):
+            buf[t] = u[gstart[g] + t, 1]
+        m1 = _sorted_median(buf, c)
+        if not (math.isfinite(m0) and math.isfinite(m1)):
+            continue
+        a, b, d = P[r, 0, 0], 0.5 * (P[r, 0, 1] + P[r, 1, 0]), P[r, 1, 1]
+        det = a * d - b * b
+        if not (a > 0.0 and det > 0.0 and P[r, 0, 1] == P[r, 1, 0]):
+            return robots, values, slot, REFUSED, enumerated
+        # covariance matching, 2 dof: lambda = m^T P^-1 m / 2
+        lam = (d * m0 * m0 - 2.0 * b * m0 * m1 + a * m1 * m1) / det / 2.0
+        if not math.isnan(lam):
+            lam = min(max(lam, 1.0), cap)
+        bound = max_std * max_std / max(a, d)
+        if math.isnan(bound):
+            lam = np.nan
+        elif not math.isnan(lam):
+            lam = min(lam, max(bound, 1.0))
+        values[g, 1] = lam
+    return robots, values, slot, DONE, enumerated
+
+
+class _Options(NamedTuple):
+    """The stage's options as :func:`outvoted_pass` takes them (kept per ``params``)."""
+
+    k: float
+    h: float
+    cap: float
+    max_std: float
+    p_fa: float
+    at: dict  # n -> (f_at, half_h_at), shapes (n,)
+
+    def per_robot(self, params: CLParams, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """``witness_liars`` (int64) and ``witness_h / 2`` at every robot id ``0 .. n - 1``."""
+        if n not in self.at:
+            ids = np.arange(n)
+            f = np.broadcast_to(np.rint(at_robots(params.witness_liars, ids)), (n,))
+            half_h = np.broadcast_to(0.5 * np.asarray(at_robots(params.witness_h, ids)), (n,))
+            self.at[n] = (
+                np.ascontiguousarray(f, np.int64),
+                np.ascontiguousarray(half_h, float),
+            )
+        return self.at[n]
+
+
+@per_params
+def _options(params: CLParams) -> _Options:
+    return _Options(
+        float(params.witness_k),  # (scalars, as the spec reads them)
+        float(params.witness_h),
+        float(params.outvoted_cap),
+        float(params.outvoted_max_std),
+        float(np.max(params.witness_false_alarm)),
+        {},
+    )
+
+
+def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | None:
+    """:func:`~resloc.cl.detection_outvoted.widen_outvoted` by :func:`outvoted_pass` (the
+    stage on, a memory given); None with the numpy backend, arrays it does not take, or
+    what the compiled pass refuses (then the spec runs)."""
+    if backend() != "numba":
+        return None
+    from resloc.cl.detection_outvoted import OUTVOTED_STATE
+    from resloc.cl.detection_witness import consistency_gates
+    from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
+
+    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
+    pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
+    n = state.n_nodes
+    li = np.ascontiguousarray(links.i, np.int64)
+    lj = np.ascontiguousarray(links.j, np.int64)
+    Pa = np.ascontiguousarray(P, float)
+    if pending.n_nodes != n or Pa.ndim != 3 or Pa.shape[1:] != (3, 3) or li.shape != lj.shape:
+        return None
+    opt = _options(params)
+    f_at, half_h_at = opt.per_robot(params, n)
+    args = (
+        np.ascontiguousarray(pending.keys, np.int64),
+        np.ascontiguousarray(pending.values, float).reshape(len(pending), PENDING_WIDTH),
+        n,
+        li,
+        lj,
+        np.ascontiguousarray(links.channel_ok, np.bool_),
+        np.ascontiguousarray(state.keys, np.int64),
+        np.ascontiguousarray(state.values, float).reshape(len(state), 2),
+        Pa,
+        f_at,
+        half_h_at,
+        opt.k,
+        opt.h,
+    )
+    largest = 16
+    while True:
+        gates = consistency_gates(opt.p_fa, largest)
+        robots, values, slot, status, enumerated = outvoted_pass(*args, gates, opt.cap, opt.max_std)
+        if status >= 0:
+            break
+        largest = max(-status, 2 * largest)
+    if status == REFUSED:
+        OUTVOTED_RUNS["fallbacks"] += 1
+        return None
+    if (slot >= 0).all() and state.values.flags.c_contiguous and state.values.dtype == float:
+        state.values[slot] = values  # every receiver stored before (a run's steady state)
+    else:
+        state.set(robots, robots, values)
+    OUTVOTED_RUNS["passes"] += 1
+    OUTVOTED_RUNS["enumerated"] += enumerated
+    widen = values[:, 1] > 1.0
+    if not widen.any():
+        return P
+    P = np.array(P, float)
+    P[robots[widen]] *= values[widen, 1, None, None]
+    return P

@@ -1,0 +1,157 @@
+"""The outvoted stage on the compiled path (:mod:`resloc.cl.kernels_outvoted`).
+
+Against its numpy spec (:func:`~resloc.cl.detection_outvoted.reference_widen`): synthetic
+notes on several robots, some persistently off (so robots widen, skip a step, decay), and
+the default scenario (two trials batched, 34 robots) with the outvoted defence against
+three compromised robots, their notes shielding their victims or not. Each step the
+covariances handed to the correction, the stage's per-robot store (``S`` and the factor)
+and, in the scenario, the corrected estimates must agree to 1e-9 with the same robots
+widened, the compiled pass having run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_outvoted, predict
+from resloc.cl.detection_outvoted import OUTVOTED_STATE, reference_widen, widen_outvoted
+from resloc.cl.detection_witness import WitnessNotes
+from resloc.cl.detection_witness_frames import reference_record
+from resloc.cl.params import CLParams
+from resloc.experiments.config import default_scenario
+from resloc.experiments.defences import DEFENCES
+from resloc.filters import make_filter
+from resloc.world.attackers import AttackStep, make_attacker
+from resloc.world.world import World
+from test_kernels_reciprocal import assert_matches_reference
+
+pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+DEFENCE = "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"
+
+
+def _store(memory: LinkMemory) -> tuple[np.ndarray, np.ndarray]:
+    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
+    return state.keys.copy(), state.values.copy()
+
+
+def _assert_same_store(fast: LinkMemory, ref: LinkMemory) -> None:
+    (kf, vf), (kr, vr) = _store(fast), _store(ref)
+    np.testing.assert_array_equal(kf, kr)
+    np.testing.assert_allclose(vf, vr, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(vf[:, 0] > 0.0, vr[:, 0] > 0.0)  # the same tests running
+    np.testing.assert_array_equal(vf[:, 1] > 1.0, vr[:, 1] > 1.0)  # the same robots widened
+
+
+def _widen_both(params, memories, links, P) -> np.ndarray:
+    """The stage by the compiled pass (checked to have run) and by the spec, each on its own
+    memory; returns the spec's covariances after checking the two agree."""
+    before = dict(kernels_outvoted.OUTVOTED_RUNS)
+    with kernels.use_backend("numba"):
+        fast = widen_outvoted(params, memories[0], links, P)
+    assert kernels_outvoted.OUTVOTED_RUNS["passes"] == before["passes"] + 1, "not compiled"
+    with kernels.use_backend("numpy"):
+        ref = reference_widen(params, memories[1], links, P)
+    assert (fast is P) == (ref is P)  # the same decision: someone widened or nobody
+    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=0.0)
+    _assert_same_store(*memories)
+    return ref
+
+
+ROBOTS = 9
+
+
+def _random_step(rng, offsets, sd_p):
+    """Every ordered pair's note (observer i on robot j): robot j's broadcast is
+    ``offsets[j]`` from where the observers see it; some frames lost."""
+    i, j = (a.ravel() for a in np.meshgrid(np.arange(ROBOTS), np.arange(ROBOTS), indexing="ij"))
+    keep = i != j
+    i, j = i[keep], j[keep]
+    E = len(i)
+    sd_q = rng.uniform(0.01, 0.03, E)
+    u = offsets[j] + sd_q[:, None] * rng.normal(size=(E, 2))
+    Q = np.eye(2) * sd_q[:, None, None] ** 2
+    P_pos = np.eye(2) * sd_p[j, None, None] ** 2
+    notes = WitnessNotes(u, Q, P_pos, i, j, rng.random(E) > 0.05)
+    links = SimpleNamespace(i=i, j=j, channel_ok=rng.random(E) > 0.1)
+    return notes, links
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_stage_equals_the_spec_on_synthetic_notes(seed):
+    rng = np.random.default_rng(seed)
+    params = CLParams(witness=True, outvoted=True, witness_liars=2.0)
+    offsets = np.zeros((ROBOTS, 2))
+    offsets[:3] = rng.uniform(-0.04, 0.04, (3, 2))  # three robots persistently off
+    sd_p = rng.uniform(0.001, 0.02, ROBOTS)
+    memories = (LinkMemory(ROBOTS), LinkMemory(ROBOTS))
+    widened = 0
+    for _ in range(150):
+        notes, links = _random_step(rng, offsets, sd_p)
+        for memory in memories:
+            reference_record(notes, memory)
+        P = np.tile(np.eye(3) * 1e-4, (ROBOTS, 1, 1))
+        P[:, :2, :2] = np.eye(2) * sd_p[:, None, None] ** 2
+        P[:, 0, 1] = P[:, 1, 0] = 0.3 * sd_p**2
+        out = _widen_both(params, memories, links, P)
+        widened += int((out[:, 0, 0] > P[:, 0, 0]).sum())
+    assert widened >= 5, "nobody widened: the case tests nothing"
+
+
+def _params(**changes):
+    return replace(default_scenario().replace(**DEFENCES[DEFENCE]).cl_params(), **changes)
+
+
+def lockstep(filt, params, steps: int, seed: int, shield: str, fooled: float):
+    """``steps`` steps of the default scenario by the compiled path and the numpy
+    reference, each with its own estimates, memory and attacker's view; checks every step
+    and yields the robots the reference widened. The attackers aim at a witness threshold
+    ``fooled`` times the defence's (larger lies: their victims are pulled off)."""
+    sc = default_scenario()
+    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    N = world.n
+    x0, P0 = world.initial_estimates()
+    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("numba", "numpy")}
+    adversary = make_attacker("compromised", robots=3, claimed_cov=0.01, shield=shield)
+    aim = replace(params, witness_h=fooled * float(np.max(params.witness_h)))
+    for k in range(steps):
+        ws = world.step()
+        step = AttackStep(k + 1, world.dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
+        step = dataclasses.replace(step, attacked=adversary.mark(ws.attacked, step))
+        res, used = {}, {}
+        for path, (x, P, memory) in state.items():
+            with kernels.use_backend(path):
+                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+                links = LinkBatch.from_predicted(
+                    ws.i, ws.j, ws.z, xp, Pp, ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
+                )
+                links = adversary.attack(links, step, aim, memory)
+                runs = dict(kernels_outvoted.OUTVOTED_RUNS)
+                res[path] = correct(filt, xp, Pp, links, params, memory)
+                passes = kernels_outvoted.OUTVOTED_RUNS["passes"] - runs["passes"]
+            used[path] = _store(memory)[1][:, 1]
+            assert passes == (path == "numba"), f"{path}: the compiled stage ran {passes} times"
+            state[path] = (res[path][0], res[path][1], memory)
+        assert_matches_reference(res["numba"], res["numpy"])
+        _assert_same_store(state["numba"][2], state["numpy"][2])
+        yield np.flatnonzero(used["numpy"] > 1.0)
+
+
+@pytest.mark.parametrize(
+    ("shield", "seed", "fooled", "changes"),
+    [
+        ("on", 4, 4.0, {}),  # the defence's own sequence test
+        ("off", 4, 4.0, {}),
+        ("off", 7, 1.0, {"witness_k": 0.5, "witness_h": 3.0}),  # one that fires sooner
+    ],
+)
+def test_compiled_outvoted_equals_the_reference_under_attack(shield, seed, fooled, changes):
+    params = _params(**changes)
+    steps = lockstep(make_filter("ckf"), params, 60, seed, shield, fooled)
+    widened = sum(len(w) for w in steps)
+    assert widened > 0, "nobody widened: the case tests nothing"
