@@ -37,7 +37,7 @@ import numpy as np
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
 from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict, note_at
-from resloc.cl.kernels_witness_frames import per_robot, delivered_pass
+from resloc.cl.kernels_witness_frames import delivered_pass, per_robot
 from resloc.cl.memory import LinkStatistic
 
 __all__ = ["fused_verdict", "witness_pass"]
