@@ -48,7 +48,13 @@ from resloc.cl.detection_witness import (
     note_groups,
     step_notes,
 )
-from resloc.cl.detection_witness_frames import delivered_store, put_store, record_witness
+from resloc.cl.detection_witness_frames import (
+    PENDING,
+    PENDING_WIDTH,
+    delivered_store,
+    put_store,
+    record_witness,
+)
 from resloc.cl.kernels_math import jit_lanes
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkStatistic
@@ -123,8 +129,6 @@ class WitnessVerdict(NamedTuple):
         if self.pending is None:
             record_witness(self.notes, params, memory)
             return
-        from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
-
         memory.stage_statistic(PENDING, width=PENDING_WIDTH).values = self.pending
         WITNESS_RUNS["records"] += 1
 
@@ -133,9 +137,15 @@ def witness_links(filt, x, P, links: LinkBatch, strategy, memory, R) -> LinkBatc
     """``links`` with an adversary's hook applied to every row at the predicted estimates
     (the notes carry the readings as reported), as the reference does with the stage on;
     ``links`` itself without a hook."""
+    if links.tamper is None:  # (partner_readings' own first test, without its import)
+        return links
     from resloc.cl.kernels_reciprocal import partner_readings
 
     return partner_readings(filt, x, P, links, strategy, memory, R)
+
+
+#: :func:`~resloc.cl.kernels_witness_step.fused_verdict`, once imported.
+_FUSED: list = []
 
 
 def witness_verdict(
@@ -147,9 +157,11 @@ def witness_verdict(
     None without a memory (the reference path raises the explanatory error)."""
     if memory is None:
         return None
-    from resloc.cl.kernels_witness_step import fused_verdict  # (it imports this module)
+    if not _FUSED:  # (kernels_witness_step imports this module: imported on first use)
+        from resloc.cl.kernels_witness_step import fused_verdict
 
-    fused = fused_verdict(params, memory, x, P, links, inputs)
+        _FUSED.append(fused_verdict)
+    fused = _FUSED[0](params, memory, x, P, links, inputs)
     if fused is not None:
         return fused
     j = np.asarray(links.j)

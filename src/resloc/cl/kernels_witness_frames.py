@@ -117,7 +117,8 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     for j in range(n):
         jfirst[j + 1] += jfirst[j]
     jrows = np.empty(jfirst[n], np.int64)
-    jterm = np.empty((jfirst[n], 8))
+    jterm = np.empty((jfirst[n], 7))
+    jobs = np.empty(jfirst[n], np.int64)
     fill = jfirst[:n].copy()
     for p in range(Pn):
         on = p_on[p]
@@ -141,7 +142,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         jterm[t, 4] = yb
         jterm[t, 5] = u0 * ya + u1 * yb
         jterm[t, 6] = pvals[p, 6] + pvals[p, 9]
-        jterm[t, 7] = p_obs[p]
+        jobs[t] = p_obs[p]
     # each receiver's frames: itself and the senders of its links whose channel is ok
     # (times[r * n + o]: how often; a receiver holding a frame twice has its own sets)
     times = np.zeros(NN, np.int64)
@@ -171,10 +172,30 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     unclaimed = False
     largest = 0
     D = 0
+    widest = 0
+    for j in range(n):
+        widest = max(widest, jfirst[j + 1] - jfirst[j])
+    pre = np.zeros((widest + 1, 6))
+    pre_best = np.full(widest + 1, -np.inf)
+    pre_big = np.full(widest + 1, -1, np.int64)
+    pre_nan = np.zeros(widest + 1, np.bool_)
     for j in range(n):
         if not on_ok[j] or jfirst[j + 1] == jfirst[j]:
             continue
         first = D
+        # the running sums over j's rows in order (the sets that hold every row up to a
+        # position start from them: the same sums, in the same order)
+        m0, mj = jfirst[j], jfirst[j + 1] - jfirst[j]
+        for t in range(mj):
+            for col in range(6):
+                pre[t + 1, col] = pre[t, col] + jterm[m0 + t, col]
+            trace = jterm[m0 + t, 6]
+            pre_nan[t + 1] = pre_nan[t] or math.isnan(trace)
+            pre_best[t + 1] = pre_best[t]
+            pre_big[t + 1] = pre_big[t]
+            if not math.isnan(trace) and (pre_big[t] < 0 or trace > pre_best[t]):
+                pre_best[t + 1] = trace  # (the first of equal traces)
+                pre_big[t + 1] = jrows[m0 + t]
         for r in range(n):
             if r == j:
                 continue
@@ -203,13 +224,24 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             s_shared[D] = not twice[r]
             s_on[D] = j
             s_recv[D] = r
-            c = 0
-            Sa = Sb = Sc = sa = sb = sq = 0.0
-            best_trace = -np.inf
-            big = -1
             rn = r * n
-            for t in range(jfirst[j], jfirst[j + 1]):
-                copies = times[rn + int(jterm[t, 7])]
+            x1 = 0  # the rows before the first one r did not receive (all, twice: none)
+            while not twice[r] and x1 < mj and times[rn + jobs[m0 + x1]] > 0:
+                x1 += 1
+            c = x1
+            Sa, Sb, Sc, sa, sb, sq = (
+                pre[x1, 0],
+                pre[x1, 1],
+                pre[x1, 2],
+                pre[x1, 3],
+                pre[x1, 4],
+                pre[x1, 5],
+            )
+            best_trace = pre_best[x1]
+            big = pre_big[x1]
+            unclaimed = unclaimed or pre_nan[x1]
+            for t in range(m0 + x1, m0 + mj):
+                copies = times[rn + jobs[t]]
                 while copies > 0:  # (once, but for a frame received twice)
                     copies -= 1
                     c += 1
@@ -302,7 +334,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             rn = s_recv[a] * n
             for t in range(jfirst[j], jfirst[j + 1]):
                 e = jrows[t]
-                for _ in range(times[rn + int(jterm[t, 7])]):  # (its rows, as summed)
+                for _ in range(times[rn + jobs[t]]):  # (its rows, as summed)
                     _copy_note(pvals, e, u, Q, Pp, q2)
                     q2 += 1
             b += 1

@@ -35,6 +35,8 @@ import weakref
 import numpy as np
 
 from resloc.cl.backend import backend
+from resloc.cl.detection_witness import STATE, consistency_gates, step_notes
+from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
 from resloc.cl.kernels_math import jit_lanes
 from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict, note_at
 from resloc.cl.kernels_witness_frames import delivered_pass, per_robot
@@ -181,8 +183,6 @@ def _constants(params, n: int, largest: int = 0) -> tuple:
     """``(f_at, k_at, h_at, gates, R, discs, zoned)`` for ``params`` and ids ``0 .. n -
     1``, the gates covering sets of at least ``largest`` notes (kept for the last
     ``params``)."""
-    from resloc.cl.detection_witness import consistency_gates
-
     ref, held_n, held = _CONSTANTS
     if ref is not None and ref() is params and held_n == n and len(held[3]) > largest:
         return held
@@ -211,9 +211,6 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     separate calls then run)."""
     if backend() != "numba":
         return None
-    from resloc.cl.detection_witness import STATE, step_notes
-    from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
-
     stat = memory.stage_statistic(STATE)
     pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
     n = stat.n_nodes
