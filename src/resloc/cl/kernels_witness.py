@@ -25,7 +25,10 @@ function                       numpy twin
 =============================  ==========================================================
 
 The receivers' delivery and the record of the notes are compiled in
-:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``).
+:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``); in the
+CL step, :func:`witness_verdict` runs the delivery, the verdict, the step's notes and
+their record in one compiled call (:mod:`resloc.cl.kernels_witness_step`), the separate
+calls above when that one declines.
 
 ``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
 :func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
