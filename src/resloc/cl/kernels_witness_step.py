@@ -235,23 +235,28 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
         return None
     if crows.ndim != 1:
         return None
-    pvals = pending.values
-    if pvals.dtype != np.float64 or pvals.shape != (len(pending), PENDING_WIDTH):
+    # (the stores' arrays as LinkStatistic and the pass make them: int64 keys, float64
+    # values, contiguous; checked, not converted)
+    pkeys, pvals, skeys, svals = pending.keys, pending.values, stat.keys, stat.values
+    if pvals.shape != (len(pkeys), PENDING_WIDTH) or svals.shape != skeys.shape:
         return None
-    pvals = np.ascontiguousarray(pvals)
+    if pkeys.dtype != np.int64 or skeys.dtype != np.int64:
+        return None
+    if pvals.dtype != np.float64 or svals.dtype != np.float64:
+        return None
     largest = 0
     record = inputs.lie_notes is None
     while True:
         f_at, k_at, h_at, gates, R, discs, zoned = _constants(params, n, largest)
         status, keys, values, need, discard, after, recorded = witness_pass(
-            np.ascontiguousarray(pending.keys, np.int64),
+            pkeys,
             pvals,
             n,
             li,
             lj,
             ok,
-            np.ascontiguousarray(stat.keys, np.int64),
-            np.ascontiguousarray(stat.values, float),
+            skeys,
+            svals,
             f_at,
             k_at,
             h_at,
