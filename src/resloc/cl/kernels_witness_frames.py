@@ -101,8 +101,10 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     Pn = pkeys.shape[0]
     jfirst = np.zeros(n + 1, np.int64)
     notes_on = np.zeros((n, W), np.uint64)
-    p_obs = np.empty(Pn, np.int64)  # each row's observer and robot (no division a row:
-    p_on = np.empty(Pn, np.int64)  # the keys ascend)
+    # (the scratch in a few blocks: an allocation costs about what a set's sums do)
+    p_rows = np.empty((2, Pn), np.int64)
+    p_obs = p_rows[0]  # each row's observer and robot (no division a row: the keys ascend)
+    p_on = p_rows[1]
     o = 0
     for p in range(Pn):
         key = pkeys[p]
@@ -116,9 +118,10 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             notes_on[on, o >> 6] |= _bit(o)
     for j in range(n):
         jfirst[j + 1] += jfirst[j]
-    jrows = np.empty(jfirst[n], np.int64)
+    j_rows = np.empty((2, jfirst[n]), np.int64)
+    jrows = j_rows[0]
+    jobs = j_rows[1]
     jterm = np.empty((jfirst[n], 7))
-    jobs = np.empty(jfirst[n], np.int64)
     fill = jfirst[:n].copy()
     for p in range(Pn):
         on = p_on[p]
@@ -145,7 +148,9 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         jobs[t] = p_obs[p]
     # each receiver's frames: itself and the senders of its links whose channel is ok
     # (times[r * n + o]: how often; a receiver holding a frame twice has its own sets)
-    times = np.zeros(NN, np.int64)
+    per_pair = np.empty((5, NN), np.int64)
+    times = per_pair[0]
+    times[:] = 0
     heard = np.zeros((n, W), np.uint64)
     twice = np.zeros(n, np.bool_)
     for r in range(n):
@@ -160,15 +165,22 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     # each group (r, j): the notes on j that r received, as a set of observers; each
     # distinct set listed (its rows ascending, as the spec's groups) and judged once: its
     # whole set's statistic and consistency, whether it is judged (more than f notes)
-    set_of = np.full(NN, -1, np.int64)
+    set_of = per_pair[1]
+    set_of[:] = -1
+    s_on = per_pair[2]
+    s_recv = per_pair[3]  # a receiver holding it (its rows: the frames' counts)
+    s_count = per_pair[4]
     smask = np.empty((NN, W), np.uint64)
-    s_shared = np.empty(NN, np.bool_)
-    s_on = np.empty(NN, np.int64)
-    s_recv = np.empty(NN, np.int64)  # a receiver holding it (its rows: the frames' counts)
-    s_count = np.empty(NN, np.int64)
-    T = np.empty(NN)
-    consistent = np.empty(NN, np.bool_)
-    judged = np.empty(NN, np.bool_)
+    flags = np.zeros((5, NN), np.bool_)
+    s_shared, consistent, judged, held, enumerate_ = (
+        flags[0],
+        flags[1],
+        flags[2],
+        flags[3],
+        flags[4],
+    )
+    floats = np.zeros((3, NN))
+    T, S_old, S_new = floats[0], floats[1], floats[2]
     unclaimed = False
     largest = 0
     D = 0
@@ -283,13 +295,12 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     # the old store dense; the groups whose set must be enumerated (the skip rule: a
     # consistent whole set that leaves S at 0 needs no smaller statistic), each set once,
     # stopping at a statistic that clips every group holding the set at 0
-    S_old = np.zeros(NN)
-    held = np.zeros(NN, np.bool_)
     for p in range(skeys.shape[0]):
         S_old[skeys[p]] = svals[p]
         held[skeys[p]] = True
-    enumerate_ = np.zeros(NN, np.bool_)
-    stop = np.full(D, np.inf)
+    per_set = np.zeros((2, D))
+    stop, Tn = per_set[0], per_set[1]
+    stop[:] = np.inf
     wanted = np.zeros(D, np.bool_)
     for key in range(NN):
         a = set_of[key]
@@ -308,17 +319,14 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         if wanted[a]:
             need += 1
             m_need += s_count[a]
-    Tn = np.zeros(D)
     if need:
         u = np.empty((m_need, 2))
         Q = np.empty((m_need, 2, 2))
         Pp = np.empty((m_need, 2, 2))
-        nstart = np.empty(need, np.int64)
-        ncount = np.empty(need, np.int64)
-        nf = np.empty(need, np.int64)
-        nhalf = np.empty(need)
-        nstop = np.empty(need)
-        which = np.empty(need, np.int64)
+        n_ints = np.empty((4, need), np.int64)
+        nstart, ncount, nf, which = n_ints[0], n_ints[1], n_ints[2], n_ints[3]
+        n_floats = np.zeros((3, need))
+        nhalf, nstop, Tb = n_floats[0], n_floats[1], n_floats[2]
         q2 = 0
         b = 0
         for a in range(D):
@@ -338,7 +346,6 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
                     _copy_note(pvals, e, u, Q, Pp, q2)
                     q2 += 1
             b += 1
-        Tb = np.zeros(need)
         jb = np.zeros(need, np.bool_)
         group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, nstop, Tb, jb)
         for b in range(need):
@@ -346,7 +353,6 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     # the new store: each group's CUSUM, the silent pairs' decay (keys ascending)
     keys = np.empty(NN, np.int64)
     values = np.empty(NN)
-    S_new = np.zeros(NN)
     K = 0
     for key in range(NN):
         if set_of[key] < 0 and not held[key]:
