@@ -15,6 +15,7 @@ function                           numpy twin
 :func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
 :func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
 :func:`compiled_propagate_independent`  :func:`resloc.cl.fusion.propagate_independent`
+:func:`compiled_independent_predict`    the same, the noise from ``params``
 =================================  ======================================================
 """
 
@@ -37,6 +38,7 @@ from resloc.cl.tracking import JointCovariance
 __all__ = [
     "compiled_factorized_finish",
     "compiled_factorized_predict",
+    "compiled_independent_predict",
     "compiled_propagate_independent",
     "compiled_tracked_finish",
     "compiled_tracked_predict",
@@ -293,6 +295,24 @@ def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
                     for q in range(3):
                         sig[a, lc, p, q] = C[p, q] + T2[p, q]
                         sig[c, la, p, q] = 1.0 if p == q else 0.0
+
+
+def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray | None:
+    """:func:`compiled_propagate_independent` with the noise of ``params`` (its variances
+    kept for the run's ``params``, not recomputed per step); None where it does not apply.
+    Twin: :func:`resloc.cl.fusion.propagate_independent`."""
+    if backend() != "numba" or not isinstance(x, np.ndarray) or not isinstance(P_ind, np.ndarray):
+        return None
+    B = x.shape[0] if x.ndim == 2 else -1
+    noise = _odometry(params, dt, B)
+    if noise is None or x.shape != (B, 3) or P_ind.shape != (B, 3, 3) or np.shape(u) != (B, 2):
+        return None
+    out = np.empty((B, 3, 3))
+    _propagate_independent(
+        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(P_ind, dtype=float),
+        np.ascontiguousarray(u, dtype=float), float(dt), *noise, out,
+    )  # fmt: skip
+    return out
 
 
 def compiled_propagate_independent(x, P_ind, u, dt, odometry_std, floor_std):
