@@ -14,8 +14,7 @@ function                           numpy twin
 :func:`compiled_tracked_finish`    :meth:`resloc.cl.tracking.JointCovariance.finish`
 :func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
 :func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
-:func:`compiled_propagate_independent`  :func:`resloc.cl.fusion.propagate_independent`
-:func:`compiled_independent_predict`    the same, the noise from ``params``
+:func:`compiled_independent_predict`    :func:`resloc.cl.fusion.propagate_independent`
 =================================  ======================================================
 """
 
@@ -39,7 +38,6 @@ __all__ = [
     "compiled_factorized_finish",
     "compiled_factorized_predict",
     "compiled_independent_predict",
-    "compiled_propagate_independent",
     "compiled_tracked_finish",
     "compiled_tracked_predict",
     "unicycle_jacobian_into",
@@ -298,9 +296,10 @@ def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
 
 
 def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray | None:
-    """:func:`compiled_propagate_independent` with the noise of ``params`` (its variances
-    kept for the run's ``params``, not recomputed per step); None where it does not apply.
-    Twin: :func:`resloc.cl.fusion.propagate_independent`."""
+    """:func:`resloc.cl.fusion.propagate_independent` compiled: ``sym(F P_ind F^T + Q)`` of
+    every robot (shapes as there) with the noise of ``params`` (its variances kept for the
+    run's ``params``, not recomputed per step); None (nothing computed) when the backend
+    is numpy or the shapes are not the documented ones."""
     if backend() != "numba" or not isinstance(x, np.ndarray) or not isinstance(P_ind, np.ndarray):
         return None
     B = x.shape[0] if x.ndim == 2 else -1
@@ -312,33 +311,6 @@ def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray |
         np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(P_ind, dtype=float),
         np.ascontiguousarray(u, dtype=float), float(dt), *noise, out,
     )  # fmt: skip
-    return out
-
-
-def compiled_propagate_independent(x, P_ind, u, dt, odometry_std, floor_std):
-    """:func:`resloc.cl.fusion.propagate_independent` compiled: ``sym(F P_ind F^T + Q)`` of
-    every robot (shapes as there); None (nothing computed) when the backend is numpy or the
-    shapes are not the documented ones."""
-    if backend() != "numba":
-        return None
-    x = np.asarray(x)
-    B = x.shape[0] if x.ndim == 2 else -1
-    odometry = np.asarray(odometry_std, dtype=float)
-    floor = np.asarray(floor_std, dtype=float)
-    if x.shape != (B, 3) or np.shape(P_ind) != (B, 3, 3) or np.shape(u) != (B, 2):
-        return None
-    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
-        return None
-    out = np.empty((B, 3, 3))
-    _propagate_independent(
-        np.ascontiguousarray(x, dtype=float),
-        np.ascontiguousarray(P_ind, dtype=float),
-        np.ascontiguousarray(u, dtype=float),
-        float(dt),
-        np.ascontiguousarray(np.atleast_2d(odometry**2)),
-        np.ascontiguousarray(floor**2 * dt),
-        out,
-    )
     return out
 
 
