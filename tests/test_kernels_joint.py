@@ -108,16 +108,20 @@ def test_compiled_method_matches_reference_over_a_run(method: str, name: str) ->
     assert fused > 0
 
 
-@pytest.mark.parametrize("method", ["tracked", "factorized"])
+@pytest.mark.parametrize("method", ["tracked", "factorized", "split_ci"])
 def test_compiled_prediction_and_end_of_step_ran(method: str, monkeypatch) -> None:
     """The lockstep's numba side ran the compiled prediction and end of step of the
-    method every step (their numpy twins are the other side)."""
+    method every step (their numpy twins are the other side; split CI's end of step is
+    numpy on both)."""
     from resloc.cl import kernels_fusion_step as step_kernels
+    from resloc.cl.kernels_joint import warm_up_joint_form
 
+    warm_up_joint_form()  # (once per process; its corrections are not the lockstep's)
     ran: dict[str, int] = {}
     names = {
         "tracked": ("compiled_tracked_predict", "compiled_tracked_finish"),
         "factorized": ("compiled_factorized_predict", "compiled_factorized_finish"),
+        "split_ci": ("compiled_independent_predict",),
     }[method]
     for name in names:
         original = getattr(step_kernels, name)

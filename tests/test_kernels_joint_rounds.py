@@ -87,8 +87,7 @@ def test_cholesky_lanes_match_numpy_and_flag_what_needs_jitter() -> None:
     """:func:`~resloc.cl.kernels_joint_rounds.chol6_lanes` (the first level of ``chol6``
     over lanes) equals numpy's factor of every positive definite lane and flags the lanes
     that are not (singular, indefinite, not finite) for the jitter's levels."""
-    from resloc.cl.kernels_joint_lanes import chol6_lanes
-    from resloc.cl.kernels_lanes import CHUNK
+    from resloc.cl.kernels_joint_lanes import LANE_STRIDE, chol6_lanes
 
     rng = np.random.default_rng(3)
     n = 40
@@ -99,10 +98,10 @@ def test_cholesky_lanes_match_numpy_and_flag_what_needs_jitter() -> None:
     M[7, 4, 1] = M[7, 1, 4] = np.inf
     M[8, 5, 5] = 0.0  # only the last pivot fails
     rows, cols = np.tril_indices(6)
-    J = np.zeros((21, CHUNK))
+    J = np.zeros((21, LANE_STRIDE))
     J[:, :n] = M[:, rows, cols].T
-    L = np.zeros((21, CHUNK))
-    ok = np.zeros(CHUNK)
+    L = np.zeros((21, LANE_STRIDE))
+    ok = np.zeros(LANE_STRIDE)
     chol6_lanes(J, n, L, ok)
     bad = [5, 6, 7, 8]
     assert (ok[:n][bad] == 0.0).all()
@@ -141,3 +140,72 @@ def test_factorized_lanes_that_need_the_shrink_take_the_full_cross() -> None:
     assert LOOP_RUNS["joint_rounds"] - before == 1
     assert_equivalent(fast, ref)
     assert_same_state("factorized", *memories)
+
+
+@pytest.mark.parametrize("n", [5, 17, 30])
+def test_factorized_cross_lanes_are_the_certified_scalar_cross(n: int) -> None:
+    """:func:`~resloc.cl.kernels_joint_lanes.factorized_cross_lanes` (SIMD over lanes)
+    against the row-order loop's ``factorized_cross`` lane by lane: where it certifies a
+    lane, the blocks and the joint's lower triangle are ``factorized_cross``'s to the bit
+    (no shrink); it leaves to ``factorized_cross`` exactly the lanes with a correlation at
+    or above the cap (the shrink), a covariance whose factor needs jitter, a non-finite
+    entry. ``n`` below one block of lanes, not a multiple of it, and above."""
+    from resloc.cl.kernels_joint import joint_state
+    from resloc.cl.kernels_joint_lanes import (
+        CROSS_INPUT_ROWS,
+        LANE_STRIDE,
+        factorized_cross_lanes,
+    )
+    from resloc.cl.kernels_joint_links import CROSS_CAP, factorized_cross
+    from resloc.cl.kernels_lanes import CHUNK
+    from resloc.linalg import JITTER_LEVELS
+
+    rng = np.random.default_rng(40 + n)
+    B = n + 3
+    A = rng.normal(size=(B, 3, 3))
+    P = A @ np.swapaxes(A, -1, -2) + 0.05 * np.eye(3)
+    P_ref = P[rng.permutation(B)].copy()
+    memory = LinkMemory(B)
+    fusion_strategy("factorized").init(memory, np.zeros((B, 3)), P, B)
+    memory.joint.sig = rng.normal(size=(B, B, 3, 3)) * 0.12
+    memory.joint.sig_pred = rng.normal(size=(B, B, 3, 3)) * 0.12
+    obs = rng.permutation(B)[:n].astype(np.int64)
+    nbr = (obs + 1 + rng.integers(0, B - 1, n)) % B
+    joint = joint_state(2, memory, obs, nbr)  # FACTORIZED
+    joint.A[:] = np.eye(3) + 0.1 * rng.normal(size=(B, 3, 3))  # earlier updates' A_i
+    src = rng.integers(0, B, n).astype(np.int64)
+    P[obs[1], 2, 2] = -1.0  # no factor without jitter
+    P_ref[src[2]] = 1e-4 * np.eye(3)  # a small P_j: a correlation above the cap
+    P[obs[3], 0, 1] = np.nan
+    lane_e = np.zeros(CHUNK, np.int64)
+    lane_e[:n] = np.arange(n)
+    o = np.zeros(CHUNK, np.int64)
+    o[:n] = obs
+    s = np.zeros(CHUNK, np.int64)
+    s[:n] = src
+    blocks = np.zeros((27, LANE_STRIDE))
+    J = np.zeros((21, LANE_STRIDE))
+    ok = np.full(CHUNK, -1.0)
+    inputs = np.zeros((CROSS_INPUT_ROWS, LANE_STRIDE))
+    full = factorized_cross_lanes(joint, P, P_ref, lane_e, o, s, n, inputs, blocks, J, ok)
+    rows, cols = np.tril_indices(6)
+    expected_ok = np.zeros(n, bool)
+    for c in range(n):
+        i, j = obs[c], nbr[c]
+        Pi, Pj = P[i], P_ref[src[c]]
+        C = (joint.A[i] @ joint.sig[i, j]) @ joint.sig_pred[j, i].T
+        finite = np.isfinite(Pi).all() and np.isfinite(Pj).all()
+        if finite and np.linalg.eigvalsh(Pi)[0] > 0 and np.linalg.eigvalsh(Pj)[0] > 0:
+            Li, Lj = np.linalg.cholesky(Pi), np.linalg.cholesky(Pj)
+            corr = np.linalg.solve(Li, np.linalg.solve(Lj, C.T).T)
+            expected_ok[c] = np.linalg.norm(corr, 2) < CROSS_CAP
+        if not expected_ok[c]:
+            continue
+        work = joint.work
+        assert factorized_cross(joint, c, i, Pi, Pj, JITTER_LEVELS)
+        np.testing.assert_array_equal(blocks[:, c], work[:3].reshape(27))
+        joint6 = np.block([[work[0], work[1]], [work[1].T, work[2]]])
+        np.testing.assert_array_equal(J[:, c], (0.5 * (joint6 + joint6.T))[rows, cols])
+    assert not expected_ok[[1, 2, 3]].any() and expected_ok.sum() >= n - 5
+    np.testing.assert_array_equal(ok[:n], expected_ok.astype(float))
+    assert full == n - expected_ok.sum()

@@ -210,17 +210,18 @@ class SplitCIFusion(_TransmittedOnly):
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
         # The compiled twin when the backend allows it (imported here: the kernels import
         # this module's registry).
-        from resloc.cl.kernels_fusion_step import compiled_propagate_independent
+        from resloc.cl.kernels_fusion_step import compiled_independent_predict
 
-        noise = np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
-        propagated = compiled_propagate_independent(x, memory.independent, u, dt, *noise)
+        propagated = compiled_independent_predict(x, memory.independent, u, dt, params)
         if propagated is None:
+            noise = np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
             propagated = propagate_independent(x, memory.independent, u, dt, *noise)
         memory.independent = propagated
         return P_pred
 
     def link_fields(self, memory, j) -> dict[str, np.ndarray]:
-        return {"P_nb_ind": memory.independent[j]}
+        # (take: the rows of memory.independent[j], a quarter of the fancy index's time)
+        return {"P_nb_ind": np.asarray(memory.independent).take(j, axis=0)}
 
     def update(self, memory, x_i, P_i, i, j, x_j, P_j, P_j_ind, nu, m, params):
         if memory is None or memory.independent is None or P_j_ind is None:

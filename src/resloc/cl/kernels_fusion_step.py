@@ -14,7 +14,7 @@ function                           numpy twin
 :func:`compiled_tracked_finish`    :meth:`resloc.cl.tracking.JointCovariance.finish`
 :func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
 :func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
-:func:`compiled_propagate_independent`  :func:`resloc.cl.fusion.propagate_independent`
+:func:`compiled_independent_predict`    :func:`resloc.cl.fusion.propagate_independent`
 =================================  ======================================================
 """
 
@@ -37,7 +37,7 @@ from resloc.cl.tracking import JointCovariance
 __all__ = [
     "compiled_factorized_finish",
     "compiled_factorized_predict",
-    "compiled_propagate_independent",
+    "compiled_independent_predict",
     "compiled_tracked_finish",
     "compiled_tracked_predict",
     "unicycle_jacobian_into",
@@ -112,41 +112,49 @@ def _diagonal_blocks(sigma, N, diagonal):
 def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma, diagonal):
     """``sigma[t]_(ab) <- F_a sigma_(ab) F_b^T`` for every pair of robots of every team,
     ``+ Q_a`` on the diagonal blocks, then symmetrized, in place; the diagonal blocks into
-    ``diagonal: (B, 3, 3)``."""
+    ``diagonal: (B, 3, 3)``.
+
+    The unicycle's ``F`` is the identity but for ``F[0, 2]`` and ``F[1, 2]``
+    (:func:`unicycle_jacobian_into`): ``F_a`` on the left adds ``F[p, 2]`` times each
+    robot's third row to its rows ``p = 0, 1``, ``F_b^T`` on the right the same with
+    columns. The products of the full 3 x 3 blocks add ``1 * s``, ``0 * s`` and ``F[p, 2] *
+    s`` in this order: for finite entries the same sums to the bit (a row pass over
+    contiguous rows, then a column pass, ~6x fewer operations than a product per block
+    pair)."""
     B = x.shape[0]
     per_robot_noise = odometry_var.shape[0] > 1
-    F = np.zeros((B, 3, 3))
+    f = np.empty((B, 2))  # F[0, 2], F[1, 2] of each robot
     Q = np.zeros((B, 3, 3))
-    T = np.zeros((3, 3))
     for b in range(B):
         s2 = math.sin(x[b, 2])
         c2 = math.cos(x[b, 2])
         r = b if per_robot_noise else 0
         odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q[b])
-        unicycle_jacobian_into(u[b, 0], s2, c2, dt, F[b])
+        v = u[b, 0]
+        f[b, 0] = -v * s2 * dt  # (as unicycle_jacobian_into)
+        f[b, 1] = v * c2 * dt
+    n3 = 3 * N
     for t in range(sigma.shape[0]):
-        for a in range(N):
-            Fa = F[t * N + a]
+        S = sigma[t]
+        for a in range(N):  # F_a on the left: rows 3a, 3a + 1 += F[p, 2] * row 3a + 2
+            r0 = 3 * a
+            f0 = f[t * N + a, 0]
+            f1 = f[t * N + a, 1]
+            for q in range(n3):
+                s2q = S[r0 + 2, q]
+                S[r0, q] = S[r0, q] + f0 * s2q
+                S[r0 + 1, q] = S[r0 + 1, q] + f1 * s2q
+        for p in range(n3):  # F_b^T on the right: columns 3b, 3b + 1 += col 3b + 2 * F[q, 2]
             for c in range(N):
-                Fc = F[t * N + c]
-                r0 = 3 * a
                 c0 = 3 * c
-                for p in range(3):
-                    for q in range(3):
-                        T[p, q] = (
-                            Fa[p, 0] * sigma[t, r0, c0 + q]
-                            + Fa[p, 1] * sigma[t, r0 + 1, c0 + q]
-                            + Fa[p, 2] * sigma[t, r0 + 2, c0 + q]
-                        )
-                for p in range(3):
-                    for q in range(3):
-                        sigma[t, r0 + p, c0 + q] = (
-                            T[p, 0] * Fc[q, 0] + T[p, 1] * Fc[q, 1] + T[p, 2] * Fc[q, 2]
-                        )
+                tp2 = S[p, c0 + 2]
+                S[p, c0] = S[p, c0] + tp2 * f[t * N + c, 0]
+                S[p, c0 + 1] = S[p, c0 + 1] + tp2 * f[t * N + c, 1]
+        for a in range(N):
             for p in range(3):
                 for q in range(3):
-                    sigma[t, 3 * a + p, 3 * a + q] += Q[t * N + a, p, q]
-        _symmetrize_in_place(sigma[t])
+                    S[3 * a + p, 3 * a + q] += Q[t * N + a, p, q]
+        _symmetrize_in_place(S)
     _diagonal_blocks(sigma, N, diagonal)
 
 
@@ -218,21 +226,18 @@ def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | 
 
 @jit
 def _left_multiply_factors(x, u, dt, sig):
-    F = np.zeros((3, 3))
-    T = np.zeros((3, 3))
+    """``sig[b, m] <- F_b sig[b, m]`` in place: rows 0, 1 of each factor plus ``F[p, 2]``
+    times its row 2 (``F`` the identity elsewhere, :func:`_propagate_joint`: the same sums
+    as the 3 x 3 product's to the bit for finite entries)."""
     for b in range(sig.shape[0]):
-        unicycle_jacobian_into(u[b, 0], math.sin(x[b, 2]), math.cos(x[b, 2]), dt, F)
+        v = u[b, 0]
+        f0 = -v * math.sin(x[b, 2]) * dt  # (as unicycle_jacobian_into)
+        f1 = v * math.cos(x[b, 2]) * dt
         for m in range(sig.shape[1]):
-            for p in range(3):
-                for q in range(3):
-                    T[p, q] = (
-                        F[p, 0] * sig[b, m, 0, q]
-                        + F[p, 1] * sig[b, m, 1, q]
-                        + F[p, 2] * (sig[b, m, 2, q])
-                    )
-            for p in range(3):
-                for q in range(3):
-                    sig[b, m, p, q] = T[p, q]
+            for q in range(3):
+                s2q = sig[b, m, 2, q]
+                sig[b, m, 0, q] = sig[b, m, 0, q] + f0 * s2q
+                sig[b, m, 1, q] = sig[b, m, 1, q] + f1 * s2q
 
 
 def compiled_factorized_finish(joint) -> bool:
@@ -290,30 +295,22 @@ def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
                         sig[c, la, p, q] = 1.0 if p == q else 0.0
 
 
-def compiled_propagate_independent(x, P_ind, u, dt, odometry_std, floor_std):
+def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray | None:
     """:func:`resloc.cl.fusion.propagate_independent` compiled: ``sym(F P_ind F^T + Q)`` of
-    every robot (shapes as there); None (nothing computed) when the backend is numpy or the
-    shapes are not the documented ones."""
-    if backend() != "numba":
+    every robot (shapes as there) with the noise of ``params`` (its variances kept for the
+    run's ``params``, not recomputed per step); None (nothing computed) when the backend
+    is numpy or the shapes are not the documented ones."""
+    if backend() != "numba" or not isinstance(x, np.ndarray) or not isinstance(P_ind, np.ndarray):
         return None
-    x = np.asarray(x)
     B = x.shape[0] if x.ndim == 2 else -1
-    odometry = np.asarray(odometry_std, dtype=float)
-    floor = np.asarray(floor_std, dtype=float)
-    if x.shape != (B, 3) or np.shape(P_ind) != (B, 3, 3) or np.shape(u) != (B, 2):
-        return None
-    if odometry.shape not in ((2,), (B, 2)) or floor.shape != (3,):
+    noise = _odometry(params, dt, B)
+    if noise is None or x.shape != (B, 3) or P_ind.shape != (B, 3, 3) or np.shape(u) != (B, 2):
         return None
     out = np.empty((B, 3, 3))
     _propagate_independent(
-        np.ascontiguousarray(x, dtype=float),
-        np.ascontiguousarray(P_ind, dtype=float),
-        np.ascontiguousarray(u, dtype=float),
-        float(dt),
-        np.ascontiguousarray(np.atleast_2d(odometry**2)),
-        np.ascontiguousarray(floor**2 * dt),
-        out,
-    )
+        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(P_ind, dtype=float),
+        np.ascontiguousarray(u, dtype=float), float(dt), *noise, out,
+    )  # fmt: skip
     return out
 
 

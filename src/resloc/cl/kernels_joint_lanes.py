@@ -1,8 +1,8 @@
 """The lane pieces of the ``tracked`` and ``factorized`` joints' rounds
 (:mod:`resloc.cl.kernels_joint_rounds`): the joint's 6 x 6 Cholesky factors over lanes
 (:func:`chol6_lanes`), the points that move both robots (:func:`correlated_points_lanes`)
-and ``factorized``'s cross-covariance of one lane without a view of an array
-(:func:`factorized_cross_lane`). Each names its twin.
+and ``factorized``'s cross-covariance of every lane with its certificate
+(:func:`factorized_cross_lanes`). Each names its twin.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 
 from resloc.cl import kernels_joint_links as _kernels_joint_links
+from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl.kernels_joint_links import CROSS_CAP
 from resloc.cl.kernels_lanes import (
     CHUNK,
@@ -19,10 +20,17 @@ from resloc.cl.kernels_lanes import (
     wrap_lanes,
 )
 from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_round_cached import padded_lanes
 
 _jit = jit_lanes
 
-__all__ = ["chol6_lanes", "correlated_points_lanes", "factorized_cross_lane"]
+__all__ = [
+    "CROSS_INPUT_ROWS",
+    "LANE_STRIDE",
+    "chol6_lanes",
+    "correlated_points_lanes",
+    "factorized_cross_lanes",
+]
 
 
 @_jit
@@ -31,32 +39,32 @@ def chol6_lanes(J, n, L, ok):
     lower triangle row by row, entry ``(r, c)`` at row ``r (r + 1) / 2 + c``), into ``L``
     (same layout) without jitter, and whether each succeeded (1.0; all entries finite, every
     pivot positive): the first level of :func:`~resloc.cl.kernels_joint_links.chol6`, same
-    operations, same order. The arrays have CHUNK columns (flat rows CHUNK apart, see
-    :func:`~resloc.cl.kernels_link_stages.kalman_lanes`)."""
+    operations, same order. The arrays have :data:`LANE_STRIDE` columns (flat rows that far
+    apart, a compile-time constant as in :func:`~resloc.cl.kernels_link_stages.kalman_lanes`)."""
     Jf = J.reshape(J.size)
     Lf = L.reshape(L.size)
     for c in range(n):
         j00 = Jf[c]
-        j10 = Jf[1 * CHUNK + c]
-        j11 = Jf[2 * CHUNK + c]
-        j20 = Jf[3 * CHUNK + c]
-        j21 = Jf[4 * CHUNK + c]
-        j22 = Jf[5 * CHUNK + c]
-        j30 = Jf[6 * CHUNK + c]
-        j31 = Jf[7 * CHUNK + c]
-        j32 = Jf[8 * CHUNK + c]
-        j33 = Jf[9 * CHUNK + c]
-        j40 = Jf[10 * CHUNK + c]
-        j41 = Jf[11 * CHUNK + c]
-        j42 = Jf[12 * CHUNK + c]
-        j43 = Jf[13 * CHUNK + c]
-        j44 = Jf[14 * CHUNK + c]
-        j50 = Jf[15 * CHUNK + c]
-        j51 = Jf[16 * CHUNK + c]
-        j52 = Jf[17 * CHUNK + c]
-        j53 = Jf[18 * CHUNK + c]
-        j54 = Jf[19 * CHUNK + c]
-        j55 = Jf[20 * CHUNK + c]
+        j10 = Jf[1 * LANE_STRIDE + c]
+        j11 = Jf[2 * LANE_STRIDE + c]
+        j20 = Jf[3 * LANE_STRIDE + c]
+        j21 = Jf[4 * LANE_STRIDE + c]
+        j22 = Jf[5 * LANE_STRIDE + c]
+        j30 = Jf[6 * LANE_STRIDE + c]
+        j31 = Jf[7 * LANE_STRIDE + c]
+        j32 = Jf[8 * LANE_STRIDE + c]
+        j33 = Jf[9 * LANE_STRIDE + c]
+        j40 = Jf[10 * LANE_STRIDE + c]
+        j41 = Jf[11 * LANE_STRIDE + c]
+        j42 = Jf[12 * LANE_STRIDE + c]
+        j43 = Jf[13 * LANE_STRIDE + c]
+        j44 = Jf[14 * LANE_STRIDE + c]
+        j50 = Jf[15 * LANE_STRIDE + c]
+        j51 = Jf[16 * LANE_STRIDE + c]
+        j52 = Jf[17 * LANE_STRIDE + c]
+        j53 = Jf[18 * LANE_STRIDE + c]
+        j54 = Jf[19 * LANE_STRIDE + c]
+        j55 = Jf[20 * LANE_STRIDE + c]
         good = True
         good = good & (abs(j00) < math.inf)
         good = good & (abs(j10) < math.inf)
@@ -119,26 +127,26 @@ def chol6_lanes(J, n, L, ok):
         d5 = math.sqrt(s5)
         l55 = d5
         Lf[c] = l00
-        Lf[1 * CHUNK + c] = l10
-        Lf[2 * CHUNK + c] = l11
-        Lf[3 * CHUNK + c] = l20
-        Lf[4 * CHUNK + c] = l21
-        Lf[5 * CHUNK + c] = l22
-        Lf[6 * CHUNK + c] = l30
-        Lf[7 * CHUNK + c] = l31
-        Lf[8 * CHUNK + c] = l32
-        Lf[9 * CHUNK + c] = l33
-        Lf[10 * CHUNK + c] = l40
-        Lf[11 * CHUNK + c] = l41
-        Lf[12 * CHUNK + c] = l42
-        Lf[13 * CHUNK + c] = l43
-        Lf[14 * CHUNK + c] = l44
-        Lf[15 * CHUNK + c] = l50
-        Lf[16 * CHUNK + c] = l51
-        Lf[17 * CHUNK + c] = l52
-        Lf[18 * CHUNK + c] = l53
-        Lf[19 * CHUNK + c] = l54
-        Lf[20 * CHUNK + c] = l55
+        Lf[1 * LANE_STRIDE + c] = l10
+        Lf[2 * LANE_STRIDE + c] = l11
+        Lf[3 * LANE_STRIDE + c] = l20
+        Lf[4 * LANE_STRIDE + c] = l21
+        Lf[5 * LANE_STRIDE + c] = l22
+        Lf[6 * LANE_STRIDE + c] = l30
+        Lf[7 * LANE_STRIDE + c] = l31
+        Lf[8 * LANE_STRIDE + c] = l32
+        Lf[9 * LANE_STRIDE + c] = l33
+        Lf[10 * LANE_STRIDE + c] = l40
+        Lf[11 * LANE_STRIDE + c] = l41
+        Lf[12 * LANE_STRIDE + c] = l42
+        Lf[13 * LANE_STRIDE + c] = l43
+        Lf[14 * LANE_STRIDE + c] = l44
+        Lf[15 * LANE_STRIDE + c] = l50
+        Lf[16 * LANE_STRIDE + c] = l51
+        Lf[17 * LANE_STRIDE + c] = l52
+        Lf[18 * LANE_STRIDE + c] = l53
+        Lf[19 * LANE_STRIDE + c] = l54
+        Lf[20 * LANE_STRIDE + c] = l55
         ok[c] = 1.0 if good else 0.0
 
 
@@ -199,113 +207,180 @@ def correlated_points_lanes(axis, value, Wm, n, xi, xr, sin_cos, Li, X, Ls, Z0, 
                 bad[c] += 0.0 if good else 1.0
 
 
-@jit_inline
-def _chol3_first_level(a00, a10, a20, a11, a21, a22):
-    """The first level (no jitter) of :func:`~resloc.cl.kernels_math.chol3` on scalars:
-    ``(ok, l00, l10, l20, l11, l21, l22)``, same operations, same order."""
-    s = a00 + 0.0
-    ok = s > 0.0
-    l00 = math.sqrt(s) if ok else 1.0
-    l10 = a10 / l00
-    l20 = a20 / l00
-    s = (a11 + 0.0) - l10 * l10
-    ok = ok and s > 0.0
-    l11 = math.sqrt(s) if ok else 1.0
-    l21 = (a21 - l20 * l10) / l11
-    s = ((a22 + 0.0) - l20 * l20) - l21 * l21
-    ok = ok and s > 0.0
-    l22 = math.sqrt(s) if ok else 1.0
-    return ok, l00, l10, l20, l11, l21, l22
+#: Columns of the joints' lane arrays (:mod:`resloc.cl.kernels_joint_rounds`: the blocks,
+#: the 6 x 6 joints and factors, the factor's parts, :func:`factorized_cross_lanes`'
+#: inputs): one block of lanes more than ``CHUNK``. With ``CHUNK`` columns a row is 2 KiB
+#: long, and a lane's entries, one per row, all fall in the same two sets of the first-level
+#: cache: a loop that stores a lane's 45 inputs ran at ~150 ns a lane, ~14 ns with this
+#: stride (measured, 24 lanes).
+LANE_STRIDE = CHUNK + 8
+
+#: Rows of :func:`factorized_cross_lanes`' gathered inputs: robot i's ``A_i``, its factor
+#: ``sigma_il``, j's ``sigma_ji`` as the step began, ``P_i`` and ``P_j`` (9 each, by row).
+CROSS_INPUT_ROWS = 45
 
 
-@jit_inline
-def factorized_cross_lane(joint, e, i, P, P_ref, s):
-    """:func:`~resloc.cl.kernels_joint_links.factorized_cross` of one lane (``P[i]``,
-    ``P_ref[s]``) without a view of an array: the factors' product, and the certificate
-    that it needs no shrinking (both covariances factored at the first level of ``chol3``,
-    the correlation's Frobenius norm or Sylvester's criterion below the cap) on scalars,
-    the blocks into ``work[0:3]`` as ``factorized_cross`` leaves them. False for any other
-    case (jitter, a shrink, a non-finite entry): the caller runs ``factorized_cross``
-    itself, from the start, in a loop of its own."""
+@_jit
+def factorized_cross_lanes(joint, P, P_ref, lane_e, obs, src, n, inputs, blocks, J, ok):
+    """``factorized``'s cross-covariance of every lane with the certificate that it needs
+    no shrink, as :func:`~resloc.cl.kernels_joint_links.factorized_cross` leaves it where
+    the certificate holds. The inputs gathered by lane into ``inputs: (CROSS_INPUT_ROWS,
+    LANE_STRIDE)`` (lanes ``n`` up to the padded count copies of lane 0, never read), then
+    the factors' product, both covariances' first level of ``chol3``, the correlation
+    ``L_i^-1 C L_j^-T`` and its norm, and the blocks, in one branch-free loop over lanes
+    that LLVM compiles to SIMD (:func:`_cross_of_lanes`). Per lane: ``ok[c]`` 1.0 where
+    certified (every entry finite, both factors without jitter, the correlation's Frobenius
+    norm or Sylvester's criterion below the cap), the blocks ``P_i``, ``C_ij``, ``P_j``
+    into ``blocks: (27, LANE_STRIDE)`` and the lower triangle of their symmetrized joint
+    into ``J: (21, LANE_STRIDE)`` (as ``_joint_into_lane``); 0.0 elsewhere (jitter, a
+    shrink, a non-finite entry: the caller runs ``factorized_cross`` itself, whose values
+    these lanes' are not). Returns how many of the ``n`` lanes are not certified. The same
+    operations in the same order as the scalar piece it replaced (one lane at a time:
+    ~165 ns a lane of the joint's blocks, against ~80 for ``tracked``'s), so the same
+    values to the bit."""
     N = joint[1]
-    j = joint[2][e]
-    work = joint[11]
+    nbr = joint[2]
+    A = joint[5]
     sig = joint[7]
     sig_pred = joint[8]
-    A = joint[5]
-    li = i % N
-    lj = j % N
-    t00 = (
-        A[i, 0, 0] * sig[i, lj, 0, 0]
-        + A[i, 0, 1] * sig[i, lj, 1, 0]
-        + (A[i, 0, 2] * sig[i, lj, 2, 0])
-    )
-    t01 = (
-        A[i, 0, 0] * sig[i, lj, 0, 1]
-        + A[i, 0, 1] * sig[i, lj, 1, 1]
-        + (A[i, 0, 2] * sig[i, lj, 2, 1])
-    )
-    t02 = (
-        A[i, 0, 0] * sig[i, lj, 0, 2]
-        + A[i, 0, 1] * sig[i, lj, 1, 2]
-        + (A[i, 0, 2] * sig[i, lj, 2, 2])
-    )
-    t10 = (
-        A[i, 1, 0] * sig[i, lj, 0, 0]
-        + A[i, 1, 1] * sig[i, lj, 1, 0]
-        + (A[i, 1, 2] * sig[i, lj, 2, 0])
-    )
-    t11 = (
-        A[i, 1, 0] * sig[i, lj, 0, 1]
-        + A[i, 1, 1] * sig[i, lj, 1, 1]
-        + (A[i, 1, 2] * sig[i, lj, 2, 1])
-    )
-    t12 = (
-        A[i, 1, 0] * sig[i, lj, 0, 2]
-        + A[i, 1, 1] * sig[i, lj, 1, 2]
-        + (A[i, 1, 2] * sig[i, lj, 2, 2])
-    )
-    t20 = (
-        A[i, 2, 0] * sig[i, lj, 0, 0]
-        + A[i, 2, 1] * sig[i, lj, 1, 0]
-        + (A[i, 2, 2] * sig[i, lj, 2, 0])
-    )
-    t21 = (
-        A[i, 2, 0] * sig[i, lj, 0, 1]
-        + A[i, 2, 1] * sig[i, lj, 1, 1]
-        + (A[i, 2, 2] * sig[i, lj, 2, 1])
-    )
-    t22 = (
-        A[i, 2, 0] * sig[i, lj, 0, 2]
-        + A[i, 2, 1] * sig[i, lj, 1, 2]
-        + (A[i, 2, 2] * sig[i, lj, 2, 2])
-    )
-    c00 = t00 * sig_pred[j, li, 0, 0] + t01 * sig_pred[j, li, 0, 1] + t02 * sig_pred[j, li, 0, 2]
-    c01 = t00 * sig_pred[j, li, 1, 0] + t01 * sig_pred[j, li, 1, 1] + t02 * sig_pred[j, li, 1, 2]
-    c02 = t00 * sig_pred[j, li, 2, 0] + t01 * sig_pred[j, li, 2, 1] + t02 * sig_pred[j, li, 2, 2]
-    c10 = t10 * sig_pred[j, li, 0, 0] + t11 * sig_pred[j, li, 0, 1] + t12 * sig_pred[j, li, 0, 2]
-    c11 = t10 * sig_pred[j, li, 1, 0] + t11 * sig_pred[j, li, 1, 1] + t12 * sig_pred[j, li, 1, 2]
-    c12 = t10 * sig_pred[j, li, 2, 0] + t11 * sig_pred[j, li, 2, 1] + t12 * sig_pred[j, li, 2, 2]
-    c20 = t20 * sig_pred[j, li, 0, 0] + t21 * sig_pred[j, li, 0, 1] + t22 * sig_pred[j, li, 0, 2]
-    c21 = t20 * sig_pred[j, li, 1, 0] + t21 * sig_pred[j, li, 1, 1] + t22 * sig_pred[j, li, 1, 2]
-    c22 = t20 * sig_pred[j, li, 2, 0] + t21 * sig_pred[j, li, 2, 1] + t22 * sig_pred[j, li, 2, 2]
-    finite = True
-    for a in range(3):
-        for b in range(3):
-            finite = finite and math.isfinite(P[i, a, b]) and math.isfinite(P_ref[s, a, b])
-    oki, i00, i10, i20, i11, i21, i22 = _chol3_first_level(
-        P[i, 0, 0], P[i, 1, 0], P[i, 2, 0], P[i, 1, 1], P[i, 2, 1], P[i, 2, 2]
-    )
-    okj, j00, j10, j20, j11, j21, j22 = _chol3_first_level(
-        P_ref[s, 0, 0],
-        P_ref[s, 1, 0],
-        P_ref[s, 2, 0],
-        P_ref[s, 1, 1],
-        P_ref[s, 2, 1],
-        P_ref[s, 2, 2],
-    )
-    certified = finite and oki and okj
-    if certified:
+    n2 = padded_lanes(n, CHUNK)
+    for c in range(n2):
+        d = c if c < n else 0
+        i = obs[d]
+        j = nbr[lane_e[d]]
+        s = src[d]
+        li = i % N
+        lj = j % N
+        for a in range(3):
+            for b in range(3):
+                k = 3 * a + b
+                inputs[k, c] = A[i, a, b]
+                inputs[9 + k, c] = sig[i, lj, a, b]
+                inputs[18 + k, c] = sig_pred[j, li, a, b]
+                inputs[27 + k, c] = P[i, a, b]
+                inputs[36 + k, c] = P_ref[s, a, b]
+    _cross_of_lanes(n2, inputs, blocks, J, ok)
+    full = 0
+    for c in range(n):
+        full += 1 if ok[c] == 0.0 else 0
+    return full
+
+
+@_jit
+def _cross_of_lanes(n, inputs, blocks, J, ok):
+    """The arithmetic of :func:`factorized_cross_lanes` on lanes ``0 .. n - 1``: scalars
+    only, selects for the branches, the arrays (:data:`LANE_STRIDE` columns) read and written
+    through flat views (as :func:`chol6_lanes`): LLVM vectorizes the loop."""
+    f = inputs.reshape(inputs.size)
+    bf = blocks.reshape(blocks.size)
+    Jf = J.reshape(J.size)
+    for c in range(n):
+        a00 = f[c]
+        a01 = f[1 * LANE_STRIDE + c]
+        a02 = f[2 * LANE_STRIDE + c]
+        a10 = f[3 * LANE_STRIDE + c]
+        a11 = f[4 * LANE_STRIDE + c]
+        a12 = f[5 * LANE_STRIDE + c]
+        a20 = f[6 * LANE_STRIDE + c]
+        a21 = f[7 * LANE_STRIDE + c]
+        a22 = f[8 * LANE_STRIDE + c]
+        s00 = f[9 * LANE_STRIDE + c]
+        s01 = f[10 * LANE_STRIDE + c]
+        s02 = f[11 * LANE_STRIDE + c]
+        s10 = f[12 * LANE_STRIDE + c]
+        s11 = f[13 * LANE_STRIDE + c]
+        s12 = f[14 * LANE_STRIDE + c]
+        s20 = f[15 * LANE_STRIDE + c]
+        s21 = f[16 * LANE_STRIDE + c]
+        s22 = f[17 * LANE_STRIDE + c]
+        p00 = f[18 * LANE_STRIDE + c]
+        p01 = f[19 * LANE_STRIDE + c]
+        p02 = f[20 * LANE_STRIDE + c]
+        p10 = f[21 * LANE_STRIDE + c]
+        p11 = f[22 * LANE_STRIDE + c]
+        p12 = f[23 * LANE_STRIDE + c]
+        p20 = f[24 * LANE_STRIDE + c]
+        p21 = f[25 * LANE_STRIDE + c]
+        p22 = f[26 * LANE_STRIDE + c]
+        pi00 = f[27 * LANE_STRIDE + c]
+        pi01 = f[28 * LANE_STRIDE + c]
+        pi02 = f[29 * LANE_STRIDE + c]
+        pi10 = f[30 * LANE_STRIDE + c]
+        pi11 = f[31 * LANE_STRIDE + c]
+        pi12 = f[32 * LANE_STRIDE + c]
+        pi20 = f[33 * LANE_STRIDE + c]
+        pi21 = f[34 * LANE_STRIDE + c]
+        pi22 = f[35 * LANE_STRIDE + c]
+        pj00 = f[36 * LANE_STRIDE + c]
+        pj01 = f[37 * LANE_STRIDE + c]
+        pj02 = f[38 * LANE_STRIDE + c]
+        pj10 = f[39 * LANE_STRIDE + c]
+        pj11 = f[40 * LANE_STRIDE + c]
+        pj12 = f[41 * LANE_STRIDE + c]
+        pj20 = f[42 * LANE_STRIDE + c]
+        pj21 = f[43 * LANE_STRIDE + c]
+        pj22 = f[44 * LANE_STRIDE + c]
+        t00 = a00 * s00 + a01 * s10 + (a02 * s20)
+        t01 = a00 * s01 + a01 * s11 + (a02 * s21)
+        t02 = a00 * s02 + a01 * s12 + (a02 * s22)
+        t10 = a10 * s00 + a11 * s10 + (a12 * s20)
+        t11 = a10 * s01 + a11 * s11 + (a12 * s21)
+        t12 = a10 * s02 + a11 * s12 + (a12 * s22)
+        t20 = a20 * s00 + a21 * s10 + (a22 * s20)
+        t21 = a20 * s01 + a21 * s11 + (a22 * s21)
+        t22 = a20 * s02 + a21 * s12 + (a22 * s22)
+        c00 = t00 * p00 + t01 * p01 + t02 * p02
+        c01 = t00 * p10 + t01 * p11 + t02 * p12
+        c02 = t00 * p20 + t01 * p21 + t02 * p22
+        c10 = t10 * p00 + t11 * p01 + t12 * p02
+        c11 = t10 * p10 + t11 * p11 + t12 * p12
+        c12 = t10 * p20 + t11 * p21 + t12 * p22
+        c20 = t20 * p00 + t21 * p01 + t22 * p02
+        c21 = t20 * p10 + t21 * p11 + t22 * p12
+        c22 = t20 * p20 + t21 * p21 + t22 * p22
+        good = True
+        good = good & (abs(pi00) < math.inf)
+        good = good & (abs(pi01) < math.inf)
+        good = good & (abs(pi02) < math.inf)
+        good = good & (abs(pi10) < math.inf)
+        good = good & (abs(pi11) < math.inf)
+        good = good & (abs(pi12) < math.inf)
+        good = good & (abs(pi20) < math.inf)
+        good = good & (abs(pi21) < math.inf)
+        good = good & (abs(pi22) < math.inf)
+        good = good & (abs(pj00) < math.inf)
+        good = good & (abs(pj01) < math.inf)
+        good = good & (abs(pj02) < math.inf)
+        good = good & (abs(pj10) < math.inf)
+        good = good & (abs(pj11) < math.inf)
+        good = good & (abs(pj12) < math.inf)
+        good = good & (abs(pj20) < math.inf)
+        good = good & (abs(pj21) < math.inf)
+        good = good & (abs(pj22) < math.inf)
+        s = pi00 + 0.0  # the first level of chol3, as _chol3_first_level
+        oki = s > 0.0
+        i00 = math.sqrt(s) if oki else 1.0
+        i10 = pi10 / i00
+        i20 = pi20 / i00
+        s = (pi11 + 0.0) - i10 * i10
+        oki = oki & (s > 0.0)
+        i11 = math.sqrt(s) if oki else 1.0
+        i21 = (pi21 - i20 * i10) / i11
+        s = ((pi22 + 0.0) - i20 * i20) - i21 * i21
+        oki = oki & (s > 0.0)
+        i22 = math.sqrt(s) if oki else 1.0
+        s = pj00 + 0.0  # the first level of chol3, as _chol3_first_level
+        okj = s > 0.0
+        j00 = math.sqrt(s) if okj else 1.0
+        j10 = pj10 / j00
+        j20 = pj20 / j00
+        s = (pj11 + 0.0) - j10 * j10
+        okj = okj & (s > 0.0)
+        j11 = math.sqrt(s) if okj else 1.0
+        j21 = (pj21 - j20 * j10) / j11
+        s = ((pj22 + 0.0) - j20 * j20) - j21 * j21
+        okj = okj & (s > 0.0)
+        j22 = math.sqrt(s) if okj else 1.0
         # Y = Lj^-1 C^T (column b of C^T: row b of C), then X = Li^-1 Y^T
         y00 = c00 / j00
         y10 = (c01 - j10 * y00) / j11
@@ -335,35 +410,70 @@ def factorized_cross_lane(joint, e, i, P, P_ref, s):
         frob += x20 * x20
         frob += x21 * x21
         frob += x22 * x22
-        if not math.sqrt(frob) <= CROSS_CAP:  # X^T X below cap^2 (Sylvester), else shrink
-            m00 = x00 * x00 + x10 * x10 + x20 * x20
-            m01 = x00 * x01 + x10 * x11 + x20 * x21
-            m02 = x00 * x02 + x10 * x12 + x20 * x22
-            m11 = x01 * x01 + x11 * x11 + x21 * x21
-            m12 = x01 * x02 + x11 * x12 + x21 * x22
-            m22 = x02 * x02 + x12 * x12 + x22 * x22
-            certified = _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, CROSS_CAP * CROSS_CAP)
-    if not certified:
-        return False
-    for a in range(3):
-        for b in range(3):
-            work[0, a, b] = P[i, a, b]
-            work[2, a, b] = P_ref[s, a, b]
-    work[1, 0, 0] = c00
-    work[1, 0, 1] = c01
-    work[1, 0, 2] = c02
-    work[1, 1, 0] = c10
-    work[1, 1, 1] = c11
-    work[1, 1, 2] = c12
-    work[1, 2, 0] = c20
-    work[1, 2, 1] = c21
-    work[1, 2, 2] = c22
-    return True
+        m00 = x00 * x00 + x10 * x10 + x20 * x20
+        m01 = x00 * x01 + x10 * x11 + x20 * x21
+        m02 = x00 * x02 + x10 * x12 + x20 * x22
+        m11 = x01 * x01 + x11 * x11 + x21 * x21
+        m12 = x01 * x02 + x11 * x12 + x21 * x22
+        m22 = x02 * x02 + x12 * x12 + x22 * x22
+        below = _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, CROSS_CAP * CROSS_CAP)
+        small = math.sqrt(frob) <= CROSS_CAP
+        certified = good & oki & okj & (small | below)
+        ok[c] = 1.0 if certified else 0.0
+        bf[c] = pi00
+        bf[1 * LANE_STRIDE + c] = pi01
+        bf[2 * LANE_STRIDE + c] = pi02
+        bf[3 * LANE_STRIDE + c] = pi10
+        bf[4 * LANE_STRIDE + c] = pi11
+        bf[5 * LANE_STRIDE + c] = pi12
+        bf[6 * LANE_STRIDE + c] = pi20
+        bf[7 * LANE_STRIDE + c] = pi21
+        bf[8 * LANE_STRIDE + c] = pi22
+        bf[9 * LANE_STRIDE + c] = c00
+        bf[10 * LANE_STRIDE + c] = c01
+        bf[11 * LANE_STRIDE + c] = c02
+        bf[12 * LANE_STRIDE + c] = c10
+        bf[13 * LANE_STRIDE + c] = c11
+        bf[14 * LANE_STRIDE + c] = c12
+        bf[15 * LANE_STRIDE + c] = c20
+        bf[16 * LANE_STRIDE + c] = c21
+        bf[17 * LANE_STRIDE + c] = c22
+        bf[18 * LANE_STRIDE + c] = pj00
+        bf[19 * LANE_STRIDE + c] = pj01
+        bf[20 * LANE_STRIDE + c] = pj02
+        bf[21 * LANE_STRIDE + c] = pj10
+        bf[22 * LANE_STRIDE + c] = pj11
+        bf[23 * LANE_STRIDE + c] = pj12
+        bf[24 * LANE_STRIDE + c] = pj20
+        bf[25 * LANE_STRIDE + c] = pj21
+        bf[26 * LANE_STRIDE + c] = pj22
+        Jf[c] = 0.5 * (pi00 + pi00)
+        Jf[1 * LANE_STRIDE + c] = 0.5 * (pi10 + pi01)
+        Jf[2 * LANE_STRIDE + c] = 0.5 * (pi11 + pi11)
+        Jf[3 * LANE_STRIDE + c] = 0.5 * (pi20 + pi02)
+        Jf[4 * LANE_STRIDE + c] = 0.5 * (pi21 + pi12)
+        Jf[5 * LANE_STRIDE + c] = 0.5 * (pi22 + pi22)
+        Jf[6 * LANE_STRIDE + c] = c00
+        Jf[7 * LANE_STRIDE + c] = c10
+        Jf[8 * LANE_STRIDE + c] = c20
+        Jf[9 * LANE_STRIDE + c] = 0.5 * (pj00 + pj00)
+        Jf[10 * LANE_STRIDE + c] = c01
+        Jf[11 * LANE_STRIDE + c] = c11
+        Jf[12 * LANE_STRIDE + c] = c21
+        Jf[13 * LANE_STRIDE + c] = 0.5 * (pj10 + pj01)
+        Jf[14 * LANE_STRIDE + c] = 0.5 * (pj11 + pj11)
+        Jf[15 * LANE_STRIDE + c] = c02
+        Jf[16 * LANE_STRIDE + c] = c12
+        Jf[17 * LANE_STRIDE + c] = c22
+        Jf[18 * LANE_STRIDE + c] = 0.5 * (pj20 + pj02)
+        Jf[19 * LANE_STRIDE + c] = 0.5 * (pj21 + pj12)
+        Jf[20 * LANE_STRIDE + c] = 0.5 * (pj22 + pj22)
 
 
 @jit_inline
 def _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, c):
-    """:func:`~resloc.cl.kernels_joint_links.scaled_unit_minus_is_pd` on scalars."""
+    """:func:`~resloc.cl.kernels_joint_links.scaled_unit_minus_is_pd` on scalars, branch
+    free."""
     n00 = c - m00
     n11 = c - m11
     n22 = c - m22
@@ -376,8 +486,8 @@ def _unit_minus_is_pd(m00, m01, m02, m11, m12, m22, c):
         - n01 * (n01 * n22 - n12 * n02)
         + n02 * (n01 * n12 - n11 * n02)
     )
-    return n00 > 0.0 and m2 > 0.0 and det > 0.0
+    return (n00 > 0.0) & (m2 > 0.0) & (det > 0.0)
 
 
-for _dispatcher in (chol6_lanes, correlated_points_lanes):
-    stamp_with_pieces(_dispatcher, _kernels_joint_links)
+for _dispatcher in (chol6_lanes, correlated_points_lanes, factorized_cross_lanes, _cross_of_lanes):
+    stamp_with_pieces(_dispatcher, _kernels_joint_links, _kernels_round_cached)

@@ -50,9 +50,11 @@ from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl.kernels_joint_lanes import (
+    CROSS_INPUT_ROWS,
+    LANE_STRIDE,
     chol6_lanes,
     correlated_points_lanes,
-    factorized_cross_lane,
+    factorized_cross_lanes,
 )
 from resloc.cl.kernels_joint_links import (
     NO_JOINT,
@@ -170,26 +172,26 @@ def _joint_into_lane(work, J6, blocks, J, c):
 @_jit
 def joint_factor_lanes(
     joint, P, P_ref, lane_e, lane_first, obs, src, n, fused, jitter, now, blocks, J, L, ok,
-    Li, X, Ls,
+    Li, X, Ls, cross_in,
 ):  # fmt: skip
     """Per lane: the blocks of the correlated joint (:func:`joint_cross`, kept in
     ``blocks: (27, C)`` for the record) and the Cholesky factor of the joint
     (:func:`chol6`, the row-order loop's), split into ``Li``, ``X`` and ``Ls`` (3, 3, C)
     (``Li``, ``Ls``: lower triangles). ``tracked``: robot i's covariance now comes from
-    ``now`` after its first link and goes back there. The factors by :func:`chol6_lanes`
-    (SIMD), the lanes that need jitter by :func:`chol6` itself. False when a covariance or
-    the joint has no Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
+    ``now`` after its first link and goes back there; ``factorized``: the cross of every
+    lane at once where its certificate holds (:func:`factorized_cross_lanes`, SIMD;
+    ``cross_in``: its scratch). The factors by :func:`chol6_lanes` (SIMD), the lanes that
+    need jitter by :func:`chol6` itself. False when a covariance or the joint has no
+    Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
     ``correct_links``."""
     tracked = joint[0] == TRACKED
     work = joint[11]
     J6 = joint[12]
     full = 0  # factorized: lanes whose cross needs factorized_cross itself (ok[c] = 0)
-    for c in range(n):
-        e = lane_e[c]
-        i = obs[c]
-        # each method's cross inlined apart: the two in one loop cost 7x
-        # (kernels_joint_links.tracked_cross)
-        if tracked:
+    if tracked:
+        for c in range(n):
+            e = lane_e[c]
+            i = obs[c]
             if e != lane_first[c]:
                 for a in range(3):
                     for b in range(3):
@@ -198,15 +200,13 @@ def joint_factor_lanes(
             for a in range(3):
                 for b in range(3):
                     now[i, a, b] = work[4, a, b]
-        elif not factorized_cross_lane(joint, e, i, P, P_ref, src[c]):
-            ok[c] = 0.0
-            full += 1
-            continue
-        ok[c] = 1.0
-        _joint_into_lane(work, J6, blocks, J, c)
+            ok[c] = 1.0
+            _joint_into_lane(work, J6, blocks, J, c)
+    else:
+        full = factorized_cross_lanes(joint, P, P_ref, lane_e, obs, src, n, cross_in, blocks, J, ok)
     for c in range(n if full else 0):
         # the lanes the certificate did not cover, in a loop of their own (inlined into
-        # the first loop, factorized_cross made every lane 2.3x slower)
+        # a lane loop, factorized_cross made every lane 2.3x slower)
         if ok[c] == 0.0:
             if not factorized_cross(joint, lane_e[c], obs[c], P[obs[c]], P_ref[src[c]], jitter):
                 return False
@@ -314,13 +314,18 @@ def _joint_rounds(
     block_start = np.empty(C, np.int64)
     block_count = np.empty(C, np.int64)
     lane_first = np.empty(C, np.int64)
-    (lane_e, obs, src, xi, xr, zl, sin_cos, Li, Ls, _, _, _, bad, Z0, Z1, sums, moments,
+    (lane_e, obs, src, xi, xr, zl, sin_cos, _, _, _, _, _, bad, Z0, Z1, sums, moments,
      pxz, mean) = moment_scratch(C, m)  # fmt: skip
-    X = np.zeros((3, 3, C))
-    blocks = np.empty((27, C))
-    J = np.empty((21, C))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
-    L = np.empty((21, C))
+    # the joint's lane arrays, LANE_STRIDE columns (kernels_joint_lanes: not 2 KiB rows)
+    S = LANE_STRIDE
+    Li = np.zeros((3, 3, S))
+    X = np.zeros((3, 3, S))
+    Ls = np.zeros((3, 3, S))
+    blocks = np.empty((27, S))
+    J = np.empty((21, S))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
+    L = np.empty((21, S))
     ok = np.empty(C)
+    cross_in = np.empty((CROSS_INPUT_ROWS, S))  # factorized_cross_lanes' gathered inputs
     now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     Pi = np.empty((9, C))
     update = np.empty((UPDATE_ROWS, C))
@@ -356,7 +361,7 @@ def _joint_rounds(
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             if not joint_factor_lanes(
                 joint, P, P_ref, lane_e, lane_first, obs, src, n, fused, jitter, now, blocks,
-                J, L, ok, Li, X, Ls,
+                J, L, ok, Li, X, Ls, cross_in,
             ):  # fmt: skip
                 return NOT_PD
             # the vectorized stages on padded lanes (copies of lane 0, never read): their

@@ -53,6 +53,7 @@ __all__ = [
     "fresh_covariances",
     "fresh_lanes",
     "lanes_ahead",
+    "pad_gathered",
     "padded_lanes",
     "sent_lanes",
     "take_fresh",
@@ -100,6 +101,26 @@ def padded_lanes(n, C):
     if n < LANE_BLOCK:
         return n
     return min(C, max(LANE_MIN, (n + LANE_BLOCK - 1) // LANE_BLOCK * LANE_BLOCK))
+
+
+@_jit
+def pad_gathered(n, n2, obs, src, xi, xr, zl, sin_cos, bad):
+    """Lanes ``n .. n2 - 1`` (``n2 = padded_lanes(n, CHUNK)``) copies of lane 0's gathered
+    inputs (:func:`~resloc.cl.kernels_link_stages.gather_lanes`): work for the vectorized
+    stages' SIMD bodies whose results are never read (the options' form of the rounds,
+    :func:`resloc.cl.kernels_rounds.correct_rounds`)."""
+    for d in range(n, n2):
+        obs[d] = obs[0]
+        src[d] = src[0]
+        for a in range(3):
+            xi[a, d] = xi[a, 0]
+        xr[0, d] = xr[0, 0]
+        xr[1, d] = xr[1, 0]
+        zl[0, d] = zl[0, 0]
+        zl[1, d] = zl[1, 0]
+        sin_cos[0, d] = sin_cos[0, 0]
+        sin_cos[1, d] = sin_cos[1, 0]
+        bad[d] = bad[0]
 
 
 @_jit
@@ -188,7 +209,7 @@ def sent_lanes(lane_e, n, sent, out):
 
 
 for _dispatcher in (
-    cached_lanes, padded_lanes, lanes_ahead, fresh_lanes, fresh_covariances, take_fresh,
-    transmitted_lanes, sent_lanes,
+    cached_lanes, padded_lanes, pad_gathered, lanes_ahead, fresh_lanes, fresh_covariances,
+    take_fresh, transmitted_lanes, sent_lanes,
 ):  # fmt: skip
     stamp_with_pieces(_dispatcher, _kernels_math, _kernels_links)

@@ -88,6 +88,8 @@ from resloc.cl.kernels_round_cached import (
     fresh_covariances,
     fresh_lanes,
     lanes_ahead,
+    pad_gathered,
+    padded_lanes,
     sent_lanes,
     take_fresh,
     transmitted_lanes,
@@ -325,21 +327,28 @@ def _rounds(
                     n += 1
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             # n2: the lanes of the vectorized stages; cached: lanes n .. 2n - 1 are the
-            # second pass with j's transmitted estimate, ahead of the decisions (padded)
+            # second pass with j's transmitted estimate, ahead of the decisions (padded);
+            # the other options: lanes n .. n2 - 1 copies of lane 0, never read (their SIMD
+            # bodies take whole blocks of lanes, kernels_round_cached.padded_lanes)
             n2 = n
+            nj = n  # the lanes whose j is the first pass's (P_ref)
             if beyond is not None and ahead:
                 n2 = lanes_ahead(n, C)
-            if beyond is not None and n2 > n:
+            elif beyond is not None:
+                n2 = padded_lanes(n, C)
+                nj = n2
+                pad_gathered(n, n2, obs, src, xi, xr, zl, sin_cos, bad)
+            if beyond is not None and ahead and n2 > n:
                 fresh_lanes(x_nb, n, n2, obs, src, xi, xr, zl, sin_cos, bad)
             load_covariances(P, obs, n2, cov)
             chol_lanes(cov, n2, Li, ok_i)
-            load_covariances(P_ref, src, n, cov)
-            if beyond is not None and n2 > n:
+            load_covariances(P_ref, src, nj, cov)
+            if beyond is not None and ahead and n2 > n:
                 fresh_covariances(P_nb, src, n, n2, cov)
             chol_lanes(cov, n2, Lj, ok_j)
             if not chol_jitter_lanes(P, obs, n2, Li, ok_i, jitter, scratch_in, scratch_out):
                 return NOT_PD
-            if not chol_jitter_lanes(P_ref, src, n, Lj, ok_j, jitter, scratch_in, scratch_out):
+            if not chol_jitter_lanes(P_ref, src, nj, Lj, ok_j, jitter, scratch_in, scratch_out):
                 return NOT_PD
             points_lanes(axis, value, Wm, n2, xi, xr, sin_cos, Li, Lj, Z0, Z1, sums, bad)
             moments_lanes(
@@ -370,7 +379,7 @@ def _rounds(
                 )  # fmt: skip
             if beyond is not None and cached:  # decision[3]: fused from here on
                 cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
-                if n2 > n:  # the delivered lanes' second pass from lanes n .. 2n - 1
+                if ahead and n2 > n:  # the delivered lanes' second pass from lanes n .. 2n - 1
                     take_fresh(n, inflation, decision, fresh, ok_j, bad, moments, pxz, update)
             if beyond is not None and (recovering or cached):
                 status = inflated_moments(

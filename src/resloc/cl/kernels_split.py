@@ -9,7 +9,7 @@ and j's transmitted one, ``LinkBatch.P_nb_ind``) clipped to their covariances, t
 and the inflated update shared with ``ci`` (:mod:`resloc.cl.kernels_fusion`), then robot
 i's new independent part. The once-per-step
 parts: the prediction of the independent parts is compiled too
-(:func:`resloc.cl.kernels_fusion_step.compiled_propagate_independent`); a delivered
+(:func:`resloc.cl.kernels_fusion_step.compiled_independent_predict`); a delivered
 sender's part turned dependent stays the strategy's one numpy assignment.
 
 =============================  ==========================================================
