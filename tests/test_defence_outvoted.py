@@ -219,9 +219,9 @@ def test_no_widening_goes_beyond_the_largest_standard_deviation():
 
 
 def test_the_runtime_refuses_the_outvoted_defence_in_one_line():
-    """Robot processes do not exchange the witness notes the stage reads: the defence is
-    refused by name before any process starts (no runtime run to compare with the
-    simulator's)."""
+    """Robot processes exchange the witness notes (tests/test_runtime_witness.py) but do not
+    judge the notes on themselves: the outvoted stage is refused by name before any process
+    starts (no runtime run to compare with the simulator's)."""
     from resloc.experiments.config import default_scenario
     from resloc.experiments.defences import DEFENCES
     from resloc.runtime.team import check_supported
@@ -229,6 +229,7 @@ def test_the_runtime_refuses_the_outvoted_defence_in_one_line():
     defence = DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"]
     sc = default_scenario().replace(**{"run.trials": 1, **defence})
     assert sc.detector.outvoted
-    with pytest.raises(ConfigError, match=r"detector\.witness") as err:
+    with pytest.raises(ConfigError, match=r"^detector\.outvoted: .*outvoted = false") as err:
         check_supported(sc)
     assert "\n" not in str(err.value)
+    check_supported(sc.replace(**{"detector.outvoted": False}))  # the witness stage runs

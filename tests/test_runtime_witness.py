@@ -140,3 +140,14 @@ def test_notes_of_unequal_lengths_are_rejected_by_the_codec() -> None:
     data["wj"], data["wn"] = data["wj"], data["wn"][:-8]
     with pytest.raises(MalformedBodyError, match="wn"):
         decode_body(Kind.ESTIMATE, msgpack.packb(data, use_bin_type=True))
+
+
+def test_the_runtime_runs_the_witness_stage_on_broadcast_estimates_only() -> None:
+    from resloc.errors import ConfigError
+    from resloc.runtime.team import check_supported
+
+    sc = default_scenario().replace(**{"run.trials": 1, "detector.witness": True})
+    check_supported(sc)
+    pulled = sc.replace(**{"estimator.neighbour_estimate": "cached"})
+    with pytest.raises(ConfigError, match=r"^detector\.witness: pulled estimates"):
+        check_supported(pulled)
