@@ -28,29 +28,39 @@ NOTE_BYTES = 88
 
 #: Clean: no danger zone, a sequence test tuned to false alarms so that the notes discard
 #: links; attacked: the SDZ's sensing attack on the team's start, the observers' notes of
-#: robots inside it lie. No CDZ: the simulator's observers also note a neighbour whose
-#: estimate was jammed, the wire's cannot (docs/runtime.md, "Differences").
+#: robots inside it lie; outvoted: the same with the robots the notes on themselves convict
+#: widening their covariance. No CDZ: the simulator's observers also note a neighbour whose
+#: estimate was jammed, the wire's cannot (docs/runtime.md, "Limits"). Per case: steps, the
+#: scenario's changes, the stage whose absence must change the estimates.
+ATTACKED = {"detector.witness_liars": 1, "detector.witness_k": 1.0, "detector.witness_h": 3.0}
 CASES = {
     "clean": (
         20,
         {"sdz": [], "detector.witness_liars": 0, "detector.witness_k": 0.2},
-        {"detector.witness_h": 1.0},
+        "detector.witness",
     ),
-    "attacked": (30, {"detector.witness_liars": 1, "detector.witness_k": 1.0}, {}),
+    "attacked": (30, ATTACKED, "detector.witness"),
+    "outvoted": (30, {**ATTACKED, "detector.outvoted": True}, "detector.outvoted"),
 }
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_lockstep_swarm_with_witness_notes_equals_the_simulator(tmp_path, case) -> None:
-    steps, changes, more = CASES[case]
-    h = {"detector.witness_h": 3.0, **more}
+    steps, changes, stage = CASES[case]
     sc = hot_scenario(
-        steps, **{"run.filters": ["ekf"], "detector.witness": True, "cdz": [], **changes, **h}
+        steps,
+        **{
+            "run.filters": ["ekf"],
+            "detector.witness": True,
+            "cdz": [],
+            "detector.witness_h": 1.0,
+            **changes,
+        },
     )
     sim = run_scenario(sc)
     track = sim.estimators["ekf"].track
-    blind = run_scenario(sc.replace(**{"detector.witness": False}))
-    assert np.abs(blind.estimators["ekf"].track - track).max() > 1e-3  # the notes matter
+    blind = run_scenario(sc.replace(**{stage: False}))
+    assert np.abs(blind.estimators["ekf"].track - track).max() > 1e-3  # the stage matters
     opts = swarm_options(tmp_path, sc, "ekf")
     result = run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs")
     assert result.end == "complete"

@@ -79,6 +79,9 @@ class LinkMemory:
         # from the notes its neighbours' frames carried (RobotNode.receive_witness), which
         # the next correction takes instead of delivering from this memory (None: none).
         self.delivered_witness: LinkStatistic | None = None
+        # ... and its view for the outvoted stage: the notes on this robot that reached it
+        # (keyed (observer, 0)) beside its own sequence test (None: this memory's notes).
+        self.outvoted_view: LinkMemory | None = None
         self._stage_statistics: dict[str, LinkStatistic] = {}
         # cached_rows' last gather: (keys, stores, x_link, P_link, positions), what
         # store_delivered needs to store by those positions (None: none to use)

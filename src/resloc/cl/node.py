@@ -113,6 +113,7 @@ class RobotNode:
         # Witness notes (params.witness): the receivers' statistic in team ids (this robot's
         # row only) and the notes of this robot's last correction, not yet delivered.
         self._witness = LinkMemory(n_ids)
+        self._outvoted = LinkMemory(n_ids)  # its PENDING: the notes on this robot (o, 0)
         self._own_notes = (np.empty(0, np.int64), np.empty((0, PENDING_WIDTH - 1)))
 
     @property
@@ -203,7 +204,8 @@ class RobotNode:
         neighbours ``senders (S,)`` this robot measured this step and heard (``notes[s]``:
         sender s's :meth:`witness_notes`). Updates this robot's statistic on every robot
         the notes are on, as the simulator's receiver (its own notes included; a robot it
-        received nothing on decays by ``k``); the next :meth:`correct` judges with it."""
+        received nothing on decays by ``k``); the next :meth:`correct` judges with it. With
+        ``params.outvoted`` the notes on this robot among them are its correction's too."""
         n = self._witness.n_nodes
         me = self.robot_id
         obs = [np.full(len(self._own_notes[0]), me, np.int64)]
@@ -212,12 +214,17 @@ class RobotNode:
             obs.append(np.full(len(j), int(s), np.int64))
             on.append(np.asarray(j, np.int64))
             rows.append(np.asarray(r, float).reshape(-1, PENDING_WIDTH - 1))
+        obs, on = np.concatenate(obs), np.concatenate(on)
+        rows = np.column_stack([np.concatenate(rows), np.ones(len(obs))])
         pending = LinkStatistic(n, width=PENDING_WIDTH)
-        pending.set(
-            np.concatenate(obs),
-            np.concatenate(on),
-            np.column_stack([np.concatenate(rows), np.ones(sum(len(o) for o in obs))]),
-        )
+        pending.set(obs, on, rows)
+        if self.params.outvoted:  # the notes on this robot, as its correction's row 0
+            on_me = on == me
+            notes_on_me = LinkStatistic(self.memory.n_nodes, width=PENDING_WIDTH)
+            notes_on_me.set(obs[on_me], np.zeros(int(on_me.sum()), np.int64), rows[on_me])
+            stored = self._outvoted.stage_statistic(PENDING, width=PENDING_WIDTH)
+            stored.keys, stored.values = notes_on_me.keys, notes_on_me.values
+            self.memory.outvoted_view = self._outvoted
         stored = self._witness.stage_statistic(PENDING, width=PENDING_WIDTH)
         stored.keys, stored.values = pending.keys, pending.values
         senders = np.asarray(senders, np.int64)

@@ -149,11 +149,6 @@ def check_supported(scenario: Scenario) -> None:
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
             f"processes ({refusal}); use naive, gauge, ci, split_ci or factorized"
         )
-    if scenario.detector.outvoted:
-        raise ConfigError(
-            "detector.outvoted: a robot's judgement of the notes on itself is not run by "
-            "robot processes yet; set detector.outvoted = false"
-        )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
             "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"
