@@ -161,3 +161,20 @@ def test_the_runtime_runs_the_witness_stage_on_broadcast_estimates_only() -> Non
     pulled = sc.replace(**{"estimator.neighbour_estimate": "cached"})
     with pytest.raises(ConfigError, match=r"^detector\.witness: pulled estimates"):
         check_supported(pulled)
+
+
+def test_realtime_swarm_with_witness_and_outvoted_completes_with_notes(tmp_path) -> None:
+    """Realtime (nobody waits): the notes that came with this step's estimates in time are
+    judged, late ones dropped with their step; the run completes (no timing asserted)."""
+    sc = hot_scenario(
+        40, **{"run.filters": ["ekf"], "detector.witness": True, **CASES["outvoted"][1]}
+    )
+    opts = swarm_options(tmp_path, sc, "ekf", mode=Mode.REALTIME)
+    result = run_swarm(opts, [free_endpoint()], 5, log_dir=tmp_path / "logs")
+    assert result.end == "complete"
+    runtime, summary, _ = load_outputs(Path(opts.out))
+    assert runtime["mode"] == "realtime" and runtime["steps_completed"] == 40
+    assert np.isfinite(summary["estimators"]["ekf"]["msle_mean"])
+    counters = runtime["robot_counters"]
+    assert counters["witness_notes_sent"] > 0 and counters["witness_notes_received"] > 0
+    assert counters.get("witness_notes_malformed", 0) == 0
