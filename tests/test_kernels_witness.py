@@ -63,21 +63,31 @@ def _witness_states(memory: LinkMemory) -> dict[int, float]:
     return dict(zip(stat.keys.tolist(), stat.values.tolist(), strict=True))
 
 
-def lockstep(filt, params, steps: int, seed: int):
+def _pending(memory: LinkMemory):
+    return memory.stage_statistic(PENDING, width=PENDING_WIDTH)
+
+
+def lockstep(filt, params, steps: int, seed: int, attack: str = "lying notes", runs=None):
     """``steps`` steps through :data:`PATHS`; checks every step, yields the reference's
-    outcome, memory and which rows come from a compromised robot."""
+    outcome, memory and which rows come from a compromised robot. ``attack``: ``"lying
+    notes"`` (the compromised robots' notes lie too: an adversary's notes hook), ``"honest
+    notes"`` (their broadcasts lie, their notes are honest: no hook) or ``"none"`` (a
+    clean run). ``runs``: a dict the compiled paths' :data:`WITNESS_RUNS` deltas are
+    added to."""
     sc = default_scenario()
     world = World(sc.world, 2, seed, sc.trigger.lambda2)
     N = world.n
     x0, P0 = world.initial_estimates()
     state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in PATHS}
     adversary = make_attacker("compromised", robots=3, claimed_cov=0.01)
+    runs = {} if runs is None else runs
     # the attackers aim at a threshold 4x the defence's: the stage convicts them
     fooled = replace(params, witness_h=4.0 * float(np.max(params.witness_h)))
     for k in range(steps):
         ws = world.step()
         step = AttackStep(k + 1, world.dt, ws.pose, ws.i, ws.j, ws.z, ws.attacked, N)
-        step = dataclasses.replace(step, attacked=adversary.mark(ws.attacked, step))
+        if attack != "none":
+            step = dataclasses.replace(step, attacked=adversary.mark(ws.attacked, step))
         res = {}
         for path, (x, P, memory) in state.items():
             with _path(path):
@@ -85,27 +95,40 @@ def lockstep(filt, params, steps: int, seed: int):
                 links = LinkBatch.from_predicted(
                     ws.i, ws.j, ws.z, xp, Pp, ws.channel_ok, ws.risk_s, ws.risk_c, ws.lambda2
                 )
-                links = adversary.attack(links, step, fooled, memory)
+                if attack != "none":
+                    links = adversary.attack(links, step, fooled, memory)
+                if attack == "honest notes":
+                    links.tamper.notes = None
                 before = rounds.LOOP_RUNS.copy()
-                runs = kernels_witness.WITNESS_RUNS.copy()
+                counts = kernels_witness.WITNESS_RUNS.copy()
                 res[path] = correct(filt, xp, Pp, links, params, memory)
                 ran = rounds.LOOP_RUNS - before
-                took = kernels_witness.WITNESS_RUNS["verdicts"] - runs["verdicts"]
-                passes = kernels_witness.WITNESS_RUNS["delivered"] - runs["delivered"]
+                delta = {k: v - counts[k] for k, v in kernels_witness.WITNESS_RUNS.items()}
             if path != "numpy":
                 assert ran == {path: 1}, f"expected the {path} loop, ran {dict(ran)}"
+                took = delta["verdicts"]
                 assert res[path][2].compiled and took == 1, "the compiled path did not run"
-                # (the step's pass, and the compromised robots' oracle's inside the hook)
-                assert passes >= 1, "the receivers' statistic was not compiled"
+                # the step's one pass (kernels_witness_step), and with a notes hook the
+                # compromised robots' oracle's passes inside the hook
+                assert delta["steps"] == 1, "the witness step's pass did not run"
+                assert delta["delivered"] >= 1, "the receivers' statistic was not compiled"
+                for k, v in delta.items():
+                    runs[k] = runs.get(k, 0) + v
             state[path] = (res[path][0], res[path][1], memory)
         assert_same_loops(res["rounds"], res["row_order"])
         assert_matches_reference(res["rounds"], res["numpy"])
         reference = _witness_states(state["numpy"][2])
+        waiting = _pending(state["numpy"][2])
         for path in ("rounds", "row_order"):
             got = _witness_states(state[path][2])
             assert got.keys() == reference.keys()
             np.testing.assert_allclose(
                 [got[r] for r in reference], list(reference.values()), rtol=0, atol=1e-9
+            )
+            # the notes waiting for the next frames (recorded in the pass, or by the spec)
+            np.testing.assert_array_equal(_pending(state[path][2]).keys, waiting.keys)
+            np.testing.assert_allclose(
+                _pending(state[path][2]).values, waiting.values, rtol=1e-9, atol=1e-12
             )
         # the verdicts of the step: after the notes of the step before arrived
         h = at_robots(params.witness_h, ws.j)
@@ -128,6 +151,25 @@ def test_compiled_witness_equals_the_reference_through_convictions():
         assert out.detected[convicted].all()  # (no recovery re-admits a convicted robot here)
         discarded += int(convicted.sum())
     assert discarded > 0, "the stage convicted nobody: the case tests nothing"
+
+
+@pytest.mark.parametrize(("attack", "seed"), [("honest notes", 3), ("none", 5), ("none", 6)])
+def test_the_step_pass_records_the_notes_as_the_reference(attack, seed):
+    """Without an adversary's notes hook the step's pass (kernels_witness_step) also makes
+    the notes and records them: the two compiled paths equal the numpy reference (outcome,
+    every receiver's statistic, the pending notes) through a clean run and through
+    compromised robots whose broadcasts the stage convicts, the notes recorded by the pass
+    in most steps (a step with a new link: by the spec)."""
+    params = _params()
+    runs: dict = {}
+    discarded = steps = 0
+    for out, _memory, convicted in lockstep(make_filter("ckf"), params, 30, seed, attack, runs):
+        discarded += int((out.detected & convicted).sum())
+        steps += 1
+    assert runs["steps"] == 2 * steps  # (two compiled paths)
+    assert runs["records"] >= steps, f"the pass recorded the notes {runs['records']} times"
+    if attack == "honest notes":
+        assert discarded > 0, "the stage convicted nobody: the case tests nothing"
 
 
 # ---------------------------------------------------------------------------------------
@@ -355,3 +397,74 @@ def test_the_notes_recorded_in_place_equal_the_spec():
         np.testing.assert_array_equal(fast.keys, ref.keys)
         np.testing.assert_array_equal(fast.values, ref.values)
     assert ran == [0, 1, 1, 1, 0, 1], f"the compiled record ran {ran}"
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_step_pass_equals_the_spec(seed):
+    """The step's pass (kernels_witness_step: delivery, verdict, notes, record) against the
+    numpy spec's functions called one by one (``deliver_witness``, ``witness_state``,
+    ``step_notes``, ``reference_record``) over steps of a team of 10: robot 0 lies by a
+    common offset (convicted), observers inside the zone-trust map (their notes not sent),
+    a reading that is not a number, the claims per link or at neighbour rows, a new link
+    (recorded by the spec)."""
+    import copy
+
+    from resloc.cl.detection_witness import step_notes
+    from resloc.cl.detection_witness_frames import deliver_witness
+    from resloc.cl.kernels_witness import WitnessInputs, witness_verdict
+
+    rng = np.random.default_rng(seed)
+    n = 10
+    params = CLParams(
+        witness=True,
+        witness_liars=2.0,
+        witness_h=30.0,
+        zone_trust=True,
+        zone_trust_map=((0.0, 0.0, 0.7),),
+    )
+    pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
+    first = rng.random(len(pairs)) < 0.8
+    memory = LinkMemory(n)
+    counted = {"in pass": 0, "zoned": 0, "convicted": 0, "unsent": 0}
+    for step in range(7):
+        i, j = pairs[first | (step == 5)].T  # new links at step 5
+        E = len(i)
+        pos = rng.uniform(-2.0, 2.0, (n, 2))
+        x = np.c_[pos + rng.normal(0.0, 0.02, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
+        A = rng.normal(0.0, 0.03, (n, 3, 3))
+        P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(3)
+        rel = pos[j] - pos[i]
+        z = np.c_[np.hypot(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 1], rel[:, 0]) - x[i, 2]]
+        z += rng.normal(0.0, 0.01, (E, 2))
+        if step == 3:
+            z[4, 0] = np.nan  # (its note is not sent)
+        x_nb = x.copy()
+        x_nb[0, :2] += 0.3  # robot 0's broadcast lies
+        ok = rng.random(E) < 0.8
+        risk = np.zeros(n)
+        links = LinkBatch.from_predicted(i, j, z, x_nb, P, ok, risk, risk, risk)
+        if step % 2:  # the claims per link (read: no neighbour rows)
+            links = replace(links, P_nb=P[j].copy(), x_nb=x_nb[j].copy())
+        spec = copy.deepcopy(memory)
+        before = kernels_witness.WITNESS_RUNS.copy()
+        with kernels.use_backend("numba"):
+            verdict = witness_verdict(params, memory, x, P, links, WitnessInputs.of(links))
+            verdict.record(params, memory)
+        after = kernels_witness.WITNESS_RUNS
+        assert after["steps"] == before["steps"] + 1, "the step's pass did not run"
+        counted["in pass"] += after["records"] - before["records"]
+        with kernels.use_backend("numpy"):
+            deliver_witness(params, spec, links)
+            discard = witness_state(spec, i, j) > params.witness_h
+            notes = step_notes(z, x[i], P[i], x_nb[j], P[j], i, j, params)
+            reference_record(notes, spec)
+        np.testing.assert_array_equal(verdict.discard, discard)
+        for name, width in ((STATE, None), (PENDING, PENDING_WIDTH)):
+            got, ref = memory.stage_statistic(name, width), spec.stage_statistic(name, width)
+            np.testing.assert_array_equal(got.keys, ref.keys)
+            np.testing.assert_allclose(got.values, ref.values, rtol=1e-9, atol=1e-12)
+        counted["zoned"] += int((np.hypot(x[i, 0], x[i, 1]) < 0.7).sum())
+        counted["unsent"] += int((~notes.sent).sum())
+        counted["convicted"] += int(discard.sum())
+    assert counted["in pass"] >= 4, counted  # (step 0 and step 5: the spec inserts)
+    assert min(counted.values()) > 0, f"the case tests nothing: {counted}"

@@ -25,7 +25,10 @@ function                       numpy twin
 =============================  ==========================================================
 
 The receivers' delivery and the record of the notes are compiled in
-:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``).
+:mod:`resloc.cl.kernels_witness_frames` (``delivered_pass``, ``record_in_place``); in the
+CL step, :func:`witness_verdict` runs the delivery, the verdict, the step's notes and
+their record in one compiled call (:mod:`resloc.cl.kernels_witness_step`), the separate
+calls above when that one declines.
 
 ``step_notes``, ``witness_statistic`` and ``group_statistic`` run :func:`fast_notes`,
 :func:`fast_statistic` and :func:`fast_groups` when the backend is numba (the CL step's
@@ -48,7 +51,13 @@ from resloc.cl.detection_witness import (
     note_groups,
     step_notes,
 )
-from resloc.cl.detection_witness_frames import delivered_store, put_store, record_witness
+from resloc.cl.detection_witness_frames import (
+    PENDING,
+    PENDING_WIDTH,
+    delivered_store,
+    put_store,
+    record_witness,
+)
 from resloc.cl.kernels_math import jit_lanes
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkStatistic
@@ -71,8 +80,8 @@ __all__ = [
 
 #: How often the compiled path took the stage's verdict, computed notes, statistics, the
 #: receivers' delivered statistic (:mod:`resloc.cl.kernels_witness_frames`) and how many
-#: distinct sets of notes that pass enumerated, the notes recorded in place (the tests
-#: read it).
+#: distinct sets of notes that pass enumerated, the notes recorded in place, the whole
+#: step in one call (:mod:`resloc.cl.kernels_witness_step`; the tests read it).
 WITNESS_RUNS = {
     "verdicts": 0,
     "notes": 0,
@@ -80,43 +89,66 @@ WITNESS_RUNS = {
     "delivered": 0,
     "enumerated": 0,
     "records": 0,
+    "steps": 0,
 }
 
 
 class WitnessInputs(NamedTuple):
-    """What the notes take from the batch as it arrives: the claims as sent ``(E, 3, 3)``
-    (before any cap or landmark weakening) and an adversary's ``notes`` hook (or None)."""
+    """What the notes take from the batch as it arrives: the claims as sent (before any
+    cap or landmark weakening), link ``e``'s at ``claims[rows[e]]`` (``rows`` None: the
+    per-link array itself; :meth:`LinkBatch.neighbour_rows`, no copy), and an adversary's
+    ``notes`` hook (or None)."""
 
-    claimed: np.ndarray
+    rows: np.ndarray | None
+    claims: np.ndarray
     lie_notes: object
 
     @classmethod
     def of(cls, links: LinkBatch) -> WitnessInputs:
-        return cls(links.P_nb, getattr(links.tamper, "notes", None))
+        rows, _, claims = links.neighbour_rows()
+        return cls(rows, claims, getattr(links.tamper, "notes", None))
+
+    @property
+    def claimed(self) -> np.ndarray:
+        """The claims per link ``(E, 3, 3)``."""
+        return self.claims if self.rows is None else self.claims[self.rows]
 
 
 class WitnessVerdict(NamedTuple):
     """The step's verdict ``discard (E,)`` bool, the receivers' statistic after the notes
     that arrived with this step's frames (``store``) and the step's ``notes``: both put in
-    the memory once the loop has succeeded."""
+    the memory once the loop has succeeded. ``pending``: the pending store's values with
+    the notes already recorded (:mod:`resloc.cl.kernels_witness_step`; ``notes`` then
+    None), or None."""
 
     discard: np.ndarray
     store: LinkStatistic
-    notes: WitnessNotes
+    notes: WitnessNotes | None
+    pending: np.ndarray | None = None
 
     def record(self, params: CLParams, memory) -> None:
         """The delivered statistic and the step's notes into ``memory`` (after the loop)."""
         put_store(memory, self.store)
-        record_witness(self.notes, params, memory)
+        if self.pending is None:
+            record_witness(self.notes, params, memory)
+            return
+        memory.stage_statistic(PENDING, width=PENDING_WIDTH).values = self.pending
+        WITNESS_RUNS["records"] += 1
 
 
 def witness_links(filt, x, P, links: LinkBatch, strategy, memory, R) -> LinkBatch:
     """``links`` with an adversary's hook applied to every row at the predicted estimates
     (the notes carry the readings as reported), as the reference does with the stage on;
     ``links`` itself without a hook."""
+    if links.tamper is None:  # (partner_readings' own first test, without its import)
+        return links
     from resloc.cl.kernels_reciprocal import partner_readings
 
     return partner_readings(filt, x, P, links, strategy, memory, R)
+
+
+#: :func:`~resloc.cl.kernels_witness_step.fused_verdict`, once imported.
+_FUSED: list = []
 
 
 def witness_verdict(
@@ -128,6 +160,13 @@ def witness_verdict(
     None without a memory (the reference path raises the explanatory error)."""
     if memory is None:
         return None
+    if not _FUSED:  # (kernels_witness_step imports this module: imported on first use)
+        from resloc.cl.kernels_witness_step import fused_verdict
+
+        _FUSED.append(fused_verdict)
+    fused = _FUSED[0](params, memory, x, P, links, inputs)
+    if fused is not None:
+        return fused
     j = np.asarray(links.j)
     store = delivered_store(params, memory, links.i, j, links.channel_ok)
     discard = np.ascontiguousarray(store.get(links.i, j) > at_robots(params.witness_h, j))
@@ -152,58 +191,58 @@ def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
     from the readings ``z (E, 2)``, the observers' estimates ``x_obs (E, 3)``, ``P_obs
     (E, 3, 3)`` and the neighbours' broadcasts ``x_nb (E, 3)``. Twin:
     :func:`~resloc.cl.detection_witness.witness_notes` (the same products)."""
-    Jx = np.zeros((2, 3))
-    Jz = np.zeros((2, 2))
-    T3 = np.zeros((2, 3))
-    T2 = np.zeros((2, 2))
     for e in range(z.shape[0]):
-        a = x_obs[e, 2] + z[e, 1]
-        r_mean = z[e, 0] * math.exp(0.5 * (R[1, 1] + P_obs[e, 2, 2]))
-        ca = math.cos(a)
-        sa = math.sin(a)
-        u[e, 0] = x_nb[e, 0] - (x_obs[e, 0] + r_mean * ca)
-        u[e, 1] = x_nb[e, 1] - (x_obs[e, 1] + r_mean * sa)
-        rel0 = x_nb[e, 0] - x_obs[e, 0]
-        rel1 = x_nb[e, 1] - x_obs[e, 1]
-        r = math.hypot(rel0, rel1)
-        if r > 0.0:
-            c = rel0 / r
-            s = rel1 / r
-        else:
-            c = ca
-            s = sa
-            r = z[e, 0]
-        Jx[0, 0] = 1.0
-        Jx[1, 1] = 1.0
-        Jx[0, 2] = -r * s
-        Jx[1, 2] = r * c
-        Jz[0, 0] = c
-        Jz[0, 1] = -r * s
-        Jz[1, 0] = s
-        Jz[1, 1] = r * c
-        for p in range(2):
-            for q in range(3):
-                acc = 0.0
-                for t in range(3):
-                    acc += Jx[p, t] * P_obs[e, t, q]
-                T3[p, q] = acc
-            for q in range(2):
-                acc = 0.0
-                for t in range(2):
-                    acc += Jz[p, t] * R[t, q]
-                T2[p, q] = acc
-        for p in range(2):
-            for q in range(2):
-                a3 = 0.0
-                for t in range(3):
-                    a3 += T3[p, t] * Jx[q, t]
-                a2 = 0.0
-                for t in range(2):
-                    a2 += T2[p, t] * Jz[q, t]
-                Q[e, p, q] = a3 + a2
-        off = 0.5 * (Q[e, 0, 1] + Q[e, 1, 0])
-        Q[e, 0, 1] = off
-        Q[e, 1, 0] = off
+        lengthen = math.exp(0.5 * (R[1, 1] + P_obs[e, 2, 2]))
+        note_at(z, e, x_obs, e, P_obs, x_nb, R, u, Q, e, lengthen)
+
+
+@jit_lanes
+def note_at(z, e, x, o, P, x_nb, R, u, Q, q, lengthen):
+    """Row ``e``'s note into ``u[q]``, ``Q[q]``: the reading ``z[e]``, the neighbour's
+    broadcast ``x_nb[e]``, the observer's estimate ``x[o]``, ``P[o]`` (:func:`notes_of`);
+    ``lengthen``: ``exp((R[1, 1] + P[o, 2, 2]) / 2)``, the observer's (computed once per
+    observer by the step's pass). Scalars and whole arrays with indices: a view per row
+    costs more than the note."""
+    a = x[o, 2] + z[e, 1]
+    r_mean = z[e, 0] * lengthen
+    ca = math.cos(a)
+    sa = math.sin(a)
+    u[q, 0] = x_nb[e, 0] - (x[o, 0] + r_mean * ca)
+    u[q, 1] = x_nb[e, 1] - (x[o, 1] + r_mean * sa)
+    rel0 = x_nb[e, 0] - x[o, 0]
+    rel1 = x_nb[e, 1] - x[o, 1]
+    r = math.hypot(rel0, rel1)
+    if r > 0.0:
+        c = rel0 / r
+        s = rel1 / r
+    else:
+        c = ca
+        s = sa
+        r = z[e, 0]
+    # J_x = [[1, 0, -r s], [0, 1, r c]], J_z = [[c, -r s], [s, r c]]: every product of
+    # J_x P J_x^T + J_z R J_z^T kept, zeros included (a non-finite P propagates as in numpy)
+    j2, k2 = -r * s, r * c
+    A = (
+        P[o, 0, 0] + 0.0 * P[o, 1, 0] + j2 * P[o, 2, 0],
+        P[o, 0, 1] + 0.0 * P[o, 1, 1] + j2 * P[o, 2, 1],
+        P[o, 0, 2] + 0.0 * P[o, 1, 2] + j2 * P[o, 2, 2],
+    )
+    B = (
+        0.0 * P[o, 0, 0] + P[o, 1, 0] + k2 * P[o, 2, 0],
+        0.0 * P[o, 0, 1] + P[o, 1, 1] + k2 * P[o, 2, 1],
+        0.0 * P[o, 0, 2] + P[o, 1, 2] + k2 * P[o, 2, 2],
+    )
+    Ra = (c * R[0, 0] + j2 * R[1, 0], c * R[0, 1] + j2 * R[1, 1])
+    Rb = (s * R[0, 0] + k2 * R[1, 0], s * R[0, 1] + k2 * R[1, 1])
+    Q00 = (A[0] + 0.0 * A[1] + A[2] * j2) + (Ra[0] * c + Ra[1] * j2)
+    Q01 = (0.0 * A[0] + A[1] + A[2] * k2) + (Ra[0] * s + Ra[1] * k2)
+    Q10 = (B[0] + 0.0 * B[1] + B[2] * j2) + (Rb[0] * c + Rb[1] * j2)
+    Q11 = (0.0 * B[0] + B[1] + B[2] * k2) + (Rb[0] * s + Rb[1] * k2)
+    off = 0.5 * (Q01 + Q10)
+    Q[q, 0, 0] = Q00
+    Q[q, 0, 1] = off
+    Q[q, 1, 0] = off
+    Q[q, 1, 1] = Q11
 
 
 @jit_lanes
@@ -236,44 +275,69 @@ def _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, enough):
     (their sums ``tot (6,)``) left after dropping at most ``dmax``; the enumeration stops
     at the first set at most ``enough`` (-inf: every set)."""
     best = np.inf
-    # up to three notes dropped (the usual f): nested loops, the outer drops' sum kept
-    # (the same sums in the same order as the generic enumeration below)
+    # up to three notes dropped (the usual f): loops by the number dropped
     best = _merge_set(best, tot, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, m, gates, P00, P01, P11)
     if best <= enough:
         return best
+    # by the number dropped (a single far note, the usual reason a set needs enumerating,
+    # is found first when the enumeration may stop early); each subset's dropped sums in
+    # ascending index order, as the generic enumeration below
     for a in range(m if dmax >= 1 else 0):
-        ta = terms[a]
         best = _merge_set(
-            best, tot, ta[0], ta[1], ta[2], ta[3], ta[4], ta[5], m - 1, gates, P00, P01, P11
+            best,
+            tot,
+            terms[a, 0],
+            terms[a, 1],
+            terms[a, 2],
+            terms[a, 3],
+            terms[a, 4],
+            terms[a, 5],
+            m - 1,
+            gates,
+            P00,
+            P01,
+            P11,
         )
         if best <= enough:
             return best
-        for b in range(a + 1, m if dmax >= 2 else 0):
-            tb = terms[b]
-            d0, d1, d2 = ta[0] + tb[0], ta[1] + tb[1], ta[2] + tb[2]
-            d3, d4, d5 = ta[3] + tb[3], ta[4] + tb[4], ta[5] + tb[5]
-            best = _merge_set(best, tot, d0, d1, d2, d3, d4, d5, m - 2, gates, P00, P01, P11)
-            if best <= enough:
-                return best
-            for c in range(b + 1, m if dmax >= 3 else 0):
-                tc = terms[c]
-                best = _merge_set(
-                    best,
-                    tot,
-                    d0 + tc[0],
-                    d1 + tc[1],
-                    d2 + tc[2],
-                    d3 + tc[3],
-                    d4 + tc[4],
-                    d5 + tc[5],
-                    m - 3,
-                    gates,
-                    P00,
-                    P01,
-                    P11,
+    for deep in range(2, min(dmax, 3) + 1):
+        for a in range(m):
+            for b in range(a + 1, m):
+                d0, d1, d2 = (
+                    terms[a, 0] + terms[b, 0],
+                    terms[a, 1] + terms[b, 1],
+                    terms[a, 2] + terms[b, 2],
                 )
-                if best <= enough:
-                    return best
+                d3, d4, d5 = (
+                    terms[a, 3] + terms[b, 3],
+                    terms[a, 4] + terms[b, 4],
+                    terms[a, 5] + terms[b, 5],
+                )
+                if deep == 2:
+                    best = _merge_set(
+                        best, tot, d0, d1, d2, d3, d4, d5, m - 2, gates, P00, P01, P11
+                    )
+                    if best <= enough:
+                        return best
+                    continue
+                for c in range(b + 1, m):
+                    best = _merge_set(
+                        best,
+                        tot,
+                        d0 + terms[c, 0],
+                        d1 + terms[c, 1],
+                        d2 + terms[c, 2],
+                        d3 + terms[c, 3],
+                        d4 + terms[c, 4],
+                        d5 + terms[c, 5],
+                        m - 3,
+                        gates,
+                        P00,
+                        P01,
+                        P11,
+                    )
+                    if best <= enough:
+                        return best
     for d in range(4, dmax + 1):
         for t in range(d):
             idx[t] = t

@@ -7,16 +7,21 @@ silent pairs). :func:`delivered_pass` reads the pending notes and the statistic 
 they lie in the memory and returns the new store's keys and values; the numpy glue per
 step (sorting, ``unique``, the stores' searches) was most of the stage's cost.
 
-The grouping is a counting sort, the ids being small ints: the step's links are bucketed
-by receiver; each receiver's senders (itself first among them, in ascending id order) are
-walked in ascending order, so the rows on one robot arrive in ascending row order (the
-pending rows are sorted by (observer, on)); a per-robot counter, reset only where touched,
-places them by the robot they are on. Each group's whole set is judged; a group left at 0
-by a consistent whole set skips the enumeration (the spec's rule), the others are
-enumerated by :func:`~resloc.cl.kernels_witness.group_statistics`, each distinct set of
-notes once (identified, as the spec does, by the sum of a random 64-bit word per row),
-stopping at the first consistent set whose statistic clips every group holding the set at
-0 (``S + T - k <= 0``: the smallest would give the same 0; the spec enumerates them all).
+The groups are sets of observers, the ids being small ints: receiver r holds the notes on
+robot j of the observers it heard this step (itself, and the senders of its links whose
+channel is ok), i.e. the mask of j's observers ANDed with the mask of r's senders (one
+64-bit word per 64 ids). Each distinct (j, mask) is one set of notes, its rows in
+ascending order (the pending rows are sorted by (observer, on)), judged once: most
+receivers hold the same notes on a robot, and the sums over a set's rows, the step's
+float work, are done once per set instead of once per receiver (the spec identifies the
+sets by a random 64-bit word per row; the masks identify them exactly). A receiver that
+holds a frame twice (a duplicate link) gets sets of its own, with the rows repeated as
+the spec repeats them. Each set's whole set is judged; a group left at 0 by a consistent
+whole set skips the enumeration (the spec's rule), the others' sets are enumerated by
+:func:`~resloc.cl.kernels_witness.group_statistics`, each once, stopping at the first
+consistent subset whose statistic clips every group holding the set at 0 (``S + T - k
+<= 0``: the smallest would give the same 0; the spec enumerates them all). The store is
+made dense (``n * n``) for the pass: the new one comes out in key order.
 """
 
 from __future__ import annotations
@@ -31,25 +36,32 @@ from resloc.cl.kernels_witness import WITNESS_RUNS, group_statistics
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["delivered_pass", "fast_delivered", "fast_record", "record_in_place"]
+__all__ = ["delivered_pass", "fast_delivered", "fast_record", "per_robot", "record_in_place"]
 
 
 @jit_lanes
-def _insertion_sort(a, lo, hi):
-    """``a[lo:hi]`` sorted in place (short segments)."""
-    for t in range(lo + 1, hi):
-        v = a[t]
-        s = t - 1
-        while s >= lo and a[s] > v:
-            a[s + 1] = a[s]
-            s -= 1
-        a[s + 1] = v
+def _bit(o):
+    """Observer ``o``'s bit in its word ``o // 64`` of a set's mask."""
+    return np.uint64(1) << np.uint64(o & 63)
 
 
 @jit_lanes
-def delivered_pass(
-    pkeys, pvals, words, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at, h_at, gates
-):
+def _copy_note(pvals, e, u, Q, Pp, q):
+    """Pending row ``e``'s note into row ``q`` of ``u``, ``Q``, ``P_pos``."""
+    u[q, 0] = pvals[e, 0]
+    u[q, 1] = pvals[e, 1]
+    Q[q, 0, 0] = pvals[e, 2]
+    Q[q, 0, 1] = pvals[e, 3]
+    Q[q, 1, 0] = pvals[e, 4]
+    Q[q, 1, 1] = pvals[e, 5]
+    Pp[q, 0, 0] = pvals[e, 6]
+    Pp[q, 0, 1] = pvals[e, 7]
+    Pp[q, 1, 0] = pvals[e, 8]
+    Pp[q, 1, 1] = pvals[e, 9]
+
+
+@jit_lanes
+def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at, h_at, gates):
     """The statistic store after the pending notes arrive with this step's frames.
 
     Parameters
@@ -57,10 +69,8 @@ def delivered_pass(
     pkeys, pvals : ndarray, shapes (P,), (P, 11)
         The pending store (keys ``observer * n + on``, sorted; values ``u``, ``Q``,
         ``P_pos``, waiting flag: :data:`~resloc.cl.detection_witness_frames.PENDING`).
-    words : ndarray of uint64, shape (P,)
-        A random odd word per pending row: a set of rows is identified by their sum.
     n : int
-        The id space.
+        The id space (every id in ``li``, ``lj`` and the keys below ``n``).
     li, lj, ok : ndarray, shape (E,)
         The step's links: receiver, sender, channel ok.
     skeys, svals : ndarray, shapes (S,), (S,)
@@ -79,259 +89,298 @@ def delivered_pass(
     need : int
         Distinct sets of notes enumerated; ``-c`` (c > 0) when ``gates`` stops short of a
         group of ``c`` notes.
+    S : ndarray, shape (n * n,)
+        The new store dense (``S[r * n + j]``, 0 for a pair it does not hold).
     """
-    P = pkeys.shape[0]
-    rows = np.empty(P, np.int64)
-    m = 0
-    for p in range(P):
-        if pvals[p, 10] > 0.0 and on_ok[pkeys[p] % n]:
-            rows[m] = p
-            m += 1
-    # each observer's rows: rows[ofirst[o]:ofirst[o + 1]] (keys sorted: by observer, on)
-    ofirst = np.zeros(n + 1, np.int64)
-    row_on = np.empty(m, np.int64)  # the robot each row is on (one division a row)
-    pterm = np.empty((P, 6))  # each row's information terms (once a row, not a receiver)
-    for t in range(m):
-        e = rows[t]
-        ofirst[pkeys[e] // n + 1] += 1
-        row_on[t] = pkeys[e] % n
-        Q00, Q01, Q10, Q11 = pvals[e, 2], pvals[e, 3], pvals[e, 4], pvals[e, 5]
-        u0, u1 = pvals[e, 0], pvals[e, 1]
+    W = (n + 63) // 64
+    NN = n * n
+    # the waiting rows on each robot j, by observer (ascending: the pending keys are
+    # sorted by (observer, on)): jrows[jfirst[j] : jfirst[j + 1]], with each row's
+    # information terms, claimed trace and observer in jterm (read in that order);
+    # notes_on[j]: the observers' mask
+    Pn = pkeys.shape[0]
+    jfirst = np.zeros(n + 1, np.int64)
+    notes_on = np.zeros((n, W), np.uint64)
+    # (the scratch in a few blocks: an allocation costs about what a set's sums do)
+    p_rows = np.empty((2, Pn), np.int64)
+    p_obs = p_rows[0]  # each row's observer and robot (no division a row: the keys ascend)
+    p_on = p_rows[1]
+    o = 0
+    for p in range(Pn):
+        key = pkeys[p]
+        while key >= (o + 1) * n:
+            o += 1
+        on = key - o * n
+        p_obs[p] = o
+        p_on[p] = on
+        if pvals[p, 10] > 0.0 and on_ok[on]:
+            jfirst[on + 1] += 1
+            notes_on[on, o >> 6] |= _bit(o)
+    for j in range(n):
+        jfirst[j + 1] += jfirst[j]
+    j_rows = np.empty((2, jfirst[n]), np.int64)
+    jrows = j_rows[0]
+    jobs = j_rows[1]
+    jterm = np.empty((jfirst[n], 7))
+    fill = jfirst[:n].copy()
+    for p in range(Pn):
+        on = p_on[p]
+        if not (pvals[p, 10] > 0.0 and on_ok[on]):
+            continue
+        t = fill[on]
+        fill[on] += 1
+        jrows[t] = p
+        Q00, Q01, Q10, Q11 = pvals[p, 2], pvals[p, 3], pvals[p, 4], pvals[p, 5]
+        u0, u1 = pvals[p, 0], pvals[p, 1]
         det = Q00 * Q11 - Q01 * Q10
         Ya = Q11 / det
         Yb = -0.5 * (Q01 + Q10) / det
         Yc = Q00 / det
         ya = Ya * u0 + Yb * u1
         yb = Yb * u0 + Yc * u1
-        pterm[e, 0] = Ya
-        pterm[e, 1] = Yb
-        pterm[e, 2] = Yc
-        pterm[e, 3] = ya
-        pterm[e, 4] = yb
-        pterm[e, 5] = u0 * ya + u1 * yb
-    for o in range(n):
-        ofirst[o + 1] += ofirst[o]
-    # each receiver's senders: itself and the links' senders whose channel is ok (ascending)
-    rfirst = np.zeros(n + 1, np.int64)
-    E = li.shape[0]
-    for e in range(E):
+        jterm[t, 0] = Ya
+        jterm[t, 1] = Yb
+        jterm[t, 2] = Yc
+        jterm[t, 3] = ya
+        jterm[t, 4] = yb
+        jterm[t, 5] = u0 * ya + u1 * yb
+        jterm[t, 6] = pvals[p, 6] + pvals[p, 9]
+        jobs[t] = p_obs[p]
+    # each receiver's frames: itself and the senders of its links whose channel is ok
+    # (times[r * n + o]: how often; a receiver holding a frame twice has its own sets)
+    per_pair = np.empty((5, NN), np.int64)
+    times = per_pair[0]
+    times[:] = 0
+    heard = np.zeros((n, W), np.uint64)
+    twice = np.zeros(n, np.bool_)
+    for r in range(n):
+        times[r * n + r] = 1
+        heard[r, r >> 6] |= _bit(r)
+    for e in range(li.shape[0]):
         if ok[e]:
-            rfirst[li[e] + 1] += 1
-    for r in range(n):
-        rfirst[r + 1] += rfirst[r] + 1
-    senders = np.empty(rfirst[n], np.int64)
-    fill = rfirst[:n].copy()
-    for r in range(n):
-        senders[fill[r]] = r
-        fill[r] += 1
-    for e in range(E):
-        if ok[e]:
-            senders[fill[li[e]]] = lj[e]
-            fill[li[e]] += 1
-    total = 0
-    for r in range(n):
-        _insertion_sort(senders, rfirst[r], rfirst[r + 1])
-        for s in range(rfirst[r], rfirst[r + 1]):
-            o = senders[s]
-            total += ofirst[o + 1] - ofirst[o]
-    # the groups: (receiver, on) ascending, rows ascending within a group
-    grows = np.empty(total, np.int64)
-    gkey = np.empty(total, np.int64)
-    gstart = np.empty(total, np.int64)
-    gcount = np.empty(total, np.int64)
-    per_on = np.zeros(n, np.int64)
-    touched = np.empty(n, np.int64)
-    G = 0
-    M = 0
-    largest = 0
-    for r in range(n):
-        nt = 0
-        for s in range(rfirst[r], rfirst[r + 1]):
-            o = senders[s]
-            for t in range(ofirst[o], ofirst[o + 1]):
-                on = row_on[t]
-                if on == r:
-                    continue
-                if per_on[on] == 0:
-                    touched[nt] = on
-                    nt += 1
-                per_on[on] += 1
-        _insertion_sort(touched, 0, nt)
-        pos = M
-        for a in range(nt):
-            on = touched[a]
-            c = per_on[on]
-            gkey[G] = r * n + on
-            gstart[G] = pos
-            gcount[G] = c
-            largest = max(largest, c)
-            per_on[on] = pos  # now the next free slot of the group
-            pos += c
-            G += 1
-        for s in range(rfirst[r], rfirst[r + 1]):
-            o = senders[s]
-            for t in range(ofirst[o], ofirst[o + 1]):
-                on = row_on[t]
-                if on == r:
-                    continue
-                grows[per_on[on]] = rows[t]
-                per_on[on] += 1
-        for a in range(nt):
-            per_on[touched[a]] = 0
-        M = pos
-    if largest >= gates.shape[0]:
-        return np.empty(0, np.int64), np.empty(0), -largest
-    # each group's S (0 for a pair never judged), whole set and skip rule
-    S = np.zeros(G)
-    T = np.zeros(G)
-    judged = np.zeros(G, np.bool_)
-    consistent = np.zeros(G, np.bool_)
+            r, o = li[e], lj[e]
+            times[r * n + o] += 1
+            twice[r] = twice[r] or times[r * n + o] > 1
+            heard[r, o >> 6] |= _bit(o)
+    # each group (r, j): the notes on j that r received, as a set of observers; each
+    # distinct set listed (its rows ascending, as the spec's groups) and judged once: its
+    # whole set's statistic and consistency, whether it is judged (more than f notes)
+    set_of = per_pair[1]
+    set_of[:] = -1
+    s_on = per_pair[2]
+    s_recv = per_pair[3]  # a receiver holding it (its rows: the frames' counts)
+    s_count = per_pair[4]
+    smask = np.empty((NN, W), np.uint64)
+    flags = np.zeros((5, NN), np.bool_)
+    s_shared, consistent, judged, held, enumerate_ = (
+        flags[0],
+        flags[1],
+        flags[2],
+        flags[3],
+        flags[4],
+    )
+    floats = np.zeros((3, NN))
+    T, S_old, S_new = floats[0], floats[1], floats[2]
     unclaimed = False
-    ns = skeys.shape[0]
-    for g in range(G):
-        key = gkey[g]
-        p = np.searchsorted(skeys, key)
-        if p < ns and skeys[p] == key:
-            S[g] = svals[p]
-        Sa = Sb = Sc = sa = sb = sq = 0.0
-        best_trace = -np.inf
-        nan_trace = False
-        big = grows[gstart[g]]
-        for q in range(gstart[g], gstart[g] + gcount[g]):
-            e = grows[q]
-            Sa += pterm[e, 0]
-            Sb += pterm[e, 1]
-            Sc += pterm[e, 2]
-            sa += pterm[e, 3]
-            sb += pterm[e, 4]
-            sq += pterm[e, 5]
-            trace = pvals[e, 6] + pvals[e, 9]
-            if math.isnan(trace):
-                nan_trace = True
-            elif trace > best_trace:  # (the first of equal traces)
-                best_trace = trace
-                big = e
-        if nan_trace:
-            unclaimed = True
-        dS = Sa * Sc - Sb * Sb
-        Ia = Sc / dS
-        Ib = -Sb / dS
-        Ic = Sa / dS
-        ma = Ia * sa + Ib * sb
-        mb = Ib * sa + Ic * sb
-        spread = sq - (ma * sa + mb * sb)
-        c = gcount[g]
-        Ca = pvals[big, 6] + Ia
-        Cb = 0.5 * (pvals[big, 7] + pvals[big, 8]) + Ib
-        Cc = pvals[big, 9] + Ic
-        T[g] = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
-        consistent[g] = (c < 2 or spread <= gates[c]) and math.isfinite(T[g])
-        judged[g] = c > f_at[key % n]
-    # the groups to enumerate, each distinct set of notes once (most receivers hold the
-    # same notes on a robot): a set's word is its rows' sum mixed with the robot and the
-    # size (a collision of two different sets has probability ~G^2 / 2^64)
-    rep = np.full(G, -1, np.int64)
-    dkey = np.empty(G, np.uint64)
-    dgroup = np.empty(G, np.int64)
-    n_need = 0
-    m_need = 0
-    for g in range(G):
-        if unclaimed:  # a claim that is not a number: every set enumerated
-            T[g] = np.nan
-            consistent[g] = False
-        k = k_at[gkey[g] % n]
-        if judged[g] and consistent[g] and S[g] + T[g] - k <= 0.0:
+    largest = 0
+    D = 0
+    widest = 0
+    for j in range(n):
+        widest = max(widest, jfirst[j + 1] - jfirst[j])
+    pre = np.zeros((widest + 1, 6))
+    pre_best = np.full(widest + 1, -np.inf)
+    pre_big = np.full(widest + 1, -1, np.int64)
+    pre_nan = np.zeros(widest + 1, np.bool_)
+    for j in range(n):
+        if not on_ok[j] or jfirst[j + 1] == jfirst[j]:
             continue
-        w = np.uint64(gkey[g] % n) * np.uint64(0x9E3779B97F4A7C15)
-        w += np.uint64(gcount[g]) * np.uint64(0xC2B2AE3D27D4EB4F)
-        for q in range(gstart[g], gstart[g] + gcount[g]):
-            w += words[grows[q]]
-        for a in range(n_need):
-            if dkey[a] == w:
-                rep[g] = a
-                break
-        if rep[g] < 0:
-            dkey[n_need] = w
-            dgroup[n_need] = g
-            rep[g] = n_need
-            n_need += 1
-            m_need += gcount[g]
-    if n_need:
+        first = D
+        # the running sums over j's rows in order (the sets that hold every row up to a
+        # position start from them: the same sums, in the same order)
+        m0, mj = jfirst[j], jfirst[j + 1] - jfirst[j]
+        for t in range(mj):
+            for col in range(6):
+                pre[t + 1, col] = pre[t, col] + jterm[m0 + t, col]
+            trace = jterm[m0 + t, 6]
+            pre_nan[t + 1] = pre_nan[t] or math.isnan(trace)
+            pre_best[t + 1] = pre_best[t]
+            pre_big[t + 1] = pre_big[t]
+            if not math.isnan(trace) and (pre_big[t] < 0 or trace > pre_best[t]):
+                pre_best[t + 1] = trace  # (the first of equal traces)
+                pre_big[t + 1] = jrows[m0 + t]
+        for r in range(n):
+            if r == j:
+                continue
+            empty = True
+            for w in range(W):
+                if notes_on[j, w] & heard[r, w]:
+                    empty = False
+            if empty:
+                continue
+            found = -1
+            if not twice[r]:
+                for a in range(first, D):
+                    if s_shared[a]:
+                        same = True
+                        for w in range(W):
+                            if smask[a, w] != notes_on[j, w] & heard[r, w]:
+                                same = False
+                        if same:
+                            found = a
+                            break
+            set_of[r * n + j] = D if found < 0 else found
+            if found >= 0:
+                continue
+            for w in range(W):
+                smask[D, w] = notes_on[j, w] & heard[r, w]
+            s_shared[D] = not twice[r]
+            s_on[D] = j
+            s_recv[D] = r
+            rn = r * n
+            x1 = 0  # the rows before the first one r did not receive (all, twice: none)
+            while not twice[r] and x1 < mj and times[rn + jobs[m0 + x1]] > 0:
+                x1 += 1
+            c = x1
+            Sa, Sb, Sc, sa, sb, sq = (
+                pre[x1, 0],
+                pre[x1, 1],
+                pre[x1, 2],
+                pre[x1, 3],
+                pre[x1, 4],
+                pre[x1, 5],
+            )
+            best_trace = pre_best[x1]
+            big = pre_big[x1]
+            unclaimed = unclaimed or pre_nan[x1]
+            for t in range(m0 + x1, m0 + mj):
+                copies = times[rn + jobs[t]]
+                while copies > 0:  # (once, but for a frame received twice)
+                    copies -= 1
+                    c += 1
+                    Sa += jterm[t, 0]
+                    Sb += jterm[t, 1]
+                    Sc += jterm[t, 2]
+                    sa += jterm[t, 3]
+                    sb += jterm[t, 4]
+                    sq += jterm[t, 5]
+                    trace = jterm[t, 6]
+                    if math.isnan(trace):
+                        unclaimed = True
+                    elif big < 0 or trace > best_trace:  # (the first of equal traces)
+                        best_trace = trace
+                        big = jrows[t]
+            s_count[D] = c
+            largest = max(largest, c)
+            big = big if big >= 0 else jrows[jfirst[j]]  # (every claim nan: unclaimed)
+            dS = Sa * Sc - Sb * Sb
+            Ia = Sc / dS
+            Ib = -Sb / dS
+            Ic = Sa / dS
+            ma = Ia * sa + Ib * sb
+            mb = Ib * sa + Ic * sb
+            spread = sq - (ma * sa + mb * sb)
+            Ca = pvals[big, 6] + Ia
+            Cb = 0.5 * (pvals[big, 7] + pvals[big, 8]) + Ib
+            Cc = pvals[big, 9] + Ic
+            T[D] = (Cc * ma * ma - 2.0 * Cb * ma * mb + Ca * mb * mb) / (Ca * Cc - Cb * Cb)
+            gate = gates[c] if c < gates.shape[0] else np.inf
+            consistent[D] = (c < 2 or spread <= gate) and math.isfinite(T[D])
+            judged[D] = c > f_at[j]
+            D += 1
+    if largest >= gates.shape[0]:
+        return np.empty(0, np.int64), np.empty(0), -largest, np.empty(0)
+    if unclaimed:  # a claim that is not a number: every set enumerated
+        T[:D] = np.nan
+        consistent[:D] = False
+    # the old store dense; the groups whose set must be enumerated (the skip rule: a
+    # consistent whole set that leaves S at 0 needs no smaller statistic), each set once,
+    # stopping at a statistic that clips every group holding the set at 0
+    for p in range(skeys.shape[0]):
+        S_old[skeys[p]] = svals[p]
+        held[skeys[p]] = True
+    per_set = np.zeros((2, D))
+    stop, Tn = per_set[0], per_set[1]
+    stop[:] = np.inf
+    wanted = np.zeros(D, np.bool_)
+    for key in range(NN):
+        a = set_of[key]
+        if a < 0 or not judged[a]:
+            continue  # (a group not judged counts no statistic)
+        k = k_at[s_on[a]]
+        if consistent[a] and S_old[key] + T[a] - k <= 0.0:
+            continue
+        enumerate_[key] = True
+        wanted[a] = True
+        v = k - S_old[key]
+        stop[a] = -np.inf if math.isnan(v) else min(stop[a], v)
+    need = 0
+    m_need = 0
+    for a in range(D):
+        if wanted[a]:
+            need += 1
+            m_need += s_count[a]
+    if need:
         u = np.empty((m_need, 2))
         Q = np.empty((m_need, 2, 2))
         Pp = np.empty((m_need, 2, 2))
-        nstart = np.empty(n_need, np.int64)
-        ncount = np.empty(n_need, np.int64)
-        nf = np.empty(n_need, np.int64)
-        nhalf = np.empty(n_need)
-        # a set may stop at a statistic that clips every group holding it at 0
-        stop = np.full(n_need, np.inf)
-        for g in range(G):
-            a = rep[g]
-            if a >= 0:
-                v = k_at[gkey[g] % n] - S[g]
-                stop[a] = -np.inf if math.isnan(v) else min(stop[a], v)
+        n_ints = np.empty((4, need), np.int64)
+        nstart, ncount, nf, which = n_ints[0], n_ints[1], n_ints[2], n_ints[3]
+        n_floats = np.zeros((3, need))
+        nhalf, nstop, Tb = n_floats[0], n_floats[1], n_floats[2]
         q2 = 0
-        for a in range(n_need):
-            g = dgroup[a]
-            nstart[a] = q2
-            ncount[a] = gcount[g]
-            nf[a] = f_at[gkey[g] % n]
-            nhalf[a] = 0.5 * h_at[gkey[g] % n]
-            for q in range(gstart[g], gstart[g] + gcount[g]):
-                e = grows[q]
-                u[q2, 0] = pvals[e, 0]
-                u[q2, 1] = pvals[e, 1]
-                Q[q2, 0, 0] = pvals[e, 2]
-                Q[q2, 0, 1] = pvals[e, 3]
-                Q[q2, 1, 0] = pvals[e, 4]
-                Q[q2, 1, 1] = pvals[e, 5]
-                Pp[q2, 0, 0] = pvals[e, 6]
-                Pp[q2, 0, 1] = pvals[e, 7]
-                Pp[q2, 1, 0] = pvals[e, 8]
-                Pp[q2, 1, 1] = pvals[e, 9]
-                q2 += 1
-        Tn = np.zeros(n_need)
-        jn = np.zeros(n_need, np.bool_)
-        group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, stop, Tn, jn)
-        for g in range(G):
-            if rep[g] >= 0:
-                T[g] = Tn[rep[g]]
-    # the new store: the groups' CUSUM merged with the silent pairs' decay (keys sorted)
-    keys = np.empty(G + ns, np.int64)
-    values = np.empty(G + ns)
+        b = 0
+        for a in range(D):
+            if not wanted[a]:
+                continue
+            which[b] = a
+            nstart[b] = q2
+            ncount[b] = s_count[a]
+            nf[b] = f_at[s_on[a]]
+            nhalf[b] = 0.5 * h_at[s_on[a]]
+            nstop[b] = stop[a]
+            j = s_on[a]
+            rn = s_recv[a] * n
+            for t in range(jfirst[j], jfirst[j + 1]):
+                e = jrows[t]
+                for _ in range(times[rn + jobs[t]]):  # (its rows, as summed)
+                    _copy_note(pvals, e, u, Q, Pp, q2)
+                    q2 += 1
+            b += 1
+        jb = np.zeros(need, np.bool_)
+        group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, nstop, Tb, jb)
+        for b in range(need):
+            Tn[which[b]] = Tb[b]
+    # the new store: each group's CUSUM, the silent pairs' decay (keys ascending)
+    keys = np.empty(NN, np.int64)
+    values = np.empty(NN)
     K = 0
-    p = 0
-    for g in range(G + 1):
-        key = gkey[g] if g < G else 9223372036854775807
-        while p < ns and skeys[p] < key:
-            j0 = skeys[p] % n
-            if on_ok[j0]:
-                v = svals[p] - k_at[j0]
-                keys[K] = skeys[p]
-                values[K] = v if (v > 0.0 or math.isnan(v)) else 0.0
-                K += 1
-            p += 1
-        if p < ns and g < G and skeys[p] == key:
-            p += 1
-        if g == G:
-            break
+    for key in range(NN):
+        if set_of[key] < 0 and not held[key]:
+            continue
         j0 = key % n
-        h = h_at[j0]
-        Tg = T[g]
-        step = 0.0
-        if judged[g]:
-            step = Tg if (math.isnan(Tg) or Tg < 0.5 * h) else 0.5 * h
-        v = S[g] + step - k_at[j0]
-        if not math.isnan(v):
-            v = min(max(v, 0.0), 2.0 * h)
+        a = set_of[key]
+        if a >= 0:
+            h = h_at[j0]
+            step = 0.0
+            if judged[a]:
+                Tg = Tn[a] if enumerate_[key] else T[a]
+                step = Tg if (math.isnan(Tg) or Tg < 0.5 * h) else 0.5 * h
+            v = S_old[key] + step - k_at[j0]
+            if not math.isnan(v):
+                v = min(max(v, 0.0), 2.0 * h)
+        elif on_ok[j0]:
+            v = S_old[key] - k_at[j0]
+            v = v if (v > 0.0 or math.isnan(v)) else 0.0
+        else:
+            continue
         keys[K] = key
         values[K] = v
+        S_new[key] = v
         K += 1
-    return keys[:K], values[:K], n_need
+    return keys[:K], values[:K], need, S_new
 
 
-def _per_robot(value, n: int, dtype=float) -> np.ndarray:
+def per_robot(value, n: int, dtype=float) -> np.ndarray:
     """A parameter at every robot id ``0 .. n - 1``, shape (n,)."""
     a = np.asarray(value, float)
     if a.ndim == 0:
@@ -345,23 +394,25 @@ def fast_delivered(params: CLParams, memory, i, j, channel_ok, robots=None) -> L
     if backend() != "numba":
         return None
     from resloc.cl.detection_witness import STATE, consistency_gates
-    from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH, row_words
+    from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
 
     stat = memory.stage_statistic(STATE)
     pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
     n = stat.n_nodes
+    i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+    if len(i) and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n):
+        return None  # (ids beyond the memory's: the numpy spec)
     on_ok = np.ones(n, np.bool_)
     if robots is not None:
         on_ok[:] = False
         on_ok[np.asarray(robots, np.int64)] = True
-    f_at = _per_robot(np.rint(params.witness_liars), n, np.int64)
-    k_at, h_at = _per_robot(params.witness_k, n), _per_robot(params.witness_h, n)
+    f_at = per_robot(np.rint(params.witness_liars), n, np.int64)
+    k_at, h_at = per_robot(params.witness_k, n), per_robot(params.witness_h, n)
     p_fa = float(np.max(params.witness_false_alarm))
     largest = 16
     args = (
         np.ascontiguousarray(pending.keys, np.int64),
         np.ascontiguousarray(pending.values, float).reshape(len(pending), PENDING_WIDTH),
-        row_words(len(pending)),
         n,
         np.ascontiguousarray(i, np.int64),
         np.ascontiguousarray(j, np.int64),
@@ -374,7 +425,7 @@ def fast_delivered(params: CLParams, memory, i, j, channel_ok, robots=None) -> L
         h_at,
     )
     while True:
-        keys, values, need = delivered_pass(*args, consistency_gates(p_fa, largest))
+        keys, values, need, _ = delivered_pass(*args, consistency_gates(p_fa, largest))
         if need >= 0:
             break
         largest = max(-need, 2 * largest)
