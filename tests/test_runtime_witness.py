@@ -139,6 +139,9 @@ def test_malformed_notes_are_dropped_and_counted_never_crash_a_robot(tmp_path) -
     S = agent.node._witness.stage_statistic(STATE).get(np.zeros(3, int), np.array([1, 2, 3]))
     h, k = agent.team.params.witness_h, agent.team.params.witness_k
     np.testing.assert_allclose(S, [0.0, h / 2 - k, 0.0])
+    # ... and the correction's verdict read that row (its batch row 0), whichever path ran
+    row = agent.node.memory.stage_statistic(STATE).get(np.zeros(3, int), np.array([1, 2, 3]))
+    np.testing.assert_array_equal(row, S)
 
 
 def test_notes_of_unequal_lengths_are_rejected_by_the_codec() -> None:
