@@ -218,10 +218,10 @@ def test_no_widening_goes_beyond_the_largest_standard_deviation():
     assert (_run(120, lambda k: _notes(rng, 4 * offset, sd_p=wide), sd_p=wide) == 1.0).all()
 
 
-def test_the_runtime_refuses_the_outvoted_defence_in_one_line():
-    """Robot processes do not exchange the witness notes the stage reads: the defence is
-    refused by name before any process starts (no runtime run to compare with the
-    simulator's)."""
+def test_the_runtime_runs_the_outvoted_defence_on_broadcast_estimates_only():
+    """Robot processes exchange the witness notes the stage reads and judge the notes on
+    themselves (tests/test_runtime_witness.py); pulled estimates (``cached``) carry no
+    notes: refused by name before any process starts."""
     from resloc.experiments.config import default_scenario
     from resloc.experiments.defences import DEFENCES
     from resloc.runtime.team import check_supported
@@ -229,6 +229,8 @@ def test_the_runtime_refuses_the_outvoted_defence_in_one_line():
     defence = DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"]
     sc = default_scenario().replace(**{"run.trials": 1, **defence})
     assert sc.detector.outvoted
-    with pytest.raises(ConfigError, match=r"detector\.witness") as err:
-        check_supported(sc)
+    check_supported(sc)
+    pulled = sc.replace(**{"estimator.neighbour_estimate": "cached"})
+    with pytest.raises(ConfigError, match=r"^detector\.\w+: pulled estimates") as err:
+        check_supported(pulled)
     assert "\n" not in str(err.value)

@@ -256,13 +256,16 @@ def test_bad_witness_values_are_one_line_errors(key, value):
     assert f"detector.{key}" in str(err.value) and "\n" not in str(err.value)
 
 
-def test_the_runtime_refuses_the_witness_in_one_line():
+def test_the_runtime_refuses_the_witness_only_with_pulled_estimates_in_one_line():
+    """The notes ride on broadcast estimates (tests/test_runtime_witness.py): pulled ones
+    (``cached``) carry none."""
     from resloc.experiments.config import default_scenario
     from resloc.runtime.team import check_supported
 
     sc = default_scenario().replace(**{"run.trials": 1, "detector.witness": True})
+    check_supported(sc)
     with pytest.raises(ConfigError, match=r"detector\.witness") as err:
-        check_supported(sc)
+        check_supported(sc.replace(**{"estimator.neighbour_estimate": "cached"}))
     assert "\n" not in str(err.value)
 
 

@@ -106,7 +106,7 @@ def test_every_kind_round_trips_exactly() -> None:
 def test_header_layout_is_the_documented_one() -> None:
     frame = Codec(KEY, 7).encode(Kind.ESTIMATE, 9, {"x": np.zeros(3), "P": np.eye(3)}, CH)
     magic, version, kind, sender, _, epoch, seq, ts, step = m.HEADER.unpack_from(frame)
-    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 4
+    assert m.HEADER.size == 36 and magic == b"RL" and version == m.SCHEMA_VERSION == 5
     assert (kind, sender, seq, step) == (Kind.ESTIMATE, 7, 1, 9)
     assert abs(ts - time.time()) < 5 and epoch > 0
     assert len(frame) < 200  # compact: x, P and the header, tag

@@ -164,11 +164,17 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
     """``P (B, 3, 3)`` with the covariance of every robot its observers' notes outvote
     widened; ``P`` itself when none is (or the stage is off). Reads the notes waiting in
     ``memory`` for this step's frames, updates each robot's sequence test (module
-    docstring) and records which robots widened (they skip the next step). The compiled
+    docstring) and records which robots widened (they skip the next step). In one robot's
+    process, the view its runtime delivered (``memory.outvoted_view``,
+    :meth:`~resloc.cl.node.RobotNode.receive_witness`) is read instead. The compiled
     twin with the numba backend (:func:`resloc.cl.kernels_outvoted.fast_widen`), else the
     numpy spec (:func:`reference_widen`)."""
     if not params.outvoted or not params.witness or memory is None:
         return P
+    view = memory.outvoted_view
+    if view is not None:  # one robot's process: the notes on it its runtime delivered
+        memory.outvoted_view = None
+        memory = view
     from resloc.cl.kernels_outvoted import fast_widen  # numba's import, on first use
 
     fast = fast_widen(params, memory, links, P)

@@ -24,7 +24,8 @@ robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note
 readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
 by the receivers (they are sent and counted: a receiver sees where the observer says it is).
 In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
-notes and never judges anyone: it needs the team's notes (the simulator's batch). In the
+notes unless the runtime hands it the notes its neighbours' frames carried
+(:meth:`~resloc.cl.node.RobotNode.receive_witness`, ``docs/runtime.md``). In the
 simulator each receiver judges the notes it received (:mod:`resloc.cl.detection_witness_frames`:
 the frames travel over the links' channels, jammed in the CDZ like the estimates).
 
@@ -74,8 +75,8 @@ the map an in-zone sensing attack makes honest observers' notes lie); the observ
 own estimates are not all pulled the same way by the lie (an observer a lie pulled by
 ``delta`` sees every neighbour ``delta`` off: the test compares j with the observers'
 consensus, not with the truth). The compiled correction takes the stage's verdict as a
-per-link mask known before its loop (:mod:`resloc.cl.kernels_witness`); the runtime
-refuses it (the notes are not a message of its schema).
+per-link mask known before its loop (:mod:`resloc.cl.kernels_witness`); robot processes
+carry the notes on their estimate frames (``docs/runtime.md``).
 """
 
 from __future__ import annotations

@@ -246,9 +246,14 @@ def delivered_store(
     with this step's frames (the step's links: receivers ``i``, senders ``j``,
     ``channel_ok``, shapes (E,)); pairs that received no note decay by ``k``. ``memory`` is
     unchanged (the CL step puts the result in it: :func:`deliver_witness`). ``robots``:
-    only the statistics on these robots (the store then holds no other). The compiled
+    only the statistics on these robots (the store then holds no other). In one robot's
+    process the store its runtime delivered (``memory.delivered_witness``, put there by
+    :meth:`~resloc.cl.node.RobotNode.receive_witness`) is taken instead. The compiled
     pass with the numba backend (:func:`~resloc.cl.kernels_witness_frames.fast_delivered`),
     else the numpy spec."""
+    if memory.delivered_witness is not None:  # one robot's process: delivered over the wire
+        store, memory.delivered_witness = memory.delivered_witness, None
+        return store
     from resloc.cl.kernels_witness_frames import fast_delivered  # numba's import, on first use
 
     fast = fast_delivered(params, memory, i, j, channel_ok, robots)

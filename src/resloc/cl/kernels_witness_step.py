@@ -208,8 +208,9 @@ def _constants(params, n: int, largest: int = 0) -> tuple:
 def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     """:func:`~resloc.cl.kernels_witness.witness_verdict` by :func:`witness_pass`; None
     with the numpy backend, shapes it does not take or ids beyond the memory's (the
-    separate calls then run)."""
-    if backend() != "numba":
+    separate calls then run; so in one robot's process given its delivery over the wire,
+    ``memory.delivered_witness``, which :func:`delivered_store` takes)."""
+    if backend() != "numba" or memory.delivered_witness is not None:
         return None
     stat = memory.stage_statistic(STATE)
     pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)

@@ -75,6 +75,13 @@ class LinkMemory:
         self.joint = None  # JointCovariance (tracked) / FactorizedCovariance (factorized)
         # One robot's process: end-of-step exchanges arrive as messages, not from the batch.
         self.local = False
+        # One robot's process: the witness statistic of this robot as a receiver, delivered
+        # from the notes its neighbours' frames carried (RobotNode.receive_witness), which
+        # the next correction takes instead of delivering from this memory (None: none).
+        self.delivered_witness: LinkStatistic | None = None
+        # ... and its view for the outvoted stage: the notes on this robot that reached it
+        # (keyed (observer, 0)) beside its own sequence test (None: this memory's notes).
+        self.outvoted_view: LinkMemory | None = None
         self._stage_statistics: dict[str, LinkStatistic] = {}
         # cached_rows' last gather: (keys, stores, x_link, P_link, positions), what
         # store_delivered needs to store by those positions (None: none to use)

@@ -13,11 +13,17 @@ import dataclasses
 
 import numpy as np
 
+from resloc.cl.detection_witness_frames import (
+    PENDING,
+    PENDING_WIDTH,
+    delivered_store,
+    put_store,
+)
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.gauge import GaugeCovariance
 from resloc.cl.links import LinkBatch, LinkOutcome
-from resloc.cl.memory import LinkMemory
+from resloc.cl.memory import LinkMemory, LinkStatistic
 from resloc.cl.params import CLParams
 from resloc.cl.step import correct, predict
 from resloc.errors import ConfigError
@@ -104,6 +110,11 @@ class RobotNode:
         self.memory = LinkMemory(n_ids)
         self.fusion.init(self.memory, self.x, self.P, team_size, local=True)
         self._delivered_from = np.empty(0, dtype=np.int64)
+        # Witness notes (params.witness): the receivers' statistic in team ids (this robot's
+        # row only) and the notes of this robot's last correction, not yet delivered.
+        self._witness = LinkMemory(n_ids)
+        self._outvoted = LinkMemory(n_ids)  # its PENDING: the notes on this robot (o, 0)
+        self._own_notes = (np.empty(0, np.int64), np.empty((0, PENDING_WIDTH - 1)))
 
     @property
     def gauge(self) -> GaugeCovariance | None:
@@ -178,6 +189,59 @@ class RobotNode:
         so its independent part is now held by them too and becomes dependent."""
         if received and self.memory.independent is not None:
             self.memory.independent[:] = 0.0
+
+    def witness_notes(self) -> tuple[np.ndarray, np.ndarray]:
+        """With ``params.witness``: the notes of this robot's last :meth:`correct` (none if
+        it had no link), which its next transmission carries: the observed robots' ids
+        ``(K,)`` and per note ``u`` (2), ``Q`` (4), ``P_pos`` (4) as rows ``(K, 10)`` (the
+        layout of :data:`~resloc.cl.detection_witness_frames.PENDING`)."""
+        j, rows = self._own_notes
+        return j.copy(), rows.copy()
+
+    def receive_witness(self, senders: np.ndarray, notes: list[tuple[np.ndarray, np.ndarray]]):
+        """With ``params.witness``, every step before :meth:`correct` (whether or not it
+        runs): the notes of the step before that arrived with this step's frames, from the
+        neighbours ``senders (S,)`` this robot measured this step and heard (``notes[s]``:
+        sender s's :meth:`witness_notes`). Updates this robot's statistic on every robot
+        the notes are on, as the simulator's receiver (its own notes included; a robot it
+        received nothing on decays by ``k``); the next :meth:`correct` judges with it. With
+        ``params.outvoted`` the notes on this robot among them are its correction's too."""
+        n = self._witness.n_nodes
+        me = self.robot_id
+        obs = [np.full(len(self._own_notes[0]), me, np.int64)]
+        on, rows = [self._own_notes[0]], [self._own_notes[1]]
+        for s, (j, r) in zip(senders, notes, strict=True):
+            obs.append(np.full(len(j), int(s), np.int64))
+            on.append(np.asarray(j, np.int64))
+            rows.append(np.asarray(r, float).reshape(-1, PENDING_WIDTH - 1))
+        obs, on = np.concatenate(obs), np.concatenate(on)
+        rows = np.column_stack([np.concatenate(rows), np.ones(len(obs))])
+        pending = LinkStatistic(n, width=PENDING_WIDTH)
+        pending.set(obs, on, rows)
+        if self.params.outvoted:  # the notes on this robot, as its correction's row 0
+            on_me = on == me
+            notes_on_me = LinkStatistic(self.memory.n_nodes, width=PENDING_WIDTH)
+            notes_on_me.set(obs[on_me], np.zeros(int(on_me.sum()), np.int64), rows[on_me])
+            stored = self._outvoted.stage_statistic(PENDING, width=PENDING_WIDTH)
+            stored.keys, stored.values = notes_on_me.keys, notes_on_me.values
+            self.memory.outvoted_view = self._outvoted
+        stored = self._witness.stage_statistic(PENDING, width=PENDING_WIDTH)
+        stored.keys, stored.values = pending.keys, pending.values
+        senders = np.asarray(senders, np.int64)
+        heard = np.ones(len(senders), bool)
+        store = delivered_store(
+            self.params, self._witness, np.full(len(senders), me), senders, heard
+        )
+        # this robot's row (the others' notes also count as their own receivers' there)
+        row = store.keys // n == me
+        kept = LinkStatistic(n)
+        kept.keys, kept.values = store.keys[row], store.values[row]
+        put_store(self._witness, kept)
+        # the correction's receiver is its batch row 0
+        mine = LinkStatistic(self.memory.n_nodes)
+        mine.set(np.zeros(len(kept.keys), np.int64), kept.keys % n, kept.values)
+        self.memory.delivered_witness = mine
+        self._own_notes = (np.empty(0, np.int64), np.empty((0, PENDING_WIDTH - 1)))
 
     @property
     def estimate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -264,6 +328,10 @@ class RobotNode:
         )
         self.x, self.P, out = correct(self.filt, self.x, self.P, links, self.params, self.memory)
         self._delivered_from = links.j[out.delivered]
+        if self.params.witness:  # the notes recorded at the step's end (batch row 0)
+            pending = self.memory.stage_statistic(PENDING, width=PENDING_WIDTH)
+            sent = pending.values[:, -1] > 0.0
+            self._own_notes = (pending.keys[sent] % self.memory.n_nodes, pending.values[sent, :-1])
         if np.array_equal(order, np.arange(len(j))):
             return out
         back = np.empty_like(order)

@@ -65,8 +65,9 @@ WIRE_BYTES: dict[str, int] = {
     # does not carry it: a test builds the frame with the codec's header, msgpack and tag)
     "connectivity": 117,
     # detector.witness: each robot's notes on the neighbours it measured, one frame per robot
-    # and step ({"notes": bytes}; not carried by the runtime: a test builds the frame with
-    # the codec's header, msgpack and tag), 48 bytes a note (the neighbour's id i8, the
+    # and step ({"notes": bytes}; a test builds the frame with the codec's header, msgpack
+    # and tag; the runtime sends the notes on its estimate frames instead, 88 bytes a note:
+    # docs/runtime.md), 48 bytes a note (the neighbour's id i8, the
     # residual 2 f8, its covariance's three entries 3 f8); exact from 6 to 1365 notes a
     # frame (with 1-5 notes msgpack's shorter length prefix saves 1 byte, not counted)
     "witness_frame": 78,

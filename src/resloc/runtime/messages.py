@@ -4,7 +4,7 @@ Every message on the wire, robot-to-robot or infrastructure, is one frame::
 
     header (36 bytes, little-endian struct ``HEADER``)
         magic      2s   b"RL"
-        version    u8   SCHEMA_VERSION (4)
+        version    u8   SCHEMA_VERSION (5)
         kind       u8   a :class:`Kind`
         sender     u16  robot id 0..65519, or one of the process ids (WORLD, RADIO, ...)
         reserved   u16  0
@@ -88,7 +88,7 @@ __all__ = [
     "load_or_create_key",
 ]
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 MAGIC = b"RL"
 HEADER = struct.Struct("<2sBBHHQQdI")
 TAG_SIZE = 32

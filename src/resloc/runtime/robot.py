@@ -46,11 +46,12 @@ from resloc.runtime.radio import NEIGHBOURS_PHASE
 from resloc.runtime.schema import link_flags
 from resloc.runtime.team import TeamSetup, team_setup
 from resloc.runtime.transport import Bus
+from resloc.runtime.witness_agent import WitnessingRobot
 
 __all__ = ["RobotAgent", "run_robots"]
 
 
-class RobotAgent(PullingRobot):
+class RobotAgent(PullingRobot, WitnessingRobot):
     """One robot's side of the protocol around its :class:`RobotNode`."""
 
     def __init__(self, rid: int, team: TeamSetup, options: SwarmOptions, bus: Bus, key: bytes):
@@ -78,6 +79,8 @@ class RobotAgent(PullingRobot):
         self.independent: dict[tuple[int, int], np.ndarray] = {}
         # (neighbour, step) -> the factor it keeps for this robot (factorized)
         self.factors_in: dict[tuple[int, int], np.ndarray] = {}
+        # (neighbour, step) -> the witness notes its estimate carried (ids, rows)
+        self.notes_in: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self.acks: dict[int, np.ndarray] = {}
         self.pair_messages: dict[int, np.ndarray] = {}  # higher partner -> its message
         self.consensus: dict[int, dict[int, tuple[np.ndarray, int]]] = {}
@@ -172,7 +175,7 @@ class RobotAgent(PullingRobot):
         self.pair_messages.clear()
         self.consensus.clear()
         keep = self.step - self.options.max_age_steps - 2
-        for store in (self.reciprocal, self.independent, self.factors_in):
+        for store in (self.reciprocal, self.independent, self.factors_in, self.notes_in):
             for old in [key for key in store if key[1] < keep]:
                 del store[old]
         self.node.predict(b["u"], self.team.dt)
@@ -188,6 +191,8 @@ class RobotAgent(PullingRobot):
         if self.team.factors:  # sigma_ji for each robot j that may fuse this estimate
             fj = b["j"].astype(np.int64)
             body |= {"fj": fj, "fs": [self.node.factor_for(int(j)) for j in fj]}
+        if self.team.witness:  # the notes of the step before ride on this step's estimate
+            body = self.notes_fields(body)
         self.send(Kind.ESTIMATE, body)
         self.wait(Kind.ESTIMATE, 0)
 
@@ -265,6 +270,8 @@ class RobotAgent(PullingRobot):
                 mine = np.flatnonzero(m.body["fj"] == self.id)
                 if len(mine):  # the factor the sender keeps for this robot
                     self.factors_in[(m.sender, m.step)] = m.body["fs"][mine[0]]
+            if "wj" in m.body:
+                self.take_notes(m)
             if "rj" in m.body:
                 mine = np.flatnonzero(m.body["rj"] == self.id)
                 if len(mine):  # the sender measured this robot: the reverse link's reading
@@ -462,6 +469,8 @@ class RobotAgent(PullingRobot):
             if age == 0 and (int(nb), self.step) in self.reciprocal:
                 z_reciprocal[e] = self.reciprocal[(int(nb), self.step)]
         self.counts["unheard"] += int((~heard).sum())
+        if self.team.witness:
+            self.deliver_notes(j)
         risk_s, risk_c = self.step_risks()
         flags = np.where(heard, FLAG_HEARD, 0).astype(np.uint8)
         norm = np.full(len(j), np.nan)

@@ -145,15 +145,19 @@ FIELDS: dict[Kind, dict[str, Any]] = {
 #: (``detector.zone_trust``; the receiver takes its own row), the sender's independent
 #: part ``Pi`` with split covariance intersection, and with factorized fusion the factors
 #: it keeps for the robots it measured (``fj``: their ids, ``fs``: ``sigma_ji``; the
-#: receiver takes its own row). An ACK carries the gauge blocks ``ack`` with gauge fusion;
-#: without them it is "your estimate was fused" to ``to`` (split CI; factorized fusion's
-#: round 0); factorized fusion's round 1 (``round``, ``pair``) carries the sender's pair
-#: message ``[A, B, P_pred, sigma]`` for each (lower) partner in ``to``.
+#: receiver takes its own row). With the witness stage (``detector.witness``) it carries
+#: the sender's notes of the step before (``wj``: the robots it measured, ``wn``: per note
+#: ``u`` (2), ``Q`` (2x2), ``P_pos`` (2x2) row-major). An ACK carries the gauge blocks
+#: ``ack`` with gauge fusion; without them it is "your estimate was fused" to ``to``
+#: (split CI; factorized fusion's round 0); factorized fusion's round 1 (``round``,
+#: ``pair``) carries the sender's pair message ``[A, B, P_pred, sigma]`` for each (lower)
+#: partner in ``to``.
 OPTIONAL: dict[Kind, tuple[dict[str, Any], ...]] = {
     Kind.ESTIMATE: (
         {"rj": Array(I8, (-1,)), "rz": Array(F8, (-1, 2))},
         {"Pi": Array(F8, (3, 3))},
         {"fj": Array(I8, (-1,)), "fs": Array(F8, (-1, 3, 3))},
+        {"wj": Array(I8, (-1,)), "wn": Array(F8, (-1, 10))},
     ),
     Kind.ACK: ({"ack": Array(F8, (-1, 3, 3))}, {"round": INT, "pair": Array(F8, (-1, 4, 3, 3))}),
 }
@@ -161,7 +165,7 @@ OPTIONAL: dict[Kind, tuple[dict[str, Any], ...]] = {
 #: Groups of fields whose leading dimension must be equal.
 _ROWS: dict[Kind, tuple[tuple[str, ...], ...]] = {
     Kind.SENSORS: (("j", "z"),),
-    Kind.ESTIMATE: (("rj", "rz"), ("fj", "fs")),
+    Kind.ESTIMATE: (("rj", "rz"), ("fj", "fs"), ("wj", "wn")),
     Kind.CHANNEL: (("i", "j", "ok"),),
     Kind.TRUTH: (("i", "j", "att"),),
     Kind.ACK: (("to", "ack"), ("to", "pair")),

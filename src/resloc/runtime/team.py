@@ -125,6 +125,12 @@ class TeamSetup:
         return bool(self.params.zone_trust or self.params.reciprocal)
 
     @property
+    def witness(self) -> bool:
+        """Estimates carry their sender's witness notes of the step before
+        (``RobotNode.witness_notes``; the receiver's ``RobotNode.receive_witness``)."""
+        return bool(self.params.witness)
+
+    @property
     def pull(self) -> bool:
         """Estimates are pulled on trigger (``neighbour_estimate = "cached"``), not broadcast
         every step (``"current"``: the trigger needs j's current estimate)."""
@@ -143,21 +149,16 @@ def check_supported(scenario: Scenario) -> None:
             f"estimator.fusion: {scenario.estimator.fusion.value!r} is not run by robot "
             f"processes ({refusal}); use naive, gauge, ci, split_ci or factorized"
         )
-    if scenario.detector.witness:
-        raise ConfigError(
-            "detector.witness: the observers' notes are not a message of the runtime yet; "
-            "set detector.witness = false"
-        )
     if scenario.trigger.lambda2 == "distributed":
         raise ConfigError(
             "trigger.lambda2: 'distributed' is not run by the runtime yet; use component or global"
         )
     pulled = scenario.estimator.neighbour_estimate is NeighbourEstimate.CACHED
-    for name in ("zone_trust", "reciprocal"):
+    for name in ("zone_trust", "reciprocal", "witness"):
         if pulled and getattr(scenario.detector, name):
             raise ConfigError(
                 f"detector.{name}: pulled estimates (estimator.neighbour_estimate = 'cached') "
-                "do not carry the sender's readings; use 'current' with it in a swarm"
+                "do not carry the sender's readings or notes; use 'current' with it in a swarm"
             )
     if scenario.world.attack.kind is AttackKind.STEALTHY:
         raise ConfigError(
