@@ -107,8 +107,8 @@ def padded_lanes(n, C):
 def pad_gathered(n, n2, obs, src, xi, xr, zl, sin_cos, bad):
     """Lanes ``n .. n2 - 1`` (``n2 = padded_lanes(n, CHUNK)``) copies of lane 0's gathered
     inputs (:func:`~resloc.cl.kernels_link_stages.gather_lanes`): work for the vectorized
-    stages' SIMD bodies whose results are never read (the options' form of the rounds,
-    :func:`resloc.cl.kernels_rounds.correct_rounds`)."""
+    stages' SIMD bodies whose results are never read (both forms of the rounds,
+    :func:`resloc.cl.kernels_rounds.correct_rounds`, unless ``cached`` runs ahead)."""
     for d in range(n, n2):
         obs[d] = obs[0]
         src[d] = src[0]

@@ -328,13 +328,14 @@ def _rounds(
             gather_lanes(x, li, nb, x_ref, z, lane_e, n, obs, src, xi, xr, zl, sin_cos, bad)
             # n2: the lanes of the vectorized stages; cached: lanes n .. 2n - 1 are the
             # second pass with j's transmitted estimate, ahead of the decisions (padded);
-            # the other options: lanes n .. n2 - 1 copies of lane 0, never read (their SIMD
-            # bodies take whole blocks of lanes, kernels_round_cached.padded_lanes)
+            # otherwise (the paper's form too): lanes n .. n2 - 1 copies of lane 0, never
+            # read (the SIMD bodies take whole blocks of lanes,
+            # kernels_round_cached.padded_lanes; the paper's 17 lanes ran one by one)
             n2 = n
             nj = n  # the lanes whose j is the first pass's (P_ref)
             if beyond is not None and ahead:
                 n2 = lanes_ahead(n, C)
-            elif beyond is not None:
+            else:
                 n2 = padded_lanes(n, C)
                 nj = n2
                 pad_gathered(n, n2, obs, src, xi, xr, zl, sin_cos, bad)
