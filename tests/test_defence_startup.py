@@ -108,3 +108,37 @@ def test_the_quiet_attacker_sends_nothing_false_during_its_quiet_steps():
     with pytest.raises(AttributeError):  # past its quiet steps it goes on to lie
         adv.attack(links, SimpleNamespace(k=10, robots=17), PARAMS, None)
     assert make_attacker("compromised").quiet == 0
+
+
+def test_the_correction_uses_the_floor_on_both_paths():
+    """Robot 0 (1 mm) fuses five neighbours: with the stage its prior is raised to 10 mm
+    before the correction, on the compiled path as on the reference (to 1e-9)."""
+    import dataclasses
+
+    import resloc.cl.step
+    from resloc.cl import kernels
+    from resloc.filters.base import make_filter
+    from test_defence_redundancy import POSE, _compromised_scene
+
+    base = CLParams(trigger=False, detector=False)
+    links, *_ = _compromised_scene(base)
+    links = dataclasses.replace(links, neighbours=None)
+    P = np.tile(np.diag([1e-6, 1e-6, 1e-4]), (6, 1, 1))
+    filt = make_filter("ckf")
+    on = replace(base, startup_steps=3, startup_floor_std=0.01)
+    runs = {}
+    backends = ("numpy", "numba") if kernels.HAVE_NUMBA else ("numpy",)
+    for backend in backends:
+        for name, params in (("off", base), ("on", on)):
+            with kernels.use_backend(backend):
+                runs[backend, name] = resloc.cl.step.correct(
+                    filt, POSE.copy(), P, links, params, LinkMemory(6)
+                )
+    # the floored prior: the posterior of robot 0 is wider than without the stage
+    assert runs["numpy", "on"][1][0, 0, 0] > 5.0 * runs["numpy", "off"][1][0, 0, 0]
+    if kernels.HAVE_NUMBA:
+        assert runs["numba", "on"][2].compiled
+        for k in (0, 1):
+            np.testing.assert_allclose(
+                runs["numba", "on"][k], runs["numpy", "on"][k], rtol=0, atol=1e-9
+            )
