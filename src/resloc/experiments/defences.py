@@ -120,7 +120,8 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.outvoted": True,
             },
             # + no robot's covariance shrinks below 10 mm in its first 10 corrections
-            # (cl/detection_startup.py).
+            # (cl/detection_startup.py; liars that wait out the 10 steps beat it,
+            # docs/attack/startup.md).
             "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup": {
                 **_FULL,
                 **_ZONE,
