@@ -37,6 +37,10 @@ def main() -> None:
         help="an attacker parameter added to every point (e.g. give_up=1)",
     )  # fmt: skip
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument(
+        "--first-trial", type=int, default=0,
+        help="the first trial (seed run.seed.T) of the batch: one seed alone, for diagnosis",
+    )  # fmt: skip
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--points", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=None)
@@ -53,8 +57,11 @@ def main() -> None:
             "run.dead_reckoning": False,
         },
     )
-    clean = run_scenario(base.replace(sdz=[])).estimators["ckf"].per_trial("msle_mean")
+    first = {"first_trial": args.first_trial}
+    clean = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"].per_trial("msle_mean")
     out = {"defence": args.defence, "set": extra, "seeds": args.seeds, "steps": args.steps}
+    if args.first_trial:
+        out["first_trial"] = args.first_trial
     if attack:
         out["attack"] = attack
     out["clean"] = clean.tolist()
@@ -62,7 +69,7 @@ def main() -> None:
     for p in args.points:
         params = {**POINTS[p], **attack}
         adv = make_attacker("compromised", **params)
-        res = run_scenario(base.replace(**adv.overrides), adversary=adv)
+        res = run_scenario(base.replace(**adv.overrides), adversary=adv, **first)
         msle = res.estimators["ckf"].per_trial("msle_mean")
         ratio = msle / clean
         out[json.dumps(params, sort_keys=True)] = {"msle": msle.tolist(), "ratio": ratio.tolist()}

@@ -36,6 +36,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     Discards nothing: a robot whose observers' witness notes on itself place it elsewhere
     than its covariance allows widens its own covariance before the correction
     (:mod:`resloc.cl.detection_outvoted`).
+``startup``
+    Discards nothing: for its first ``startup_steps`` corrections a robot's prior covariance
+    is kept at or above a floor, so lies taken while every gate is wide cannot shrink it
+    onto them (:mod:`resloc.cl.detection_startup`).
 ``zone_landmarks``
     Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
     is weighed, in every test and in the fusion, with its claimed covariance inflated
@@ -70,6 +74,7 @@ from resloc.cl.detection_recovery import RejectionRecovery
 from resloc.cl.detection_redundancy import RedundancyCheck
 from resloc.cl.detection_robot import RobotCusum
 from resloc.cl.detection_sequence import RedundancySequence
+from resloc.cl.detection_startup import StartupFloor
 from resloc.cl.detection_witness import WitnessCheck
 from resloc.cl.detection_zone import ZoneTrust
 from resloc.cl.detector import InnovationNorm, attack_detected
@@ -289,6 +294,7 @@ DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     RECIPROCAL,
     WitnessCheck(),
     OUTVOTED,
+    StartupFloor(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

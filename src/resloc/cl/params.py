@@ -191,6 +191,11 @@ class CLParams:
     outvoted_max_std : float
         No widening takes a robot's position standard deviation (the larger diagonal
         entry) beyond this, in metres; a robot already beyond it is not widened.
+    startup_steps : int
+        For its first this many corrections a robot's prior covariance is raised to
+        ``startup_floor_std`` (:mod:`resloc.cl.detection_startup`; 0: off).
+    startup_floor_std : float
+        The floor: the position standard deviation (the larger diagonal entry), in metres.
     """
 
     range_std: float = 0.005
@@ -253,6 +258,8 @@ class CLParams:
     outvoted: bool = False
     outvoted_cap: float = 100.0
     outvoted_max_std: float = 0.05
+    startup_steps: int = 0
+    startup_floor_std: float = 0.01
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

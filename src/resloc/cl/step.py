@@ -19,6 +19,7 @@ from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_outvoted import widen_outvoted
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
+from resloc.cl.detection_startup import startup_floor
 from resloc.cl.detection_witness import step_notes
 from resloc.cl.detection_witness_frames import deliver_witness, record_witness
 from resloc.cl.detection_zone import (
@@ -354,6 +355,7 @@ def correct(
     # A robot its observers' notes outvote widens its covariance first (both paths, and the
     # adversary's hook, see the widened one).
     P = widen_outvoted(params, memory, links, P)
+    P = startup_floor(params, memory, links, P)  # no robot shrinks below a floor at first
     fast = fast_correct(filt, x, P, links, params, memory, buffers)
     if fast is not None:
         return fast

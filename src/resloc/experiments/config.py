@@ -292,6 +292,16 @@ class DetectorSpec:
         gt=0.0,
         max=1e6,
     )
+    startup_steps: int = option(
+        0,
+        "for its first this many corrections a robot's covariance is kept at or above "
+        "startup_floor_std (docs/attack/startup.md; 0: off)",
+        min=0,
+        max=1_000_000,
+    )
+    startup_floor_std: float = option(
+        0.01, "startup: the floor of a position standard deviation (m)", gt=0.0, max=1e6
+    )
 
 
 @dataclass(frozen=True)
@@ -418,6 +428,8 @@ class Scenario:
             outvoted=d.outvoted,
             outvoted_cap=float(d.outvoted_cap),
             outvoted_max_std=float(d.outvoted_max_std),
+            startup_steps=int(d.startup_steps),
+            startup_floor_std=float(d.startup_floor_std),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -119,6 +119,20 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.witness": True,
                 "detector.outvoted": True,
             },
+            # + no robot's covariance shrinks below 10 mm in its first 10 corrections
+            # (cl/detection_startup.py; liars that wait out the 10 steps beat it,
+            # docs/attack/startup.md).
+            "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+                "detector.witness": True,
+                "detector.outvoted": True,
+                "detector.startup_steps": 10,
+                "detector.startup_floor_std": 0.01,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

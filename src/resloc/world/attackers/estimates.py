@@ -92,7 +92,9 @@ class CompromisedRobot(Strategy):
     #: ``shield``: whether the liars' notes shield their honest victims (the response to the
     #: outvoted stage, :mod:`resloc.world.attackers.outvoted`): ``"auto"`` against that
     #: stage only, ``"on"``, ``"off"`` (neither is stronger on every seed: the worst case
-    #: is taken over both).
+    #: is taken over both). ``quiet``: the liars send their honest estimates for the first
+    #: this many steps (the answer to a start-up defence, :mod:`resloc.cl.detection_startup`:
+    #: lie only once it has ended).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
@@ -100,6 +102,7 @@ class CompromisedRobot(Strategy):
         "budget": "spared",
         "give_up": 0,
         "shield": "auto",
+        "quiet": 0,
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -130,7 +133,7 @@ class CompromisedRobot(Strategy):
 
     def attack(self, links, step, params, memory):
         from_liar = np.isin(links.j % step.robots, self.targets(step.robots))
-        if not from_liar.any():
+        if not from_liar.any() or step.k < int(self.quiet):
             return dataclasses.replace(links, tamper=None)
         is_liar = np.isin(np.arange(len(step.pose)) % step.robots, self.targets(step.robots))
         P_nb = links.P_nb
