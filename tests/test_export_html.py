@@ -110,10 +110,17 @@ def test_renders_what_the_recording_says_without_errors(viewer, tmp_path):
     at_k = rec.links["step"] == k
     assert int(data["links"]) == int((flags["triggered"] & at_k & ~flags["detected"]).sum()) > 0
     assert int(data["rejected"]) == int((flags["detected"] & at_k).sum()) > 0
-    # Playing advances the frame by itself.
-    res = chromium(page, "step=0&play=1", tmp_path, "--dump-dom")
-    data = body_data(res.stdout)
-    assert int(data["frame"]) > 0 and data["errors"] == ""
+    # Playing advances the frame by itself. Its animation frames come from the renderer's
+    # clock: on a loaded host (seen once in `make test` beside two long benchmarks) none had
+    # arrived before the dump, so the page gets three tries; a player that never advances
+    # fails all three.
+    for _ in range(3):
+        res = chromium(page, "step=0&play=1", tmp_path, "--dump-dom")
+        data = body_data(res.stdout)
+        assert data["errors"] == ""
+        if int(data["frame"]) > 0:
+            break
+    assert int(data["frame"]) > 0
     # A malformed fragment falls back to the first frame, still without errors.
     res = chromium(page, "step=abc&est=nope", tmp_path, "--dump-dom")
     data = body_data(res.stdout)
