@@ -66,6 +66,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
+from resloc.cl.detection_widening import applied_stage_factors, scale_robots
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 
@@ -215,22 +216,14 @@ def reference_widen(params: CLParams, memory: LinkMemory, links, P: np.ndarray) 
         # run the team's estimates away (kilometres; docs/attack/outvoted.md, section 7).
         largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
         factor[a] = np.minimum(factor[a], np.maximum(params.outvoted_max_std**2 / largest, 1.0))
-    widen = factor > 1.0
     state.set(robots_all, robots_all, np.column_stack([S, factor]))
-    if not widen.any():
-        return P
-    P = np.array(P, float)
-    P[robots_all[widen]] *= factor[widen, None, None]
-    return P
+    return scale_robots(P, robots_all, factor)
 
 
 def applied_factors(memory: LinkMemory, B: int) -> np.ndarray:
     """The factor ``(B,)`` each robot's covariance was widened by in its last correction
     (1: none; what a full-knowledge attacker reads to see the covariances the step uses)."""
-    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
-    robots = np.arange(B)
-    f = state.get(robots, robots)[:, 1]
-    return np.where(f > 1.0, f, 1.0)
+    return applied_stage_factors(memory, OUTVOTED_STATE, B)
 
 
 class Outvoted:

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
+from resloc.cl.detection_widening import applied_stage_factors, scale_robots
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 
@@ -74,21 +75,13 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
         largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
         factor[young] = np.maximum(params.startup_floor_std**2 / largest, 1.0)
     state.set(robots, robots, np.column_stack([seen + 1.0, factor]))
-    raise_ = factor > 1.0
-    if not raise_.any():
-        return P
-    P = np.array(P, float)
-    P[robots[raise_]] *= factor[raise_, None, None]
-    return P
+    return scale_robots(P, robots, factor)
 
 
 def applied_startup_factors(memory: LinkMemory, B: int) -> np.ndarray:
     """The factor ``(B,)`` each robot's covariance was raised by in its last correction
     (1: none; what a full-knowledge attacker reads to see the covariances the step uses)."""
-    state = memory.stage_statistic(STARTUP_STATE, width=2)
-    robots = np.arange(B)
-    f = state.get(robots, robots)[:, 1]
-    return np.where(f > 1.0, f, 1.0)
+    return applied_stage_factors(memory, STARTUP_STATE, B)
 
 
 class StartupFloor:
