@@ -6,8 +6,10 @@ stays under all of them, and two agreeing liars around one victim look like a ma
 (``docs/attack/compromised_long.md``). Each observer, however, has its own reading of the
 liar, and the liar's lies must survive all of them at once. This stage sums that evidence.
 
-**Notes.** Each step every robot i, for each neighbour j it measured, computes the position
-of j its own estimate and its reading imply, ``g_ij = p_i + r u(theta_i + b)``, and the
+**Notes.** Each step every robot i, for each neighbour j it measured and whose broadcast
+it received this step (the link's ``channel_ok``: no note on an estimate jammed in the CDZ,
+which a robot's process never gets), computes the position of j its own estimate and its
+reading imply, ``g_ij = p_i + r u(theta_i + b)``, and the
 residual between j's broadcast position and it,
 
 ``u_ij = p_j - g_ij``,   ``cov = P_j,pos + Q_ij``,  ``Q_ij = J_x P_i J_x^T + J_z R J_z^T``
