@@ -192,7 +192,9 @@ def test_the_compromised_robots_lie_sits_on_the_witness_threshold(liars):
     def S_after(frac):
         zz = z.copy()
         zz[rows] = path(frac[None])[0]
-        notes = lying_notes(step_notes(zz, x[i], P[i], x[j], P[j], i, j, params), is_liar, params)
+        notes = lying_notes(
+            step_notes(zz, x[i], P[i], x[j], P[j], i, j, params, ok), is_liar, params
+        )
         recv, _, S = received_state(notes, params, now, i, j, ok, np.array([0]))
         return S[~is_liar[recv]].max()  # the honest receivers' largest
 
@@ -206,7 +208,7 @@ def test_lying_notes_exonerate_a_fellow_liar_and_accuse_the_honest():
     rows = j == 0
     z = z.copy()  # robot 0 lies: 5 cm along world +x to every observer
     z[rows] -= shifted_prediction(z[rows], np.array([[0.05, 0.0]])) - z[rows]
-    notes = step_notes(z, x[i], P[i], x[j], P[j], i, j, params)
+    notes = step_notes(z, x[i], P[i], x[j], P[j], i, j, params, np.ones(len(i), bool))
     lied = lying_notes(notes, is_liar, params)
     T = witness_statistic(notes, params)[1]
     T_lied = witness_statistic(lied, params)[1]
@@ -374,7 +376,9 @@ def _ring_budget(budget, liars=(0,), f=1.0, give_up=0, inside=None, convicting=0
     def S_after(frac):
         zz = z.copy()
         zz[rows] = path(frac[None])[0]
-        notes = lying_notes(step_notes(zz, x[i], P[i], x[j], P[j], i, j, params), is_liar, params)
+        notes = lying_notes(
+            step_notes(zz, x[i], P[i], x[j], P[j], i, j, params, ok), is_liar, params
+        )
         recv, _, S = received_state(notes, params, now, i, j, ok, np.array([0]))
         return np.sort(S[~is_liar[recv]])[::-1]  # the honest receivers', largest first
 

@@ -36,6 +36,7 @@ from resloc.cl.detection_witness_frames import (
     reference_delivered_store,
     reference_record,
 )
+from resloc.cl.detection_zone import inside_zone_map
 from resloc.cl.params import CLParams, at_robots
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
@@ -151,6 +152,41 @@ def test_compiled_witness_equals_the_reference_through_convictions():
         assert out.detected[convicted].all()  # (no recovery re-admits a convicted robot here)
         discarded += int(convicted.sum())
     assert discarded > 0, "the stage convicted nobody: the case tests nothing"
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_a_jammed_link_gives_no_note(path):
+    """An observer whose copy of j's estimate was jammed this step (the link's
+    ``channel_ok`` false) writes no note on j (a robot's process could not): after a
+    correction the notes waiting for the next frames are those of the received links
+    only, on the numpy reference and on the compiled paths (whose step pass ran and
+    recorded the notes itself: the links were all noted the step before)."""
+    params = _params()
+    sc = default_scenario()
+    world = World(sc.world, 1, 4, sc.trigger.lambda2)
+    x, P = world.initial_estimates()
+    filt = make_filter("ckf")
+    memory = LinkMemory(world.B)
+    for k in range(2):  # every link received, then every third link jammed
+        ws = world.step()
+        ok = ws.channel_ok & (np.arange(len(ws.i)) % 3 != 0 if k else True)
+        with _path(path):
+            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
+            links = LinkBatch.from_predicted(
+                ws.i, ws.j, ws.z, xp, Pp, ok, ws.risk_s, ws.risk_c, ws.lambda2
+            )
+            before = kernels_witness.WITNESS_RUNS.copy()
+            x, P, out = correct(filt, xp, Pp, links, params, memory)
+            runs = {k: v - before[k] for k, v in kernels_witness.WITNESS_RUNS.items()}
+    if path != "numpy":
+        assert out.compiled and runs["steps"] == 1, "the compiled witness pass did not run"
+        assert runs["records"] == 1, "the pass did not record the notes itself"
+    waiting = _pending(memory)
+    noted = waiting.keys[waiting.values[:, 10] > 0.0]
+    zoned = inside_zone_map(xp[ws.i, :2], params.zone_trust_map)  # (their notes unsent)
+    keys = ws.i * world.B + ws.j
+    np.testing.assert_array_equal(np.sort(noted), np.sort(keys[ok & ~zoned]))
+    assert (ok & ~zoned).sum() > 10 and (~ok & ~zoned).sum() > 5  # the case tests something
 
 
 @pytest.mark.parametrize(("attack", "seed"), [("honest notes", 3), ("none", 5), ("none", 6)])
@@ -424,10 +460,15 @@ def test_the_step_pass_equals_the_spec(seed):
     )
     pairs = np.array([(a, b) for a in range(n) for b in range(n) if a != b])
     first = rng.random(len(pairs)) < 0.8
+    # a fifth of the links jammed, two patterns in turn (a link noted at one step is
+    # jammed at the next: the pass must not record it)
+    jam = rng.random((2, len(pairs))) < 0.2
+    jam[1] &= ~jam[0]  # (disjoint: every link is noted by step 2)
     memory = LinkMemory(n)
-    counted = {"in pass": 0, "zoned": 0, "convicted": 0, "unsent": 0}
+    counted = {"in pass": 0, "zoned": 0, "convicted": 0, "unsent": 0, "jammed": 0}
     for step in range(7):
         i, j = pairs[first | (step == 5)].T  # new links at step 5
+        ok = ~jam[step % 2][first | (step == 5)]
         E = len(i)
         pos = rng.uniform(-2.0, 2.0, (n, 2))
         x = np.c_[pos + rng.normal(0.0, 0.02, (n, 2)), rng.uniform(-np.pi, np.pi, n)]
@@ -440,7 +481,6 @@ def test_the_step_pass_equals_the_spec(seed):
             z[4, 0] = np.nan  # (its note is not sent)
         x_nb = x.copy()
         x_nb[0, :2] += 0.3  # robot 0's broadcast lies
-        ok = rng.random(E) < 0.8
         risk = np.zeros(n)
         links = LinkBatch.from_predicted(i, j, z, x_nb, P, ok, risk, risk, risk)
         if step % 2:  # the claims per link (read: no neighbour rows)
@@ -456,7 +496,7 @@ def test_the_step_pass_equals_the_spec(seed):
         with kernels.use_backend("numpy"):
             deliver_witness(params, spec, links)
             discard = witness_state(spec, i, j) > params.witness_h
-            notes = step_notes(z, x[i], P[i], x_nb[j], P[j], i, j, params)
+            notes = step_notes(z, x[i], P[i], x_nb[j], P[j], i, j, params, ok)
             reference_record(notes, spec)
         np.testing.assert_array_equal(verdict.discard, discard)
         for name, width in ((STATE, None), (PENDING, PENDING_WIDTH)):
@@ -465,6 +505,9 @@ def test_the_step_pass_equals_the_spec(seed):
             np.testing.assert_allclose(got.values, ref.values, rtol=1e-9, atol=1e-12)
         counted["zoned"] += int((np.hypot(x[i, 0], x[i, 1]) < 0.7).sum())
         counted["unsent"] += int((~notes.sent).sum())
+        counted["jammed"] += int((~ok).sum())
         counted["convicted"] += int(discard.sum())
-    assert counted["in pass"] >= 4, counted  # (step 0 and step 5: the spec inserts)
+    # (steps 0, 1 and 5: the spec inserts; a link first noted later, its observer inside
+    # the map or its frame jammed before, too)
+    assert counted["in pass"] >= 3, counted
     assert min(counted.values()) > 0, f"the case tests nothing: {counted}"

@@ -6,8 +6,10 @@ stays under all of them, and two agreeing liars around one victim look like a ma
 (``docs/attack/compromised_long.md``). Each observer, however, has its own reading of the
 liar, and the liar's lies must survive all of them at once. This stage sums that evidence.
 
-**Notes.** Each step every robot i, for each neighbour j it measured, computes the position
-of j its own estimate and its reading imply, ``g_ij = p_i + r u(theta_i + b)``, and the
+**Notes.** Each step every robot i, for each neighbour j it measured and whose broadcast
+it received this step (the link's ``channel_ok``: no note on an estimate jammed in the CDZ,
+which a robot's process never gets), computes the position of j its own estimate and its
+reading imply, ``g_ij = p_i + r u(theta_i + b)``, and the
 residual between j's broadcast position and it,
 
 ``u_ij = p_j - g_ij``,   ``cov = P_j,pos + Q_ij``,  ``Q_ij = J_x P_i J_x^T + J_z R J_z^T``
@@ -168,7 +170,8 @@ class WitnessNotes:
         The position block of the covariance neighbour j claimed to observer i.
     i, j : ndarray of int, shape (E,)
     sent : ndarray of bool, shape (E,)
-        Notes the receivers use (not those of an observer inside the zone-trust map).
+        Notes the receivers use (not those of an observer inside the zone-trust map, nor
+        those on a neighbour whose estimate the observer did not receive this step).
     """
 
     def __init__(self, u, Q, P_pos, i, j, sent) -> None:
@@ -188,10 +191,14 @@ def step_notes(
     i: np.ndarray,
     j: np.ndarray,
     params: CLParams,
+    received: np.ndarray,
 ) -> WitnessNotes:
     """Every link's note of the step (what the CL step and an attacker's copy both
     compute): readings ``z (E, 2)`` as reported, the observers' predicted estimates, the
-    neighbours' broadcast estimates with their claimed covariances ``P_nb (E, 3, 3)``."""
+    neighbours' broadcast estimates with their claimed covariances ``P_nb (E, 3, 3)``.
+    ``received (E,)``: observer i got j's estimate this step (the link's ``channel_ok``,
+    the draw j's estimate message to i gets): a note on an estimate the observer never
+    received is not sent (a robot's process cannot write it)."""
     from resloc.cl.detection_zone import inside_zone_map
     from resloc.cl.kernels_witness import fast_notes  # numba's import, on first use
 
@@ -200,7 +207,7 @@ def step_notes(
     sent = np.ones(len(u), bool)
     if params.zone_trust and params.zone_trust_map:
         sent = ~inside_zone_map(np.asarray(x_obs)[:, :2], params.zone_trust_map)
-    sent &= np.isfinite(u).all(axis=1)
+    sent &= np.isfinite(u).all(axis=1) & np.asarray(received, bool)
     return WitnessNotes(u, Q, np.asarray(P_nb, float)[:, :2, :2], i, j, sent)
 
 

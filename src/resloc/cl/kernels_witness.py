@@ -171,7 +171,15 @@ def witness_verdict(
     store = delivered_store(params, memory, links.i, j, links.channel_ok)
     discard = np.ascontiguousarray(store.get(links.i, j) > at_robots(params.witness_h, j))
     notes = step_notes(
-        links.z, x[links.i], P[links.i], links.x_nb, inputs.claimed, links.i, j, params
+        links.z,
+        x[links.i],
+        P[links.i],
+        links.x_nb,
+        inputs.claimed,
+        links.i,
+        j,
+        params,
+        links.channel_ok,
     )
     if inputs.lie_notes is not None:
         notes = inputs.lie_notes(notes)

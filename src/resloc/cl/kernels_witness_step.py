@@ -153,8 +153,8 @@ def witness_pass(
     for e in range(E):
         r = li[e]
         note_at(z, e, x, r, P, x_nb, R, u, Q, 0, lengthen[r])
-        if inside[r] or not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
-            continue  # (not sent)
+        if inside[r] or not ok[e] or not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
+            continue  # (not sent: inside the map, j's estimate not received, no number)
         p = slot[r * n + lj[e]]
         if p < 0:  # a link not stored yet: the spec records (it inserts)
             return DONE, keys, values, need, discard, pvals, False
@@ -287,7 +287,7 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     runs["steps"] += 1
     if recorded:  # (the notes are in ``after``)
         return WitnessVerdict(discard, store, None, after)
-    notes = step_notes(z, xc[li], Pc[li], x_nb, inputs.claimed, li, lj, params)
+    notes = step_notes(z, xc[li], Pc[li], x_nb, inputs.claimed, li, lj, params, ok)
     if inputs.lie_notes is not None:  # the adversary's notes: the spec records them
         notes = inputs.lie_notes(notes)
     return WitnessVerdict(discard, store, notes)

@@ -398,7 +398,15 @@ def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):
         # frames (record_witness, at the end).
         deliver_witness(params, memory, links)
         notes = step_notes(
-            links.z, x[links.i], P[links.i], links.x_nb, claimed, links.i, links.j, params
+            links.z,
+            x[links.i],
+            P[links.i],
+            links.x_nb,
+            claimed,
+            links.i,
+            links.j,
+            params,
+            links.channel_ok,
         )
         if lie_notes is not None:
             notes = lie_notes(notes)

@@ -155,7 +155,9 @@ def within_witness(
     def after(c_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         z = np.array(z_all, float)
         z[rows] = path((c_rows * a)[None])[0]
-        notes = lying_notes(step_notes(z, x_obs, P_obs, x_nb, P_nb, i, j, params), is_liar, params)
+        notes = lying_notes(
+            step_notes(z, x_obs, P_obs, x_nb, P_nb, i, j, params, channel_ok), is_liar, params
+        )
         recv, on, S = received_state(notes, params, now, i, j, channel_ok, liars)
         honest = ~is_liar[recv]
         return recv[honest], on[honest], S[honest]
@@ -201,7 +203,7 @@ def within_witness(
         return common(bisect(common, 1.0)) * a
 
     notes0 = step_notes(
-        np.array(z_all, float), x_obs, P_obs, x_nb, P_nb, i, j, params
+        np.array(z_all, float), x_obs, P_obs, x_nb, P_nb, i, j, params, channel_ok
     )  # the honest notes: who is read, and each note's weight
     free = ~notes0.sent[rows]
     from_fellow = is_liar[i[rows]]
