@@ -85,6 +85,9 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted": dict(
         DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 
