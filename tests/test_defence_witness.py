@@ -27,6 +27,7 @@ from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 from resloc.errors import ConfigError
 from resloc.world.attackers.estimates import shifted_prediction
+from resloc.world.attackers.outvoted import shielding_notes
 from resloc.world.attackers.witness import lying_notes, within_witness
 
 PARAMS = CLParams(witness=True, witness_liars=2.0, witness_k=4.0, witness_h=20.0)
@@ -216,6 +217,26 @@ def test_lying_notes_exonerate_a_fellow_liar_and_accuse_the_honest():
     accusing = (i == 0) & (j > 1)  # robot 0's notes on the honest robots
     assert accusing.sum() == 6 and (lied.u[accusing, 0] > notes.u[accusing, 0] + 1e-3).all()
     assert np.array_equal(lied.u[i > 1], notes.u[i > 1])  # honest notes unchanged
+
+
+@pytest.mark.parametrize("shield", [False, True])
+def test_a_liar_sends_its_notes_on_links_jammed_to_it(shield):
+    params = CLParams(witness=True, witness_liars=1.0)
+    x, P, i, j, z, is_liar = _ring((0, 1))
+    received = np.ones(len(i), bool)
+    received[(i == 0) & (j == 5)] = False  # robot 5's estimate jammed to the liar 0
+    received[(i == 0) & (j == 1)] = False  # and its fellow liar's
+    received[(i == 3) & (j == 5)] = False  # and to the honest robot 3
+    notes = step_notes(z, x[i], P[i], x[j], P[j], i, j, params, received)
+    assert not notes.sent[(i == 0) & (j == 5)].any()  # the defence's rule for the honest
+    hook = shielding_notes if shield else lying_notes
+    lied = hook(notes, is_liar, params)
+    assert lied.sent[i == 0].all()  # the liar is not bound by what reached it
+    assert not lied.sent[(i == 3) & (j == 5)].any()  # an honest observer is
+    assert np.array_equal(lied.sent[i > 1], notes.sent[i > 1])
+    if not shield:  # it accuses there too (a shield's note is the victim's best candidate)
+        accusing = (i == 0) & (j == 5)
+        assert lied.u[accusing, 0] > notes.u[accusing, 0] + 1e-3
 
 
 def test_bytes_of_the_notes_are_counted():

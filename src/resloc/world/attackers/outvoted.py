@@ -31,7 +31,7 @@ import numpy as np
 
 from resloc.cl.detection_witness import WitnessNotes, witness_statistic
 from resloc.cl.params import CLParams
-from resloc.world.attackers.witness import EXONERATION, lying_notes
+from resloc.world.attackers.witness import EXONERATION, liars_send_all, lying_notes
 
 __all__ = ["shielding_notes", "widened"]
 
@@ -47,6 +47,7 @@ def shielding_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) 
     is_liar : ndarray of bool, shape (B,)
     params : CLParams
     """
+    notes = liars_send_all(notes, is_liar)
     lied = lying_notes(notes, is_liar, params)
     shield = np.flatnonzero(is_liar[notes.i] & notes.sent & ~is_liar[notes.j])
     if shield.size == 0:

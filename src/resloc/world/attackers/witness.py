@@ -35,7 +35,14 @@ from resloc.cl.detection_witness_frames import delivered_store, received_state
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["ACCUSATION", "EXONERATION", "WITNESS_BUDGETS", "lying_notes", "within_witness"]
+__all__ = [
+    "ACCUSATION",
+    "EXONERATION",
+    "WITNESS_BUDGETS",
+    "liars_send_all",
+    "lying_notes",
+    "within_witness",
+]
 
 #: Multiples ``t`` of the honest observers' mean note a fellow liar may send, negated.
 EXONERATION = (0.0, 0.5, 1.0, 2.0, 4.0)
@@ -49,6 +56,16 @@ BUDGET_BISECTIONS = 12
 WITNESS_BUDGETS = ("spared", "common")
 
 
+def liars_send_all(notes: WitnessNotes, is_liar: np.ndarray) -> WitnessNotes:
+    """``notes`` with every compromised observer's finite note marked sent: an honest
+    observer sends none on a neighbour whose estimate was jammed to it, nor from inside the
+    zone-trust map, but its receivers can check neither, so a liar is not bound by either."""
+    extra = is_liar[notes.i] & ~notes.sent & np.isfinite(notes.u).all(axis=1)
+    if not extra.any():
+        return notes
+    return WitnessNotes(notes.u, notes.Q, notes.P_pos, notes.i, notes.j, notes.sent | extra)
+
+
 def lying_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) -> WitnessNotes:
     """``notes`` with the compromised observers' notes replaced by their lies.
 
@@ -60,6 +77,7 @@ def lying_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) -> W
     params : CLParams
         The victims' (the statistic the exoneration minimises).
     """
+    notes = liars_send_all(notes, is_liar)
     liar_obs = is_liar[notes.i] & notes.sent
     if not liar_obs.any():
         return notes
