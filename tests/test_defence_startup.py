@@ -93,6 +93,14 @@ def test_the_attacker_sees_the_raised_covariances():
             used = startup_floor(params, memory, _links(), P)
             assert np.allclose(widened(P, memory, params), used)
             assert (applied_startup_factors(memory, N) > 1.0).any() == (k < 5)
+    # the decaying floor too: raised after the five corrections, and the attacker sees it
+    params = replace(PARAMS, startup_decay=0.5, witness=True, outvoted=True)
+    memory = LinkMemory(N)
+    for k in range(8):
+        P = _P()
+        used = startup_floor(params, memory, _links(), P)
+        assert np.allclose(widened(P, memory, params), used)
+        assert (applied_startup_factors(memory, N) > 1.0).any() == (k < 7)
 
 
 def test_the_compiled_path_takes_the_stage():
