@@ -33,6 +33,10 @@ What it costs and what an attacker can do:
   first 10 steps cost x5.78 on one seed of ten where the defence without this stage holds
   them at x2.20 (``docs/attack/startup.md``): a fixed window is a schedule the attacker
   reads. Against liars lying from the start it holds every seed under 3x.
+* **A decaying floor** (``startup_decay``): after the ``startup_steps`` corrections the
+  floor is multiplied by the decay at each further correction instead of dropped
+  (:func:`startup_floor_schedule`), so there is no step at which every prior falls at once
+  for the liars to time (``docs/attack/startup.md`` section 5).
 
 It runs before the correction, in numpy, on both paths (:func:`resloc.cl.step.correct`):
 the compiled correction is handed the floored covariances (``compiled = True``, no kernel
