@@ -52,6 +52,30 @@ def test_a_young_robot_is_raised_to_the_floor_then_left_alone():
     assert (factors[:, 3] == 1.0).all()  # not an observer: no correction, untouched
 
 
+def test_a_decaying_floor_has_no_cliff():
+    """With ``startup_decay`` the floor is not dropped after the start but halved (here) at
+    each further correction: robot 0 (2 mm) is raised to 10 mm five times, then 5 mm,
+    2.5 mm, then the floor (1.25 mm) is below it; the schedule ends below 0.1 mm."""
+    from resloc.cl.detection_startup import startup_floor_schedule
+
+    params = replace(PARAMS, startup_decay=0.5)
+    memory = LinkMemory(N)
+    factors = []
+    for _ in range(10):
+        P = _P()
+        factors.append(startup_floor(params, memory, _links(), P)[0, 0, 0] / P[0, 0, 0])
+    assert factors == pytest.approx([25.0] * 5 + [6.25, 1.5625] + [1.0] * 3)
+    floors = startup_floor_schedule(params, np.arange(30))
+    assert floors[:5] == pytest.approx(0.01) and floors[5:11] == pytest.approx(
+        0.01 * 0.5 ** np.arange(1, 7)
+    )
+    assert (floors[11:] == 0.0).all()  # 0.01 / 2^7 < 0.1 mm: over
+    # never shrinks by more than the decay in one correction
+    assert (floors[1:11] / floors[:10] >= 0.5 - 1e-12).all()
+    # 0: the old cliff
+    assert (startup_floor_schedule(PARAMS, np.arange(30))[5:] == 0.0).all()
+
+
 def test_off_by_default_and_without_memory():
     P = _P()
     assert startup_floor(CLParams(), LinkMemory(N), _links(), P) is P
@@ -69,6 +93,14 @@ def test_the_attacker_sees_the_raised_covariances():
             used = startup_floor(params, memory, _links(), P)
             assert np.allclose(widened(P, memory, params), used)
             assert (applied_startup_factors(memory, N) > 1.0).any() == (k < 5)
+    # the decaying floor too: raised after the five corrections, and the attacker sees it
+    params = replace(PARAMS, startup_decay=0.5, witness=True, outvoted=True)
+    memory = LinkMemory(N)
+    for k in range(8):
+        P = _P()
+        used = startup_floor(params, memory, _links(), P)
+        assert np.allclose(widened(P, memory, params), used)
+        assert (applied_startup_factors(memory, N) > 1.0).any() == (k < 7)
 
 
 def test_the_compiled_path_takes_the_stage():
@@ -80,7 +112,12 @@ def test_the_compiled_path_takes_the_stage():
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("detector.startup_steps", -1), ("detector.startup_floor_std", 0.0)],
+    [
+        ("detector.startup_steps", -1),
+        ("detector.startup_floor_std", 0.0),
+        ("detector.startup_decay", -0.1),
+        ("detector.startup_decay", 1.5),
+    ],
 )
 def test_bad_options_are_one_line_errors(field, value):
     from resloc.experiments.config import default_scenario
@@ -90,6 +127,8 @@ def test_bad_options_are_one_line_errors(field, value):
     assert field in str(err.value) and "\n" not in str(err.value)
     sc = default_scenario().replace(**{"detector.startup_steps": 20})
     assert sc.detector.startup_steps == 20 and sc.cl_params().startup_steps == 20
+    sc = default_scenario().replace(**{"detector.startup_decay": 0.9})
+    assert sc.cl_params().startup_decay == 0.9
 
 
 @dataclass

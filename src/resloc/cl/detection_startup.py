@@ -33,6 +33,10 @@ What it costs and what an attacker can do:
   first 10 steps cost x5.78 on one seed of ten where the defence without this stage holds
   them at x2.20 (``docs/attack/startup.md``): a fixed window is a schedule the attacker
   reads. Against liars lying from the start it holds every seed under 3x.
+* **A decaying floor** (``startup_decay``): after the ``startup_steps`` corrections the
+  floor is multiplied by the decay at each further correction instead of dropped
+  (:func:`startup_floor_schedule`), so there is no step at which every prior falls at once
+  for the liars to time (``docs/attack/startup.md`` section 5).
 
 It runs before the correction, in numpy, on both paths (:func:`resloc.cl.step.correct`):
 the compiled correction is handed the floored covariances (``compiled = True``, no kernel
@@ -52,11 +56,14 @@ from resloc.cl.params import CLParams
 if TYPE_CHECKING:
     from resloc.cl.detection import Evidence
 
-__all__ = ["StartupFloor", "applied_startup_factors", "startup_floor"]
+__all__ = ["StartupFloor", "applied_startup_factors", "startup_floor", "startup_floor_schedule"]
 
 #: Per robot (keyed (j, j)): the corrections it took part in and the factor its covariance
 #: was raised by in its last one (1: none).
 STARTUP_STATE = "startup"
+
+#: A floor below this (m) is over: far below the 1-2 mm a robot's covariance settles at.
+STARTUP_FLOOR_END = 1e-4
 
 
 def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndarray) -> np.ndarray:
@@ -68,14 +75,29 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
     state = memory.stage_statistic(STARTUP_STATE, width=2)
     robots = np.unique(np.asarray(links.i))
     seen = state.get(robots, robots)[:, 0]
-    young = seen < params.startup_steps
+    floor = startup_floor_schedule(params, seen)
+    young = floor > 0.0
     factor = np.ones(len(robots))
     if young.any():
         Pp = np.asarray(P, float)[robots[young], :2, :2]
         largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
-        factor[young] = np.maximum(params.startup_floor_std**2 / largest, 1.0)
+        factor[young] = np.maximum(floor[young] ** 2 / largest, 1.0)
     state.set(robots, robots, np.column_stack([seen + 1.0, factor]))
     return scale_robots(P, robots, factor)
+
+
+def startup_floor_schedule(params: CLParams, seen: np.ndarray) -> np.ndarray:
+    """The floor (m) for a robot that has taken part in ``seen`` corrections before this one:
+    ``startup_floor_std`` for the first ``startup_steps``, then multiplied by
+    ``startup_decay`` at each further correction (0: dropped at once). Why a decay: a floor
+    dropped at once is a release the liars can time (they lie from that step, when every
+    prior falls from the floor to a few mm together, ``docs/attack/startup.md`` section 5);
+    a geometric decay leaves no step where the prior shrinks faster than by ``decay``.
+    Below ``STARTUP_FLOOR_END`` it is 0 (over: below any covariance the team reaches)."""
+    seen = np.asarray(seen, float)
+    past = np.maximum(seen - params.startup_steps + 1.0, 0.0)
+    floor = params.startup_floor_std * np.power(float(params.startup_decay), past)
+    return np.where(floor >= STARTUP_FLOOR_END, floor, 0.0)
 
 
 def applied_startup_factors(memory: LinkMemory, B: int) -> np.ndarray:

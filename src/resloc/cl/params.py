@@ -196,6 +196,9 @@ class CLParams:
         ``startup_floor_std`` (:mod:`resloc.cl.detection_startup`; 0: off).
     startup_floor_std : float
         The floor: the position standard deviation (the larger diagonal entry), in metres.
+    startup_decay : float
+        After the ``startup_steps`` corrections the floor is not dropped but multiplied by
+        this at each further correction (a geometric decay, no cliff; 0: dropped at once).
     """
 
     range_std: float = 0.005
@@ -260,6 +263,7 @@ class CLParams:
     outvoted_max_std: float = 0.05
     startup_steps: int = 0
     startup_floor_std: float = 0.01
+    startup_decay: float = 0.0
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

@@ -302,6 +302,13 @@ class DetectorSpec:
     startup_floor_std: float = option(
         0.01, "startup: the floor of a position standard deviation (m)", gt=0.0, max=1e6
     )
+    startup_decay: float = option(
+        0.0,
+        "startup: after startup_steps the floor is multiplied by this per correction "
+        "(0: dropped at once, the old cliff; 1: never released)",
+        min=0.0,
+        max=1.0,
+    )
 
 
 @dataclass(frozen=True)
@@ -430,6 +437,7 @@ class Scenario:
             outvoted_max_std=float(d.outvoted_max_std),
             startup_steps=int(d.startup_steps),
             startup_floor_std=float(d.startup_floor_std),
+            startup_decay=float(d.startup_decay),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -133,6 +133,20 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.startup_steps": 10,
                 "detector.startup_floor_std": 0.01,
             },
+            # + the floor held for 5 corrections, then decaying by 0.8 a correction (no cliff
+            # the liars can time: docs/attack/startup.md section 5).
+            "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+                "detector.witness": True,
+                "detector.outvoted": True,
+                "detector.startup_steps": 5,
+                "detector.startup_floor_std": 0.01,
+                "detector.startup_decay": 0.8,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,
