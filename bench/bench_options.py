@@ -88,6 +88,9 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup": dict(
         DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay": dict(
+        DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay"]
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 
