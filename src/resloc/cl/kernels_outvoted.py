@@ -30,6 +30,7 @@ import numpy as np
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes, per_params
 from resloc.cl.kernels_witness import group_statistics
+from resloc.cl.kernels_witness_frames import copy_note
 from resloc.cl.params import CLParams, at_robots
 
 __all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass"]
@@ -190,17 +191,7 @@ def outvoted_pass(
     Q = np.empty((M, 2, 2))
     Pp = np.empty((M, 2, 2))
     for q in range(M):
-        p = grows[q]
-        u[q, 0] = pvals[p, 0]
-        u[q, 1] = pvals[p, 1]
-        Q[q, 0, 0] = pvals[p, 2]
-        Q[q, 0, 1] = pvals[p, 3]
-        Q[q, 1, 0] = pvals[p, 4]
-        Q[q, 1, 1] = pvals[p, 5]
-        Pp[q, 0, 0] = pvals[p, 6]
-        Pp[q, 0, 1] = pvals[p, 7]
-        Pp[q, 1, 0] = pvals[p, 8]
-        Pp[q, 1, 1] = pvals[p, 9]
+        copy_note(pvals, grows[q], u, Q, Pp, q)
     T = np.zeros(G)
     judged = np.zeros(G, np.bool_)
     group_statistics(u, Q, Pp, gstart, gcount, f, half, gates, stop, T, judged)

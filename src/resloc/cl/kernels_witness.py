@@ -73,6 +73,7 @@ __all__ = [
     "fast_statistic",
     "group_statistics",
     "notes_of",
+    "set_moments",
     "statistic_of_groups",
     "witness_links",
     "witness_verdict",
@@ -254,19 +255,28 @@ def note_at(z, e, x, o, P, x_nb, R, u, Q, q, lengthen):
 
 
 @jit_lanes
-def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
-    """``best`` and the statistic of the set ``tot (6,)`` minus the dropped notes' sums
-    ``d0 .. d5``, of ``size`` notes, when it is consistent (a nan propagates, as
-    ``np.minimum``)."""
-    Sa, Sb, Sc = tot[0] - d0, tot[1] - d1, tot[2] - d2
-    sa, sb, sq = tot[3] - d3, tot[4] - d4, tot[5] - d5
+def set_moments(Sa, Sb, Sc, sa, sb, sq):
+    """A set's summed information terms (:func:`~resloc.cl.detection_witness.set_statistic`)
+    to ``(Ia, Ib, Ic, ma, mb, spread)``: ``Y_K^-1``'s entries, the set's mean and its spread
+    ``c_K``, the compiled passes' one copy of that step."""
     dS = Sa * Sc - Sb * Sb
     Ia = Sc / dS
     Ib = -Sb / dS
     Ic = Sa / dS
     ma = Ia * sa + Ib * sb
     mb = Ib * sa + Ic * sb
-    if size > 1 and not sq - (ma * sa + mb * sb) <= gates[size]:
+    return Ia, Ib, Ic, ma, mb, sq - (ma * sa + mb * sb)
+
+
+@jit_lanes
+def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
+    """``best`` and the statistic of the set ``tot (6,)`` minus the dropped notes' sums
+    ``d0 .. d5``, of ``size`` notes, when it is consistent (a nan propagates, as
+    ``np.minimum``)."""
+    Ia, Ib, Ic, ma, mb, spread = set_moments(
+        tot[0] - d0, tot[1] - d1, tot[2] - d2, tot[3] - d3, tot[4] - d4, tot[5] - d5
+    )
+    if size > 1 and not spread <= gates[size]:
         return best
     Ca = P00 + Ia
     Cb = P01 + Ib

@@ -32,11 +32,18 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import WITNESS_RUNS, group_statistics
+from resloc.cl.kernels_witness import WITNESS_RUNS, group_statistics, set_moments
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["delivered_pass", "fast_delivered", "fast_record", "per_robot", "record_in_place"]
+__all__ = [
+    "copy_note",
+    "delivered_pass",
+    "fast_delivered",
+    "fast_record",
+    "per_robot",
+    "record_in_place",
+]
 
 
 @jit_lanes
@@ -46,7 +53,7 @@ def _bit(o):
 
 
 @jit_lanes
-def _copy_note(pvals, e, u, Q, Pp, q):
+def copy_note(pvals, e, u, Q, Pp, q):
     """Pending row ``e``'s note into row ``q`` of ``u``, ``Q``, ``P_pos``."""
     u[q, 0] = pvals[e, 0]
     u[q, 1] = pvals[e, 1]
@@ -272,13 +279,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             s_count[D] = c
             largest = max(largest, c)
             big = big if big >= 0 else jrows[jfirst[j]]  # (every claim nan: unclaimed)
-            dS = Sa * Sc - Sb * Sb
-            Ia = Sc / dS
-            Ib = -Sb / dS
-            Ic = Sa / dS
-            ma = Ia * sa + Ib * sb
-            mb = Ib * sa + Ic * sb
-            spread = sq - (ma * sa + mb * sb)
+            Ia, Ib, Ic, ma, mb, spread = set_moments(Sa, Sb, Sc, sa, sb, sq)
             Ca = pvals[big, 6] + Ia
             Cb = 0.5 * (pvals[big, 7] + pvals[big, 8]) + Ib
             Cc = pvals[big, 9] + Ic
@@ -343,7 +344,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             for t in range(jfirst[j], jfirst[j + 1]):
                 e = jrows[t]
                 for _ in range(times[rn + jobs[t]]):  # (its rows, as summed)
-                    _copy_note(pvals, e, u, Q, Pp, q2)
+                    copy_note(pvals, e, u, Q, Pp, q2)
                     q2 += 1
             b += 1
         jb = np.zeros(need, np.bool_)
