@@ -91,6 +91,7 @@ class KernelJoint(NamedTuple):
     work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
     gains: np.ndarray  # (E, 3, 3) factorized: each fused link's G = I - K H_i
+    rows: np.ndarray  # (B, 3, 3N) tracked: each robot's M_i Sigma (its rows of M Sigma)
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
@@ -100,7 +101,7 @@ _EMPTY4 = np.zeros((0, 0, 3, 3))
 _NO_JOINT = KernelJoint(
     NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
     _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)),
-    np.zeros((2, 6, 6)), _EMPTY3,
+    np.zeros((2, 6, 6)), _EMPTY3, _EMPTY3,
 )  # fmt: skip
 
 
@@ -137,16 +138,17 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
+        rows = sigma.reshape(B, 3, 3 * N).copy()  # M = I: each robot's rows of Sigma
         return KernelJoint(
             code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.zeros((E, 3, 3)), _EMPTY4, _EMPTY4,
-            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3,
+            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3, rows,
         )  # fmt: skip
     # factorized: the kernel reads the factors as the step began (never writes them)
     return KernelJoint(
         code, N, nbr, _NO_JOINT.sigma, _EMPTY3, A, np.zeros((E, 3, 3)),
         np.ascontiguousarray(joint.sig, dtype=float),
         np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
-        np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)),
+        np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)), _EMPTY3,
     )  # fmt: skip
 
 
@@ -173,6 +175,7 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
         _scatter_tracked_blocks(joint.M, state.A, state.Bij, li, state.nbr, fused, state.N)
         joint.noise = state.noise
         joint.updates = int(np.count_nonzero(fused))
+        joint.m_sigma = state.rows  # M Sigma as the records kept it (the finish's first product)
     elif state.code == FACTORIZED:
         sig = np.empty_like(state.sig)
         _factorized_products(

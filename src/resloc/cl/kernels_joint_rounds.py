@@ -52,9 +52,12 @@ from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl.kernels_joint_lanes import (
     CROSS_INPUT_ROWS,
     LANE_STRIDE,
+    RECORD_INPUT_ROWS,
+    RECORD_OUTPUT_ROWS,
     chol6_lanes,
     correlated_points_lanes,
     factorized_cross_lanes,
+    tracked_record_lanes,
 )
 from resloc.cl.kernels_joint_links import (
     NO_JOINT,
@@ -153,6 +156,11 @@ def reset_joint(joint):
     for b in range(fused.shape[0]):
         for m in range(fused.shape[1]):
             fused[b, m] = False
+    rows, sigma, N = joint[14], joint[3], joint[1]  # tracked: M = I, rows of Sigma
+    for b in range(rows.shape[0]):
+        for p in range(3):
+            for q in range(rows.shape[2]):
+                rows[b, p, q] = sigma[b // N, 3 * (b % N) + p, q]
 
 
 @jit_inline
@@ -327,6 +335,10 @@ def _joint_rounds(
     ok = np.empty(C)
     cross_in = np.empty((CROSS_INPUT_ROWS, S))  # factorized_cross_lanes' gathered inputs
     now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
+    tracked = joint[0] == TRACKED
+    fused_lanes = np.empty(C, np.int64)  # tracked_record_lanes' fused lanes and rows
+    record_in = np.empty((RECORD_INPUT_ROWS if tracked else 0, S))
+    record_out = np.empty((RECORD_OUTPUT_ROWS if tracked else 0, S))
     Pi = np.empty((9, C))
     update = np.empty((UPDATE_ROWS, C))
     norms = np.empty((2, C))
@@ -390,10 +402,16 @@ def _joint_rounds(
                     decision, inflation,
                 )  # fmt: skip
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, True)
-            joint_record_lanes(
-                joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out, work,
-                now, blocks,
-            )  # fmt: skip
+            if tracked:  # the record's arithmetic over the fused lanes (SIMD)
+                tracked_record_lanes(
+                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out[2],
+                    now, blocks, fused_lanes, record_in, record_out, work[8], work[7], T3,
+                )  # fmt: skip
+            else:
+                joint_record_lanes(
+                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out,
+                    work, now, blocks,
+                )  # fmt: skip
     return OK
 
 
