@@ -221,3 +221,57 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
     assert repaired.any() and not repaired.all()
     assert not np.array_equal(j0.A, joint.A)  # the records ran
     np.testing.assert_array_equal(j0.A[obs[1]], joint.A[obs[1]])  # lane 1 did not fuse
+
+
+@pytest.mark.parametrize("n", [5, 17, 30])
+def test_tracked_cross_lanes_are_the_scalar_cross(n: int) -> None:
+    """:func:`~resloc.cl.kernels_joint_lanes.tracked_cross_lanes` against the scalar pieces
+    it replaced (``tracked_cross`` and ``_joint_into_lane``, lane by lane): the blocks, the
+    joint's lower triangle and ``now`` the same to the bit, for lanes at a robot's first
+    link (``Sigma_ii``, not exactly symmetric here) and later ones (``now[i]``), two teams."""
+    from resloc.cl.kernels_joint import joint_state
+    from resloc.cl.kernels_joint_lanes import LANE_STRIDE, tracked_cross_lanes
+    from resloc.cl.kernels_joint_links import tracked_cross
+    from resloc.cl.kernels_joint_rounds import _joint_into_lane
+    from resloc.cl.kernels_lanes import CHUNK
+    from resloc.cl.memory import LinkMemory
+
+    rng = np.random.default_rng(60 + n)
+    N = n + 2
+    B = 2 * N
+    obs = rng.permutation(B)[:n].astype(np.int64)
+    nbr = (obs // N) * N + (obs % N + 1 + rng.integers(0, N - 1, n)) % N  # teammates
+    E = 2 * n  # each lane's row and an earlier one of its robot
+    li = np.repeat(obs, 2)
+    lj = np.repeat(nbr, 2)
+    memory = LinkMemory(B)
+    memory.joint = JointCovariance(np.broadcast_to(np.eye(3), (B, 3, 3)).copy(), N)
+    memory.joint.sigma = rng.normal(size=(2, 3 * N, 3 * N))  # (not symmetric: the sym shows)
+    joint = joint_state(1, memory, li, lj)  # TRACKED
+    joint.rows[:] = rng.normal(size=joint.rows.shape)
+    lane_e = np.zeros(CHUNK, np.int64)
+    lane_first = np.zeros(CHUNK, np.int64)
+    lane_e[:n] = 2 * np.arange(n) + 1
+    first = rng.random(n) < 0.5
+    lane_first[:n] = np.where(first, lane_e[:n], lane_e[:n] - 1)
+    o = np.zeros(CHUNK, np.int64)
+    o[:n] = obs
+    now = rng.normal(size=(B, 3, 3))
+    fused = np.zeros(E, dtype=np.bool_)
+    blocks_ref = np.zeros((27, LANE_STRIDE))
+    J_ref = np.zeros((21, LANE_STRIDE))
+    now_ref = now.copy()
+    for c in range(n):  # the scalar pieces, as joint_factor_lanes ran them
+        i = obs[c]
+        if not first[c]:
+            joint.work[4] = now_ref[i]
+        tracked_cross(joint, lane_e[c], lane_first[c], fused, i)
+        now_ref[i] = joint.work[4]
+        _joint_into_lane(joint.work, joint.J6, blocks_ref, J_ref, c)
+    blocks = np.zeros((27, LANE_STRIDE))
+    J = np.zeros((21, LANE_STRIDE))
+    tracked_cross_lanes(joint, lane_e, lane_first, o, np.int64(n), now, blocks, J)
+    np.testing.assert_array_equal(_bits(blocks[:, :n]), _bits(blocks_ref[:, :n]))
+    np.testing.assert_array_equal(_bits(J[:, :n]), _bits(J_ref[:, :n]))
+    np.testing.assert_array_equal(_bits(now), _bits(now_ref))
+    assert first.any() and not first.all()

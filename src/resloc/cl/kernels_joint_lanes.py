@@ -2,8 +2,8 @@
 (:mod:`resloc.cl.kernels_joint_rounds`): the joint's 6 x 6 Cholesky factors over lanes
 (:func:`chol6_lanes`), the points that move both robots (:func:`correlated_points_lanes`)
 and ``factorized``'s cross-covariance of every lane with its certificate
-(:func:`factorized_cross_lanes`), ``tracked``'s record of every fused lane
-(:func:`tracked_record_lanes`). Each names its twin.
+(:func:`factorized_cross_lanes`), ``tracked``'s blocks of every lane and record of every
+fused lane (:func:`tracked_cross_lanes`, :func:`tracked_record_lanes`). Each names its twin.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ __all__ = [
     "chol6_lanes",
     "correlated_points_lanes",
     "factorized_cross_lanes",
+    "tracked_cross_lanes",
     "tracked_record_lanes",
 ]
 
@@ -499,6 +500,87 @@ for _dispatcher in (chol6_lanes, correlated_points_lanes, factorized_cross_lanes
     stamp_with_pieces(_dispatcher, _kernels_joint_links, _kernels_round_cached)
 
 
+@_jit
+def tracked_cross_lanes(joint, lane_e, lane_first, obs, n, now, blocks, J):
+    """``tracked``'s blocks of every lane: robot i's covariance now (``Sigma_ii``
+    symmetrized at its first link, then ``now[i]``, kept there), ``C_ij`` from i's rows of
+    ``M Sigma`` and ``Sigma_jj``, gathered into ``blocks: (27, LANE_STRIDE)``, then the
+    lower triangle of their symmetrized joint into ``J: (21, LANE_STRIDE)`` in a loop over
+    lanes that compiles to SIMD (:func:`_joint_of_lanes`). Twin, to the bit:
+    :func:`~resloc.cl.kernels_joint_links.tracked_cross` and ``_joint_into_lane`` of
+    :mod:`resloc.cl.kernels_joint_rounds`, lane by lane."""
+    N = joint[1]
+    nbr = joint[2]
+    sigma = joint[3]
+    rows = joint[14]
+    for c in range(n):
+        e = lane_e[c]
+        i = obs[c]
+        j = nbr[e]
+        t = i // N
+        if e == lane_first[c]:  # Sigma_ii at i's first link
+            c0 = 3 * (i % N)
+            for a in range(3):
+                for b in range(3):
+                    now[i, a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
+        cj = 3 * (j % N)
+        tj = j // N
+        for a in range(3):
+            for b in range(3):
+                blocks[3 * a + b, c] = now[i, a, b]
+                blocks[9 + 3 * a + b, c] = rows[i, a, cj + b]
+                blocks[18 + 3 * a + b, c] = sigma[tj, cj + a, cj + b]
+    _joint_of_lanes(padded_lanes(n, CHUNK), blocks, J)  # (lanes from n: never read)
+
+
+@_jit
+def _joint_of_lanes(n, blocks, J):
+    """The lower triangle of ``sym([[P_i, C], [C^T, P_j]])`` of lanes ``0 .. n - 1`` from
+    their blocks (``joint6``'s entries, ``chol6_lanes``' layout), through flat views."""
+    bf = blocks.reshape(blocks.size)
+    Jf = J.reshape(J.size)
+    for c in range(n):
+        pi00 = bf[c]
+        pi01 = bf[1 * LANE_STRIDE + c]
+        pi02 = bf[2 * LANE_STRIDE + c]
+        pi10 = bf[3 * LANE_STRIDE + c]
+        pi11 = bf[4 * LANE_STRIDE + c]
+        pi12 = bf[5 * LANE_STRIDE + c]
+        pi20 = bf[6 * LANE_STRIDE + c]
+        pi21 = bf[7 * LANE_STRIDE + c]
+        pi22 = bf[8 * LANE_STRIDE + c]
+        pj00 = bf[18 * LANE_STRIDE + c]
+        pj01 = bf[19 * LANE_STRIDE + c]
+        pj02 = bf[20 * LANE_STRIDE + c]
+        pj10 = bf[21 * LANE_STRIDE + c]
+        pj11 = bf[22 * LANE_STRIDE + c]
+        pj12 = bf[23 * LANE_STRIDE + c]
+        pj20 = bf[24 * LANE_STRIDE + c]
+        pj21 = bf[25 * LANE_STRIDE + c]
+        pj22 = bf[26 * LANE_STRIDE + c]
+        Jf[c] = 0.5 * (pi00 + pi00)
+        Jf[1 * LANE_STRIDE + c] = 0.5 * (pi10 + pi01)
+        Jf[2 * LANE_STRIDE + c] = 0.5 * (pi11 + pi11)
+        Jf[3 * LANE_STRIDE + c] = 0.5 * (pi20 + pi02)
+        Jf[4 * LANE_STRIDE + c] = 0.5 * (pi21 + pi12)
+        Jf[5 * LANE_STRIDE + c] = 0.5 * (pi22 + pi22)
+        Jf[6 * LANE_STRIDE + c] = bf[9 * LANE_STRIDE + c]  # C[0, 0]
+        Jf[7 * LANE_STRIDE + c] = bf[12 * LANE_STRIDE + c]  # C[1, 0]
+        Jf[8 * LANE_STRIDE + c] = bf[15 * LANE_STRIDE + c]  # C[2, 0]
+        Jf[9 * LANE_STRIDE + c] = 0.5 * (pj00 + pj00)
+        Jf[10 * LANE_STRIDE + c] = bf[10 * LANE_STRIDE + c]  # C[0, 1]
+        Jf[11 * LANE_STRIDE + c] = bf[13 * LANE_STRIDE + c]  # C[1, 1]
+        Jf[12 * LANE_STRIDE + c] = bf[16 * LANE_STRIDE + c]  # C[2, 1]
+        Jf[13 * LANE_STRIDE + c] = 0.5 * (pj10 + pj01)
+        Jf[14 * LANE_STRIDE + c] = 0.5 * (pj11 + pj11)
+        Jf[15 * LANE_STRIDE + c] = bf[11 * LANE_STRIDE + c]  # C[0, 2]
+        Jf[16 * LANE_STRIDE + c] = bf[14 * LANE_STRIDE + c]  # C[1, 2]
+        Jf[17 * LANE_STRIDE + c] = bf[17 * LANE_STRIDE + c]  # C[2, 2]
+        Jf[18 * LANE_STRIDE + c] = 0.5 * (pj20 + pj02)
+        Jf[19 * LANE_STRIDE + c] = 0.5 * (pj21 + pj12)
+        Jf[20 * LANE_STRIDE + c] = 0.5 * (pj22 + pj22)
+
+
 #: Rows of :func:`tracked_record_lanes`' gathered inputs: the gain ``K`` (by row), i's and
 #: j's positions, the link's blocks ``P_i``, ``C_ij``, ``P_j``, robot i's ``A_i`` and noise.
 RECORD_INPUT_ROWS = 55
@@ -806,5 +888,5 @@ def _record_of_lanes(n, rin, rout, r00, r01, r10, r11):
         o[44 * LANE_STRIDE + c] = 0.5 * (m22 + m22)
 
 
-for _dispatcher in (tracked_record_lanes, _record_of_lanes):
+for _dispatcher in (tracked_cross_lanes, _joint_of_lanes, tracked_record_lanes, _record_of_lanes):
     stamp_with_pieces(_dispatcher, _kernels_joint_links, _kernels_round_cached)

@@ -57,6 +57,7 @@ from resloc.cl.kernels_joint_lanes import (
     chol6_lanes,
     correlated_points_lanes,
     factorized_cross_lanes,
+    tracked_cross_lanes,
     tracked_record_lanes,
 )
 from resloc.cl.kernels_joint_links import (
@@ -65,7 +66,6 @@ from resloc.cl.kernels_joint_links import (
     chol6,
     factorized_cross,
     joint6,
-    tracked_cross,
 )
 from resloc.cl.kernels_joint_records import factorized_record, tracked_record
 from resloc.cl.kernels_lanes import (
@@ -196,20 +196,8 @@ def joint_factor_lanes(
     work = joint[11]
     J6 = joint[12]
     full = 0  # factorized: lanes whose cross needs factorized_cross itself (ok[c] = 0)
-    if tracked:
-        for c in range(n):
-            e = lane_e[c]
-            i = obs[c]
-            if e != lane_first[c]:
-                for a in range(3):
-                    for b in range(3):
-                        work[4, a, b] = now[i, a, b]
-            tracked_cross(joint, e, lane_first[c], fused, i)
-            for a in range(3):
-                for b in range(3):
-                    now[i, a, b] = work[4, a, b]
-            ok[c] = 1.0
-            _joint_into_lane(work, J6, blocks, J, c)
+    if tracked:  # (the scalar twin: tracked_cross and _joint_into_lane, lane by lane)
+        tracked_cross_lanes(joint, lane_e, lane_first, obs, n, now, blocks, J)
     else:
         full = factorized_cross_lanes(joint, P, P_ref, lane_e, obs, src, n, cross_in, blocks, J, ok)
     for c in range(n if full else 0):
