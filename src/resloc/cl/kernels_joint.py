@@ -9,9 +9,12 @@ differ in where ``C_ij`` comes from and what an update records:
     Robot i's current error is ``M_i e_pred + w_i``. Within one correction ``M_i`` has a
     block at i's own column (``A_i``, the product of its ``I - K H_i``) and one per link it
     fused (``B_ij = -K H_j`` left-multiplied by its later gains): the kernel keeps those
-    blocks (:class:`KernelJoint` ``A``, ``Bij``) and the propagated noise and forms ``C_ij =
-    M_i Sigma[:, j]`` from them. The covariance a robot keeps after an update, ``P_i = M_i
-    Sigma M_i^T + N_i`` in the reference, is the same quantity by the update's recursion
+    blocks (:class:`KernelJoint` ``A``, ``Bij``), the propagated noise and each robot's
+    rows of ``M Sigma`` (``rows``, updated by every record: ``M_i Sigma <- G M_i Sigma +
+    B_ij Sigma[j]``), whose block at j is ``C_ij = M_i Sigma[:, j]``; the commit hands the
+    rows to the end of step as its first product (``JointCovariance.m_sigma``). The
+    covariance a robot keeps after an update, ``P_i = M_i Sigma M_i^T + N_i`` in the
+    reference, is the same quantity by the update's recursion
     ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
     the robot's first link). :func:`joint_commit` writes the blocks
     into the dense ``M`` the reference's ``finish`` (``Sigma <- M Sigma M^T + N``) reads.

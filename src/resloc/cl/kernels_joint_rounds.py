@@ -19,7 +19,8 @@ function                       what                                       piece 
 :func:`correlated_points_lanes`  eq. (3): every point's range and         ``point_moments`` on
                                bearing (SIMD)                             the correlated offsets
 :func:`joint_record_lanes`     the update's record (``tracked``: the      ``joint_record``
-                               covariance the joint gives ``P_i``)
+                               covariance the joint gives ``P_i``;
+                               the rounds run ``tracked_record_lanes``)
 =============================  =========================================  =====================
 
 The factor of ``[[P_i, C], [C^T, P_j]]`` is ``[[L_i, 0], [X, L_s]]``: ``L_i`` the factor of
@@ -190,7 +191,9 @@ def joint_factor_lanes(
     lane at once where its certificate holds (:func:`factorized_cross_lanes`, SIMD;
     ``cross_in``: its scratch). The factors by :func:`chol6_lanes` (SIMD), the lanes that
     need jitter by :func:`chol6` itself. False when a covariance or the joint has no
-    Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
+    Cholesky factor. ``tracked``'s blocks by
+    :func:`~resloc.cl.kernels_joint_lanes.tracked_cross_lanes` (``C_ij`` from the rows of
+    ``M Sigma`` the records keep). Twin: ``joint_cross`` and ``correlated_offsets`` of
     ``correct_links``."""
     tracked = joint[0] == TRACKED
     work = joint[11]
@@ -235,7 +238,9 @@ def joint_record_lanes(
     j's transmitted one, the link's blocks of :func:`joint_factor_lanes`); ``tracked``:
     robot i's covariance becomes the joint's (into ``P``, repaired where not positive
     definite, and ``now``). Twin: the ``joint_record`` call of ``correct_links`` and its
-    ``store_covariance``."""
+    ``store_covariance``. The rounds run ``tracked``'s record over lanes
+    (:func:`~resloc.cl.kernels_joint_lanes.tracked_record_lanes`, the same values to the
+    bit); its branch here is that stage's scalar twin."""
     flags = out[2]
     fused = flags[3]
     K, Hi, Hj, T3, Pn, G3 = work[2], work[3], work[4], work[6], work[7], work[8]
