@@ -12,7 +12,6 @@ import math
 
 from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_round_cached as _kernels_round_cached
-from resloc.cl.kernels_gauge import _MIN_R2
 from resloc.cl.kernels_joint_links import CROSS_CAP
 from resloc.cl.kernels_joint_records import left_multiply_row, update_m_sigma_rows
 from resloc.cl.kernels_lanes import (
@@ -24,6 +23,7 @@ from resloc.cl.kernels_lanes import (
 )
 from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces, store_covariance
 from resloc.cl.kernels_round_cached import padded_lanes
+from resloc.models.measurement import MIN_RANGE
 
 _jit = jit_lanes
 
@@ -580,6 +580,10 @@ def _joint_of_lanes(n, blocks, J):
         Jf[19 * LANE_STRIDE + c] = 0.5 * (pj21 + pj12)
         Jf[20 * LANE_STRIDE + c] = 0.5 * (pj22 + pj22)
 
+
+#: The squared range below which the Jacobians take the minimum range (as
+#: ``range_bearing_jacobians_into``'s).
+_MIN_R2 = MIN_RANGE**2
 
 #: Rows of :func:`tracked_record_lanes`' gathered inputs: the gain ``K`` (by row), i's and
 #: j's positions, the link's blocks ``P_i``, ``C_ij``, ``P_j``, robot i's ``A_i`` and noise.
