@@ -183,6 +183,7 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
         J = rng.normal(size=(6, 6))
         J = 0.05 * J @ J.T + (0.5 * np.eye(6) if c % 3 else 0.0)
         J[:3, 3:] += rng.normal(size=(3, 3)) * (0.3 if c % 4 == 0 else 0.0)  # not a joint
+        J += 1e-3 * rng.normal(size=(6, 6))  # (not exactly symmetric: a transpose shows)
         blocks[:9, c] = J[:3, :3].ravel()
         blocks[9:18, c] = J[:3, 3:].ravel()
         blocks[18:, c] = J[3:, 3:].ravel()
