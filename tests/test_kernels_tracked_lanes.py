@@ -74,10 +74,11 @@ def test_records_keep_m_sigma_and_the_end_of_step_takes_it(name: str, monkeypatc
 
 @pytest.mark.parametrize("teams, robots", [(1, 5), (2, 17), (3, 6)])
 def test_end_of_step_over_blocks_is_the_dense_product(teams: int, robots: int) -> None:
-    """Without the records' rows the compiled end of step forms ``M Sigma M^T`` over the
-    non-zero blocks of a random block-sparse ``M`` (blocks with a zero first entry, blocks
-    zero but one entry): the reference's ``finish`` to 1e-12; a non-finite entry of
-    ``Sigma`` takes the dense products (``0 * inf`` is ``nan``), as the reference."""
+    """The compiled end of step forms ``M Sigma M^T`` over the non-zero blocks of a random
+    block-sparse ``M`` (blocks with a zero first entry, blocks zero but one entry), with
+    ``M Sigma`` given (the records' rows) or not: the reference's ``finish`` to 1e-12; a
+    non-finite entry of ``Sigma`` takes the dense products (``0 * inf`` is ``nan``), as the
+    reference."""
     from resloc.cl.kernels_fusion_step import compiled_tracked_finish
 
     rng = np.random.default_rng(7 * teams + robots)
@@ -100,11 +101,14 @@ def test_end_of_step_over_blocks_is_the_dense_product(teams: int, robots: int) -
                 M[b, rng.integers(0, 3), 3 * c + rng.integers(0, 3)] = rng.normal()
     noise = rng.normal(size=(B, 3, 3))
     joint.M, joint.noise, joint.updates = M, noise @ np.swapaxes(noise, -1, -2), 1
-    for broken in (False, True):
+    for broken, rows in ((False, False), (False, True), (True, False), (True, True)):
         if broken:
             joint.sigma[0, 1, 4] = joint.sigma[0, 4, 1] = np.inf
         reference = copy.deepcopy(joint)
         compiled = copy.deepcopy(joint)
+        if rows:  # the first product given, as a compiled correction's commit leaves it
+            with np.errstate(invalid="ignore"):
+                compiled.m_sigma = _dense_products(compiled)
         with np.errstate(invalid="ignore"):
             expected = reference.finish()
         with kernels.use_backend("numba"):

@@ -209,21 +209,23 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
     V = np.empty((n3, n3))
     for t in range(sigma.shape[0]):
         Mt = teams[t]
-        finite = _finite(sigma[t])
-        if rows.shape[0] != 0 and finite:
+        finite = False  # U^T finite (a non-finite sigma stays non-finite in the rows)
+        if rows.shape[0] != 0:
             for a in range(N):
                 for p in range(3):
                     for q in range(n3):
                         UT[q, 3 * a + p] = rows[t * N + a, p, q]
-        else:
-            if finite:
+            finite = _finite(UT)
+        if not finite:
+            if _finite(sigma[t]):
                 _block_product(Mt, sigma[t], N, U)
             else:  # 0 * inf is not 0: the dense product, as the reference's
                 U[:, :] = np.dot(Mt, sigma[t])
             for p in range(n3):
                 for q in range(n3):
                     UT[q, p] = U[p, q]
-        if _finite(UT):
+            finite = _finite(UT)
+        if finite:
             _block_product(Mt, UT, N, V)
         else:
             V[:, :] = np.dot(Mt, UT)
@@ -243,10 +245,10 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
 def _finite(S):
     """Every entry of the 2-D ``S`` finite (a product over non-zero blocks skips ``0 *
     inf``, which the reference's dense product makes ``nan``)."""
+    f = S.reshape(S.size)
     bad = 0
-    for p in range(S.shape[0]):
-        for q in range(S.shape[1]):
-            bad += 0 if abs(S[p, q]) < math.inf else 1  # (an integer sum: SIMD)
+    for k in range(f.shape[0]):  # (an integer sum over a flat view: SIMD; 2.5x the 2-D loop)
+        bad += 0 if abs(f[k]) < math.inf else 1
     return bad == 0
 
 
