@@ -126,7 +126,7 @@ def _bits(a: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("n", [5, 17, 30])
 def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
-    """:func:`~resloc.cl.kernels_joint_lanes.tracked_record_lanes` (the arithmetic over the
+    """:func:`~resloc.cl.kernels_tracked_lanes.tracked_record_lanes` (the arithmetic over the
     fused lanes in SIMD) against the scalar record (the ``tracked`` branch of
     ``joint_record_lanes``, ``tracked_record`` lane by lane) on the same round: the joint's
     ``A``, ``B_ij``, noise and rows of ``M Sigma``, ``P``, ``now`` and the repaired flags
@@ -135,16 +135,16 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
     random blocks give posteriors that need the repair. ``n`` below one block of lanes,
     not a multiple of it, and above."""
     from resloc.cl.kernels_joint import joint_state
-    from resloc.cl.kernels_joint_lanes import (
-        LANE_STRIDE,
-        RECORD_INPUT_ROWS,
-        RECORD_OUTPUT_ROWS,
-        tracked_record_lanes,
-    )
+    from resloc.cl.kernels_joint_lanes import LANE_STRIDE
     from resloc.cl.kernels_joint_rounds import joint_record_lanes
     from resloc.cl.kernels_lanes import CHUNK
     from resloc.cl.kernels_link_stages import UPDATE_ROWS
     from resloc.cl.kernels_round_stages import link_scratch
+    from resloc.cl.kernels_tracked_lanes import (
+        RECORD_INPUT_ROWS,
+        RECORD_OUTPUT_ROWS,
+        tracked_record_lanes,
+    )
     from resloc.cl.memory import LinkMemory
 
     rng = np.random.default_rng(90 + n)
@@ -230,15 +230,16 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
 
 @pytest.mark.parametrize("n", [5, 17, 30])
 def test_tracked_cross_lanes_are_the_scalar_cross(n: int) -> None:
-    """:func:`~resloc.cl.kernels_joint_lanes.tracked_cross_lanes` against the scalar pieces
+    """:func:`~resloc.cl.kernels_tracked_lanes.tracked_cross_lanes` against the scalar pieces
     it replaced (``tracked_cross`` and ``_joint_into_lane``, lane by lane): the blocks, the
     joint's lower triangle and ``now`` the same to the bit, for lanes at a robot's first
     link (``Sigma_ii``, not exactly symmetric here) and later ones (``now[i]``), two teams."""
     from resloc.cl.kernels_joint import joint_state
-    from resloc.cl.kernels_joint_lanes import LANE_STRIDE, tracked_cross_lanes
+    from resloc.cl.kernels_joint_lanes import LANE_STRIDE
     from resloc.cl.kernels_joint_links import tracked_cross
     from resloc.cl.kernels_joint_rounds import _joint_into_lane
     from resloc.cl.kernels_lanes import CHUNK
+    from resloc.cl.kernels_tracked_lanes import tracked_cross_lanes
     from resloc.cl.memory import LinkMemory
 
     rng = np.random.default_rng(60 + n)

@@ -50,16 +50,13 @@ from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
+from resloc.cl import kernels_tracked_lanes as _kernels_tracked_lanes
 from resloc.cl.kernels_joint_lanes import (
     CROSS_INPUT_ROWS,
     LANE_STRIDE,
-    RECORD_INPUT_ROWS,
-    RECORD_OUTPUT_ROWS,
     chol6_lanes,
     correlated_points_lanes,
     factorized_cross_lanes,
-    tracked_cross_lanes,
-    tracked_record_lanes,
 )
 from resloc.cl.kernels_joint_links import (
     NO_JOINT,
@@ -95,6 +92,12 @@ from resloc.cl.kernels_round_stages import (
     save_state,
     screen_lanes,
     tamper_lanes,
+)
+from resloc.cl.kernels_tracked_lanes import (
+    RECORD_INPUT_ROWS,
+    RECORD_OUTPUT_ROWS,
+    tracked_cross_lanes,
+    tracked_record_lanes,
 )
 
 _jit = jit_lanes
@@ -192,7 +195,7 @@ def joint_factor_lanes(
     ``cross_in``: its scratch). The factors by :func:`chol6_lanes` (SIMD), the lanes that
     need jitter by :func:`chol6` itself. False when a covariance or the joint has no
     Cholesky factor. ``tracked``'s blocks by
-    :func:`~resloc.cl.kernels_joint_lanes.tracked_cross_lanes` (``C_ij`` from the rows of
+    :func:`~resloc.cl.kernels_tracked_lanes.tracked_cross_lanes` (``C_ij`` from the rows of
     ``M Sigma`` the records keep). Twin: ``joint_cross`` and ``correlated_offsets`` of
     ``correct_links``."""
     tracked = joint[0] == TRACKED
@@ -239,7 +242,7 @@ def joint_record_lanes(
     robot i's covariance becomes the joint's (into ``P``, repaired where not positive
     definite, and ``now``). Twin: the ``joint_record`` call of ``correct_links`` and its
     ``store_covariance``. The rounds run ``tracked``'s record over lanes
-    (:func:`~resloc.cl.kernels_joint_lanes.tracked_record_lanes`, the same values to the
+    (:func:`~resloc.cl.kernels_tracked_lanes.tracked_record_lanes`, the same values to the
     bit); its branch here is that stage's scalar twin."""
     flags = out[2]
     fused = flags[3]
@@ -442,6 +445,7 @@ for _dispatcher in (
         _kernels_joint_links,
         _kernels_joint_lanes,
         _kernels_joint_records,
+        _kernels_tracked_lanes,
         _kernels_round_cached,
         *_kernels_round_stages.PIECE_MODULES,
     )
