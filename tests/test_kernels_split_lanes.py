@@ -21,12 +21,12 @@ def _spd(rng, n: int, scale: float) -> np.ndarray:
     return A @ np.swapaxes(A, -1, -2) + scale**2 * np.eye(3)
 
 
-def _lanes_inputs(n: int, seed: int, det: bool):
+def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
     """A round of ``n`` lanes (robot ``c`` observes through link ``e = perm[c]``) with the
     moments of the plain update, and lanes made to fall back: an independent part above
     its covariance (the clip through the factor), one equal to it, one zero;
     lanes whose ``j`` is so uncertain that ``w = 1``; an inflated covariance; a lane
-    not fused."""
+    not fused (lane ``c`` of kind ``c % special``: ``special = 1``, every lane plain)."""
     from resloc.cl.fusion import CICriterion
     from resloc.cl.kernels_fusion import SPLIT_CI, kernel_fusion
     from resloc.cl.kernels_lanes import CHUNK
@@ -47,7 +47,7 @@ def _lanes_inputs(n: int, seed: int, det: bool):
     # lanes that fall back, and lanes kept (w = 1); c % 7 keeps the other lanes plain
     for c in range(n):
         e = perm[c]
-        kind = c % 7
+        kind = c % special
         if kind == 1:
             ind[c] = 1.3 * P[c]
         elif kind == 2:
