@@ -47,13 +47,22 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.kernels_fusion import (
     SPLIT_CI,
+    _ci_cost,
     _det3_scaled_entries,
+    _first_best,
     _gram,
-    _search_weight,
+    _grid_costs,
 )
 from resloc.cl.kernels_gauge import _MIN_R2, range_bearing_jacobians_into
 from resloc.cl.kernels_joint_lanes import LANE_STRIDE
-from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces, store_covariance, wrap
+from resloc.cl.kernels_math import (
+    jit_inline,
+    jit_lanes,
+    repair3,
+    stamp_with_pieces,
+    store_covariance,
+    wrap,
+)
 from resloc.cl.kernels_split import split_ci_update
 
 _jit = jit_lanes
@@ -95,14 +104,16 @@ _BEST = 103
 _KBEST = 104
 _W = 105
 # The update (_update_lanes): x_i's new estimate (its heading not wrapped), the posterior
-# (9, unsymmetrized), i's new independent part (00, 01, 02, 11, 12, 22), certified (1.0).
+# symmetrized (9), i's new independent part (00, 01, 02, 11, 12, 22), certified (1.0), the
+# posterior positive definite by :func:`~resloc.cl.kernels_math.is_pd3`'s test (1.0).
 _XN = 106
 _PN = 109
 _IN = 118
 _OK = 124
-# The cost at each candidate weight, a row each.
-_COST = 125
-#: The rows of :func:`split_lane_scratch` before the grid's (one per candidate weight).
+_PD = 125
+# The grid's costs, lane after lane (lane k's G costs from _COST * S + k * G on).
+_COST = 126
+#: The rows of :func:`split_lane_scratch` before the grid's costs (G rows more).
 SPLIT_LANE_ROWS = _COST
 #: The fused lanes are padded to whole blocks of this many (copies of the first).
 _BLOCK = 8
@@ -293,22 +304,66 @@ def _weight_inputs_lanes(f, m, R, det):
 
 
 @_jit
-def _weight_lanes(f, m, grid, det, R, cost):
-    """Stage 2: the weight of lanes ``0 .. m - 1`` into row ``_W``: per lane, the scalar
-    code's own search (:func:`resloc.cl.kernels_fusion._search_weight`, its grid of costs
-    vectorized over the candidates; ``cost: (G,)``, scratch) from the lane's rows.
-    (Measured against a search over lanes, the candidates outside and the lanes inside,
-    three candidates a pass: 8 lanes 1.26 us there against 0.83 us here; about 60 flops
-    and a division per candidate and lane either way, and the lanes' form pays for the
-    padding lanes.)"""
+def _weight_lanes(f, m, grid, det, R):
+    """Stage 2: the weight of lanes ``0 .. m - 1`` into row ``_W``, as
+    :func:`resloc.cl.kernels_fusion._search_weight`: lane by lane, the grid's costs (its
+    :func:`~resloc.cl.kernels_fusion._grid_costs`, a SIMD loop over the candidates) and
+    their first best (:func:`~resloc.cl.kernels_fusion._first_best`); then, over the lanes
+    without branches, the parabola through the best and its neighbours, the refinement
+    kept where not worse, ``1.0`` where no weight beats the prior (the refinement's three
+    dependent divisions, ~45 ns a lane in the scalar search, overlap across lanes).
+    (Measured against the whole search over lanes, the candidates outside and the lanes
+    inside, three candidates a pass: 8 lanes 1.26 us there against 0.83 us by the scalar
+    search lane by lane; about 60 flops and a division per candidate and lane either way.)"""
+    n = grid.shape[1]
     R4 = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
     for k in range(m):
-        f[_W * S + k] = _search_weight(
+        cost = f[_COST * S + k * n : _COST * S + (k + 1) * n]
+        _grid_costs(
             grid, det, True, f[_TR * S + k], 0.0, _row4(f, _A, k), _row4(f, _AI, k),
             _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k), _row4(f, _GDI, k),
-            _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k), f[_TRP * S + k], R4,
-            f[_PRIOR * S + k], cost,
+            _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k), f[_TRP * S + k], R4, cost,
         )  # fmt: skip
+        best, kb = _first_best(cost, n)
+        f[_BEST * S + k] = best
+        f[_KBEST * S + k] = kb
+    h = grid[0, 1] - grid[0, 0]
+    first = grid[0, 0]
+    last = grid[0, n - 1]
+    for k in range(m):
+        best = f[_BEST * S + k]
+        kb = int(f[_KBEST * S + k])
+        kc = min(max(kb, 1), n - 2)
+        at = _COST * S + k * n + kc
+        c0 = f[at - 1]
+        c1 = f[at]
+        c2 = f[at + 1]
+        denom = c0 - 2.0 * c1 + c2
+        shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
+        shift = min(max(shift, -h), h)
+        w = min(max(grid[0, kc] + shift, first), last) if kb == kc else grid[0, kb]
+        refined = _ci_cost(
+            1.0 / w, 1.0 / (1.0 - w), det, True, f[_TR * S + k], 0.0, _row4(f, _A, k),
+            _row4(f, _AI, k), _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k),
+            _row4(f, _GDI, k), _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k),
+            f[_TRP * S + k], R4,
+        )  # fmt: skip
+        kept = refined <= best
+        best = refined if kept else best
+        w = w if kept else grid[0, kb]
+        f[_W * S + k] = w if best < f[_PRIOR * S + k] else 1.0
+
+
+@jit_inline
+def _is_pd9(T):
+    """:func:`~resloc.cl.kernels_math.is_pd3` of a 9-tuple by row, without branches."""
+    m2 = T[0] * T[4] - T[1] * T[3]
+    det = (
+        T[0] * (T[4] * T[8] - T[5] * T[7])
+        - T[1] * (T[3] * T[8] - T[5] * T[6])
+        + T[2] * (T[3] * T[7] - T[4] * T[6])
+    )
+    return (T[0] > 0.0) & (m2 > 0.0) & (det > 0.0) & (abs(det) < math.inf)
 
 
 @_jit
@@ -494,7 +549,14 @@ def _update_lanes(f, m, R, jitter0):
         fresh = not keep
         good = ok & ((keep & ok_kept) | (fresh & ok_s & ok_a & ok_new))
         f[_OK * S + k] = 1.0 if good else 0.0
-        _put9(f, _PN, k, Pi if keep else (n00, n01, n02, n10, n11, n12, n20, n21, n22))
+        Pk = (
+            0.5 * (Pi[0] + Pi[0]), 0.5 * (Pi[1] + Pi[3]), 0.5 * (Pi[2] + Pi[6]),
+            0.5 * (Pi[3] + Pi[1]), 0.5 * (Pi[4] + Pi[4]), 0.5 * (Pi[5] + Pi[7]),
+            0.5 * (Pi[6] + Pi[2]), 0.5 * (Pi[7] + Pi[5]), 0.5 * (Pi[8] + Pi[8]),
+        )  # fmt: skip
+        T = Pk if keep else Q  # store_covariance's sym(P_n)
+        _put9(f, _PN, k, T)
+        f[_PD * S + k] = 1.0 if _is_pd9(T) else 0.0
         part = kept if keep else new
         _put4(f, _IN, k, (part[0], part[1], part[2], part[4]))
         f[(_IN + 4) * S + k] = part[5]
@@ -553,7 +615,7 @@ def split_ci_lanes(
         for k in range(m, m2):
             f[row * S + k] = f[row * S]
     _weight_inputs_lanes(f, m2, R, fusion[1])
-    _weight_lanes(f, m, fusion[2], fusion[1], R, fusion[7])
+    _weight_lanes(f, m, fusion[2], fusion[1], R)
     _update_lanes(f, m2, R, jitter[0])
     for k in range(m):
         c = int(f[_LANE * S + k])
@@ -564,9 +626,15 @@ def split_ci_lanes(
                 x[i, 0] = f[_XN * S + k]
                 x[i, 1] = f[(_XN + 1) * S + k]
                 x[i, 2] = wrap(f[(_XN + 2) * S + k])
+            for a in range(3):  # store_covariance, its sym(P_n) and test from stage 3
+                for b in range(3):
+                    T3[a, b] = f[(_PN + 3 * a + b) * S + k]
+            if f[_PD * S + k] != 1.0:
+                repair3(T3)
+                flags[4, e] = True
             for a in range(3):
                 for b in range(3):
-                    Pn[a, b] = f[(_PN + 3 * a + b) * S + k]
+                    P[i, a, b] = T3[a, b]
             v00 = f[_IN * S + k]
             v01 = f[(_IN + 1) * S + k]
             v02 = f[(_IN + 2) * S + k]
@@ -599,8 +667,8 @@ def split_ci_lanes(
                 A3, T3, Pn,
             ):  # fmt: skip
                 return False
-        if store_covariance(P, i, Pn, T3):
-            flags[4, e] = True
+            if store_covariance(P, i, Pn, T3):
+                flags[4, e] = True
     return True
 
 
