@@ -47,13 +47,13 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.kernels_fusion import (
     SPLIT_CI,
-    _ci_cost,
-    _det3_scaled_entries,
-    _first_best,
-    _gram,
-    _grid_costs,
+    ci_cost,
+    det3_scaled_entries,
+    first_best,
+    gram,
+    grid_costs,
 )
-from resloc.cl.kernels_gauge import _MIN_R2, range_bearing_jacobians_into
+from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_joint_lanes import LANE_STRIDE
 from resloc.cl.kernels_math import (
     jit_inline,
@@ -64,8 +64,10 @@ from resloc.cl.kernels_math import (
     wrap,
 )
 from resloc.cl.kernels_split import split_ci_update
+from resloc.models.measurement import MIN_RANGE
 
 _jit = jit_lanes
+_MIN_R2 = MIN_RANGE**2  # kernels_gauge's clamp of the squared range, computed alike
 
 __all__ = ["SPLIT_LANE_ROWS", "split_ci_lanes", "split_lane_scratch"]
 
@@ -280,14 +282,14 @@ def _weight_inputs_lanes(f, m, R, det):
         ok, _Pi, Ii, Ij, Di, Dj, Hi, Hj = _parts(f, k)
         a, cd = _reduce_i(Di, Hi)
         b = _reduce_j(Dj, Hj)
-        g = _gram(cd, cd)
+        g = gram(cd, cd)
         ai, ci = _reduce_i(Ii, Hi)
-        gdi = _gram(cd, ci)
-        gii = _gram(ci, ci)
+        gdi = gram(cd, ci)
+        gii = gram(ci, ci)
         bj = _reduce_j(Ij, Hj)
         tr_i = Di[0] + Di[4] + Di[8]
         tr_ip = Ii[0] + Ii[4] + Ii[8]
-        prior = _det3_scaled_entries(Di, 1.0, Ii) if det else tr_i + tr_ip
+        prior = det3_scaled_entries(Di, 1.0, Ii) if det else tr_i + tr_ip
         _put4(f, _A, k, a)
         _put4(f, _AI, k, ai)
         _put4(f, _B, k, b)
@@ -307,8 +309,8 @@ def _weight_inputs_lanes(f, m, R, det):
 def _weight_lanes(f, m, grid, det, R):
     """Stage 2: the weight of lanes ``0 .. m - 1`` into row ``_W``, as
     :func:`resloc.cl.kernels_fusion._search_weight`: lane by lane, the grid's costs (its
-    :func:`~resloc.cl.kernels_fusion._grid_costs`, a SIMD loop over the candidates) and
-    their first best (:func:`~resloc.cl.kernels_fusion._first_best`); then, over the lanes
+    :func:`~resloc.cl.kernels_fusion.grid_costs`, a SIMD loop over the candidates) and
+    their first best (:func:`~resloc.cl.kernels_fusion.first_best`); then, over the lanes
     without branches, the parabola through the best and its neighbours, the refinement
     kept where not worse, ``1.0`` where no weight beats the prior (the refinement's three
     dependent divisions, ~45 ns a lane in the scalar search, overlap across lanes).
@@ -319,12 +321,12 @@ def _weight_lanes(f, m, grid, det, R):
     R4 = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
     for k in range(m):
         cost = f[_COST * S + k * n : _COST * S + (k + 1) * n]
-        _grid_costs(
+        grid_costs(
             grid, det, True, f[_TR * S + k], 0.0, _row4(f, _A, k), _row4(f, _AI, k),
             _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k), _row4(f, _GDI, k),
             _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k), f[_TRP * S + k], R4, cost,
         )  # fmt: skip
-        best, kb = _first_best(cost, n)
+        best, kb = first_best(cost, n)
         f[_BEST * S + k] = best
         f[_KBEST * S + k] = kb
     h = grid[0, 1] - grid[0, 0]
@@ -342,7 +344,7 @@ def _weight_lanes(f, m, grid, det, R):
         shift = 0.5 * h * (c0 - c2) / denom if denom > 0.0 else 0.0
         shift = min(max(shift, -h), h)
         w = min(max(grid[0, kc] + shift, first), last) if kb == kc else grid[0, kb]
-        refined = _ci_cost(
+        refined = ci_cost(
             1.0 / w, 1.0 / (1.0 - w), det, True, f[_TR * S + k], 0.0, _row4(f, _A, k),
             _row4(f, _AI, k), _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k),
             _row4(f, _GDI, k), _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k),
@@ -672,8 +674,6 @@ def split_ci_lanes(
     return True
 
 
-#: The modules whose pieces the stages inline or call.
-PIECE_MODULES = (_kernels_math, _kernels_fusion, _kernels_gauge, _kernels_split)
 for _dispatcher in (
     split_lane_scratch,
     _weight_inputs_lanes,
@@ -681,4 +681,4 @@ for _dispatcher in (
     _update_lanes,
     split_ci_lanes,
 ):
-    stamp_with_pieces(_dispatcher, *PIECE_MODULES)
+    stamp_with_pieces(_dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_split)
