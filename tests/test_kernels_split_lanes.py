@@ -149,9 +149,12 @@ def test_compiled_finish_zeroes_the_delivered_senders_parts_as_numpy() -> None:
     rng = np.random.default_rng(3)
     independent = rng.normal(size=(17, 3, 3))
     j = rng.integers(0, 17, 260)
-    delivered = rng.random(260) < 0.3
+    delivered = np.zeros(260, dtype=bool)
+    delivered[[3, 40, 41, 200]] = True
+    j[41] = j[40]  # a sender delivered twice
     expected = independent.copy()
     expected[j[delivered]] = 0.0
+    assert (expected != 0.0).any(axis=(1, 2)).sum() == 17 - 3  # the others' parts kept
     assert compiled_independent_finish(independent, j, delivered)
     np.testing.assert_array_equal(independent, expected)
     assert (independent == 0.0).all(axis=(1, 2)).sum() == len(np.unique(j[delivered]))
