@@ -12,7 +12,7 @@ from resloc.cl import kernels
 from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_redundancy import capped_claims
 from resloc.cl.detection_zone import zone_map
-from resloc.cl.links import LinkBatch
+from resloc.cl.links import LinkBatch, NeighbourStates
 from resloc.cl.params import CLParams
 from resloc.experiments.config import default_scenario
 from resloc.filters.base import make_filter
@@ -117,7 +117,39 @@ def test_the_claimed_batch_shares_every_other_field() -> None:
     assert links.__dict__.keys() == before.keys()
     assert all(links.__dict__[k] is v for k, v in before.items())  # the original untouched
     np.testing.assert_array_equal(links.P_nb, P_nb)
-    shared = [k for k in before if k != "_P_nb"]
+    shared = [k for k in before if k not in ("_P_nb", "_x_nb")]
     assert all(claimed.__dict__[k] is before[k] for k in shared), shared
     assert claimed.__dict__.keys() == before.keys()
-    assert len(claimed) == len(links) and claimed.x_nb is links.x_nb
+    assert len(claimed) == len(links)
+    np.testing.assert_array_equal(claimed.x_nb, links.x_nb)  # (gathered by the pass)
+
+
+def test_the_claimed_batch_carries_its_rows_estimates() -> None:
+    """A batch that reads its neighbours' estimates by index (``LinkBatch.neighbours``):
+    the claimed batch carries the per-row claims and, gathered by the compiled pass, the
+    per-row estimates, so that reading them gathers nothing
+    (``LinkBatch.neighbour_rows``)."""
+    from resloc.cl.kernels_claims import claimed_links
+
+    links, discs, x, P = _scene()
+    rng = np.random.default_rng(3)
+    source_x = x + rng.normal(0.0, 0.1, x.shape)
+    source_P = P * rng.uniform(0.2, 3.0, len(P))[:, None, None]
+    by_index = LinkBatch(
+        links.i, links.j, links.z, None, None, links.channel_ok, links.risk_s, links.risk_c,
+        links.lambda2, neighbours=NeighbourStates(links.j, source_x, source_P),
+    )  # fmt: skip
+    params = CLParams(
+        zone_landmarks=True, zone_landmarks_map=discs, redundancy=True, redundancy_cap_fusion=True
+    )
+    claimed = claimed_links(params, by_index)
+    carried = claimed.__dict__.get("_x_nb")
+    assert carried is not None  # (not gathered on read)
+    index, x_rows, P_rows = claimed.neighbour_rows()
+    assert index is None and x_rows is carried
+    np.testing.assert_array_equal(x_rows, source_x[links.j])
+    expected = landmark_claims(
+        params, source_x[links.j], capped_claims(source_P[links.j], links.i), links.i
+    )
+    np.testing.assert_array_equal(P_rows, expected)
+    assert by_index.__dict__.get("_x_nb") is None  # the original gathered nothing
