@@ -11,7 +11,7 @@ import resloc.cl.step
 from resloc.cl import kernels
 from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_redundancy import capped_claims
-from resloc.cl.detection_zone import zone_map
+from resloc.cl.detection_zone import inside_zone_map, zone_map
 from resloc.cl.links import LinkBatch, NeighbourStates
 from resloc.cl.params import CLParams
 from resloc.experiments.config import default_scenario
@@ -71,6 +71,52 @@ def test_the_claims_are_the_numpy_stages(cap: bool) -> None:
         np.testing.assert_array_equal(out, capped_claims(links.P_nb, links.i))
     else:
         assert got == CLAIMS_UNCHANGED
+
+
+@pytest.mark.parametrize("cap", [False, True])
+def test_tiny_claims_inside_the_map_are_raised_to_the_median(cap: bool) -> None:
+    """The neighbours inside the map claim far less than their observers' median: the
+    pass raises them to the median of the (capped) claims' traces before the inflation,
+    as ``landmark_claims`` does, the rows read by index (each source's place tested
+    once)."""
+    from resloc.cl.kernels_claims import claimed_covariances
+
+    links, discs, _, _ = _scene()
+    disc_array = np.asarray(discs, float)
+    x_nb = np.ascontiguousarray(links.x_nb)
+    inside = inside_zone_map(x_nb[:, :2], discs)
+    P_nb = links.P_nb.copy()
+    P_nb[inside] *= 1e-3
+    P_nb[inside, 0, 0] *= 0.5  # (the position block's trace: not its first entry alone,
+    P_nb[inside, 2, 2] *= 50.0  # nor the heading's)
+    params = CLParams(
+        zone_landmarks=True,
+        zone_landmarks_map=discs,
+        zone_landmarks_inflation=3.0,
+        redundancy=True,
+        redundancy_cap_fusion=cap,
+    )
+    li = links.i.astype(np.int64)
+    E = len(li)
+    # per row, then by index (the simulator's form: each neighbour's estimate once,
+    # its place in the map tested once for all the rows that read it)
+    _, first, by_source = np.unique(links.j, return_index=True, return_inverse=True)
+    for rows, x_src, P_src in (
+        (np.arange(E, dtype=np.int64), x_nb, P_nb),
+        (by_source.astype(np.int64), x_nb[first], P_nb[first]),
+    ):
+        claims = capped_claims(P_src[rows], links.i) if cap else P_src[rows]
+        expected = landmark_claims(params, x_src[rows], claims, links.i)
+        # raised to the median: by the landmarks' own step, or already by the cap
+        before = P_src[rows][inside] if cap else 3.0 * claims[inside]
+        after = claims[inside] if cap else expected[inside]
+        assert (after[:, 0, 0] + after[:, 1, 1] > 1.01 * (before[:, 0, 0] + before[:, 1, 1])).all()
+        out = np.empty((E, 3, 3))
+        got = claimed_covariances(
+            li, x_src, P_src, rows, cap, disc_array, 3.0, out, np.empty(E), np.empty(E)
+        )
+        assert got == inside.sum()
+        np.testing.assert_array_equal(out, expected)
 
 
 @pytest.mark.parametrize("cap", [False, True])
