@@ -19,6 +19,7 @@ kernel function                numpy twin
 :func:`claim_scales`           the scale of :func:`~resloc.cl.detection_redundancy.
                                weight_capped_covariance` and ``capped_claims``
                                (``_group_median``)
+:func:`trace_scales`           the same from the rows' traces (``_group_median``)
 :func:`position_fix_of_link`   :func:`~resloc.cl.detection_redundancy.position_fix`
 :func:`exclude_group`          :func:`~resloc.cl.detection_redundancy.exclude_inconsistent`
                                (``_reference``, ``_statistic``)
