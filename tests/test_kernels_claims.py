@@ -148,9 +148,9 @@ def test_the_compiled_correction_runs_the_claims_pass(cap: bool) -> None:
 
 
 def test_the_claimed_batch_shares_every_other_field() -> None:
-    """``claimed_links`` gives a new batch whose claims are the pass's and whose every
-    other field is the original's (a shallow copy, as ``dataclasses.replace``), the
-    original untouched."""
+    """``claimed_links`` gives a new batch whose claims are the pass's, whose estimates
+    are the original's values (gathered by the pass) and whose every other field is the
+    original's (a shallow copy, as ``dataclasses.replace``), the original untouched."""
     from resloc.cl.kernels_claims import claimed_links
 
     links, _, _, _ = _scene()
