@@ -247,10 +247,26 @@ def test_bytes_of_the_notes_are_counted():
     from resloc.experiments.runner import run_scenario
     from resloc.runtime.messages import HEADER, TAG_SIZE
 
-    for n in (6, 15, 40):
-        body = {"notes": np.zeros((n, 6)).tobytes()}  # id i8 and 5 f8 per note
+    for n in (1, 3, 4, 15, 31, 32, 40, 818):  # the runtime's note: id i8 and 10 f8
+        body = {"wj": np.arange(n).tobytes(), "wn": np.zeros((n, 10)).tobytes()}
         frame = HEADER.size + len(msgpack.packb(body, use_bin_type=True)) + TAG_SIZE
-        assert frame == WIRE_BYTES["witness_frame"] + n * WIRE_BYTES["witness_note"]
+        over = WIRE_BYTES["witness_frame"] + n * WIRE_BYTES["witness_note"] - frame
+        assert over == (0 if n >= 32 else 1 if n >= 4 else 2)
+    # and the notes' share of the runtime's estimate frame is at most what is counted
+    from resloc.runtime.messages import Codec
+    from resloc.runtime.schema import Kind
+
+    codec = Codec(b"k" * 32, 3)
+    estimate = {"x": np.zeros(3), "P": np.eye(3)}
+    plain = len(codec.encode(Kind.ESTIMATE, 1, estimate, "resloc/radio"))
+    for n in (1, 16, 40):
+        notes = {"wj": np.arange(n), "wn": np.zeros((n, 10))}
+        carried = len(codec.encode(Kind.ESTIMATE, 1, estimate | notes, "resloc/radio"))
+        assert (
+            n * WIRE_BYTES["witness_note"]
+            < carried - plain
+            < WIRE_BYTES["witness_frame"] + n * WIRE_BYTES["witness_note"]
+        )
     sc = default_scenario().replace(
         **{"team.robots": 6, "run.steps": 15, "run.filters": ["ekf"],
            "run.dead_reckoning": False, "detector.witness": True}

@@ -102,11 +102,11 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
 @pytest.mark.parametrize("split", [False, True])
 @pytest.mark.parametrize("criterion", ["trace", "det"])
 def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
-    """The vectorized grid search (``kernels_fusion._grid_costs``, compiled and called
+    """The vectorized grid search (``kernels_fusion.grid_costs``, compiled and called
     here directly) gives the reference's cost at every candidate weight, for both
     criteria, with and without independent parts."""
     from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
-    from resloc.cl.kernels_fusion import _GRID, _grid_costs
+    from resloc.cl.kernels_fusion import _GRID, grid_costs
     from resloc.models.measurement import range_bearing_jacobians
 
     rng = np.random.default_rng(5)
@@ -128,7 +128,7 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
         quad = [a, ai, b, bi, Cd.T @ Cd, Cd.T @ Ci, Ci.T @ Ci]
         cost = np.full(CI_GRID.size, np.nan)
         np.testing.assert_array_equal(_GRID[0], CI_GRID)
-        _grid_costs(
+        grid_costs(
             _GRID, criterion == "det", split, np.trace(Di), np.linalg.det(Di),
             *(tuple(m.ravel()) for m in quad), tuple(Di.ravel()), tuple(Ii.ravel()),
             np.trace(Ii), tuple(R.ravel()), cost,
@@ -141,10 +141,10 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
 
 
 def test_first_best_is_the_scalar_search():
-    """``kernels_fusion._first_best`` (four interleaved searches, merged) finds the index
+    """``kernels_fusion.first_best`` (four interleaved searches, merged) finds the index
     the scalar search ``best = cost[0]; cost[t] < best`` finds, with ties, infinities and
     NaNs (first or later), for every length."""
-    from resloc.cl.kernels_fusion import _first_best
+    from resloc.cl.kernels_fusion import first_best
 
     rng = np.random.default_rng(8)
     values = np.array([0.0, -0.0, 1.0, 2.0, -1.0, np.inf, -np.inf, np.nan])
@@ -158,6 +158,6 @@ def test_first_best_is_the_scalar_search():
         for t in range(1, n):
             if cost[t] < best:
                 best, k = cost[t], t
-        got_best, got_k = _first_best(cost, n)
+        got_best, got_k = first_best(cost, n)
         assert got_k == k, (cost, got_k, k)
         assert got_best == best or (np.isnan(got_best) and np.isnan(best))

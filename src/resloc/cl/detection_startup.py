@@ -38,13 +38,22 @@ What it costs and what an attacker can do:
   (:func:`startup_floor_schedule`), so there is no step at which every prior falls at once
   for the liars to time (``docs/attack/startup.md`` section 5).
 
-It runs before the correction, in numpy, on both paths (:func:`resloc.cl.step.correct`):
-the compiled correction is handed the floored covariances (``compiled = True``, no kernel
-change). The count is per robot: the corrections it took part in as an observer.
+It runs before the correction on both paths (:func:`resloc.cl.step.correct`), the
+correction being handed the floored covariances: with the numba backend by one compiled
+pass (:func:`resloc.cl.kernels_startup.fast_floor`), else by the numpy spec
+(:func:`reference_floor`). The count is per robot: the corrections it took part in as an
+observer.
+
+**Over.** Once the store holds every robot id with its floor ended and factor 1, and the
+schedule cannot rise again (``startup_decay <= 1``), every later pass would write factor 1
+again and return ``P`` (:func:`floor_over`): the stage skips it. Only the counts stop,
+which nothing reads once the floor is over (the attacker reads the factors); the answer is
+kept per store, so that a run's later steps cost a dictionary look-up.
 """
 
 from __future__ import annotations
 
+import weakref
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -56,7 +65,14 @@ from resloc.cl.params import CLParams
 if TYPE_CHECKING:
     from resloc.cl.detection import Evidence
 
-__all__ = ["StartupFloor", "applied_startup_factors", "startup_floor", "startup_floor_schedule"]
+__all__ = [
+    "StartupFloor",
+    "applied_startup_factors",
+    "floor_over",
+    "reference_floor",
+    "startup_floor",
+    "startup_floor_schedule",
+]
 
 #: Per robot (keyed (j, j)): the corrections it took part in and the factor its covariance
 #: was raised by in its last one (1: none).
@@ -66,13 +82,45 @@ STARTUP_STATE = "startup"
 STARTUP_FLOOR_END = 1e-4
 
 
+#: Per stage store: its keys, values and the schedule when it was found over
+#: (:func:`floor_over`; it stays over: a skipped pass writes nothing).
+_OVER: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+#: :func:`resloc.cl.kernels_startup.fast_floor` once imported.
+_FAST: list = []
+
+
 def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndarray) -> np.ndarray:
     """``P (B, 3, 3)`` with every robot still in its start-up (fewer than
-    ``params.startup_steps`` corrections as an observer) raised to the floor (module
-    docstring); ``P`` itself when none is raised (or the stage is off). Counts the step."""
+    ``params.startup_steps`` corrections as an observer, or a decaying floor not yet below
+    ``STARTUP_FLOOR_END``) raised to the floor (module docstring); ``P`` itself when none
+    is raised (or the stage is off, or over). Counts the step. The compiled twin with the
+    numba backend (:func:`resloc.cl.kernels_startup.fast_floor`), else the numpy spec
+    (:func:`reference_floor`)."""
     if params.startup_steps <= 0 or memory is None:
         return P
     state = memory.stage_statistic(STARTUP_STATE, width=2)
+    schedule = (params.startup_steps, params.startup_floor_std, params.startup_decay)
+    over = _OVER.get(state)
+    if over is not None and over[0] is state.keys and over[1] is state.values:
+        if over[2] == schedule:
+            return P
+    if not _FAST:  # numba's import, on first use
+        from resloc.cl.kernels_startup import fast_floor
+
+        _FAST.append(fast_floor)
+    status, fast = _FAST[0](params, state, links, P, STARTUP_FLOOR_END)
+    if status == "done":
+        return fast
+    if status == "spec" and not floor_over(params, state):
+        return reference_floor(params, state, links, P)
+    _OVER[state] = (state.keys, state.values, schedule)
+    return P
+
+
+def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray:
+    """:func:`startup_floor` in numpy (its executable specification; the stage on, not
+    over) on the stage's store ``state`` (:data:`STARTUP_STATE`)."""
     robots = np.unique(np.asarray(links.i))
     seen = state.get(robots, robots)[:, 0]
     floor = startup_floor_schedule(params, seen)
@@ -84,6 +132,21 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
         factor[young] = np.maximum(floor[young] ** 2 / largest, 1.0)
     state.set(robots, robots, np.column_stack([seen + 1.0, factor]))
     return scale_robots(P, robots, factor)
+
+
+def floor_over(params: CLParams, state) -> bool:
+    """Whether the stage is over for its store ``state``: every robot id ``0 .. n - 1``
+    stored with factor 1 and a floor of 0 at its count, the schedule never rising again
+    (``startup_decay <= 1``; then every later pass writes factor 1 and returns ``P``)."""
+    n = state.n_nodes
+    if len(state) != n or not params.startup_decay <= 1.0:
+        return False
+    values = state.values.reshape(n, 2)
+    return bool(
+        (state.keys == np.arange(n) * (n + 1)).all()
+        and (values[:, 1] == 1.0).all()
+        and (startup_floor_schedule(params, values[:, 0]) == 0.0).all()
+    )
 
 
 def startup_floor_schedule(params: CLParams, seen: np.ndarray) -> np.ndarray:

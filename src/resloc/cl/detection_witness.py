@@ -21,10 +21,11 @@ observers of j share j's own estimation error: ``P_j,pos`` (j's *claimed* covari
 robot claiming a small covariance asserts small residuals) is common to all of them, and
 only the ``Q_ij`` are treated as independent (the observers' cross-covariances with each
 other, which naive CL fusion does not track either, are ignored). Robot i sends its notes
-(j's id, ``u_ij``, the three entries of ``Q_ij``) with its next broadcast: one frame per
-robot and step (``WIRE_BYTES["witness_frame"]`` plus ``"witness_note"`` per note). Notes of
-readings the observer itself distrusts (its estimate inside the zone-trust map) are ignored
-by the receivers (they are sent and counted: a receiver sees where the observer says it is).
+(j's id, ``u_ij``, ``Q_ij`` and ``P_j,pos``, as the runtime encodes them) with its next
+broadcast: one frame per robot and step (``WIRE_BYTES["witness_frame"]`` plus
+``"witness_note"`` per note). Notes of readings the observer itself distrusts (its estimate
+inside the zone-trust map) are ignored by the receivers (they are sent and counted: a
+receiver sees where the observer says it is).
 In one robot's process (:class:`~resloc.cl.node.RobotNode`) the stage sees only that robot's
 notes unless the runtime hands it the notes its neighbours' frames carried
 (:meth:`~resloc.cl.node.RobotNode.receive_witness`, ``docs/runtime.md``). In the

@@ -238,7 +238,11 @@ class SplitCIFusion(_TransmittedOnly):
     def finish(self, memory, P, j, delivered) -> np.ndarray:
         # A delivered estimate is now held by a neighbour too, so its sender's independent
         # part becomes dependent (a robot's process learns it from an acknowledgement).
-        if delivered.any() and not memory.local:
+        if memory.local:
+            return P
+        from resloc.cl.kernels_split import compiled_independent_finish  # (see predict)
+
+        if not compiled_independent_finish(memory.independent, j, delivered) and delivered.any():
             memory.independent[j[delivered]] = 0.0
         return P
 

@@ -18,9 +18,9 @@ parts; the cross-covariance bookkeeping of ``tracked`` and ``factorized``,
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`_ci_cost`               ``resloc.cl.fusion._posterior_cost``
-:func:`_grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
-:func:`_first_best`           ``np.argmin`` of the grid's costs
+:func:`ci_cost`               ``resloc.cl.fusion._posterior_cost``
+:func:`grid_costs`            ``resloc.cl.fusion._posterior_cost`` on the grid
+:func:`first_best`           ``np.argmin`` of the grid's costs
 :func:`_search_weight`         :func:`resloc.cl.fusion.ci_weights` after the reductions
 :func:`weight_of`             :func:`resloc.cl.fusion.ci_weights` from the reductions
 :func:`ci_update`              :func:`resloc.cl.fusion.fused_update` (``ci``)
@@ -113,22 +113,34 @@ def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
     ``links``; None when the kernel cannot reproduce the reference (then the reference
     raises its explanatory error, or records exactly)."""
     code = KERNEL_UPDATES[update]
-    fusion = kernel_fusion(code, criterion, E)
     if code == SPLIT_CI:
-        if memory is None or memory.independent is None or links.P_nb_ind is None:
-            return None
-        if np.shape(links.P_nb_ind) != (E, 3, 3) or np.shape(memory.independent)[1:] != (3, 3):
-            return None
-        if len(memory.independent) <= int(np.max(links.i)):
-            return None
-        return fusion._replace(
-            independent=np.array(memory.independent, dtype=float, order="C", copy=True),
-            P_nb_ind=np.ascontiguousarray(links.P_nb_ind, dtype=float),
-        )
+        return _split_state(criterion, memory, links, E)
+    fusion = kernel_fusion(code, criterion, E)
     if code in _JOINT_CODES:
         joint = joint_state(_JOINT_CODES[code], memory, links.i, links.j)
         return None if joint is None else fusion._replace(joint=joint)
     return fusion
+
+
+def _split_state(criterion: CICriterion, memory, links, E: int) -> KernelFusion | None:
+    """:func:`fusion_state` of split CI: a working copy of ``memory.independent`` and the
+    transmitted parts; None when a shape does not fit (the kernel does not check indices).
+    Built at once, not as :func:`kernel_fusion`'s then ``_replace``, and the observers'
+    bound by the array's own ``max`` (measured in a run, 6.0 -> 3.4 us a step)."""
+    independent = None if memory is None else memory.independent
+    P_nb_ind = links.P_nb_ind
+    if independent is None or P_nb_ind is None:
+        return None
+    if np.shape(P_nb_ind) != (E, 3, 3) or np.shape(independent)[1:] != (3, 3):
+        return None
+    if len(independent) <= np.asarray(links.i).max():
+        return None
+    return KernelFusion(
+        SPLIT_CI, CICriterion(criterion) is CICriterion.DET, _GRID, no_joint(E),
+        np.array(independent, dtype=float, order="C", copy=True),
+        np.ascontiguousarray(P_nb_ind, dtype=float), np.zeros((8, 3, 3)),
+        np.empty(_GRID.shape[1]),
+    )  # fmt: skip
 
 
 def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray) -> None:
@@ -140,7 +152,7 @@ def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray
 
 
 @jit_inline
-def _ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
+def ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R):
     """Linearized posterior ``trace`` (or ``det``) of ``P_i`` under the CI joint bound with
     weight ``w`` given as ``u = 1 / w`` and ``v = 1 / (1 - w)`` (the grid's are computed
     once, :data:`_GRID`: one division per evaluation is left, that of ``S^-1``) from the
@@ -152,7 +164,7 @@ def _ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, t
     by row; ``tr_ip``: trace of ``Ip``; ``tr_i``: trace of ``Dp``, ``det_i``: its
     determinant, used without ``split``; ``R``: a 4-tuple). Tuples of scalars, no arrays:
     each array an inlined call receives costs a reference-count update, and the weight's
-    search calls this 34 times a link (33 of them in :func:`_grid_costs`).
+    search calls this 34 times a link (33 of them in :func:`grid_costs`).
     Twin: ``resloc.cl.fusion._posterior_cost``."""
     if split:
         sj00 = b[0] * v + bi[0]
@@ -175,7 +187,7 @@ def _ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, t
     det_s = s00 * s11 - s01 * s10
     if det:
         if split:  # det(D_i / w + I_i)
-            return _det3_scaled_entries(Dp, u, Ip) * (sj00 * sj11 - sj01 * sj10) / det_s
+            return det3_scaled_entries(Dp, u, Ip) * (sj00 * sj11 - sj01 * sj10) / det_s
         return det_i * u * u * u * (sj00 * sj11 - sj01 * sj10) / det_s
     if split:
         q00 = g[0] * u * u + (gdi[0] + gdi[0]) * u + gii[0]
@@ -204,11 +216,11 @@ def _entries(M):
 @jit_inline
 def _det3_scaled(D, u, I3):
     """``det(D u + I3)`` of 3 x 3 matrices."""
-    return _det3_scaled_entries(_entries(D), u, _entries(I3))
+    return det3_scaled_entries(_entries(D), u, _entries(I3))
 
 
 @jit_inline
-def _det3_scaled_entries(D, u, I3):
+def det3_scaled_entries(D, u, I3):
     """``det(D u + I3)`` of 3 x 3 matrices given as 9-tuples by row."""
     m00 = D[0] * u + I3[0]
     m01 = D[1] * u + I3[1]
@@ -267,7 +279,7 @@ def reduce_j(D, Hj):
 
 
 @jit_inline
-def _gram(c, d):
+def gram(c, d):
     """``c^T d`` of two 3 x 2 matrices (6-tuples of rows, :func:`reduce_i`) as a 4-tuple."""
     g00 = c[0] * d[0] + c[2] * d[2] + c[4] * d[4]
     g01 = c[0] * d[1] + c[2] * d[3] + c[4] * d[5]
@@ -277,14 +289,14 @@ def _gram(c, d):
 
 
 @jit_lanes
-def _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost):
-    """The cost (:func:`_ci_cost`) at every candidate weight of ``grid: (3, G)`` (rows ``w``,
+def grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost):
+    """The cost (:func:`ci_cost`) at every candidate weight of ``grid: (3, G)`` (rows ``w``,
     ``1 / w``, ``1 / (1 - w)``, :data:`_GRID`) into ``cost: (G,)``.
     A loop of its own, free of branches and compiled with IEEE division (``jit_lanes``),
     so that LLVM evaluates several weights per SIMD instruction; the same arithmetic per
     weight as one evaluation, so the same costs to the bit."""
     for t in range(grid.shape[1]):
-        cost[t] = _ci_cost(
+        cost[t] = ci_cost(
             grid[1, t],
             grid[2, t],
             det,
@@ -306,7 +318,7 @@ def _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip
 
 
 @jit_inline
-def _first_best(cost, n):
+def first_best(cost, n):
     """``(cost[k], k)``: the first smallest of ``cost[:n]`` as the scalar search finds it
     (``best = cost[0]``, then ``cost[t] < best`` replaces it: a NaN first cost stays the
     best, a later NaN never becomes it). Four interleaved searches (``t = 1, 5, ...``,
@@ -353,17 +365,17 @@ def _first_best(cost, n):
 @jit_lanes
 def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R,
                    prior, cost):  # fmt: skip
-    """The weight minimising the cost (arguments of :func:`_ci_cost`, ``grid`` of
-    :func:`_grid_costs`; ``prior``: the cost
+    """The weight minimising the cost (arguments of :func:`ci_cost`, ``grid`` of
+    :func:`grid_costs`; ``prior``: the cost
     of ``w = 1``, the prior kept; ``cost: (G,)``: scratch): the first best of the grid
-    (:func:`_grid_costs`), refined by the parabola through it and its neighbours (the first
+    (:func:`grid_costs`), refined by the parabola through it and its neighbours (the first
     or last three points when it is at an end) where that helps; 1.0 when no weight beats
     the prior. A call of its own, not inlined: the link loops' bodies stay small, and the
     grid's loop is vectorized (measured: the weight of a ``ci`` link about 2.3x faster
     than by the inlined scalar search that kept the best as it went)."""
     n = grid.shape[1]
-    _grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost)
-    best, k = _first_best(cost, n)
+    grid_costs(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr_ip, R, cost)
+    best, k = first_best(cost, n)
     kc = min(max(k, 1), n - 2)
     c0 = cost[kc - 1]
     c1 = cost[kc]
@@ -376,7 +388,7 @@ def _search_weight(grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp,
         w = min(max(grid[0, kc] + shift, grid[0, 0]), grid[0, n - 1])
     else:
         w = grid[0, k]
-    refined = _ci_cost(
+    refined = ci_cost(
         1.0 / w, 1.0 / (1.0 - w), det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip,
         tr_ip, R,
     )  # fmt: skip
@@ -393,7 +405,7 @@ def weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     from the reductions ``a = H_i D_i H_i^T``, ``cd = D_i H_i^T``
     (:func:`reduce_i`) and ``b = H_j D_j H_j^T`` (:func:`reduce_j`), which
     :func:`ci_update` reuses for the update."""
-    g = _gram(cd, cd)
+    g = gram(cd, cd)
     zero = (0.0, 0.0, 0.0, 0.0)
     ai = zero
     bi = zero
@@ -401,8 +413,8 @@ def weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
     gii = zero
     if split:
         ai, ci = reduce_i(Ii, Hi)
-        gdi = _gram(cd, ci)
-        gii = _gram(ci, ci)
+        gdi = gram(cd, ci)
+        gii = gram(ci, ci)
         bj = reduce_j(Ij, Hj)
         bi = (bj[0] + R[0, 0], bj[1] + R[0, 1], bj[2] + R[1, 0], bj[3] + R[1, 1])
     tr_i = Di[0, 0] + Di[1, 1] + Di[2, 2]
@@ -419,7 +431,7 @@ def weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
             prior = tr_i + tr_ip
     else:
         prior = det_i if det else tr_i
-    # the matrices as tuples of scalars for the evaluations of the cost (see _ci_cost)
+    # the matrices as tuples of scalars for the evaluations of the cost (see ci_cost)
     return _search_weight(
         grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, _entries(Di), _entries(Ii),
         tr_ip, (R[0, 0], R[0, 1], R[1, 0], R[1, 1]), prior, cost,

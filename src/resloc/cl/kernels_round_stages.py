@@ -42,6 +42,7 @@ from resloc.cl import kernels_links as _kernels_links
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
+from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
@@ -53,7 +54,7 @@ from resloc.cl.kernels_detection import (
     nis_of,
     whiten_of,
 )
-from resloc.cl.kernels_fusion import CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_lanes import FALLBACK
 from resloc.cl.kernels_link_stages import UPDATE_ROWS, kalman_lanes
@@ -67,6 +68,7 @@ from resloc.cl.kernels_math import (
 )
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
+from resloc.cl.kernels_split_lanes import split_ci_lanes
 from resloc.cl.kernels_tamper import stealthy_measurement
 from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD
 
@@ -380,7 +382,7 @@ def link_scratch():
 @_jit
 def intersect_lanes(
     x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation, decision,
-    options, fusion, out, work, linearized,
+    options, fusion, out, work, linearized, lanes,
 ):  # fmt: skip
     """Covariance intersection (``ci``) or split CI of every delivered lane, with the
     lane's moments (and robot ``i``'s covariance times the recovery's ``inflation``), then
@@ -389,12 +391,20 @@ def intersect_lanes(
     False wherever the rounds run), passed as the runtime bool it is so that
     ``split_ci_update`` has the signature of the row-order loop's call and is compiled
     once for both loops (a literal ``False`` would compile a second form of it).
+    ``lanes``: :func:`~resloc.cl.kernels_split_lanes.split_lane_scratch`; split CI with
+    its columns runs in SIMD stages (:func:`~resloc.cl.kernels_split_lanes.split_ci_lanes`,
+    the same results; without, lane by lane here).
     Twin: the ``ci_update`` / ``split_ci_update`` calls of ``correct_links`` and its
     tail."""
+    code = fusion[0]
+    if code == SPLIT_CI and lanes.shape[1] > 0 and not linearized:
+        return split_ci_lanes(
+            x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
+            decision, options, fusion, out, work, linearized, lanes,
+        )  # fmt: skip
     R, jitter = options[0], options[8]
     flags = out[2]
     Pi, Pxz, K, Hi, Hj, A3, T3, Pn = work[:8]
-    code = fusion[0]
     for c in range(n):
         if decision[3, c] != 1.0:
             continue
@@ -462,6 +472,7 @@ PIECE_MODULES = (
     _kernels_defence,
     _kernels_fusion,
     _kernels_split,
+    _kernels_split_lanes,
     _kernels_joint,
     _kernels_gauge,
     _kernels_tamper,

@@ -105,6 +105,7 @@ from resloc.cl.kernels_round_stages import (
     screen_lanes,
     tamper_lanes,
 )
+from resloc.cl.kernels_split_lanes import split_lane_scratch
 from resloc.cl.kernels_zone import withhold_lanes, zone_lanes
 from resloc.cl.links import LinkBatch
 
@@ -298,6 +299,7 @@ def _rounds(
         sent = np.empty(C)  # cached: delivered (decision[3] then holds fused)
         fresh = np.zeros(C)  # cached: delivered with a cached estimate (stays 0 otherwise)
         work = link_scratch()
+        split_lanes = split_lane_scratch(fusion)  # split CI's SIMD update (no columns else)
         zone_pxz = np.empty((3, 2))
         zone_h = np.empty((2, 3))
     E = li.shape[0]
@@ -401,7 +403,7 @@ def _rounds(
                 sent_lanes(lane_e, n, sent, out)
             if beyond is not None and not kalman and not intersect_lanes(
                 x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-                decision, options, fusion, out, work, filt[0],
+                decision, options, fusion, out, work, filt[0], split_lanes,
             ):  # fmt: skip
                 return NOT_PD
             if beyond is not None and record_gauge:

@@ -18,6 +18,7 @@ kernel function                numpy twin
 :func:`_clip_independent`      :func:`resloc.cl.fusion.clip_independent` (one matrix)
 :func:`split_ci_update`        :func:`resloc.cl.fusion.fused_update` (``split_ci``)
 :func:`_split_ci_link`         the same, from the fields of the fusion it reads
+:func:`_zero_delivered`        ``SplitCIFusion.finish``'s ``independent[j[delivered]] = 0``
 =============================  ==========================================================
 """
 
@@ -25,11 +26,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from resloc.cl.backend import backend
 from resloc.cl.kernels_fusion import inflated_update, reduce_i, reduce_j, weight_of
 from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 
-__all__ = ["sandwich3", "split_ci_update"]
+__all__ = ["compiled_independent_finish", "sandwich3", "split_ci_update"]
 
 
 @jit_inline
@@ -243,6 +245,53 @@ def _split_ci_link(
             M[a, b] = 0.5 * (Ij[a, b] + Ij[b, a])
             Q[a, b] = 0.5 * (Pn[a, b] + Pn[b, a])
     return _clip_independent(Q, M, independent[i], L, Linv, Di, jitter)
+
+
+def compiled_independent_finish(independent, j, delivered) -> bool:
+    """``independent[j[delivered]] = 0.0`` compiled (split CI's end of step: a delivered
+    sender's part turned dependent; numpy's boolean then fancy index cost ~3.5 us a step of
+    the paper's scenario). False, nothing written, when the backend is numpy, an input is
+    not of the documented form (``(B, 3, 3)`` float64 C-contiguous, ``(E,)`` int64 and
+    bool) or an index is outside ``0 .. B - 1``: then the numpy assignment (which wraps a
+    negative index and raises for one out of range)."""
+    if backend() != "numba":
+        return False
+    if not (
+        isinstance(independent, np.ndarray)
+        and isinstance(j, np.ndarray)
+        and isinstance(delivered, np.ndarray)
+    ):
+        return False
+    if (
+        independent.dtype != np.float64
+        or independent.ndim != 3
+        or independent.shape[1:] != (3, 3)
+        or not independent.flags.c_contiguous
+        or not independent.flags.writeable
+        or j.dtype != np.int64
+        or delivered.dtype != np.bool_
+        or j.ndim != 1
+        or delivered.shape != j.shape
+    ):
+        return False
+    return _zero_delivered(independent, j, delivered)
+
+
+@jit
+def _zero_delivered(independent, j, delivered):
+    """Rows ``j[e]`` of ``independent`` zero for every ``delivered[e]``; False (nothing
+    written) when one of them is outside ``0 .. B - 1``."""
+    B = independent.shape[0]
+    for e in range(j.shape[0]):
+        if delivered[e] and not 0 <= j[e] < B:
+            return False
+    for e in range(j.shape[0]):
+        if delivered[e]:
+            b = j[e]
+            for a in range(3):
+                for c in range(3):
+                    independent[b, a, c] = 0.0
+    return True
 
 
 # _split_ci_link inlines kernels_fusion's weight and update and kernels_joint_links' bound

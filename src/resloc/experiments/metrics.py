@@ -65,13 +65,14 @@ WIRE_BYTES: dict[str, int] = {
     # does not carry it: a test builds the frame with the codec's header, msgpack and tag)
     "connectivity": 117,
     # detector.witness: each robot's notes on the neighbours it measured, one frame per robot
-    # and step ({"notes": bytes}; a test builds the frame with the codec's header, msgpack
-    # and tag; the runtime sends the notes on its estimate frames instead, 88 bytes a note:
-    # docs/runtime.md), 48 bytes a note (the neighbour's id i8, the
-    # residual 2 f8, its covariance's three entries 3 f8); exact from 6 to 1365 notes a
-    # frame (with 1-5 notes msgpack's shorter length prefix saves 1 byte, not counted)
-    "witness_frame": 78,
-    "witness_note": 48,
+    # and step, each note as the runtime encodes it (docs/runtime.md: the neighbour's id i8,
+    # u 2 f8, Q and j's claimed position block 2x2 f8 each, whole: 88 bytes); the frame is the
+    # codec's header, msgpack {"wj": bin, "wn": bin} and tag (a test builds it): exact from 32
+    # to 818 notes a frame, 1 byte over with 4-31 and 2 with 1-3 (msgpack's shorter length
+    # prefixes, not subtracted). The runtime sends the notes on its estimate broadcast, so
+    # the wire pays the two fields (10-14 bytes) instead of a frame of their own.
+    "witness_frame": 81,
+    "witness_note": 88,
 }
 
 #: End-of-step exchanges (``FusionStrategy.node_exchanges``) whose frames are counted.
