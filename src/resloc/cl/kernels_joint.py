@@ -9,9 +9,12 @@ differ in where ``C_ij`` comes from and what an update records:
     Robot i's current error is ``M_i e_pred + w_i``. Within one correction ``M_i`` has a
     block at i's own column (``A_i``, the product of its ``I - K H_i``) and one per link it
     fused (``B_ij = -K H_j`` left-multiplied by its later gains): the kernel keeps those
-    blocks (:class:`KernelJoint` ``A``, ``Bij``) and the propagated noise and forms ``C_ij =
-    M_i Sigma[:, j]`` from them. The covariance a robot keeps after an update, ``P_i = M_i
-    Sigma M_i^T + N_i`` in the reference, is the same quantity by the update's recursion
+    blocks (:class:`KernelJoint` ``A``, ``Bij``), the propagated noise and each robot's
+    rows of ``M Sigma`` (``rows``, updated by every record: ``M_i Sigma <- G M_i Sigma +
+    B_ij Sigma[j]``), whose block at j is ``C_ij = M_i Sigma[:, j]``; the commit hands the
+    rows to the end of step as its first product (``JointCovariance.m_sigma``). The
+    covariance a robot keeps after an update, ``P_i = M_i Sigma M_i^T + N_i`` in the
+    reference, is the same quantity by the update's recursion
     ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
     the robot's first link). :func:`joint_commit` writes the blocks
     into the dense ``M`` the reference's ``finish`` (``Sigma <- M Sigma M^T + N``) reads.
@@ -91,6 +94,7 @@ class KernelJoint(NamedTuple):
     work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
     gains: np.ndarray  # (E, 3, 3) factorized: each fused link's G = I - K H_i
+    rows: np.ndarray  # (B, 3, 3N) tracked: each robot's M_i Sigma (its rows of M Sigma)
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
@@ -100,7 +104,7 @@ _EMPTY4 = np.zeros((0, 0, 3, 3))
 _NO_JOINT = KernelJoint(
     NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
     _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)),
-    np.zeros((2, 6, 6)), _EMPTY3,
+    np.zeros((2, 6, 6)), _EMPTY3, _EMPTY3,
 )  # fmt: skip
 
 
@@ -137,16 +141,17 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
+        rows = sigma.reshape(B, 3, 3 * N).copy()  # M = I: each robot's rows of Sigma
         return KernelJoint(
             code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.zeros((E, 3, 3)), _EMPTY4, _EMPTY4,
-            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3,
+            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3, rows,
         )  # fmt: skip
     # factorized: the kernel reads the factors as the step began (never writes them)
     return KernelJoint(
         code, N, nbr, _NO_JOINT.sigma, _EMPTY3, A, np.zeros((E, 3, 3)),
         np.ascontiguousarray(joint.sig, dtype=float),
         np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
-        np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)),
+        np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)), _EMPTY3,
     )  # fmt: skip
 
 
@@ -173,6 +178,7 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
         _scatter_tracked_blocks(joint.M, state.A, state.Bij, li, state.nbr, fused, state.N)
         joint.noise = state.noise
         joint.updates = int(np.count_nonzero(fused))
+        joint.m_sigma = state.rows  # M Sigma as the records kept it (the finish's first product)
     elif state.code == FACTORIZED:
         sig = np.empty_like(state.sig)
         _factorized_products(

@@ -89,75 +89,6 @@ def _add_mul_t(X, Y, out):
 
 
 @jit_inline
-def _tracked_row(sigma, A, Bij, nbr, N, e, first, fused, i, col, work):
-    """``work[1] = (M_i Sigma)[:, col block]`` of robot ``i`` (its links from row ``first``,
-    ``fused``: the flags of the rows so far). Indexes the arrays, takes no view of them: a
-    view costs a reference count per link. The block accumulates in scalars, stored once
-    (stores into ``work`` inside the loop would make LLVM reload every operand: it cannot
-    prove ``work`` and ``sigma`` apart)."""
-    t = i // N
-    c0 = 3 * col
-    p0 = 3 * (i % N)
-    s00 = sigma[t, p0, c0]
-    s01 = sigma[t, p0, c0 + 1]
-    s02 = sigma[t, p0, c0 + 2]
-    s10 = sigma[t, p0 + 1, c0]
-    s11 = sigma[t, p0 + 1, c0 + 1]
-    s12 = sigma[t, p0 + 1, c0 + 2]
-    s20 = sigma[t, p0 + 2, c0]
-    s21 = sigma[t, p0 + 2, c0 + 1]
-    s22 = sigma[t, p0 + 2, c0 + 2]
-    w00 = A[i, 0, 0] * s00 + A[i, 0, 1] * s10 + A[i, 0, 2] * s20
-    w01 = A[i, 0, 0] * s01 + A[i, 0, 1] * s11 + A[i, 0, 2] * s21
-    w02 = A[i, 0, 0] * s02 + A[i, 0, 1] * s12 + A[i, 0, 2] * s22
-    w10 = A[i, 1, 0] * s00 + A[i, 1, 1] * s10 + A[i, 1, 2] * s20
-    w11 = A[i, 1, 0] * s01 + A[i, 1, 1] * s11 + A[i, 1, 2] * s21
-    w12 = A[i, 1, 0] * s02 + A[i, 1, 1] * s12 + A[i, 1, 2] * s22
-    w20 = A[i, 2, 0] * s00 + A[i, 2, 1] * s10 + A[i, 2, 2] * s20
-    w21 = A[i, 2, 0] * s01 + A[i, 2, 1] * s11 + A[i, 2, 2] * s21
-    w22 = A[i, 2, 0] * s02 + A[i, 2, 1] * s12 + A[i, 2, 2] * s22
-    for r in range(first, e):
-        if fused[r]:
-            q0 = 3 * (nbr[r] % N)
-            s00 = sigma[t, q0, c0]
-            s01 = sigma[t, q0, c0 + 1]
-            s02 = sigma[t, q0, c0 + 2]
-            s10 = sigma[t, q0 + 1, c0]
-            s11 = sigma[t, q0 + 1, c0 + 1]
-            s12 = sigma[t, q0 + 1, c0 + 2]
-            s20 = sigma[t, q0 + 2, c0]
-            s21 = sigma[t, q0 + 2, c0 + 1]
-            s22 = sigma[t, q0 + 2, c0 + 2]
-            b0 = Bij[r, 0, 0]
-            b1 = Bij[r, 0, 1]
-            b2 = Bij[r, 0, 2]
-            w00 += b0 * s00 + b1 * s10 + b2 * s20
-            w01 += b0 * s01 + b1 * s11 + b2 * s21
-            w02 += b0 * s02 + b1 * s12 + b2 * s22
-            b0 = Bij[r, 1, 0]
-            b1 = Bij[r, 1, 1]
-            b2 = Bij[r, 1, 2]
-            w10 += b0 * s00 + b1 * s10 + b2 * s20
-            w11 += b0 * s01 + b1 * s11 + b2 * s21
-            w12 += b0 * s02 + b1 * s12 + b2 * s22
-            b0 = Bij[r, 2, 0]
-            b1 = Bij[r, 2, 1]
-            b2 = Bij[r, 2, 2]
-            w20 += b0 * s00 + b1 * s10 + b2 * s20
-            w21 += b0 * s01 + b1 * s11 + b2 * s21
-            w22 += b0 * s02 + b1 * s12 + b2 * s22
-    work[1, 0, 0] = w00
-    work[1, 0, 1] = w01
-    work[1, 0, 2] = w02
-    work[1, 1, 0] = w10
-    work[1, 1, 1] = w11
-    work[1, 1, 2] = w12
-    work[1, 2, 0] = w20
-    work[1, 2, 1] = w21
-    work[1, 2, 2] = w22
-
-
-@jit_inline
 def _solve_lower_into(L, X, out):
     """``out = L^-1 X`` for lower-triangular 3 x 3 ``L`` (forward substitution)."""
     for b in range(3):
@@ -237,27 +168,30 @@ def joint_cross(joint, e, first, fused, i, Pi, Pj, jitter):
 @jit_inline
 def tracked_cross(joint, e, first, fused, i):
     """:func:`joint_cross` of ``tracked``: the blocks from the joint (robot i's covariance
-    now in ``work[4]``: ``Sigma_ii`` at its first link). Indexes the arrays and takes no
-    view of them (a view costs a reference count, and this runs per link); a loop over
-    lanes calls it, not :func:`joint_cross`, whose ``factorized`` branch's views made the
-    loop 7x slower (measured: 230 ns a lane, 30 ns alone)."""
+    now in ``work[4]``: ``Sigma_ii`` at its first link; ``C_ij = M_i Sigma[:, j]``, the
+    block of i's rows of ``M Sigma`` that the records keep, ``joint[14]``). Indexes the
+    arrays and takes no view of them (a view costs a reference count, and this runs per
+    link); a loop over lanes calls it, not :func:`joint_cross`, whose ``factorized``
+    branch's views made the loop 7x slower (measured: 230 ns a lane, 30 ns alone).
+    ``fused`` is not read (the rows hold the earlier fused links already)."""
     N = joint[1]
     nbr = joint[2]
     j = nbr[e]
     work = joint[11]
     sigma = joint[3]
+    rows = joint[14]
     t = i // N
     if e == first:  # robot i's covariance now (work[4]): Sigma_ii at its first link
         c0 = 3 * (i % N)
         for a in range(3):
             for b in range(3):
                 work[4, a, b] = 0.5 * (sigma[t, c0 + a, c0 + b] + sigma[t, c0 + b, c0 + a])
+    c0 = 3 * (j % N)
     for a in range(3):
         for b in range(3):
             work[0, a, b] = work[4, a, b]
-    _tracked_row(sigma, joint[5], joint[6], nbr, N, e, first, fused, i, j % N, work)
+            work[1, a, b] = rows[i, a, c0 + b]
     t = j // N
-    c0 = 3 * (j % N)
     for a in range(3):
         for b in range(3):
             work[2, a, b] = sigma[t, c0 + a, c0 + b]

@@ -11,7 +11,13 @@ from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_joint_links import TRACKED
 from resloc.cl.kernels_math import jit_inline
 
-__all__ = ["factorized_record", "joint_record", "tracked_record"]
+__all__ = [
+    "factorized_record",
+    "joint_record",
+    "left_multiply_row",
+    "tracked_record",
+    "update_m_sigma_rows",
+]
 
 
 @jit_inline
@@ -61,7 +67,7 @@ def _tracked_update(G, K, R, Bij, e, work, J6, Pn, T1):
 
 
 @jit_inline
-def _left_multiply_row(G, M, r, T3):
+def left_multiply_row(G, M, r, T3):
     """``M[r] <- G M[r]`` of 3 x 3 matrices in place (``T3``: scratch; no view of ``M``)."""
     for a in range(3):
         for b in range(3):
@@ -90,20 +96,21 @@ def _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3):
     for a in range(3):  # G = I - K H_i
         for b in range(3):
             G[a, b] = (1.0 if a == b else 0.0) - (K[a, 0] * Hi[0, b] + K[a, 1] * Hi[1, b])
-    _left_multiply_row(G, joint[5], i, T3)
+    left_multiply_row(G, joint[5], i, T3)
 
 
 @jit_inline
 def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
-    """:func:`joint_record` of ``tracked``: the blocks of ``M_i``, the noise, then
-    ``P_i`` into ``Pn``. Indexes the arrays, takes no view of them (a view costs a
+    """:func:`joint_record` of ``tracked``: the blocks of ``M_i``, the noise, i's rows of
+    ``M Sigma`` (the cross of its later links, :func:`update_m_sigma_rows`), then ``P_i`` into
+    ``Pn``. Indexes the arrays, takes no view of them (a view costs a
     reference count, and this runs per link)."""
     Bij = joint[6]
     noise = joint[4]
     _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
     for r in range(first, e):
         if fused[r]:
-            _left_multiply_row(G, Bij, r, T3)
+            left_multiply_row(G, Bij, r, T3)
     for a in range(3):
         for b in range(3):
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
@@ -123,7 +130,46 @@ def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, 
     for a in range(3):
         for b in range(3):
             noise[i, a, b] = Pn[a, b]
+    N = joint[1]
+    update_m_sigma_rows(joint[14], joint[3], i, i // N, 3 * (joint[2][e] % N), G, Bij, e)
     _tracked_update(G, K, R, Bij, e, joint[11], joint[12], Pn, T3)
+
+
+@jit_inline
+def update_m_sigma_rows(rows, sigma, i, t, cj, G, Bij, e):
+    """Robot i's rows of ``M Sigma`` after the update: ``rows[i] <- G rows[i] + B_ij
+    Sigma[j's rows]`` (``B_ij = Bij[e]``, ``Sigma``: team ``t``'s joint as the step began,
+    j's rows from ``cj``), column by column in place. The gain and ``B_ij`` in scalars
+    first: stores into ``rows`` would otherwise reload them (LLVM cannot prove the arrays
+    apart), and the loop over the 3N columns compiles to SIMD."""
+    g00 = G[0, 0]
+    g01 = G[0, 1]
+    g02 = G[0, 2]
+    g10 = G[1, 0]
+    g11 = G[1, 1]
+    g12 = G[1, 2]
+    g20 = G[2, 0]
+    g21 = G[2, 1]
+    g22 = G[2, 2]
+    b00 = Bij[e, 0, 0]
+    b01 = Bij[e, 0, 1]
+    b02 = Bij[e, 0, 2]
+    b10 = Bij[e, 1, 0]
+    b11 = Bij[e, 1, 1]
+    b12 = Bij[e, 1, 2]
+    b20 = Bij[e, 2, 0]
+    b21 = Bij[e, 2, 1]
+    b22 = Bij[e, 2, 2]
+    for q in range(rows.shape[2]):
+        w0 = rows[i, 0, q]
+        w1 = rows[i, 1, q]
+        w2 = rows[i, 2, q]
+        s0 = sigma[t, cj, q]
+        s1 = sigma[t, cj + 1, q]
+        s2 = sigma[t, cj + 2, q]
+        rows[i, 0, q] = (g00 * w0 + g01 * w1 + g02 * w2) + (b00 * s0 + b01 * s1 + b02 * s2)
+        rows[i, 1, q] = (g10 * w0 + g11 * w1 + g12 * w2) + (b10 * s0 + b11 * s1 + b12 * s2)
+        rows[i, 2, q] = (g20 * w0 + g21 * w1 + g22 * w2) + (b20 * s0 + b21 * s1 + b22 * s2)
 
 
 @jit_inline

@@ -19,7 +19,8 @@ function                       what                                       piece 
 :func:`correlated_points_lanes`  eq. (3): every point's range and         ``point_moments`` on
                                bearing (SIMD)                             the correlated offsets
 :func:`joint_record_lanes`     the update's record (``tracked``: the      ``joint_record``
-                               covariance the joint gives ``P_i``)
+                               covariance the joint gives ``P_i``;
+                               the rounds run ``tracked_record_lanes``)
 =============================  =========================================  =====================
 
 The factor of ``[[P_i, C], [C^T, P_j]]`` is ``[[L_i, 0], [X, L_s]]``: ``L_i`` the factor of
@@ -49,6 +50,7 @@ from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
+from resloc.cl import kernels_tracked_lanes as _kernels_tracked_lanes
 from resloc.cl.kernels_joint_lanes import (
     CROSS_INPUT_ROWS,
     LANE_STRIDE,
@@ -62,7 +64,6 @@ from resloc.cl.kernels_joint_links import (
     chol6,
     factorized_cross,
     joint6,
-    tracked_cross,
 )
 from resloc.cl.kernels_joint_records import factorized_record, tracked_record
 from resloc.cl.kernels_lanes import (
@@ -91,6 +92,12 @@ from resloc.cl.kernels_round_stages import (
     save_state,
     screen_lanes,
     tamper_lanes,
+)
+from resloc.cl.kernels_tracked_lanes import (
+    RECORD_INPUT_ROWS,
+    RECORD_OUTPUT_ROWS,
+    tracked_cross_lanes,
+    tracked_record_lanes,
 )
 
 _jit = jit_lanes
@@ -153,6 +160,11 @@ def reset_joint(joint):
     for b in range(fused.shape[0]):
         for m in range(fused.shape[1]):
             fused[b, m] = False
+    rows, sigma, N = joint[14], joint[3], joint[1]  # tracked: M = I, rows of Sigma
+    for b in range(rows.shape[0]):
+        for p in range(3):
+            for q in range(rows.shape[2]):
+                rows[b, p, q] = sigma[b // N, 3 * (b % N) + p, q]
 
 
 @jit_inline
@@ -182,26 +194,16 @@ def joint_factor_lanes(
     lane at once where its certificate holds (:func:`factorized_cross_lanes`, SIMD;
     ``cross_in``: its scratch). The factors by :func:`chol6_lanes` (SIMD), the lanes that
     need jitter by :func:`chol6` itself. False when a covariance or the joint has no
-    Cholesky factor. Twin: ``joint_cross`` and ``correlated_offsets`` of
+    Cholesky factor. ``tracked``'s blocks by
+    :func:`~resloc.cl.kernels_tracked_lanes.tracked_cross_lanes` (``C_ij`` from the rows of
+    ``M Sigma`` the records keep). Twin: ``joint_cross`` and ``correlated_offsets`` of
     ``correct_links``."""
     tracked = joint[0] == TRACKED
     work = joint[11]
     J6 = joint[12]
     full = 0  # factorized: lanes whose cross needs factorized_cross itself (ok[c] = 0)
-    if tracked:
-        for c in range(n):
-            e = lane_e[c]
-            i = obs[c]
-            if e != lane_first[c]:
-                for a in range(3):
-                    for b in range(3):
-                        work[4, a, b] = now[i, a, b]
-            tracked_cross(joint, e, lane_first[c], fused, i)
-            for a in range(3):
-                for b in range(3):
-                    now[i, a, b] = work[4, a, b]
-            ok[c] = 1.0
-            _joint_into_lane(work, J6, blocks, J, c)
+    if tracked:  # (the scalar twin: tracked_cross and _joint_into_lane, lane by lane)
+        tracked_cross_lanes(joint, lane_e, lane_first, obs, n, now, blocks, J)
     else:
         full = factorized_cross_lanes(joint, P, P_ref, lane_e, obs, src, n, cross_in, blocks, J, ok)
     for c in range(n if full else 0):
@@ -239,7 +241,9 @@ def joint_record_lanes(
     j's transmitted one, the link's blocks of :func:`joint_factor_lanes`); ``tracked``:
     robot i's covariance becomes the joint's (into ``P``, repaired where not positive
     definite, and ``now``). Twin: the ``joint_record`` call of ``correct_links`` and its
-    ``store_covariance``."""
+    ``store_covariance``. The rounds run ``tracked``'s record over lanes
+    (:func:`~resloc.cl.kernels_tracked_lanes.tracked_record_lanes`, the same values to the
+    bit); its branch here is that stage's scalar twin."""
     flags = out[2]
     fused = flags[3]
     K, Hi, Hj, T3, Pn, G3 = work[2], work[3], work[4], work[6], work[7], work[8]
@@ -327,6 +331,10 @@ def _joint_rounds(
     ok = np.empty(C)
     cross_in = np.empty((CROSS_INPUT_ROWS, S))  # factorized_cross_lanes' gathered inputs
     now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
+    tracked = joint[0] == TRACKED
+    fused_lanes = np.empty(C, np.int64)  # tracked_record_lanes' fused lanes and rows
+    record_in = np.empty((RECORD_INPUT_ROWS if tracked else 0, S))
+    record_out = np.empty((RECORD_OUTPUT_ROWS if tracked else 0, S))
     Pi = np.empty((9, C))
     update = np.empty((UPDATE_ROWS, C))
     norms = np.empty((2, C))
@@ -390,10 +398,16 @@ def _joint_rounds(
                     decision, inflation,
                 )  # fmt: skip
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, True)
-            joint_record_lanes(
-                joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out, work,
-                now, blocks,
-            )  # fmt: skip
+            if tracked:  # the record's arithmetic over the fused lanes (SIMD)
+                tracked_record_lanes(
+                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out[2],
+                    now, blocks, fused_lanes, record_in, record_out, work[8], work[7], T3,
+                )  # fmt: skip
+            else:
+                joint_record_lanes(
+                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out,
+                    work, now, blocks,
+                )  # fmt: skip
     return OK
 
 
@@ -431,6 +445,7 @@ for _dispatcher in (
         _kernels_joint_links,
         _kernels_joint_lanes,
         _kernels_joint_records,
+        _kernels_tracked_lanes,
         _kernels_round_cached,
         *_kernels_round_stages.PIECE_MODULES,
     )

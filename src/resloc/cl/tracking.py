@@ -183,6 +183,10 @@ class JointCovariance:
         self.M = identity.copy()
         self.noise = np.zeros((B, 3, 3))
         self.updates = 0  # updates recorded since (M, noise) were reset
+        # M Sigma, (B, 3, 3N), where a compiled correction kept it (its commit,
+        # resloc.cl.kernels_joint.joint_commit) for the compiled finish; None after any
+        # other change of M (this class never reads it)
+        self.m_sigma: np.ndarray | None = None
 
     # ------------------------------------------------------------------ step
     def predict(
@@ -329,6 +333,7 @@ class JointCovariance:
         e = np.arange(len(i))[:, None, None]
         Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= KH_j
         self.M[i] = Mi
+        self.m_sigma = None
         self.updates += len(i)
         self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
             K, -1, -2
