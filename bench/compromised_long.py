@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+import numpy as np
 
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import defence_overrides
@@ -26,6 +29,20 @@ POINTS = ({"robots": 1}, {"robots": 1, "claimed_cov": 0.01}, {"robots": 3, "clai
 #: Not in the suite's grid: three robots claiming their honest covariance (against the
 #: witness stage a small claim tightens the liar's own test, docs/attack/witness.md).
 POINTS = (*POINTS, {"robots": 3})
+
+
+def reused_clean(path: Path, run: dict) -> np.ndarray:
+    """The per-seed clean MSLE of an earlier run (its JSON), which must have been run with
+    the same defence, overrides, seeds, steps and first trial as ``run`` (``ValueError``
+    naming the field that differs otherwise)."""
+    earlier = json.loads(path.read_text())
+    for key in ("defence", "set", "seeds", "steps", "first_trial"):
+        if earlier.get(key) != run.get(key):
+            raise ValueError(
+                f"--clean-from {path}: its {key} is {earlier.get(key)!r}, this run's "
+                f"{run.get(key)!r}; run the clean run again (drop --clean-from)"
+            )
+    return np.asarray(earlier["clean"], float)
 
 
 def main() -> None:
@@ -44,6 +61,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--points", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "--clean-from", type=Path, default=None,
+        help="reuse the clean MSLE of an earlier run's JSON (same defence, --set, seeds, "
+        "steps, first trial; checked) instead of running it again",
+    )  # fmt: skip
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
@@ -58,10 +80,18 @@ def main() -> None:
         },
     )
     first = {"first_trial": args.first_trial}
-    clean = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"].per_trial("msle_mean")
     out = {"defence": args.defence, "set": extra, "seeds": args.seeds, "steps": args.steps}
     if args.first_trial:
         out["first_trial"] = args.first_trial
+    if args.clean_from:
+        try:
+            clean = reused_clean(args.clean_from, out)
+        except ValueError as exc:
+            print(exc, file=sys.stderr)
+            raise SystemExit(2) from None
+        out["clean_from"] = str(args.clean_from)
+    else:
+        clean = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"].per_trial("msle_mean")
     if attack:
         out["attack"] = attack
     out["clean"] = clean.tolist()

@@ -8,6 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from resloc.angles import wrap_angle
+from resloc.cl.detection_startup import applied_startup_factors
 from resloc.cl.detection_zone import reciprocal_rows
 from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
@@ -70,7 +71,10 @@ class CompromisedRobot(Strategy):
     (:func:`~resloc.world.attackers.witness.within_witness`): ``budget`` says how
     (``"spared"``, the default: the links whose notes nobody reads or the statistic can drop
     keep their whole lie, the rest share one factor; ``"common"``: one factor on every lie),
-    ``give_up`` how many receivers per liar it lets convict it.
+    ``give_up`` how many receivers per liar it lets convict it. Against a start-up floor
+    (:mod:`resloc.cl.detection_startup`) ``harder`` lets a liar spend that budget: in a
+    round where one of its victims' covariances is raised by the floor (by at least
+    ``harder``), its lies are the largest the victims' detectors accept (:meth:`spends`).
 
     The victim's innovation is computed exactly for the false position (the relative
     position ``r (cos b, sin b)`` plus the shift in the victim's frame, back to range and
@@ -94,7 +98,10 @@ class CompromisedRobot(Strategy):
     #: stage only, ``"on"``, ``"off"`` (neither is stronger on every seed: the worst case
     #: is taken over both). ``quiet``: the liars send their honest estimates for the first
     #: this many steps (the answer to a start-up defence, :mod:`resloc.cl.detection_startup`:
-    #: lie only once it has ended).
+    #: lie only once it has ended). ``harder``: while the start-up stage raises the
+    #: covariance of one of a liar's victims of the round by a factor of at least this
+    #: (and above 1; 0: never), that liar's lies of the round are the largest the victims'
+    #: detectors accept, not cut by the witness budget (:meth:`spends`).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
@@ -103,6 +110,7 @@ class CompromisedRobot(Strategy):
         "give_up": 0,
         "shield": "auto",
         "quiet": 0,
+        "harder": 0.0,
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -122,6 +130,34 @@ class CompromisedRobot(Strategy):
                 f"attacker 'compromised', parameter budget: {self.budget!r} is not one of "
                 f"{', '.join(WITNESS_BUDGETS)}"
             )
+        if self.harder != 0.0 and not self.harder >= 1.0:
+            raise ValueError(
+                f"attacker 'compromised', parameter harder: {self.harder:g} is neither 0 "
+                "(off) nor a start-up factor of at least 1"
+            )
+
+    def spends(self, victims: np.ndarray, liars: np.ndarray, factors: np.ndarray) -> np.ndarray:
+        """Which of the round's rows (``victims``, ``liars``: batch ids, shape (n,)) are sent
+        whole, past the witness budget: those of a liar one of whose victims of the round
+        has its covariance raised by the start-up stage (``factors (B,)``, the stage's
+        :func:`~resloc.cl.detection_startup.applied_startup_factors` this step) by at least
+        ``harder`` (and by more than 1).
+
+        Why the liar and not the link: one lie past the budget makes its notes convict the
+        liar at its receivers whatever its other links carry, so the budget of the liar's
+        other lies of the round buys nothing. Why it can pay: the witness budget binds most
+        while the floors are high (the victims' gates are wide, their gains large; it cut
+        10-23% of the lies in steps 3-10 on a held-out seed, nothing after, ``docs/attack/
+        startup.md`` section 6), and a pull taken then lasts; a convicted liar is discarded
+        by its receivers until its statistic falls back under the threshold (a few steps to
+        tens), later lies it gives up.
+        """
+        if self.harder <= 0.0:
+            return np.zeros(len(victims), bool)
+        raised = factors[victims]
+        floored = (raised > 1.0) & (raised >= self.harder)
+        ids, slot = np.unique(liars, return_inverse=True)
+        return np.bincount(slot, floored, len(ids))[slot] > 0
 
     def targets(self, robots: int) -> np.ndarray:
         """The compromised robots' ids in a team of ``robots``."""
@@ -192,8 +228,10 @@ class CompromisedRobot(Strategy):
             )
             if params.witness and memory is not None and links.neighbours is not None:
                 # The notes on each liar must keep it under every honest receiver's
-                # witness test once they arrive (its fellows' notes lying for it).
+                # witness test once they arrive (its fellows' notes lying for it), unless
+                # it spends them on floored victims (``harder``).
                 source = links.neighbours
+                whole = a
                 a = within_witness(
                     a,
                     path,
@@ -212,6 +250,9 @@ class CompromisedRobot(Strategy):
                     budget=str(self.budget),
                     give_up=int(self.give_up),
                 )
+                if self.harder > 0.0 and params.startup_steps > 0:
+                    factors = applied_startup_factors(memory, len(source.x))
+                    a = np.where(self.spends(links.i[r], links.j[r], factors), whole, a)
             out[hit] = path(a[None])[0]
             injected[r] = out[hit, 0] - z[:, 0]
             return out
