@@ -12,7 +12,7 @@ with the certificates the scalar code takes its fast branch on computed for ever
 1. :func:`_weight_inputs_lanes`: both clips' certificates (``0 < P_ind < P`` by Sylvester's
    criterion, :func:`resloc.cl.kernels_split._clip_independent`), the dependent parts and
    the weight's 2 x 2 reductions (:func:`resloc.cl.kernels_fusion.weight_of`);
-2. :func:`_weight_lanes`: the weight as :func:`resloc.cl.kernels_fusion._search_weight`
+2. :func:`weight_lanes`: the weight as :func:`resloc.cl.kernels_fusion._search_weight`
    finds it: lane by lane the grid's costs (its SIMD loop over the candidates) and their
    first best, then the refinement over the lanes without branches;
 3. :func:`_update_lanes`: the inflated update (:func:`resloc.cl.kernels_fusion.
@@ -46,6 +46,7 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_split_pieces as _kernels_split_pieces
 from resloc.cl.kernels_fusion import (
+    CI,
     SPLIT_CI,
     ci_cost,
     det3_scaled_entries,
@@ -75,7 +76,7 @@ from resloc.cl.kernels_split_pieces import (
 
 _jit = jit_lanes
 
-__all__ = ["SPLIT_LANE_ROWS", "split_ci_lanes", "split_lane_scratch"]
+__all__ = ["SPLIT_LANE_ROWS", "split_ci_lanes", "split_lane_scratch", "weight_lanes"]
 
 S = LANE_STRIDE
 # The rows of the lanes' array (lane k in column k). Gathered: P_i (times the recovery's
@@ -107,7 +108,7 @@ _PRIOR = 83
 _OKA = 84
 _DP = 85
 _IP = 94
-# The weight (_weight_lanes): the best cost and its index on the grid, the weight.
+# The weight (weight_lanes): the best cost and its index on the grid, the weight.
 _BEST = 103
 _KBEST = 104
 _W = 105
@@ -119,8 +120,10 @@ _PN = 109
 _IN = 118
 _OK = 124
 _PD = 125
+# det(P_i) as weight_of computes it (ci only; 0.0 for split CI, whose cost does not read it)
+_DET = 126
 # The grid's costs, lane after lane (lane k's G costs from _COST * S + k * G on).
-_COST = 126
+_COST = 127
 #: The rows of :func:`split_lane_scratch` before the grid's costs (G rows more).
 SPLIT_LANE_ROWS = _COST
 #: The fused lanes are padded to whole blocks of this many (copies of the first).
@@ -129,9 +132,11 @@ _BLOCK = 8
 
 @_jit
 def split_lane_scratch(fusion):
-    """The lanes' rows of :func:`split_ci_lanes`, ``(SPLIT_LANE_ROWS + G, LANE_STRIDE)``
-    for split CI (``G``: the grid's candidate weights), no columns for another method."""
-    columns = S if fusion[0] == SPLIT_CI else 0
+    """The lanes' rows of :func:`split_ci_lanes` and of
+    :func:`resloc.cl.kernels_ci_lanes.ci_lanes`, ``(SPLIT_LANE_ROWS + G, LANE_STRIDE)`` for
+    split CI and ``ci`` (``G``: the grid's candidate weights), no columns for another
+    method."""
+    columns = S if fusion[0] == SPLIT_CI or fusion[0] == CI else 0
     return np.empty((SPLIT_LANE_ROWS + fusion[2].shape[1], columns))
 
 
@@ -210,13 +215,16 @@ def _weight_inputs_lanes(f, m, R, det):
         f[_TRP * S + k] = tr_ip
         f[_PRIOR * S + k] = prior
         f[_OKA * S + k] = 1.0 if ok else 0.0
+        f[_DET * S + k] = 0.0
         _put9(f, _DP, k, Di)
         _put9(f, _IP, k, Ii)
 
 
 @_jit
-def _weight_lanes(f, m, grid, det, R):
-    """Stage 2: the weight of lanes ``0 .. m - 1`` into row ``_W``, as
+def weight_lanes(f, m, grid, det, R, split):
+    """Stage 2 (``ci``'s lanes too, ``split`` False: the rows ``_AI``, ``_BI``, ``_GDI``,
+    ``_GII``, ``_IP``, ``_TRP`` then unread, ``_DET`` read): the weight of lanes
+    ``0 .. m - 1`` into row ``_W``, as
     :func:`resloc.cl.kernels_fusion._search_weight`: lane by lane, the grid's costs (its
     :func:`~resloc.cl.kernels_fusion.grid_costs`, a SIMD loop over the candidates) and
     their first best (:func:`~resloc.cl.kernels_fusion.first_best`); then, over the lanes
@@ -231,7 +239,7 @@ def _weight_lanes(f, m, grid, det, R):
     for k in range(m):
         cost = f[_COST * S + k * n : _COST * S + (k + 1) * n]
         grid_costs(
-            grid, det, True, f[_TR * S + k], 0.0, _row4(f, _A, k), _row4(f, _AI, k),
+            grid, det, split, f[_TR * S + k], f[_DET * S + k], _row4(f, _A, k), _row4(f, _AI, k),
             _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k), _row4(f, _GDI, k),
             _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k), f[_TRP * S + k], R4, cost,
         )  # fmt: skip
@@ -254,7 +262,8 @@ def _weight_lanes(f, m, grid, det, R):
         shift = min(max(shift, -h), h)
         w = min(max(grid[0, kc] + shift, first), last) if kb == kc else grid[0, kb]
         refined = ci_cost(
-            1.0 / w, 1.0 / (1.0 - w), det, True, f[_TR * S + k], 0.0, _row4(f, _A, k),
+            1.0 / w, 1.0 / (1.0 - w), det, split, f[_TR * S + k], f[_DET * S + k],
+            _row4(f, _A, k),
             _row4(f, _AI, k), _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k),
             _row4(f, _GDI, k), _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k),
             f[_TRP * S + k], R4,
@@ -347,7 +356,7 @@ def split_ci_lanes(
         for k in range(m, m2):
             f[row * S + k] = f[row * S]
     _weight_inputs_lanes(f, m2, R, fusion[1])
-    _weight_lanes(f, m, fusion[2], fusion[1], R)
+    weight_lanes(f, m, fusion[2], fusion[1], R, True)
     _update_lanes(f, m2, R, jitter[0])
     for k in range(m):
         c = int(f[_LANE * S + k])
@@ -407,7 +416,7 @@ def split_ci_lanes(
 for _dispatcher in (
     split_lane_scratch,
     _weight_inputs_lanes,
-    _weight_lanes,
+    weight_lanes,
     _update_lanes,
     split_ci_lanes,
 ):
