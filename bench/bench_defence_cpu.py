@@ -31,8 +31,9 @@ import resloc.experiments.lockstep as lockstep  # noqa: E402
 from resloc.cl import kernels  # noqa: E402
 
 
-def run(steps: int, repeats: int) -> dict[str, list[float]]:
-    """CPU microseconds per estimator step, per option, one value per round."""
+def run(steps: int, repeats: int, only: list[str] | None = None) -> dict[str, list[float]]:
+    """CPU microseconds per estimator step, per option, one value per round (``only``:
+    these options of :data:`bench_options.OPTIONS` beside the default)."""
     spent = [0.0]
     step_estimator = lockstep._step_estimator
 
@@ -44,7 +45,7 @@ def run(steps: int, repeats: int) -> dict[str, list[float]]:
             spent[0] += time.thread_time() - t0
 
     names = [next(iter(bench_options.OPTIONS))]
-    names += [n for n in bench_options.OPTIONS if n.startswith("defence")]
+    names += [n for n in bench_options.OPTIONS if n.startswith("defence")] if only is None else only
     kernels.warm_up()
     lockstep._step_estimator = timed
     try:
@@ -65,10 +66,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=300, help="simulated steps per run")
     parser.add_argument("--repeats", type=int, default=7, help="rounds")
+    parser.add_argument("--only", nargs="*", help="option names (default: every defence)")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.repeats < 1:
         parser.error("--steps and --repeats must be >= 1")
-    cpu = run(args.steps, args.repeats)
+    unknown = sorted(set(args.only or ()) - set(bench_options.OPTIONS))
+    if unknown:
+        parser.error(f"--only: unknown option {unknown[0]!r} (see bench_options.OPTIONS)")
+    cpu = run(args.steps, args.repeats, args.only)
     base = statistics.median(next(iter(cpu.values())))
     print(f"load average {os.getloadavg()}; {kernels.__file__}")
     for name, values in cpu.items():

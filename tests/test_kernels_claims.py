@@ -11,8 +11,8 @@ import resloc.cl.step
 from resloc.cl import kernels
 from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_redundancy import capped_claims
-from resloc.cl.detection_zone import zone_map
-from resloc.cl.links import LinkBatch
+from resloc.cl.detection_zone import inside_zone_map, zone_map
+from resloc.cl.links import LinkBatch, NeighbourStates
 from resloc.cl.params import CLParams
 from resloc.experiments.config import default_scenario
 from resloc.filters.base import make_filter
@@ -74,6 +74,52 @@ def test_the_claims_are_the_numpy_stages(cap: bool) -> None:
 
 
 @pytest.mark.parametrize("cap", [False, True])
+def test_tiny_claims_inside_the_map_are_raised_to_the_median(cap: bool) -> None:
+    """The neighbours inside the map claim far less than their observers' median: the
+    pass raises them to the median of the (capped) claims' traces before the inflation,
+    as ``landmark_claims`` does, the rows read by index (each source's place tested
+    once)."""
+    from resloc.cl.kernels_claims import claimed_covariances
+
+    links, discs, _, _ = _scene()
+    disc_array = np.asarray(discs, float)
+    x_nb = np.ascontiguousarray(links.x_nb)
+    inside = inside_zone_map(x_nb[:, :2], discs)
+    P_nb = links.P_nb.copy()
+    P_nb[inside] *= 1e-3
+    P_nb[inside, 0, 0] *= 0.5  # (the position block's trace: not its first entry alone,
+    P_nb[inside, 2, 2] *= 50.0  # nor the heading's)
+    params = CLParams(
+        zone_landmarks=True,
+        zone_landmarks_map=discs,
+        zone_landmarks_inflation=3.0,
+        redundancy=True,
+        redundancy_cap_fusion=cap,
+    )
+    li = links.i.astype(np.int64)
+    E = len(li)
+    # per row, then by index (the simulator's form: each neighbour's estimate once,
+    # its place in the map tested once for all the rows that read it)
+    _, first, by_source = np.unique(links.j, return_index=True, return_inverse=True)
+    for rows, x_src, P_src in (
+        (np.arange(E, dtype=np.int64), x_nb, P_nb),
+        (by_source.astype(np.int64), x_nb[first], P_nb[first]),
+    ):
+        claims = capped_claims(P_src[rows], links.i) if cap else P_src[rows]
+        expected = landmark_claims(params, x_src[rows], claims, links.i)
+        # raised to the median: by the landmarks' own step, or already by the cap
+        before = P_src[rows][inside] if cap else 3.0 * claims[inside]
+        after = claims[inside] if cap else expected[inside]
+        assert (after[:, 0, 0] + after[:, 1, 1] > 1.01 * (before[:, 0, 0] + before[:, 1, 1])).all()
+        out = np.empty((E, 3, 3))
+        got = claimed_covariances(
+            li, x_src, P_src, rows, cap, disc_array, 3.0, out, np.empty(E), np.empty(E)
+        )
+        assert got == inside.sum()
+        np.testing.assert_array_equal(out, expected)
+
+
+@pytest.mark.parametrize("cap", [False, True])
 def test_the_compiled_correction_runs_the_claims_pass(cap: bool) -> None:
     """The compiled correction weakens the claims by the compiled pass (counted) and
     equals the reference to 1e-9 with the same decisions."""
@@ -102,9 +148,9 @@ def test_the_compiled_correction_runs_the_claims_pass(cap: bool) -> None:
 
 
 def test_the_claimed_batch_shares_every_other_field() -> None:
-    """``claimed_links`` gives a new batch whose claims are the pass's and whose every
-    other field is the original's (a shallow copy, as ``dataclasses.replace``), the
-    original untouched."""
+    """``claimed_links`` gives a new batch whose claims are the pass's, whose estimates
+    are the original's values (gathered by the pass) and whose every other field is the
+    original's (a shallow copy, as ``dataclasses.replace``), the original untouched."""
     from resloc.cl.kernels_claims import claimed_links
 
     links, _, _, _ = _scene()
@@ -117,7 +163,39 @@ def test_the_claimed_batch_shares_every_other_field() -> None:
     assert links.__dict__.keys() == before.keys()
     assert all(links.__dict__[k] is v for k, v in before.items())  # the original untouched
     np.testing.assert_array_equal(links.P_nb, P_nb)
-    shared = [k for k in before if k != "_P_nb"]
+    shared = [k for k in before if k not in ("_P_nb", "_x_nb")]
     assert all(claimed.__dict__[k] is before[k] for k in shared), shared
     assert claimed.__dict__.keys() == before.keys()
-    assert len(claimed) == len(links) and claimed.x_nb is links.x_nb
+    assert len(claimed) == len(links)
+    np.testing.assert_array_equal(claimed.x_nb, links.x_nb)  # (gathered by the pass)
+
+
+def test_the_claimed_batch_carries_its_rows_estimates() -> None:
+    """A batch that reads its neighbours' estimates by index (``LinkBatch.neighbours``):
+    the claimed batch carries the per-row claims and, gathered by the compiled pass, the
+    per-row estimates, so that reading them gathers nothing
+    (``LinkBatch.neighbour_rows``)."""
+    from resloc.cl.kernels_claims import claimed_links
+
+    links, discs, x, P = _scene()
+    rng = np.random.default_rng(3)
+    source_x = x + rng.normal(0.0, 0.1, x.shape)
+    source_P = P * rng.uniform(0.2, 3.0, len(P))[:, None, None]
+    by_index = LinkBatch(
+        links.i, links.j, links.z, None, None, links.channel_ok, links.risk_s, links.risk_c,
+        links.lambda2, neighbours=NeighbourStates(links.j, source_x, source_P),
+    )  # fmt: skip
+    params = CLParams(
+        zone_landmarks=True, zone_landmarks_map=discs, redundancy=True, redundancy_cap_fusion=True
+    )
+    claimed = claimed_links(params, by_index)
+    carried = claimed.__dict__.get("_x_nb")
+    assert carried is not None  # (not gathered on read)
+    index, x_rows, P_rows = claimed.neighbour_rows()
+    assert index is None and x_rows is carried
+    np.testing.assert_array_equal(x_rows, source_x[links.j])
+    expected = landmark_claims(
+        params, source_x[links.j], capped_claims(source_P[links.j], links.i), links.i
+    )
+    np.testing.assert_array_equal(P_rows, expected)
+    assert by_index.__dict__.get("_x_nb") is None  # the original gathered nothing

@@ -263,6 +263,11 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
         np.testing.assert_allclose(state, ev["reciprocal_state"], rtol=0, atol=1e-15)
         verdicts.append(verdict.discard)
         verdict.undo()
+        # the transmitted estimates read by index (the simulator's form: each robot's
+        # place in the map tested once for all its rows)
+        by_index = reciprocal_verdict(params, memory, li, lj, z, partner, x, x, lj, detection)
+        np.testing.assert_array_equal(by_index.discard, ev["reciprocal_discard"])
+        by_index.undo()
         np.testing.assert_array_equal(_store(memory).get(li, lj), held)
         # the partner readings found in the batch (none given): the same verdict
         found = reciprocal_verdict(params, memory, li, lj, z, None, x, x_nb, nb, detection)

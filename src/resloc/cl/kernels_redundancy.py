@@ -19,6 +19,7 @@ kernel function                numpy twin
 :func:`claim_scales`           the scale of :func:`~resloc.cl.detection_redundancy.
                                weight_capped_covariance` and ``capped_claims``
                                (``_group_median``)
+:func:`trace_scales`           the same from the rows' traces (``_group_median``)
 :func:`position_fix_of_link`   :func:`~resloc.cl.detection_redundancy.position_fix`
 :func:`exclude_group`          :func:`~resloc.cl.detection_redundancy.exclude_inconsistent`
                                (``_reference``, ``_statistic``)
@@ -71,6 +72,7 @@ __all__ = [
     "position_fix_of_link",
     "redundancy_verdict",
     "sequence_group",
+    "trace_scales",
 ]
 
 #: A reference with no peer (twin: ``detection_redundancy._NO_PEER_COV``).
@@ -138,6 +140,14 @@ def claim_scales(li, P_nb, nb, scale, scratch):
     E = li.shape[0]
     for e in range(E):  # the traces, once (the rows' own, then their factors, in scale)
         scale[e] = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
+    return trace_scales(li, scale, scratch)
+
+
+@jit_inline
+def trace_scales(li, scale, scratch):
+    """:func:`claim_scales` from the rows' traces, given in ``scale: (E,)`` and replaced by
+    their factors (for callers that hold the claims per row: no index array)."""
+    E = li.shape[0]
     start = 0
     while start < E:
         if start > 0 and li[start] < li[start - 1]:
@@ -441,6 +451,19 @@ _NO_STATE = np.zeros((0, WIDTH))
 _NO_SLOTS = np.zeros(0, np.int64)
 
 
+_CLAIMS: list = []
+
+
+def _claims():
+    """:mod:`resloc.cl.kernels_claims` (it imports :func:`claim_scales`), imported on
+    first use and kept (an import statement a step: ~0.5 us)."""
+    if not _CLAIMS:
+        from resloc.cl import kernels_claims
+
+        _CLAIMS.append(kernels_claims)
+    return _CLAIMS[0]
+
+
 def capped_links(
     filt, x, P, links: LinkBatch, params: CLParams, strategy, memory
 ) -> LinkBatch | None:
@@ -453,9 +476,7 @@ def capped_links(
     hook is Python). None when the rows are not sorted by observer (the reference path
     then judges them). Twin: the head of ``resloc.cl.step._correct_reference``."""
     if params.redundancy_cap_fusion or params.zone_landmarks:
-        from resloc.cl.kernels_claims import claimed_links  # (it imports claim_scales)
-
-        links = claimed_links(params, links)
+        links = _claims().claimed_links(params, links)
         if links is None:
             return None
     if links.tamper is not None:  # (with the hook's ``reported`` partner readings)
