@@ -109,6 +109,7 @@ def _bits(a: np.ndarray) -> np.ndarray:
 
 
 def _run(n: int, det: bool, form: str, weights=None):
+    from resloc.cl import kernels_lane_rows as rows
     from resloc.cl import kernels_split_lanes as sl
     from resloc.cl.kernels_round_stages import intersect_lanes, link_scratch
 
@@ -117,8 +118,8 @@ def _run(n: int, det: bool, form: str, weights=None):
     if form == "scalar":
         lanes = np.empty((lanes.shape[0], 0))
     else:
-        lanes[sl._OK] = np.nan  # written by the stages (and only by them)
-        lanes[sl._W] = np.nan
+        lanes[rows.R_OK] = np.nan  # written by the stages (and only by them)
+        lanes[rows.R_W] = np.nan
     done = intersect_lanes(*args, link_scratch(), False, lanes)
     return done, args, lanes
 
@@ -129,12 +130,12 @@ def test_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) -> None:
     """The SIMD stages' ``x``, ``P`` and repair flags are the scalar update's to the bit;
     lanes certified (plain ``w < 1``, kept ``w = 1``, inflated, repaired) and lanes with a
     singular ``S`` that run the scalar update inside the stage."""
-    from resloc.cl import kernels_split_lanes as sl
+    from resloc.cl import kernels_lane_rows as rows
 
     _, _, first = _run(n, det, "lanes")
     fused_lanes = [c for c in range(n) if c % _KINDS != 3]
     weights = np.zeros(n)
-    weights[fused_lanes] = first[sl._W, : len(fused_lanes)]
+    weights[fused_lanes] = first[rows.R_W, : len(fused_lanes)]
     done, args, lanes = _run(n, det, "lanes", weights)
     done_s, args_s, _ = _run(n, det, "scalar", weights)
     assert done and done_s
@@ -142,8 +143,8 @@ def test_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) -> None:
     np.testing.assert_array_equal(_bits(args[1]), _bits(args_s[1]))  # P
     np.testing.assert_array_equal(args[16][2], args_s[16][2])  # the repair flags
     kinds = np.array(fused_lanes) % _KINDS
-    certified = lanes[sl._OK, : len(fused_lanes)] == 1.0
-    kept = lanes[sl._W, : len(fused_lanes)] >= 1.0
+    certified = lanes[rows.R_OK, : len(fused_lanes)] == 1.0
+    kept = lanes[rows.R_W, : len(fused_lanes)] >= 1.0
     # the lanes the inputs make fall back are exactly the uncertified ones
     np.testing.assert_array_equal(certified, kinds != 4)
     assert (certified & ~kept).any()

@@ -34,46 +34,47 @@ from __future__ import annotations
 
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_lane_rows as _kernels_lane_rows
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_split_pieces as _kernels_split_pieces
 from resloc.cl.kernels_fusion import ci_update, gram
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_math import jit_lanes, repair3, stamp_with_pieces, store_covariance, wrap
-from resloc.cl.kernels_split_lanes import (
-    _A,
-    _AI,
-    _B,
-    _BI,
-    _BLOCK,
-    _DET,
-    _DP,
-    _G,
-    _GDI,
-    _GII,
-    _IP,
-    _LANE,
-    _NU,
-    _OK,
-    _PD,
-    _PI,
-    _PJ,
-    _PN,
-    _PRIOR,
-    _PXZ,
-    _S,
-    _TR,
-    _TRP,
-    _W,
-    _X,
-    _XN,
-    _XR,
+from resloc.cl.kernels_lane_rows import (
+    FUSED_BLOCK,
+    R_A,
+    R_AI,
+    R_B,
+    R_BI,
+    R_DET,
+    R_DP,
+    R_G,
+    R_GDI,
+    R_GII,
+    R_IP,
+    R_LANE,
+    R_NU,
+    R_OK,
+    R_PD,
+    R_PI,
+    R_PJ,
+    R_PN,
+    R_PRIOR,
+    R_PXZ,
+    R_S,
+    R_TR,
+    R_TRP,
+    R_W,
+    R_X,
+    R_XN,
+    R_XR,
     S,
-    _put4,
-    _put9,
-    _row9,
-    weight_lanes,
+    put4,
+    put9,
+    row9,
 )
+from resloc.cl.kernels_math import jit_lanes, repair3, stamp_with_pieces, store_covariance, wrap
+from resloc.cl.kernels_split_lanes import weight_lanes
 from resloc.cl.kernels_split_pieces import ci_update_of, jacobians_of, reduce_i9, reduce_j9
 
 _jit = jit_lanes
@@ -89,56 +90,56 @@ def _ci_weight_inputs_lanes(f, m, det):
     :func:`resloc.cl.kernels_fusion.weight_of` without ``split`` (``D_i = P_i``, ``D_j =
     P_j``; the split rows zero, the determinant as it computes it)."""
     for k in range(m):
-        Pi = _row9(f, _PI, k)
-        Hi, Hj = jacobians_of(f[_X * S + k], f[(_X + 1) * S + k], f[_XR * S + k],
-                              f[(_XR + 1) * S + k])  # fmt: skip
+        Pi = row9(f, R_PI, k)
+        Hi, Hj = jacobians_of(f[R_X * S + k], f[(R_X + 1) * S + k], f[R_XR * S + k],
+                              f[(R_XR + 1) * S + k])  # fmt: skip
         a, cd = reduce_i9(Pi, Hi)
-        b = reduce_j9(_row9(f, _PJ, k), Hj)
+        b = reduce_j9(row9(f, R_PJ, k), Hj)
         tr_i = Pi[0] + Pi[4] + Pi[8]
         det_i = (
             Pi[0] * (Pi[4] * Pi[8] - Pi[5] * Pi[7])
             - Pi[1] * (Pi[3] * Pi[8] - Pi[5] * Pi[6])
             + Pi[2] * (Pi[3] * Pi[7] - Pi[4] * Pi[6])
         )
-        _put4(f, _A, k, a)
-        _put4(f, _AI, k, _ZERO4)
-        _put4(f, _B, k, b)
-        _put4(f, _BI, k, _ZERO4)
-        _put4(f, _G, k, gram(cd, cd))
-        _put4(f, _GDI, k, _ZERO4)
-        _put4(f, _GII, k, _ZERO4)
-        f[_TR * S + k] = tr_i
-        f[_TRP * S + k] = tr_i
-        f[_DET * S + k] = det_i
-        f[_PRIOR * S + k] = det_i if det else tr_i
-        _put9(f, _DP, k, Pi)
-        _put9(f, _IP, k, Pi)
+        put4(f, R_A, k, a)
+        put4(f, R_AI, k, _ZERO4)
+        put4(f, R_B, k, b)
+        put4(f, R_BI, k, _ZERO4)
+        put4(f, R_G, k, gram(cd, cd))
+        put4(f, R_GDI, k, _ZERO4)
+        put4(f, R_GII, k, _ZERO4)
+        f[R_TR * S + k] = tr_i
+        f[R_TRP * S + k] = tr_i
+        f[R_DET * S + k] = det_i
+        f[R_PRIOR * S + k] = det_i if det else tr_i
+        put9(f, R_DP, k, Pi)
+        put9(f, R_IP, k, Pi)
 
 
 @_jit
 def _ci_update_lanes(f, m, jitter0):
-    """Stage 3: the update of lanes ``0 .. m - 1`` with their weights (row ``_W``) by
+    """Stage 3: the update of lanes ``0 .. m - 1`` with their weights (row ``R_W``) by
     :func:`~resloc.cl.kernels_split_pieces.ci_update_of`: ``x_i``, ``sym(P_n)`` and its
-    test, certified (row ``_OK``, 1.0)."""
+    test, certified (row ``R_OK``, 1.0)."""
     for k in range(m):
-        Hi, Hj = jacobians_of(f[_X * S + k], f[(_X + 1) * S + k], f[_XR * S + k],
-                              f[(_XR + 1) * S + k])  # fmt: skip
+        Hi, Hj = jacobians_of(f[R_X * S + k], f[(R_X + 1) * S + k], f[R_XR * S + k],
+                              f[(R_XR + 1) * S + k])  # fmt: skip
         good, xn, T, pd = ci_update_of(
-            _row9(f, _PI, k), _row9(f, _PJ, k), Hi, Hj, f[_W * S + k],
-            (f[_S * S + k], f[(_S + 1) * S + k], f[(_S + 2) * S + k]),
+            row9(f, R_PI, k), row9(f, R_PJ, k), Hi, Hj, f[R_W * S + k],
+            (f[R_S * S + k], f[(R_S + 1) * S + k], f[(R_S + 2) * S + k]),
             (
-                f[_PXZ * S + k], f[(_PXZ + 1) * S + k], f[(_PXZ + 2) * S + k],
-                f[(_PXZ + 3) * S + k], f[(_PXZ + 4) * S + k], f[(_PXZ + 5) * S + k],
+                f[R_PXZ * S + k], f[(R_PXZ + 1) * S + k], f[(R_PXZ + 2) * S + k],
+                f[(R_PXZ + 3) * S + k], f[(R_PXZ + 4) * S + k], f[(R_PXZ + 5) * S + k],
             ),
-            (f[_X * S + k], f[(_X + 1) * S + k], f[(_X + 2) * S + k]),
-            f[_NU * S + k], f[(_NU + 1) * S + k], jitter0,
+            (f[R_X * S + k], f[(R_X + 1) * S + k], f[(R_X + 2) * S + k]),
+            f[R_NU * S + k], f[(R_NU + 1) * S + k], jitter0,
         )  # fmt: skip
-        f[_OK * S + k] = 1.0 if good else 0.0
-        f[_XN * S + k] = xn[0]
-        f[(_XN + 1) * S + k] = xn[1]
-        f[(_XN + 2) * S + k] = xn[2]
-        _put9(f, _PN, k, T)
-        f[_PD * S + k] = 1.0 if pd else 0.0
+        f[R_OK * S + k] = 1.0 if good else 0.0
+        f[R_XN * S + k] = xn[0]
+        f[(R_XN + 1) * S + k] = xn[1]
+        f[(R_XN + 2) * S + k] = xn[2]
+        put9(f, R_PN, k, T)
+        f[R_PD * S + k] = 1.0 if pd else 0.0
 
 
 @_jit
@@ -167,43 +168,43 @@ def ci_lanes(
         g = inflation[c]
         for a in range(3):
             for b in range(3):
-                f[(_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
-                f[(_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
+                f[(R_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
+                f[(R_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
         for a in range(3):
-            f[(_X + a) * S + m] = xi[a, c]
-        f[_XR * S + m] = xr[0, c]
-        f[(_XR + 1) * S + m] = xr[1, c]
+            f[(R_X + a) * S + m] = xi[a, c]
+        f[R_XR * S + m] = xr[0, c]
+        f[(R_XR + 1) * S + m] = xr[1, c]
         for a in range(6):
-            f[(_PXZ + a) * S + m] = pxz[a, c]
-        f[_S * S + m] = moments[2, c] + R[0, 0]
-        f[(_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
-        f[(_S + 2) * S + m] = moments[4, c] + R[1, 1]
-        f[_NU * S + m] = update[0, c]
-        f[(_NU + 1) * S + m] = update[1, c]
-        f[_LANE * S + m] = c
+            f[(R_PXZ + a) * S + m] = pxz[a, c]
+        f[R_S * S + m] = moments[2, c] + R[0, 0]
+        f[(R_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
+        f[(R_S + 2) * S + m] = moments[4, c] + R[1, 1]
+        f[R_NU * S + m] = update[0, c]
+        f[(R_NU + 1) * S + m] = update[1, c]
+        f[R_LANE * S + m] = c
         m += 1
     if m == 0:
         return True
-    m2 = min((m + _BLOCK - 1) // _BLOCK * _BLOCK, S)
-    for row in range(_LANE + 1):  # the padding: copies of lane 0, never read
+    m2 = min((m + FUSED_BLOCK - 1) // FUSED_BLOCK * FUSED_BLOCK, S)
+    for row in range(R_LANE + 1):  # the padding: copies of lane 0, never read
         for k in range(m, m2):
             f[row * S + k] = f[row * S]
     _ci_weight_inputs_lanes(f, m2, fusion[1])
     weight_lanes(f, m, fusion[2], fusion[1], R, False)
     _ci_update_lanes(f, m2, jitter[0])
     for k in range(m):
-        c = int(f[_LANE * S + k])
+        c = int(f[R_LANE * S + k])
         e = lane_e[c]
         i = obs[c]
-        if f[_OK * S + k] == 1.0:
-            if f[_W * S + k] < 1.0:
-                x[i, 0] = f[_XN * S + k]
-                x[i, 1] = f[(_XN + 1) * S + k]
-                x[i, 2] = wrap(f[(_XN + 2) * S + k])
+        if f[R_OK * S + k] == 1.0:
+            if f[R_W * S + k] < 1.0:
+                x[i, 0] = f[R_XN * S + k]
+                x[i, 1] = f[(R_XN + 1) * S + k]
+                x[i, 2] = wrap(f[(R_XN + 2) * S + k])
             for a in range(3):  # store_covariance, its sym(P_n) and test from stage 3
                 for b in range(3):
-                    T3[a, b] = f[(_PN + 3 * a + b) * S + k]
-            if f[_PD * S + k] != 1.0:
+                    T3[a, b] = f[(R_PN + 3 * a + b) * S + k]
+            if f[R_PD * S + k] != 1.0:
                 repair3(T3)
                 flags[4, e] = True
             for a in range(3):
@@ -236,6 +237,6 @@ def ci_lanes(
 
 for _dispatcher in (_ci_weight_inputs_lanes, _ci_update_lanes, ci_lanes):
     stamp_with_pieces(
-        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_split_lanes,
-        _kernels_split_pieces,
+        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_lane_rows,
+        _kernels_split_lanes, _kernels_split_pieces,
     )  # fmt: skip
