@@ -108,6 +108,7 @@ def test_split_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) ->
     """The SIMD stages' ``x``, ``P``, independent parts and repair flags are the scalar
     update's to the bit; some lanes certified (plain, ``w < 1``, and kept, ``w = 1``) and
     some not (they run the scalar update inside the stage)."""
+    from resloc.cl import kernels_lane_rows as rows
     from resloc.cl import kernels_split_lanes as sl
     from resloc.cl.kernels_round_stages import intersect_lanes, link_scratch
 
@@ -119,7 +120,7 @@ def test_split_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) ->
         if form == "scalar":
             lanes = np.empty((lanes.shape[0], 0))
         else:
-            lanes[sl._OK] = np.nan  # written by the stages (and only by them)
+            lanes[rows.R_OK] = np.nan  # written by the stages (and only by them)
         done = intersect_lanes(*args, link_scratch(), False, lanes)
         x, P = args[0], args[1]
         results[form] = (done, x, P, fusion[4], args[16][2], lanes)
@@ -131,8 +132,8 @@ def test_split_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) ->
     np.testing.assert_array_equal(_bits(ind), _bits(ind_s))
     np.testing.assert_array_equal(flags, flags_s)
     fused = int(_lanes_inputs(n, 40 + n, det)[13][3].sum())
-    certified = lanes[sl._OK, :fused] == 1.0
-    kept = lanes[sl._W, :fused] >= 1.0
+    certified = lanes[rows.R_OK, :fused] == 1.0
+    kept = lanes[rows.R_W, :fused] >= 1.0
     assert (certified & ~kept).any() and (certified & kept).any() and (~certified).any()
     # the lanes the inputs make fall back are exactly the uncertified ones
     order = [c for c in range(n) if c % 7 != 5]

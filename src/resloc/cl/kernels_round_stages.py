@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from resloc.cl import kernels_ci_lanes as _kernels_ci_lanes
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
@@ -45,6 +46,7 @@ from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl.kernels_ci_lanes import ci_lanes
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
     NIS_CODE,
@@ -391,9 +393,10 @@ def intersect_lanes(
     False wherever the rounds run), passed as the runtime bool it is so that
     ``split_ci_update`` has the signature of the row-order loop's call and is compiled
     once for both loops (a literal ``False`` would compile a second form of it).
-    ``lanes``: :func:`~resloc.cl.kernels_split_lanes.split_lane_scratch`; split CI with
-    its columns runs in SIMD stages (:func:`~resloc.cl.kernels_split_lanes.split_ci_lanes`,
-    the same results; without, lane by lane here).
+    ``lanes``: :func:`~resloc.cl.kernels_split_lanes.split_lane_scratch`; split CI and
+    ``ci`` with its columns run in SIMD stages (:func:`~resloc.cl.kernels_split_lanes.
+    split_ci_lanes`, :func:`~resloc.cl.kernels_ci_lanes.ci_lanes`, the same results;
+    without, lane by lane here).
     Twin: the ``ci_update`` / ``split_ci_update`` calls of ``correct_links`` and its
     tail."""
     code = fusion[0]
@@ -401,6 +404,11 @@ def intersect_lanes(
         return split_ci_lanes(
             x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
             decision, options, fusion, out, work, linearized, lanes,
+        )  # fmt: skip
+    if code == CI and lanes.shape[1] > 0 and not linearized:
+        return ci_lanes(
+            x, P, P_ref, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
+            decision, options, fusion, out, work, lanes,
         )  # fmt: skip
     R, jitter = options[0], options[8]
     flags = out[2]
@@ -473,6 +481,7 @@ PIECE_MODULES = (
     _kernels_fusion,
     _kernels_split,
     _kernels_split_lanes,
+    _kernels_ci_lanes,
     _kernels_joint,
     _kernels_gauge,
     _kernels_tamper,

@@ -299,7 +299,7 @@ def _rounds(
         sent = np.empty(C)  # cached: delivered (decision[3] then holds fused)
         fresh = np.zeros(C)  # cached: delivered with a cached estimate (stays 0 otherwise)
         work = link_scratch()
-        split_lanes = split_lane_scratch(fusion)  # split CI's SIMD update (no columns else)
+        split_lanes = split_lane_scratch(fusion)  # the CI updates in SIMD (no columns else)
         zone_pxz = np.empty((3, 2))
         zone_h = np.empty((2, 3))
     E = li.shape[0]

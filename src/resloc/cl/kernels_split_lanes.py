@@ -5,14 +5,14 @@
 fused lane: three clips, the weight, the inflated update, the statistical linearization's
 factor and solves, the Joseph sandwich, the posterior's clip). Here the fused lanes of a
 round are gathered by lane into the rows of one array (:data:`LANE_STRIDE` columns, a row
-per input), then each step of the update runs as a loop over the lanes, free of branches,
-with the certificates the scalar code takes its fast branch on computed for every lane
-(stages 1 and 3):
+per input, :mod:`resloc.cl.kernels_lane_rows`), then each step of the update runs as a
+loop over the lanes, free of branches, with the certificates the scalar code takes its
+fast branch on computed for every lane (stages 1 and 3):
 
 1. :func:`_weight_inputs_lanes`: both clips' certificates (``0 < P_ind < P`` by Sylvester's
    criterion, :func:`resloc.cl.kernels_split._clip_independent`), the dependent parts and
    the weight's 2 x 2 reductions (:func:`resloc.cl.kernels_fusion.weight_of`);
-2. :func:`_weight_lanes`: the weight as :func:`resloc.cl.kernels_fusion._search_weight`
+2. :func:`weight_lanes`: the weight as :func:`resloc.cl.kernels_fusion._search_weight`
    finds it: lane by lane the grid's costs (its SIMD loop over the candidates) and their
    first best, then the refinement over the lanes without branches;
 3. :func:`_update_lanes`: the inflated update (:func:`resloc.cl.kernels_fusion.
@@ -42,10 +42,12 @@ import numpy as np
 
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
+from resloc.cl import kernels_lane_rows as _kernels_lane_rows
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_split_pieces as _kernels_split_pieces
 from resloc.cl.kernels_fusion import (
+    CI,
     SPLIT_CI,
     ci_cost,
     det3_scaled_entries,
@@ -54,7 +56,48 @@ from resloc.cl.kernels_fusion import (
     grid_costs,
 )
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
-from resloc.cl.kernels_joint_lanes import LANE_STRIDE
+from resloc.cl.kernels_lane_rows import (
+    FUSED_BLOCK,
+    R_A,
+    R_AI,
+    R_B,
+    R_BEST,
+    R_BI,
+    R_COST,
+    R_DET,
+    R_DP,
+    R_G,
+    R_GDI,
+    R_GII,
+    R_II,
+    R_IJ,
+    R_IN,
+    R_IP,
+    R_KBEST,
+    R_LANE,
+    R_NU,
+    R_OK,
+    R_OKA,
+    R_PD,
+    R_PI,
+    R_PJ,
+    R_PN,
+    R_PRIOR,
+    R_PXZ,
+    R_S,
+    R_TR,
+    R_TRP,
+    R_W,
+    R_X,
+    R_XN,
+    R_XR,
+    SPLIT_LANE_ROWS,
+    S,
+    put4,
+    put9,
+    row4,
+    row9,
+)
 from resloc.cl.kernels_math import (
     jit_inline,
     jit_lanes,
@@ -75,107 +118,30 @@ from resloc.cl.kernels_split_pieces import (
 
 _jit = jit_lanes
 
-__all__ = ["SPLIT_LANE_ROWS", "split_ci_lanes", "split_lane_scratch"]
-
-S = LANE_STRIDE
-# The rows of the lanes' array (lane k in column k). Gathered: P_i (times the recovery's
-# inflation), P_j, i's independent part as stored, j's transmitted one (9 rows each, by
-# row), x_i, x_j's position, P^xz (by row), S (00, 01, 11), the innovation, the lane.
-_PI = 0
-_PJ = 9
-_II = 18
-_IJ = 27
-_X = 36
-_XR = 39
-_PXZ = 41
-_S = 47
-_NU = 50
-_LANE = 52
-# The weight's inputs (_weight_inputs_lanes): the 2 x 2 reductions a, ai, b, bi, g, gdi,
-# gii (4 rows each), tr(D_i), tr(I_i), the prior's cost, both clips certified (1.0), the
-# dependent and independent parts of P_i (9 rows each, for the determinant's cost).
-_A = 53
-_AI = 57
-_B = 61
-_BI = 65
-_G = 69
-_GDI = 73
-_GII = 77
-_TR = 81
-_TRP = 82
-_PRIOR = 83
-_OKA = 84
-_DP = 85
-_IP = 94
-# The weight (_weight_lanes): the best cost and its index on the grid, the weight.
-_BEST = 103
-_KBEST = 104
-_W = 105
-# The update (_update_lanes): x_i's new estimate (its heading not wrapped), the posterior
-# symmetrized (9), i's new independent part (00, 01, 02, 11, 12, 22), certified (1.0), the
-# posterior positive definite by :func:`~resloc.cl.kernels_math.is_pd3`'s test (1.0).
-_XN = 106
-_PN = 109
-_IN = 118
-_OK = 124
-_PD = 125
-# The grid's costs, lane after lane (lane k's G costs from _COST * S + k * G on).
-_COST = 126
-#: The rows of :func:`split_lane_scratch` before the grid's costs (G rows more).
-SPLIT_LANE_ROWS = _COST
-#: The fused lanes are padded to whole blocks of this many (copies of the first).
-_BLOCK = 8
+__all__ = ["SPLIT_LANE_ROWS", "split_ci_lanes", "split_lane_scratch", "weight_lanes"]
 
 
 @_jit
 def split_lane_scratch(fusion):
-    """The lanes' rows of :func:`split_ci_lanes`, ``(SPLIT_LANE_ROWS + G, LANE_STRIDE)``
-    for split CI (``G``: the grid's candidate weights), no columns for another method."""
-    columns = S if fusion[0] == SPLIT_CI else 0
+    """The lanes' rows of :func:`split_ci_lanes` and of
+    :func:`resloc.cl.kernels_ci_lanes.ci_lanes`, ``(SPLIT_LANE_ROWS + G, LANE_STRIDE)`` for
+    split CI and ``ci`` (``G``: the grid's candidate weights), no columns for another
+    method."""
+    columns = S if fusion[0] == SPLIT_CI or fusion[0] == CI else 0
     return np.empty((SPLIT_LANE_ROWS + fusion[2].shape[1], columns))
-
-
-@jit_inline
-def _row9(f, row, k):
-    """Rows ``row .. row + 8`` of lane ``k`` as a 9-tuple (a 3 x 3 matrix by row)."""
-    return (
-        f[row * S + k], f[(row + 1) * S + k], f[(row + 2) * S + k], f[(row + 3) * S + k],
-        f[(row + 4) * S + k], f[(row + 5) * S + k], f[(row + 6) * S + k],
-        f[(row + 7) * S + k], f[(row + 8) * S + k],
-    )  # fmt: skip
-
-
-@jit_inline
-def _row4(f, row, k):
-    return (f[row * S + k], f[(row + 1) * S + k], f[(row + 2) * S + k], f[(row + 3) * S + k])
-
-
-@jit_inline
-def _put4(f, row, k, v):
-    """A 4-tuple ``v`` into rows ``row .. row + 3`` of lane ``k``."""
-    f[row * S + k] = v[0]
-    f[(row + 1) * S + k] = v[1]
-    f[(row + 2) * S + k] = v[2]
-    f[(row + 3) * S + k] = v[3]
-
-
-@jit_inline
-def _put9(f, row, k, v):
-    """A 9-tuple ``v`` into rows ``row .. row + 8`` of lane ``k``."""
-    _put4(f, row, k, (v[0], v[1], v[2], v[3]))
-    _put4(f, row + 4, k, (v[4], v[5], v[6], v[7]))
-    f[(row + 8) * S + k] = v[8]
 
 
 @jit_inline
 def _parts(f, k):
     """Lane ``k``'s clipped independent parts, dependent parts, Jacobians, both clips'
     certificate: ``(ok, I_i, I_j, D_i, D_j, H_i, H_j)``."""
-    Pi = _row9(f, _PI, k)
-    Pj = _row9(f, _PJ, k)
-    ok_i, Ii = clip_certified(Pi, _row9(f, _II, k))
-    ok_j, Ij = clip_certified(Pj, _row9(f, _IJ, k))
-    Hi, Hj = jacobians_of(f[_X * S + k], f[(_X + 1) * S + k], f[_XR * S + k], f[(_XR + 1) * S + k])
+    Pi = row9(f, R_PI, k)
+    Pj = row9(f, R_PJ, k)
+    ok_i, Ii = clip_certified(Pi, row9(f, R_II, k))
+    ok_j, Ij = clip_certified(Pj, row9(f, R_IJ, k))
+    Hi, Hj = jacobians_of(
+        f[R_X * S + k], f[(R_X + 1) * S + k], f[R_XR * S + k], f[(R_XR + 1) * S + k]
+    )
     return ok_i & ok_j, Pi, Ii, Ij, minus9(Pi, Ii), minus9(Pj, Ij), Hi, Hj
 
 
@@ -199,24 +165,27 @@ def _weight_inputs_lanes(f, m, R, det):
         tr_i = Di[0] + Di[4] + Di[8]
         tr_ip = Ii[0] + Ii[4] + Ii[8]
         prior = det3_scaled_entries(Di, 1.0, Ii) if det else tr_i + tr_ip
-        _put4(f, _A, k, a)
-        _put4(f, _AI, k, ai)
-        _put4(f, _B, k, b)
-        _put4(f, _BI, k, (bj[0] + r00, bj[1] + r01, bj[2] + r10, bj[3] + r11))
-        _put4(f, _G, k, g)
-        _put4(f, _GDI, k, gdi)
-        _put4(f, _GII, k, gii)
-        f[_TR * S + k] = tr_i
-        f[_TRP * S + k] = tr_ip
-        f[_PRIOR * S + k] = prior
-        f[_OKA * S + k] = 1.0 if ok else 0.0
-        _put9(f, _DP, k, Di)
-        _put9(f, _IP, k, Ii)
+        put4(f, R_A, k, a)
+        put4(f, R_AI, k, ai)
+        put4(f, R_B, k, b)
+        put4(f, R_BI, k, (bj[0] + r00, bj[1] + r01, bj[2] + r10, bj[3] + r11))
+        put4(f, R_G, k, g)
+        put4(f, R_GDI, k, gdi)
+        put4(f, R_GII, k, gii)
+        f[R_TR * S + k] = tr_i
+        f[R_TRP * S + k] = tr_ip
+        f[R_PRIOR * S + k] = prior
+        f[R_OKA * S + k] = 1.0 if ok else 0.0
+        f[R_DET * S + k] = 0.0
+        put9(f, R_DP, k, Di)
+        put9(f, R_IP, k, Ii)
 
 
 @_jit
-def _weight_lanes(f, m, grid, det, R):
-    """Stage 2: the weight of lanes ``0 .. m - 1`` into row ``_W``, as
+def weight_lanes(f, m, grid, det, R, split):
+    """Stage 2 (``ci``'s lanes too, ``split`` False: the rows ``R_AI``, ``R_BI``, ``R_GDI``,
+    ``R_GII``, ``R_IP``, ``R_TRP`` then unread, ``R_DET`` read): the weight of lanes
+    ``0 .. m - 1`` into row ``R_W``, as
     :func:`resloc.cl.kernels_fusion._search_weight`: lane by lane, the grid's costs (its
     :func:`~resloc.cl.kernels_fusion.grid_costs`, a SIMD loop over the candidates) and
     their first best (:func:`~resloc.cl.kernels_fusion.first_best`); then, over the lanes
@@ -229,23 +198,23 @@ def _weight_lanes(f, m, grid, det, R):
     n = grid.shape[1]
     R4 = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
     for k in range(m):
-        cost = f[_COST * S + k * n : _COST * S + (k + 1) * n]
+        cost = f[R_COST * S + k * n : R_COST * S + (k + 1) * n]
         grid_costs(
-            grid, det, True, f[_TR * S + k], 0.0, _row4(f, _A, k), _row4(f, _AI, k),
-            _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k), _row4(f, _GDI, k),
-            _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k), f[_TRP * S + k], R4, cost,
+            grid, det, split, f[R_TR * S + k], f[R_DET * S + k], row4(f, R_A, k), row4(f, R_AI, k),
+            row4(f, R_B, k), row4(f, R_BI, k), row4(f, R_G, k), row4(f, R_GDI, k),
+            row4(f, R_GII, k), row9(f, R_DP, k), row9(f, R_IP, k), f[R_TRP * S + k], R4, cost,
         )  # fmt: skip
         best, kb = first_best(cost, n)
-        f[_BEST * S + k] = best
-        f[_KBEST * S + k] = kb
+        f[R_BEST * S + k] = best
+        f[R_KBEST * S + k] = kb
     h = grid[0, 1] - grid[0, 0]
     first = grid[0, 0]
     last = grid[0, n - 1]
     for k in range(m):
-        best = f[_BEST * S + k]
-        kb = int(f[_KBEST * S + k])
+        best = f[R_BEST * S + k]
+        kb = int(f[R_KBEST * S + k])
         kc = min(max(kb, 1), n - 2)
-        at = _COST * S + k * n + kc
+        at = R_COST * S + k * n + kc
         c0 = f[at - 1]
         c1 = f[at]
         c2 = f[at + 1]
@@ -254,45 +223,46 @@ def _weight_lanes(f, m, grid, det, R):
         shift = min(max(shift, -h), h)
         w = min(max(grid[0, kc] + shift, first), last) if kb == kc else grid[0, kb]
         refined = ci_cost(
-            1.0 / w, 1.0 / (1.0 - w), det, True, f[_TR * S + k], 0.0, _row4(f, _A, k),
-            _row4(f, _AI, k), _row4(f, _B, k), _row4(f, _BI, k), _row4(f, _G, k),
-            _row4(f, _GDI, k), _row4(f, _GII, k), _row9(f, _DP, k), _row9(f, _IP, k),
-            f[_TRP * S + k], R4,
+            1.0 / w, 1.0 / (1.0 - w), det, split, f[R_TR * S + k], f[R_DET * S + k],
+            row4(f, R_A, k),
+            row4(f, R_AI, k), row4(f, R_B, k), row4(f, R_BI, k), row4(f, R_G, k),
+            row4(f, R_GDI, k), row4(f, R_GII, k), row9(f, R_DP, k), row9(f, R_IP, k),
+            f[R_TRP * S + k], R4,
         )  # fmt: skip
         kept = refined <= best
         best = refined if kept else best
         w = w if kept else grid[0, kb]
-        f[_W * S + k] = w if best < f[_PRIOR * S + k] else 1.0
+        f[R_W * S + k] = w if best < f[R_PRIOR * S + k] else 1.0
 
 
 @_jit
 def _update_lanes(f, m, R, jitter0):
-    """Stage 3: the update of lanes ``0 .. m - 1`` with their weights (row ``_W``) by
+    """Stage 3: the update of lanes ``0 .. m - 1`` with their weights (row ``R_W``) by
     :func:`~resloc.cl.kernels_split_pieces.split_update_of` (the scalar kernel's after the
     weight, its factors at the first jitter level): ``x_i``, ``sym(P_n)`` and its test, i's
-    new independent part, certified (row ``_OK``, 1.0)."""
+    new independent part, certified (row ``R_OK``, 1.0)."""
     R4 = (R[0, 0], R[0, 1], R[1, 0], R[1, 1])
     for k in range(m):
         ok, Pi, Ii, _Ij, Di, Dj, Hi, Hj = _parts(f, k)
         good, xn, T, pd, part = split_update_of(
-            ok, Pi, Ii, Di, Dj, Hi, Hj, f[_W * S + k],
-            (f[_S * S + k], f[(_S + 1) * S + k], f[(_S + 2) * S + k]),
+            ok, Pi, Ii, Di, Dj, Hi, Hj, f[R_W * S + k],
+            (f[R_S * S + k], f[(R_S + 1) * S + k], f[(R_S + 2) * S + k]),
             (
-                f[_PXZ * S + k], f[(_PXZ + 1) * S + k], f[(_PXZ + 2) * S + k],
-                f[(_PXZ + 3) * S + k], f[(_PXZ + 4) * S + k], f[(_PXZ + 5) * S + k],
+                f[R_PXZ * S + k], f[(R_PXZ + 1) * S + k], f[(R_PXZ + 2) * S + k],
+                f[(R_PXZ + 3) * S + k], f[(R_PXZ + 4) * S + k], f[(R_PXZ + 5) * S + k],
             ),
-            (f[_X * S + k], f[(_X + 1) * S + k], f[(_X + 2) * S + k]),
-            f[_NU * S + k], f[(_NU + 1) * S + k], R4, jitter0,
+            (f[R_X * S + k], f[(R_X + 1) * S + k], f[(R_X + 2) * S + k]),
+            f[R_NU * S + k], f[(R_NU + 1) * S + k], R4, jitter0,
         )  # fmt: skip
-        f[_OK * S + k] = 1.0 if good else 0.0
-        f[_XN * S + k] = xn[0]
-        f[(_XN + 1) * S + k] = xn[1]
-        f[(_XN + 2) * S + k] = xn[2]
-        _put9(f, _PN, k, T)
-        f[_PD * S + k] = 1.0 if pd else 0.0
-        _put4(f, _IN, k, (part[0], part[1], part[2], part[3]))
-        f[(_IN + 4) * S + k] = part[4]
-        f[(_IN + 5) * S + k] = part[5]
+        f[R_OK * S + k] = 1.0 if good else 0.0
+        f[R_XN * S + k] = xn[0]
+        f[(R_XN + 1) * S + k] = xn[1]
+        f[(R_XN + 2) * S + k] = xn[2]
+        put9(f, R_PN, k, T)
+        f[R_PD * S + k] = 1.0 if pd else 0.0
+        put4(f, R_IN, k, (part[0], part[1], part[2], part[3]))
+        f[(R_IN + 4) * S + k] = part[4]
+        f[(R_IN + 5) * S + k] = part[5]
 
 
 @_jit
@@ -323,56 +293,56 @@ def split_ci_lanes(
         g = inflation[c]
         for a in range(3):
             for b in range(3):
-                f[(_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
-                f[(_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
-                f[(_II + 3 * a + b) * S + m] = independent[i, a, b]
-                f[(_IJ + 3 * a + b) * S + m] = P_nb_ind[e, a, b]
+                f[(R_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
+                f[(R_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
+                f[(R_II + 3 * a + b) * S + m] = independent[i, a, b]
+                f[(R_IJ + 3 * a + b) * S + m] = P_nb_ind[e, a, b]
         for a in range(3):
-            f[(_X + a) * S + m] = xi[a, c]
-        f[_XR * S + m] = xr[0, c]
-        f[(_XR + 1) * S + m] = xr[1, c]
+            f[(R_X + a) * S + m] = xi[a, c]
+        f[R_XR * S + m] = xr[0, c]
+        f[(R_XR + 1) * S + m] = xr[1, c]
         for a in range(6):
-            f[(_PXZ + a) * S + m] = pxz[a, c]
-        f[_S * S + m] = moments[2, c] + R[0, 0]
-        f[(_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
-        f[(_S + 2) * S + m] = moments[4, c] + R[1, 1]
-        f[_NU * S + m] = update[0, c]
-        f[(_NU + 1) * S + m] = update[1, c]
-        f[_LANE * S + m] = c
+            f[(R_PXZ + a) * S + m] = pxz[a, c]
+        f[R_S * S + m] = moments[2, c] + R[0, 0]
+        f[(R_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
+        f[(R_S + 2) * S + m] = moments[4, c] + R[1, 1]
+        f[R_NU * S + m] = update[0, c]
+        f[(R_NU + 1) * S + m] = update[1, c]
+        f[R_LANE * S + m] = c
         m += 1
     if m == 0:
         return True
-    m2 = min((m + _BLOCK - 1) // _BLOCK * _BLOCK, S)
-    for row in range(_LANE + 1):  # the padding: copies of lane 0, never read
+    m2 = min((m + FUSED_BLOCK - 1) // FUSED_BLOCK * FUSED_BLOCK, S)
+    for row in range(R_LANE + 1):  # the padding: copies of lane 0, never read
         for k in range(m, m2):
             f[row * S + k] = f[row * S]
     _weight_inputs_lanes(f, m2, R, fusion[1])
-    _weight_lanes(f, m, fusion[2], fusion[1], R)
+    weight_lanes(f, m, fusion[2], fusion[1], R, True)
     _update_lanes(f, m2, R, jitter[0])
     for k in range(m):
-        c = int(f[_LANE * S + k])
+        c = int(f[R_LANE * S + k])
         e = lane_e[c]
         i = obs[c]
-        if f[_OK * S + k] == 1.0 and not linearized:
-            if f[_W * S + k] < 1.0:
-                x[i, 0] = f[_XN * S + k]
-                x[i, 1] = f[(_XN + 1) * S + k]
-                x[i, 2] = wrap(f[(_XN + 2) * S + k])
+        if f[R_OK * S + k] == 1.0 and not linearized:
+            if f[R_W * S + k] < 1.0:
+                x[i, 0] = f[R_XN * S + k]
+                x[i, 1] = f[(R_XN + 1) * S + k]
+                x[i, 2] = wrap(f[(R_XN + 2) * S + k])
             for a in range(3):  # store_covariance, its sym(P_n) and test from stage 3
                 for b in range(3):
-                    T3[a, b] = f[(_PN + 3 * a + b) * S + k]
-            if f[_PD * S + k] != 1.0:
+                    T3[a, b] = f[(R_PN + 3 * a + b) * S + k]
+            if f[R_PD * S + k] != 1.0:
                 repair3(T3)
                 flags[4, e] = True
             for a in range(3):
                 for b in range(3):
                     P[i, a, b] = T3[a, b]
-            v00 = f[_IN * S + k]
-            v01 = f[(_IN + 1) * S + k]
-            v02 = f[(_IN + 2) * S + k]
-            v11 = f[(_IN + 3) * S + k]
-            v12 = f[(_IN + 4) * S + k]
-            v22 = f[(_IN + 5) * S + k]
+            v00 = f[R_IN * S + k]
+            v01 = f[(R_IN + 1) * S + k]
+            v02 = f[(R_IN + 2) * S + k]
+            v11 = f[(R_IN + 3) * S + k]
+            v12 = f[(R_IN + 4) * S + k]
+            v22 = f[(R_IN + 5) * S + k]
             independent[i, 0, 0] = v00
             independent[i, 1, 1] = v11
             independent[i, 2, 2] = v22
@@ -407,11 +377,11 @@ def split_ci_lanes(
 for _dispatcher in (
     split_lane_scratch,
     _weight_inputs_lanes,
-    _weight_lanes,
+    weight_lanes,
     _update_lanes,
     split_ci_lanes,
 ):
     stamp_with_pieces(
-        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_split,
-        _kernels_split_pieces,
+        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_lane_rows,
+        _kernels_split, _kernels_split_pieces,
     )  # fmt: skip

@@ -1,6 +1,7 @@
-"""The per-lane pieces of split CI's SIMD update (:mod:`resloc.cl.kernels_split_lanes`):
-the scalar kernel's arithmetic on tuples of scalars, without branches, so that a loop over
-lanes that inlines them vectorizes. Each does its twin's operations in its twin's order
+"""The per-lane pieces of split CI's SIMD update (:mod:`resloc.cl.kernels_split_lanes`)
+and of ``ci``'s (:mod:`resloc.cl.kernels_ci_lanes`): the scalar kernel's arithmetic on
+tuples of scalars, without branches, so that a loop over lanes that inlines them
+vectorizes. Each does its twin's operations in its twin's order
 (the same values to the bit) and names it.
 
 ==============================  ==========================================================
@@ -11,6 +12,8 @@ function                        twin (same operations, same order)
 :func:`clip_certified`          ``kernels_split._clip_independent``'s certificate
 :func:`reduce_i9`               :func:`resloc.cl.kernels_fusion.reduce_i`
 :func:`reduce_j9`               :func:`resloc.cl.kernels_fusion.reduce_j`
+:func:`inflated_update_of`      :func:`resloc.cl.kernels_fusion.inflated_update`
+:func:`ci_update_of`            :func:`resloc.cl.kernels_fusion.ci_update` after the weight
 :func:`split_update_of`         ``kernels_split._split_ci_link`` after the weight
 ==============================  ==========================================================
 """
@@ -23,7 +26,9 @@ from resloc.cl.kernels_math import jit_inline
 from resloc.models.measurement import MIN_RANGE
 
 __all__ = [
+    "ci_update_of",
     "clip_certified",
+    "inflated_update_of",
     "is_pd9",
     "jacobians_of",
     "minus9",
@@ -31,6 +36,7 @@ __all__ = [
     "reduce_i9",
     "reduce_j9",
     "split_update_of",
+    "sym9",
 ]
 
 _MIN_R2 = MIN_RANGE**2  # kernels_gauge's clamp of the squared range, computed alike
@@ -146,23 +152,18 @@ def is_pd9(T):
 
 
 @jit_inline
-def split_update_of(ok, Pi, Ii, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, R4, jitter0):
-    """One lane's split CI update with weight ``w``, as
-    :func:`resloc.cl.kernels_split._split_ci_link` (EKF-free): the inflated update
-    (:func:`resloc.cl.kernels_fusion.inflated_update`: ``A = sym(P_i + f_i D_i)``, ``S``'s
-    factor, ``K``, ``x_i``, ``P_n = A - K S K^T``), ``H = (A^-1 P^xz)^T`` by ``A``'s factor,
-    ``(I - K H) I_i (I - K H)^T + K R K^T`` and the posterior's clip; ``w >= 1``: the prior
-    and its clipped part, clipped to it. Both factors at the first jitter level
-    (``jitter0``) only. ``P_i``, ``I_i``, ``D_i``, ``D_j``: 9-tuples by row (``I_i`` the
-    clipped part, ``ok``: both clips certified), ``H``: 6-tuples, ``Sm``: ``(S00, S01,
-    S11)``, ``pxz``: ``P^xz`` by row, ``x``: ``x_i``, ``R4``: ``R`` by row. Returns
-    ``(certified, x_i's new estimate (heading not wrapped), sym(P_n) (9-tuple), sym(P_n)
-    positive definite by is_pd3's test, i's new independent part (00, 01, 02, 11, 12,
-    22))``: certified where ``ok``, the factors and every clip's certificate pass."""
-    r00, r01, r10, r11 = R4
+def inflated_update_of(Pi, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, jitter0):
+    """The inflated update of one lane with weight ``w``, as
+    :func:`resloc.cl.kernels_fusion.inflated_update` (EKF-free) with ``S``'s factor at the
+    first jitter level (``jitter0``) only: ``A = sym(P_i + f_i D_i)``, ``S``'s factor,
+    ``K``, ``x_i``, ``P_n = A - K S K^T``. ``P_i``, ``D_i``, ``D_j``: 9-tuples by row (the
+    covariances for ``ci``, the dependent parts for split CI), ``H``: 6-tuples, ``Sm``:
+    ``(S00, S01, S11)``, ``pxz``: ``P^xz`` by row, ``x``: ``x_i``. Returns ``(S factored,
+    x_i's new estimate (heading not wrapped), A, P_n (9-tuples by row), K (6-tuple by
+    row), P^xz + f_i D_i H_i^T (6-tuple by row))``; for ``w >= 1`` meaningless (the
+    callers keep the prior)."""
     hdh, dh = reduce_i9(Di, Hi)
     hdj = reduce_j9(Dj, Hj)
-    keep = w >= 1.0
     fi = 1.0 / w - 1.0
     fj = 1.0 / (1.0 - w) - 1.0
     d00 = hdh[0] * fi
@@ -235,6 +236,59 @@ def split_update_of(ok, Pi, Ii, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, R4, jit
     n20 = a20 - (t20 * k00 + t21 * k01)
     n21 = a21 - (t20 * k10 + t21 * k11)
     n22 = a22 - (t20 * k20 + t21 * k21)
+    A = (a00, a01, a02, a10, a11, a12, a20, a21, a22)
+    N = (n00, n01, n02, n10, n11, n12, n20, n21, n22)
+    return ok_s, xn, A, N, (k00, k01, k10, k11, k20, k21), (x00, x01, x10, x11, x20, x21)
+
+
+@jit_inline
+def ci_update_of(Pi, Pj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, jitter0):
+    """One lane's ``ci`` update with weight ``w``, as
+    :func:`resloc.cl.kernels_fusion.ci_update` (EKF-free) then
+    :func:`~resloc.cl.kernels_math.store_covariance`'s symmetrization and test:
+    :func:`inflated_update_of` with ``D = P``; ``w >= 1``, the prior kept. Returns
+    ``(certified, x_i's new estimate (heading not wrapped), sym(P_n) (9-tuple by row),
+    sym(P_n) positive definite by is_pd3's test)``: certified where the prior is kept or
+    ``S`` has its factor at the first jitter level."""
+    ok_s, xn, _A, N, _K, _X = inflated_update_of(Pi, Pi, Pj, Hi, Hj, w, Sm, pxz, x, nu0, nu1,
+                                                 jitter0)  # fmt: skip
+    keep = w >= 1.0
+    T = sym9(Pi) if keep else sym9(N)
+    return keep | ok_s, xn, T, is_pd9(T)
+
+
+@jit_inline
+def sym9(M):
+    """``0.5 (M + M^T)`` of a 9-tuple by row, entry by entry as ``store_covariance``."""
+    return (
+        0.5 * (M[0] + M[0]), 0.5 * (M[1] + M[3]), 0.5 * (M[2] + M[6]),
+        0.5 * (M[3] + M[1]), 0.5 * (M[4] + M[4]), 0.5 * (M[5] + M[7]),
+        0.5 * (M[6] + M[2]), 0.5 * (M[7] + M[5]), 0.5 * (M[8] + M[8]),
+    )  # fmt: skip
+
+
+@jit_inline
+def split_update_of(ok, Pi, Ii, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, R4, jitter0):
+    """One lane's split CI update with weight ``w``, as
+    :func:`resloc.cl.kernels_split._split_ci_link` (EKF-free): the inflated update
+    (:func:`resloc.cl.kernels_fusion.inflated_update`: ``A = sym(P_i + f_i D_i)``, ``S``'s
+    factor, ``K``, ``x_i``, ``P_n = A - K S K^T``), ``H = (A^-1 P^xz)^T`` by ``A``'s factor,
+    ``(I - K H) I_i (I - K H)^T + K R K^T`` and the posterior's clip; ``w >= 1``: the prior
+    and its clipped part, clipped to it. Both factors at the first jitter level
+    (``jitter0``) only. ``P_i``, ``I_i``, ``D_i``, ``D_j``: 9-tuples by row (``I_i`` the
+    clipped part, ``ok``: both clips certified), ``H``: 6-tuples, ``Sm``: ``(S00, S01,
+    S11)``, ``pxz``: ``P^xz`` by row, ``x``: ``x_i``, ``R4``: ``R`` by row. Returns
+    ``(certified, x_i's new estimate (heading not wrapped), sym(P_n) (9-tuple), sym(P_n)
+    positive definite by is_pd3's test, i's new independent part (00, 01, 02, 11, 12,
+    22))``: certified where ``ok``, the factors and every clip's certificate pass."""
+    r00, r01, r10, r11 = R4
+    ok_s, xn, A, N, Kt, X = inflated_update_of(Pi, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1,
+                                               jitter0)  # fmt: skip
+    keep = w >= 1.0
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = A
+    n00, n01, n02, n10, n11, n12, n20, n21, n22 = N
+    k00, k01, k10, k11, k20, k21 = Kt
+    x00, x01, x10, x11, x20, x21 = X
     # chol3(A) at its first level, then H = (A^-1 P^xz)^T (P^xz inflated)
     fin3 = (
         (abs(a00) < math.inf) & (abs(a01) < math.inf) & (abs(a02) < math.inf)
