@@ -294,6 +294,9 @@ class LinkStatistic:
         self.keys = np.empty(0, dtype=np.int64)
         self.shape = () if width is None else (int(width),)
         self.values = np.empty((0, *self.shape))
+        # the stores sharing this one's keys and their saved values, when this store is a
+        # group's first (resloc.cl.kernels_stores.group_slots; None: none)
+        self.group = None
 
     def __len__(self) -> int:
         return len(self.keys)
