@@ -30,35 +30,39 @@ _EMPTY = np.zeros(0)
 
 
 class StoreGroup:
-    """Stores with the same keys and the buffers their values are saved in."""
+    """Stores with the same keys and the buffers their values are saved in (kept by the
+    first store, :attr:`LinkStatistic.group <resloc.cl.memory.LinkStatistic>`)."""
 
-    __slots__ = ("key_arrays", "keys", "saved", "stores", "values", "views")
+    __slots__ = ("arrays", "keys", "pos", "saved", "stores", "views")
 
-    def __init__(self, stores: tuple, keys: np.ndarray, values: tuple) -> None:
+    def __init__(self, stores: tuple, keys: np.ndarray) -> None:
         self.stores = stores
         self.keys = keys  # the stores' keys (the first's array; the others' are equal)
-        self.key_arrays = tuple(s.keys for s in stores)  # each store's, compared equal
-        self.values = values  # each store's values array when the group was built
+        # (store, its keys, its values) when the group was built, flat
+        self.arrays = tuple(a for s in stores for a in (s, s.keys, s.values))
+        values = tuple(s.values for s in stores)
         flat = tuple(v.reshape(-1) for v in values)  # C-contiguous: views
         buffers = tuple(np.empty_like(f) for f in flat)
         self.views = tuple(b.reshape(v.shape) for b, v in zip(buffers, values, strict=True))
         pad = (_EMPTY,) * (4 - len(stores))
         # the compiled call's arguments after the links: (values, buffer) per store, padded
         self.saved = tuple(a for pair in zip(flat + pad, buffers + pad, strict=True) for a in pair)
+        # the slots, reused from step to step (read within the step that looked them up)
+        self.pos = np.empty(0, np.int64)
 
     def current(self, stores: tuple) -> bool:
         """Whether ``stores`` are this group's, each with the arrays it was built on."""
-        if len(stores) != len(self.stores):
+        if len(stores) * 3 != len(self.arrays):
             return False
-        built = zip(self.stores, self.key_arrays, self.values, strict=True)
-        for store, (mine, keys, values) in zip(stores, built, strict=True):
-            if store is not mine or store.keys is not keys or store.values is not values:
+        arrays = self.arrays
+        k = 0
+        for store in stores:  # (a loop of identity tests: zip and all() cost twice as much)
+            if store is not arrays[k]:
                 return False
+            if store.keys is not arrays[k + 1] or store.values is not arrays[k + 2]:
+                return False
+            k += 3
         return True
-
-
-#: The groups by the ids of their stores (each group holds its stores: ids not reused).
-_GROUPS: dict = {}
 
 
 def _float_rows(values) -> bool:
@@ -77,7 +81,7 @@ def _build(stores: tuple) -> StoreGroup | None:
             return None
         if not _float_rows(store.values) or len(store.values) != len(keys):
             return None
-    return StoreGroup(stores, keys, tuple(s.values for s in stores))
+    return StoreGroup(stores, keys)
 
 
 def group_slots(stores: tuple, i: np.ndarray, j: np.ndarray, saved: list) -> np.ndarray | None:
@@ -87,20 +91,21 @@ def group_slots(stores: tuple, i: np.ndarray, j: np.ndarray, saved: list) -> np.
     nothing recorded, when a link is not stored yet or the stores do not form a group.
 
     ``i``, ``j``: int64 (E,), sorted by key (as :func:`~resloc.cl.kernels_memory.stored_positions`
-    takes them)."""
-    ri, rj = int64_rows(i), int64_rows(j)
+    takes them). The slots array is the group's, rewritten by its next call (the next
+    step's)."""
+    ri = int64_rows(i)
+    rj = ri if j is i else int64_rows(j)
     if ri is None or rj is None or len(ri) != len(rj):
         return None
-    key = tuple(map(id, stores))
-    group = _GROUPS.get(key)
+    group = stores[0].group
     if group is None or not group.current(stores):
         group = _build(stores)
         if group is None:
             return None
-        if len(_GROUPS) >= 64:  # (old groups: the stores of finished runs)
-            _GROUPS.clear()
-        _GROUPS[key] = group
-    pos = np.empty(len(ri), np.int64)
+        stores[0].group = group
+    pos = group.pos
+    if len(pos) != len(ri):
+        pos = group.pos = np.empty(len(ri), np.int64)
     if not slots_and_snapshot(group.keys, stores[0].n_nodes, ri, rj, pos, *group.saved):
         return None
     for store, view in zip(stores, group.views, strict=True):
