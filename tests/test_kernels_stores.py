@@ -1,10 +1,11 @@
 """The detector's and the defence's stores by group (:mod:`resloc.cl.kernels_stores`).
 
 Stores holding the same keys get the slots of one look-up and their values saved for
-``undo`` by one compiled call (:func:`resloc.cl.kernels_memory.slots_and_snapshot`): the
-slots are each store's own (``LinkStatistic.slots``), ``undo`` puts every store back, a
-store that replaced its arrays (an insertion, an ``undo``) makes the group be built again,
-and a link not stored yet, or stores with different keys, answer None with nothing
+``undo`` by one compiled call (:func:`resloc.cl.kernels_memory.slots_and_snapshot`, or
+``slots_and_snapshot2`` for two stores): the slots are each store's own
+(``LinkStatistic.slots``), ``undo`` puts every store back, a store that replaced its arrays
+(an insertion, an ``undo``) makes the group be built again, and a link not stored yet, or
+stores with different keys, answer None with nothing
 recorded (the store-by-store path then inserts)."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from resloc.cl import kernels, kernels_stores
+from resloc.cl import kernels, kernels_memory, kernels_stores
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import DetectorState, detector_state
 from resloc.cl.memory import LinkMemory, LinkStatistic
@@ -74,6 +75,14 @@ def test_a_store_with_new_arrays_makes_the_group_be_built_again() -> None:
     assert kernels_stores.group_slots(stores, i, j, saved) is None and saved == []
 
 
+def _counted(call, calls: list):
+    def counted(*args):
+        calls.append(1)
+        return call(*args)
+
+    return counted
+
+
 def test_the_full_defences_stores_take_two_compiled_calls_a_step(monkeypatch) -> None:
     """detector_state and defence_state of the ``full`` stages in a steady state: one call
     of the group's look-up and save each, no store-by-store look-up, and the slots and
@@ -92,10 +101,8 @@ def test_the_full_defences_stores_take_two_compiled_calls_a_step(monkeypatch) ->
         store.values[...] = rng.normal(size=store.values.shape)
     before = [s.values.copy() for s in stores]
     calls = []
-    real = kernels_stores.slots_and_snapshot
-    monkeypatch.setattr(
-        kernels_stores, "slots_and_snapshot", lambda *a: calls.append(1) or real(*a)
-    )
+    for name in ("slots_and_snapshot", "slots_and_snapshot2"):  # (looked up by new groups)
+        monkeypatch.setattr(kernels_memory, name, _counted(getattr(kernels_memory, name), calls))
     monkeypatch.setattr(LinkStatistic, "slots", None)  # the store-by-store look-up
     detection = detector_state(params, memory, OBS, NBR)
     defence = defence_state(params, memory, OBS)

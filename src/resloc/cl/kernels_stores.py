@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_memory import int64_rows, same_keys, slots_and_snapshot
+from resloc.cl import kernels_memory
+from resloc.cl.kernels_memory import int64_rows, same_keys
 
 __all__ = ["StoreGroup", "group_slots"]
 
@@ -33,7 +34,7 @@ class StoreGroup:
     """Stores with the same keys and the buffers their values are saved in (kept by the
     first store, :attr:`LinkStatistic.group <resloc.cl.memory.LinkStatistic>`)."""
 
-    __slots__ = ("arrays", "keys", "pos", "saved", "stores", "views")
+    __slots__ = ("arrays", "call", "keys", "pos", "saved", "stores", "views")
 
     def __init__(self, stores: tuple, keys: np.ndarray) -> None:
         self.stores = stores
@@ -44,7 +45,11 @@ class StoreGroup:
         flat = tuple(v.reshape(-1) for v in values)  # C-contiguous: views
         buffers = tuple(np.empty_like(f) for f in flat)
         self.views = tuple(b.reshape(v.shape) for b, v in zip(buffers, values, strict=True))
-        pad = (_EMPTY,) * (4 - len(stores))
+        # the compiled call for the group's size (up to two stores: four arguments fewer)
+        size = 2 if len(stores) <= 2 else 4
+        four = kernels_memory.slots_and_snapshot
+        self.call = kernels_memory.slots_and_snapshot2 if size == 2 else four
+        pad = (_EMPTY,) * (size - len(stores))
         # the compiled call's arguments after the links: (values, buffer) per store, padded
         self.saved = tuple(a for pair in zip(flat + pad, buffers + pad, strict=True) for a in pair)
         # the slots, reused from step to step (read within the step that looked them up)
@@ -106,7 +111,7 @@ def group_slots(stores: tuple, i: np.ndarray, j: np.ndarray, saved: list) -> np.
     pos = group.pos
     if len(pos) != len(ri):
         pos = group.pos = np.empty(len(ri), np.int64)
-    if not slots_and_snapshot(group.keys, stores[0].n_nodes, ri, rj, pos, *group.saved):
+    if not group.call(group.keys, stores[0].n_nodes, ri, rj, pos, *group.saved):
         return None
     for store, view in zip(stores, group.views, strict=True):
         saved.append((store, store.keys, None, pos, view))
