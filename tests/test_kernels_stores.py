@@ -10,6 +10,8 @@ recorded (the store-by-store path then inserts)."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -118,4 +120,26 @@ def test_the_full_defences_stores_take_two_compiled_calls_a_step(monkeypatch) ->
     defence.undo()
     detection.undo()
     for store, b in zip(stores, before, strict=True):
+        np.testing.assert_array_equal(store.values, b)
+
+
+def test_a_copied_store_leaves_the_group_behind() -> None:
+    """A deep copy (a runtime checkpoint) or a shallow one (an attacker's scratch memory)
+    of a store in a group has no group: the copy's first call builds its own, whose saved
+    values are the copy's (a deep-copied group would save from copies of the views)."""
+    rng = np.random.default_rng(11)
+    stores = _stores(rng)
+    assert kernels_stores.group_slots(stores, OBS, NBR, []) is not None
+    copies = copy.deepcopy(stores)
+    assert all(s.group is None for s in copies)
+    assert copy.copy(stores[0]).group is None
+    for store in copies:
+        store.values[...] = rng.normal(size=store.values.shape)
+    before = [s.values.copy() for s in copies]
+    saved: list = []
+    pos = kernels_stores.group_slots(copies, OBS, NBR, saved)
+    for store in copies:
+        store.values[pos] = 5.0
+    DetectorState(None, tuple(saved)).undo()
+    for store, b in zip(copies, before, strict=True):
         np.testing.assert_array_equal(store.values, b)

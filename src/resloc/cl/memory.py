@@ -301,6 +301,13 @@ class LinkStatistic:
     def __len__(self) -> int:
         return len(self.keys)
 
+    def __getstate__(self) -> dict:
+        # a copy (a checkpoint, an attacker's scratch memory) leaves the group behind: its
+        # buffers are views of this store's arrays, which a deep copy would not keep views
+        state = self.__dict__.copy()
+        state["group"] = None
+        return state
+
     def _keys(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         return np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
 
