@@ -47,6 +47,7 @@ from resloc.cl.kernels_detection import (
     store_slots,
 )
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
+from resloc.cl.kernels_stores import group_slots
 from resloc.cl.params import CLParams
 
 __all__ = [
@@ -121,7 +122,7 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
     saved: list = []
     first: list = []  # the first store's (store, slots): the others share them when they can
 
-    def slots_of(store) -> np.ndarray:
+    def slots_one(store) -> np.ndarray:
         # every store is keyed (i, i) by the same observers: in a run's steady state they
         # hold the same keys, and a comparison of ~B keys replaces a look-up of E links
         slots = shared_slots(store, *first[0], saved) if first else None
@@ -131,18 +132,27 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
                 first.append((store, slots))
         return slots
 
-    if robot_gains:
-        store = memory.stage_statistic("robot_cusum")
-        slot = slots_of(store)
-        robot_part = (True, *robot_gains, store.values, slot)
-    else:
-        robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
+    robot = memory.stage_statistic("robot_cusum") if robot_gains else None
     if recovery_gains:
         # the stores of RejectionRecovery (detection_recovery._runs, its spread and the
         # inflation applied)
         runs = memory.stage_statistic("recovery", width=None)
         spread = memory.stage_statistic("recovery_spread")
         applied = memory.stage_statistic("recovery_applied")
+    stores = ((robot,) if robot_gains else ()) + ((runs, spread, applied) if recovery_gains else ())
+    # one look-up and one save for every store in a run's steady state (kernels_stores)
+    shared = group_slots(stores, i, i, saved) if stores else None
+
+    def slots_of(store) -> np.ndarray:  # (shared, or store by store: the path that inserts)
+        return shared if shared is not None else slots_one(store)
+
+    if robot_gains:
+        store = robot
+        slot = slots_of(store)
+        robot_part = (True, *robot_gains, store.values, slot)
+    else:
+        robot_part = (False, _NO_GAIN, _NO_GAIN, _NO_VALUES, _NO_SLOTS)
+    if recovery_gains:
         runs_slot = slots_of(runs)
         spread_slot = slots_of(spread)
         applied_slot = slots_of(applied)

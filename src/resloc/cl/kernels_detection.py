@@ -32,6 +32,7 @@ import numpy as np
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.kernels_memory import int64_rows, same_keys
+from resloc.cl.kernels_stores import group_slots
 from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
 
@@ -211,13 +212,19 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     cusum, k, h, cap, mean, mk, mh = _detection_gains(params)
     if (cusum or mean) and memory is None:
         return None
+    slot = mslot = None
+    if cusum or mean:  # one look-up and one save for both stores (kernels_stores)
+        stores = (memory.cusum,) * cusum + (memory.mean_cusum,) * mean
+        slot = mslot = group_slots(stores, i, j, saved)
     if cusum:
-        slot = store_slots(memory.cusum, i, j, saved)
+        if slot is None:
+            slot = store_slots(memory.cusum, i, j, saved)
         g = memory.cusum.values
     else:
         g, slot = np.zeros(0), _NO_SLOTS
     if mean:
-        mslot = shared_slots(memory.mean_cusum, memory.cusum, slot, saved) if cusum else None
+        if mslot is None:
+            mslot = shared_slots(memory.mean_cusum, memory.cusum, slot, saved) if cusum else None
         if mslot is None:
             mslot = store_slots(memory.mean_cusum, i, j, saved)
         mg = memory.mean_cusum.values

@@ -294,9 +294,19 @@ class LinkStatistic:
         self.keys = np.empty(0, dtype=np.int64)
         self.shape = () if width is None else (int(width),)
         self.values = np.empty((0, *self.shape))
+        # the stores sharing this one's keys and their saved values, when this store is a
+        # group's first (resloc.cl.kernels_stores.group_slots; None: none)
+        self.group = None
 
     def __len__(self) -> int:
         return len(self.keys)
+
+    def __getstate__(self) -> dict:
+        # a copy (a checkpoint, an attacker's scratch memory) leaves the group behind: its
+        # buffers are views of this store's arrays, which a deep copy would not keep views
+        state = self.__dict__.copy()
+        state["group"] = None
+        return state
 
     def _keys(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         return np.asarray(i, np.int64) * self.n_nodes + np.asarray(j, np.int64)
