@@ -133,7 +133,7 @@ def _split_state(criterion: CICriterion, memory, links, E: int) -> KernelFusion 
     P_nb_ind = links.P_nb_ind
     if independent is None or P_nb_ind is None:
         return None
-    if type(independent) is not np.ndarray or independent.dtype is not _FLOAT:
+    if type(independent) is not np.ndarray or independent.dtype != _FLOAT:
         independent = np.array(independent, dtype=float)  # (the run's own is float64)
     if independent.shape[1:] != (3, 3) or np.shape(P_nb_ind) != (E, 3, 3):
         return None

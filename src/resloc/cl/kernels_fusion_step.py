@@ -400,7 +400,7 @@ def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray |
 def _c_float(a):
     """``a`` itself when it is a C-contiguous float64 array (the run's), else a copy that
     is."""
-    if type(a) is np.ndarray and a.dtype is _FLOAT and a.flags.c_contiguous:
+    if type(a) is np.ndarray and a.dtype == _FLOAT and a.flags.c_contiguous:
         return a
     return np.ascontiguousarray(a, dtype=float)
 
