@@ -89,3 +89,35 @@ def test_split_fusion_state_copies_the_parts_and_bounds_the_observers(criterion:
     assert fusion is not None and fusion.independent.tobytes() == memory.independent.tobytes()
     links.P_nb_ind = links.P_nb_ind[:-1]
     assert fusion_state("split_ci", criterion, memory, links, E) is None
+
+
+def test_the_compiled_glue_takes_pickled_arrays() -> None:
+    """A pickled array (a worker's, a checkpoint's) has a dtype object of its own: the
+    compiled finish, prediction and working copy still take it (dtypes compared by value)."""
+    import pickle
+
+    from resloc.cl.kernels_fusion import fusion_state
+    from resloc.cl.kernels_fusion_step import compiled_independent_predict
+    from resloc.cl.kernels_split import compiled_independent_finish
+    from resloc.experiments.config import default_scenario
+
+    rng = np.random.default_rng(9)
+    B, E = 17, 30
+    independent, x, u, i, j, delivered, P_nb_ind = pickle.loads(
+        pickle.dumps(
+            (
+                _spd(rng, B), rng.normal(size=(B, 3)), rng.uniform(size=(B, 2)),
+                np.sort(rng.integers(0, B, E)), rng.integers(0, B, E), rng.uniform(size=E) < 0.5,
+                _spd(rng, E),
+            )
+        )
+    )  # fmt: skip
+    assert independent.dtype is not np.dtype(float)  # (what the test is about)
+    params = default_scenario().cl_params()
+    assert compiled_independent_predict(x, independent, u, 0.1, params) is not None
+    links = SimpleNamespace(i=i, P_nb_ind=P_nb_ind)
+    assert fusion_state("split_ci", "trace", SimpleNamespace(independent=independent), links, E)
+    expected = independent.copy()
+    expected[j[delivered]] = 0.0
+    assert compiled_independent_finish(independent, j, delivered)
+    np.testing.assert_array_equal(independent, expected)
