@@ -194,6 +194,23 @@ class CIFusion(_TransmittedOnly):
         return fused_update(x_i, P_i, x_j, P_j, nu, m, params.R, self.method, criterion)[:2]
 
 
+_SPLIT_KERNELS: list = []
+
+
+def _split_kernels():
+    """The modules of split CI's once-per-step compiled twins, the prediction's
+    (:mod:`resloc.cl.kernels_fusion_step`) and the end of step's
+    (:mod:`resloc.cl.kernels_split`), imported on first use (the kernels import this
+    module's registry) and kept: an import statement in ``predict`` and ``finish`` cost
+    ~0.5-1 us a step each (measured, ``timeit``). The modules, not their functions: a test
+    may replace one."""
+    if not _SPLIT_KERNELS:
+        from resloc.cl import kernels_fusion_step, kernels_split
+
+        _SPLIT_KERNELS[:] = [kernels_fusion_step, kernels_split]
+    return _SPLIT_KERNELS
+
+
 class SplitCIFusion(_TransmittedOnly):
     """``split_ci``: split covariance intersection; independent parts in
     ``memory.independent`` and in every transmission (``LinkBatch.P_nb_ind``)."""
@@ -208,11 +225,10 @@ class SplitCIFusion(_TransmittedOnly):
         memory.local = local
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
-        # The compiled twin when the backend allows it (imported here: the kernels import
-        # this module's registry).
-        from resloc.cl.kernels_fusion_step import compiled_independent_predict
-
-        propagated = compiled_independent_predict(x, memory.independent, u, dt, params)
+        # The compiled twin when the backend allows it (see _split_kernels).
+        propagated = _split_kernels()[0].compiled_independent_predict(
+            x, memory.independent, u, dt, params
+        )
         if propagated is None:
             noise = np.asarray(params.odometry_std), np.asarray(params.process_floor_std)
             propagated = propagate_independent(x, memory.independent, u, dt, *noise)
@@ -240,9 +256,10 @@ class SplitCIFusion(_TransmittedOnly):
         # part becomes dependent (a robot's process learns it from an acknowledgement).
         if memory.local:
             return P
-        from resloc.cl.kernels_split import compiled_independent_finish  # (see predict)
-
-        if not compiled_independent_finish(memory.independent, j, delivered) and delivered.any():
+        if (
+            not _split_kernels()[1].compiled_independent_finish(memory.independent, j, delivered)
+            and delivered.any()
+        ):
             memory.independent[j[delivered]] = 0.0
         return P
 
