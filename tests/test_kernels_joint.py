@@ -111,8 +111,8 @@ def test_compiled_method_matches_reference_over_a_run(method: str, name: str) ->
 @pytest.mark.parametrize("method", ["tracked", "factorized", "split_ci"])
 def test_compiled_prediction_and_end_of_step_ran(method: str, monkeypatch) -> None:
     """The lockstep's numba side ran the compiled prediction and end of step of the
-    method every step (their numpy twins are the other side; split CI's end of step is
-    numpy on both)."""
+    method every step (their numpy twins are the other side; split CI's compiled end of
+    step, ``kernels_split.compiled_independent_finish``, is counted by its own tests)."""
     from resloc.cl import kernels_fusion_step as step_kernels
     from resloc.cl.kernels_joint import warm_up_joint_form
 
