@@ -92,3 +92,38 @@ def put9(f, row, k, v):
     put4(f, row, k, (v[0], v[1], v[2], v[3]))
     put4(f, row + 4, k, (v[4], v[5], v[6], v[7]))
     f[(row + 8) * S + k] = v[8]
+
+
+@jit_inline
+def gather_lane(f, m, i, r, g, c, P, P_ref, xi, xr, pxz, moments, R, update):
+    """Round lane ``c``'s inputs both updates read into column ``m``: ``P_i`` times the
+    recovery's inflation ``g``, ``P_j`` (robot ``r``'s reference), ``x_i``, ``x_j``'s
+    position, ``P^xz``, ``S`` (the moments plus ``R``, symmetrized), the innovation and the
+    round lane itself."""
+    for a in range(3):
+        for b in range(3):
+            f[(R_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
+            f[(R_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
+    for a in range(3):
+        f[(R_X + a) * S + m] = xi[a, c]
+    f[R_XR * S + m] = xr[0, c]
+    f[(R_XR + 1) * S + m] = xr[1, c]
+    for a in range(6):
+        f[(R_PXZ + a) * S + m] = pxz[a, c]
+    f[R_S * S + m] = moments[2, c] + R[0, 0]
+    f[(R_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
+    f[(R_S + 2) * S + m] = moments[4, c] + R[1, 1]
+    f[R_NU * S + m] = update[0, c]
+    f[(R_NU + 1) * S + m] = update[1, c]
+    f[R_LANE * S + m] = c
+
+
+@jit_inline
+def pad_lanes(f, m):
+    """The gathered rows of ``m`` lanes padded to a whole :data:`FUSED_BLOCK` with copies of
+    lane 0 (never read); the padded count."""
+    m2 = min((m + FUSED_BLOCK - 1) // FUSED_BLOCK * FUSED_BLOCK, S)
+    for row in range(R_LANE + 1):
+        for k in range(m, m2):
+            f[row * S + k] = f[row * S]
+    return m2

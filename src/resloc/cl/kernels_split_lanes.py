@@ -57,7 +57,6 @@ from resloc.cl.kernels_fusion import (
 )
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_lane_rows import (
-    FUSED_BLOCK,
     R_A,
     R_AI,
     R_B,
@@ -93,6 +92,8 @@ from resloc.cl.kernels_lane_rows import (
     R_XR,
     SPLIT_LANE_ROWS,
     S,
+    gather_lane,
+    pad_lanes,
     put4,
     put9,
     row4,
@@ -291,31 +292,15 @@ def split_ci_lanes(
         i = obs[c]
         r = src[c]
         g = inflation[c]
+        gather_lane(f, m, i, r, g, c, P, P_ref, xi, xr, pxz, moments, R, update)
         for a in range(3):
             for b in range(3):
-                f[(R_PI + 3 * a + b) * S + m] = P[i, a, b] * g  # g = 1: P_i itself
-                f[(R_PJ + 3 * a + b) * S + m] = P_ref[r, a, b]
                 f[(R_II + 3 * a + b) * S + m] = independent[i, a, b]
                 f[(R_IJ + 3 * a + b) * S + m] = P_nb_ind[e, a, b]
-        for a in range(3):
-            f[(R_X + a) * S + m] = xi[a, c]
-        f[R_XR * S + m] = xr[0, c]
-        f[(R_XR + 1) * S + m] = xr[1, c]
-        for a in range(6):
-            f[(R_PXZ + a) * S + m] = pxz[a, c]
-        f[R_S * S + m] = moments[2, c] + R[0, 0]
-        f[(R_S + 1) * S + m] = 0.5 * ((moments[3, c] + R[0, 1]) + (moments[3, c] + R[1, 0]))
-        f[(R_S + 2) * S + m] = moments[4, c] + R[1, 1]
-        f[R_NU * S + m] = update[0, c]
-        f[(R_NU + 1) * S + m] = update[1, c]
-        f[R_LANE * S + m] = c
         m += 1
     if m == 0:
         return True
-    m2 = min((m + FUSED_BLOCK - 1) // FUSED_BLOCK * FUSED_BLOCK, S)
-    for row in range(R_LANE + 1):  # the padding: copies of lane 0, never read
-        for k in range(m, m2):
-            f[row * S + k] = f[row * S]
+    m2 = pad_lanes(f, m)
     _weight_inputs_lanes(f, m2, R, fusion[1])
     weight_lanes(f, m, fusion[2], fusion[1], R, True)
     _update_lanes(f, m2, R, jitter[0])
