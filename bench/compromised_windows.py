@@ -87,9 +87,15 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=50)
     ap.add_argument("--no-clean", action="store_true")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=JSON",
+        help="a scenario override (e.g. run.seed=1: the held-out seeds)",
+    )  # fmt: skip
     args = ap.parse_args()
+    extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     base = default_scenario().replace(
         **defence_overrides(args.defence),
+        **extra,
         **{
             "run.filters": ["ckf"],
             "run.dead_reckoning": False,

@@ -40,6 +40,10 @@ Detection", and the unit-aware tests of :mod:`resloc.cl.cusum`):
     Discards nothing: for its first ``startup_steps`` corrections a robot's prior covariance
     is kept at or above a floor, so lies taken while every gate is wide cannot shrink it
     onto them (:mod:`resloc.cl.detection_startup`).
+``lockout``
+    Discards nothing: a robot whose detector discarded most of its links over its last
+    corrections raises its prior covariance to a floor, so that its honest neighbours are
+    admitted again and pull it back (:mod:`resloc.cl.detection_lockout`).
 ``zone_landmarks``
     Discards nothing: a neighbour whose broadcast position lies inside the (grown) SDZ map
     is weighed, in every test and in the fusion, with its claimed covariance inflated
@@ -68,6 +72,7 @@ import numpy as np
 
 from resloc.cl.cusum import chi2_gate, link_cusum, link_mean_cusum, nis, whiten
 from resloc.cl.detection_landmark import ZoneLandmarks
+from resloc.cl.detection_lockout import Lockout
 from resloc.cl.detection_outvoted import Outvoted
 from resloc.cl.detection_reciprocal import ReciprocalCheck
 from resloc.cl.detection_recovery import RejectionRecovery
@@ -295,6 +300,7 @@ DETECTOR_STAGES: tuple[DetectorStage, ...] = (
     WitnessCheck(),
     OUTVOTED,
     StartupFloor(),
+    Lockout(),
     NISCusum(),
     MeanShiftCusum(),
     RobotCusum(),

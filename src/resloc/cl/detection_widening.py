@@ -12,7 +12,7 @@ import numpy as np
 
 from resloc.cl.memory import LinkMemory
 
-__all__ = ["applied_stage_factors", "scale_robots"]
+__all__ = ["applied_stage_factors", "keep_exempt", "scale_robots"]
 
 
 def scale_robots(P: np.ndarray, robots: np.ndarray, factor: np.ndarray) -> np.ndarray:
@@ -23,6 +23,25 @@ def scale_robots(P: np.ndarray, robots: np.ndarray, factor: np.ndarray) -> np.nd
         return P
     P = np.array(P, float)
     P[robots[raised]] *= factor[raised, None, None]
+    return P
+
+
+def keep_exempt(P: np.ndarray, P_before: np.ndarray, exempt: np.ndarray | None) -> np.ndarray:
+    """``P (B, 3, 3)``, the covariances after the stages, with the ``exempt (B,)`` robots'
+    blocks as they were before them (``P_before``); ``P`` itself when none differs.
+
+    Simulation only: a compromised robot runs its own software, and a stage that widens
+    its own covariance would widen what it claims and weaken its lies; the attacker marks
+    its robots (``LinkMemory.exempt``) and they skip every such stage. The stages' stores
+    still hold the factor they computed for them: read them through
+    :func:`applied_stage_factors` with the same mask."""
+    if exempt is None or P is P_before:
+        return P
+    rows = np.flatnonzero(exempt)
+    if not rows.size or np.array_equal(P[rows], P_before[rows]):
+        return P
+    P = np.array(P, float)
+    P[rows] = P_before[rows]
     return P
 
 

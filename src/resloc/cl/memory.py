@@ -82,6 +82,10 @@ class LinkMemory:
         # ... and its view for the outvoted stage: the notes on this robot that reached it
         # (keyed (observer, 0)) beside its own sequence test (None: this memory's notes).
         self.outvoted_view: LinkMemory | None = None
+        # Simulation only: the robots whose software an attacker runs (bool (B,)). No stage
+        # widens their own covariance (a compromised robot would not weaken its own claims;
+        # None: every robot runs the defence; detection_widening.keep_exempt).
+        self.exempt: np.ndarray | None = None
         self._stage_statistics: dict[str, LinkStatistic] = {}
         # cached_rows' last gather: (keys, stores, x_link, P_link, positions), what
         # store_delivered needs to store by those positions (None: none to use)

@@ -199,6 +199,14 @@ class CLParams:
     startup_decay : float
         After the ``startup_steps`` corrections the floor is not dropped but multiplied by
         this at each further correction (a geometric decay, no cliff; 0: dropped at once).
+    lockout_share : float
+        A robot whose detector discarded more than this share of its judged links (an
+        exponentially weighted mean over its corrections) raises its prior covariance to
+        ``lockout_floor_std`` (:mod:`resloc.cl.detection_lockout`; 0: off).
+    lockout_window : float
+        The share's memory, in corrections (weight ``1 / lockout_window`` on the newest).
+    lockout_floor_std : float
+        The floor: the position standard deviation (the larger diagonal entry), in metres.
     """
 
     range_std: float = 0.005
@@ -264,6 +272,9 @@ class CLParams:
     startup_steps: int = 0
     startup_floor_std: float = 0.01
     startup_decay: float = 0.0
+    lockout_share: float = 0.0
+    lockout_window: float = 10.0
+    lockout_floor_std: float = 0.01
 
     def __post_init__(self) -> None:
         # The step compares choices with ``is``: coerce their string values ("summed") to

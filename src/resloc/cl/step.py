@@ -16,10 +16,12 @@ import numpy as np
 from resloc.angles import wrap_angle
 from resloc.cl.detection import Evidence, detect
 from resloc.cl.detection_landmark import landmark_links
+from resloc.cl.detection_lockout import lockout_floor, record_lockout
 from resloc.cl.detection_outvoted import widen_outvoted
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
 from resloc.cl.detection_startup import startup_floor
+from resloc.cl.detection_widening import keep_exempt
 from resloc.cl.detection_witness import step_notes
 from resloc.cl.detection_witness_frames import deliver_witness, record_witness
 from resloc.cl.detection_zone import (
@@ -354,13 +356,18 @@ def correct(
 
     # A robot its observers' notes outvote widens its covariance first (both paths, and the
     # adversary's hook, see the widened one).
+    P_before = P
     P = widen_outvoted(params, memory, links, P)
     P = startup_floor(params, memory, links, P)  # no robot shrinks below a floor at first
+    P = lockout_floor(params, memory, links, P)  # nor stays locked out by its own gate
+    if memory is not None:  # a compromised robot's software skips them (simulation)
+        P = keep_exempt(P, P_before, memory.exempt)
     fast = fast_correct(filt, x, P, links, params, memory, buffers)
-    if fast is not None:
-        return fast
-    x, P, out = _correct_reference(filt, x, P, links, params, memory)
-    return (*_into(buffers, x, P), out)
+    if fast is None:
+        x_new, P_new, out = _correct_reference(filt, x, P, links, params, memory)
+        fast = (*_into(buffers, x_new, P_new), out)
+    record_lockout(params, memory, links, fast[2], x)
+    return fast
 
 
 def _correct_reference(filt, x, P, links: LinkBatch, params: CLParams, memory):

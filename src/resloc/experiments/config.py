@@ -309,6 +309,20 @@ class DetectorSpec:
         min=0.0,
         max=1.0,
     )
+    lockout_share: float = option(
+        0.0,
+        "a robot whose detector discarded more than this share of its links (a mean over "
+        "lockout_window corrections) raises its covariance to lockout_floor_std "
+        "(docs/attack/lockout.md; 0: off)",
+        min=0.0,
+        max=1.0,
+    )
+    lockout_window: float = option(
+        10.0, "lockout: the share's memory, in corrections", min=1.0, max=1e6
+    )
+    lockout_floor_std: float = option(
+        0.01, "lockout: the floor of a position standard deviation (m)", gt=0.0, max=1e6
+    )
 
 
 @dataclass(frozen=True)
@@ -438,6 +452,9 @@ class Scenario:
             startup_steps=int(d.startup_steps),
             startup_floor_std=float(d.startup_floor_std),
             startup_decay=float(d.startup_decay),
+            lockout_share=float(d.lockout_share),
+            lockout_window=float(d.lockout_window),
+            lockout_floor_std=float(d.lockout_floor_std),
         )
 
     def replace(self, **changes: Any) -> Scenario:

@@ -147,6 +147,24 @@ DEFENCES: MappingProxyType[str, MappingProxyType[str, Any]] = MappingProxyType(
                 "detector.startup_floor_std": 0.01,
                 "detector.startup_decay": 0.8,
             },
+            # + a robot whose detector discards most of its links over its last ten
+            # corrections raises its covariance to 10 mm (cl/detection_lockout.py: the
+            # mid-run partial lock-out, docs/attack/lockout.md).
+            "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay+lockout": {
+                **_FULL,
+                **_ZONE,
+                **_SEQUENCE,
+                "detector.redundancy_cap_fusion": True,
+                "detector.zone_landmarks": True,
+                "detector.witness": True,
+                "detector.outvoted": True,
+                "detector.startup_steps": 5,
+                "detector.startup_floor_std": 0.01,
+                "detector.startup_decay": 0.8,
+                "detector.lockout_share": 0.5,
+                "detector.lockout_window": 10.0,
+                "detector.lockout_floor_std": 0.01,
+            },
             # + each neighbour fused with its claimed covariance capped as the test caps it.
             "zone+full+redundancy+sequence+cap": {
                 **_FULL,

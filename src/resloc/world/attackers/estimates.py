@@ -8,6 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from resloc.angles import wrap_angle
+from resloc.cl.detection_lockout import discarded_shares
 from resloc.cl.detection_startup import applied_startup_factors
 from resloc.cl.detection_zone import reciprocal_rows
 from resloc.world.adversary import ReplayBuffer
@@ -75,6 +76,9 @@ class CompromisedRobot(Strategy):
     (:mod:`resloc.cl.detection_startup`) ``harder`` lets a liar spend that budget: in a
     round where one of its victims' covariances is raised by the floor (by at least
     ``harder``), its lies are the largest the victims' detectors accept (:meth:`spends`).
+    Against the lock-out floor (:mod:`resloc.cl.detection_lockout`) ``under`` keeps each
+    victim under it: a victim whose discarded share has reached ``under`` is sent the
+    honest estimate until its share falls back (:meth:`spared_victims`).
 
     The victim's innovation is computed exactly for the false position (the relative
     position ``r (cos b, sin b)`` plus the shift in the victim's frame, back to range and
@@ -101,7 +105,10 @@ class CompromisedRobot(Strategy):
     #: lie only once it has ended). ``harder``: while the start-up stage raises the
     #: covariance of one of a liar's victims of the round by a factor of at least this
     #: (and above 1; 0: never), that liar's lies of the round are the largest the victims'
-    #: detectors accept, not cut by the witness budget (:meth:`spends`).
+    #: detectors accept, not cut by the witness budget (:meth:`spends`). ``under``: no
+    #: lie to a victim whose lock-out share (:mod:`resloc.cl.detection_lockout`) has
+    #: reached this (0: off; the answer to that stage: keep every victim's share under
+    #: its threshold, so that its floor never rises).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
@@ -111,6 +118,7 @@ class CompromisedRobot(Strategy):
         "shield": "auto",
         "quiet": 0,
         "harder": 0.0,
+        "under": 0.0,
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -130,11 +138,30 @@ class CompromisedRobot(Strategy):
                 f"attacker 'compromised', parameter budget: {self.budget!r} is not one of "
                 f"{', '.join(WITNESS_BUDGETS)}"
             )
+        if not 0.0 <= self.under <= 1.0:
+            raise ValueError(
+                f"attacker 'compromised', parameter under: {self.under:g} is not a share "
+                "between 0 (off) and 1"
+            )
         if self.harder != 0.0 and not self.harder >= 1.0:
             raise ValueError(
                 f"attacker 'compromised', parameter harder: {self.harder:g} is neither 0 "
                 "(off) nor a start-up factor of at least 1"
             )
+
+    def spared_victims(self, victims: np.ndarray, shares: np.ndarray) -> np.ndarray:
+        """Which of the round's rows (``victims``: batch ids, shape (n,)) get the honest
+        estimate: those whose victim's lock-out share (``shares (B,)``, the stage's
+        :func:`~resloc.cl.detection_lockout.discarded_shares`) has reached ``under``.
+
+        Why: the stage raises a victim's covariance only once its share passes its
+        threshold; a liar that stops pulling a victim as its share nears the threshold
+        keeps it in the partial lock-out the stage does not see (its honest neighbours,
+        now discarded less as it drifts back, bring the share down, and the lies resume).
+        """
+        if self.under <= 0.0:
+            return np.zeros(len(victims), bool)
+        return shares[victims] >= self.under
 
     def spends(self, victims: np.ndarray, liars: np.ndarray, factors: np.ndarray) -> np.ndarray:
         """Which of the round's rows (``victims``, ``liars``: batch ids, shape (n,)) are sent
@@ -169,6 +196,10 @@ class CompromisedRobot(Strategy):
 
     def attack(self, links, step, params, memory):
         from_liar = np.isin(links.j % step.robots, self.targets(step.robots))
+        if memory is not None:  # the liars run their own software: no floor on themselves
+            memory.exempt = np.isin(
+                np.arange(memory.n_nodes) % step.robots, self.targets(step.robots)
+            )
         if not from_liar.any() or step.k < int(self.quiet):
             return dataclasses.replace(links, tamper=None)
         is_liar = np.isin(np.arange(len(step.pose)) % step.robots, self.targets(step.robots))
@@ -253,6 +284,9 @@ class CompromisedRobot(Strategy):
                 if self.harder > 0.0 and params.startup_steps > 0:
                     factors = applied_startup_factors(memory, len(source.x))
                     a = np.where(self.spends(links.i[r], links.j[r], factors), whole, a)
+            if self.under > 0.0 and params.lockout_share > 0.0 and memory is not None:
+                shares = discarded_shares(memory, len(step.pose))
+                a = np.where(self.spared_victims(links.i[r], shares), 0.0, a)
             out[hit] = path(a[None])[0]
             injected[r] = out[hit, 0] - z[:, 0]
             return out

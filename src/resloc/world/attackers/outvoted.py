@@ -88,15 +88,22 @@ def shielding_notes(notes: WitnessNotes, is_liar: np.ndarray, params: CLParams) 
 
 def widened(P: np.ndarray, memory, params: CLParams) -> np.ndarray:
     """The covariances ``P (B, 3, 3)`` as the step's correction uses them: times the factor
-    each robot's outvoted and start-up stages applied this step (``P`` itself when none)."""
-    if not (params.outvoted or params.startup_steps > 0) or memory is None:
+    each robot's outvoted, start-up and lock-out stages applied this step (``P`` itself when
+    none)."""
+    lockout = params.lockout_share > 0.0
+    if not (params.outvoted or params.startup_steps > 0 or lockout) or memory is None:
         return P
+    from resloc.cl.detection_lockout import applied_lockout_factors
     from resloc.cl.detection_outvoted import applied_factors
     from resloc.cl.detection_startup import applied_startup_factors
 
     f = applied_startup_factors(memory, len(P))
     if params.outvoted:
         f = f * applied_factors(memory, len(P))
+    if lockout:
+        f = f * applied_lockout_factors(memory, len(P))
+    if memory.exempt is not None:  # the liars' own software skips the stages
+        f = np.where(memory.exempt, 1.0, f)
     if not (f > 1.0).any():
         return P
     return np.asarray(P, float) * f[:, None, None]
