@@ -3,9 +3,10 @@ the kernel's records and the end of step's pair closing.
 
 Each is the twin of a method of :class:`~resloc.cl.factorized.FactorizedCovariance` (a
 batch's; a robot process's ``local`` factors stay numpy), used by the strategy
-(:mod:`resloc.cl.fusion_methods`) and the kernels' commit
-(:func:`resloc.cl.kernels_joint.joint_commit`) when the backend is numba; each returns
-None or False (nothing changed) when it does not apply, and the reference runs.
+(:mod:`resloc.cl.fusion_methods`) when the backend is numba, and by the kernels' commit
+(:func:`resloc.cl.kernels_joint.joint_commit`) after a compiled correction. The
+prediction and the finish return None or False (nothing changed) when they do not apply,
+and the reference runs.
 
 ===================================  ===================================================
 function                             numpy twin
@@ -16,14 +17,13 @@ function                             numpy twin
 :func:`compiled_factorized_finish`   :meth:`~resloc.cl.factorized.FactorizedCovariance.finish`
 ===================================  ===================================================
 
-The glue of a step is one pass over the (B, N, 3, 3) factors at each end
-(``docs/performance.md``, "Factorized, per step"): the prediction writes ``sigma`` and the
-copy the messages carry (``sig_pred``) in one loop; the commit writes every factor once,
+The commit writes every factor once (``docs/performance.md``, "Factorized, per step"):
 ``A_i sigma_il`` or, for a pair that fused in either direction, the pair's closed factor
-(the pair's cross-covariance for its lower id, the identity for its higher id): what
-``finish`` would write there, which it then has nothing left to do (the closed values do
-not depend on the factors ``finish`` overwrites, so the reference's ``finish`` after this
-commit changes nothing).
+(its cross-covariance for the lower id, the identity for the higher id), which is what
+``finish`` writes there; the finish then has nothing left to do. The closed values do not
+depend on the factors ``finish`` overwrites, so the reference's ``finish`` after this commit
+changes nothing; a reference update after it (a second correction of the step) clears
+``pairs_closed`` and the compiled finish closes the pairs again, in place.
 """
 
 from __future__ import annotations
