@@ -201,7 +201,7 @@ def compiled_factorized_finish(joint) -> bool:
         return False
     if joint.B % joint.N:
         return False
-    if joint.pairs_closed:
+    if getattr(joint, "pairs_closed", False):  # (a joint pickled before the flag: no)
         joint.pairs_closed = False  # (a later update of the step would need a new closing)
         return True
     sig = _c_float(joint.sig)
