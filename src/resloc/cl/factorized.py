@@ -105,6 +105,10 @@ class FactorizedCovariance:
         self.A = identity_stack(self.B)
         self.Bm = np.zeros((self.B, self.N, 3, 3))
         self.fused = np.zeros((self.B, self.N), dtype=bool)
+        # True where a compiled correction's commit (resloc.cl.kernels_factorized_step)
+        # already wrote the factors finish writes; False after any other change (this class
+        # never reads it: its finish would write the same values again)
+        self.pairs_closed = False
 
     def _local(self, b: np.ndarray) -> np.ndarray:
         return np.asarray(b) % self.N
@@ -227,6 +231,7 @@ class FactorizedCovariance:
         self.Bm[i, jl] -= KH_j
         self.A[i] = G @ self.A[i]
         self.fused[i, jl] = True
+        self.pairs_closed = False
         return P_new
 
     def finish(self, P: np.ndarray) -> np.ndarray:

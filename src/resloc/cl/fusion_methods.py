@@ -194,21 +194,21 @@ class CIFusion(_TransmittedOnly):
         return fused_update(x_i, P_i, x_j, P_j, nu, m, params.R, self.method, criterion)[:2]
 
 
-_SPLIT_KERNELS: list = []
+_STEP_KERNELS: list = []
 
 
-def _split_kernels():
-    """The modules of split CI's once-per-step compiled twins, the prediction's
-    (:mod:`resloc.cl.kernels_fusion_step`) and the end of step's
+def _step_kernels():
+    """The modules of the once-per-step compiled twins, split CI's, ``tracked``'s and
+    ``factorized``'s (:mod:`resloc.cl.kernels_fusion_step`) and split CI's end of step's
     (:mod:`resloc.cl.kernels_split`), imported on first use (the kernels import this
     module's registry) and kept: an import statement in ``predict`` and ``finish`` cost
     ~0.5-1 us a step each (measured, ``timeit``). The modules, not their functions: a test
     may replace one."""
-    if not _SPLIT_KERNELS:
+    if not _STEP_KERNELS:
         from resloc.cl import kernels_fusion_step, kernels_split
 
-        _SPLIT_KERNELS[:] = [kernels_fusion_step, kernels_split]
-    return _SPLIT_KERNELS
+        _STEP_KERNELS[:] = [kernels_fusion_step, kernels_split]
+    return _STEP_KERNELS
 
 
 class SplitCIFusion(_TransmittedOnly):
@@ -225,8 +225,8 @@ class SplitCIFusion(_TransmittedOnly):
         memory.local = local
 
     def predict(self, memory, x, u, dt, params, P_pred) -> np.ndarray:
-        # The compiled twin when the backend allows it (see _split_kernels).
-        propagated = _split_kernels()[0].compiled_independent_predict(
+        # The compiled twin when the backend allows it (see _step_kernels).
+        propagated = _step_kernels()[0].compiled_independent_predict(
             x, memory.independent, u, dt, params
         )
         if propagated is None:
@@ -257,7 +257,7 @@ class SplitCIFusion(_TransmittedOnly):
         if memory.local:
             return P
         if (
-            not _split_kernels()[1].compiled_independent_finish(memory.independent, j, delivered)
+            not _step_kernels()[1].compiled_independent_finish(memory.independent, j, delivered)
             and delivered.any()
         ):
             memory.independent[j[delivered]] = 0.0
@@ -342,18 +342,15 @@ class TrackedFusion(_Bookkept):
         return self._joint(memory).moments(filt, x_i, P_i, x_j, P_j, i, j, R)
 
     # The compiled twins of the once-per-step parts (resloc.cl.kernels_fusion_step) when the
-    # backend and the bookkeeping allow them; imported here: the kernels import this
-    # module's registry.
+    # backend and the bookkeeping allow them; the module imported on first use (the kernels
+    # import this module's registry) and kept, as split CI's (_step_kernels: an import
+    # statement cost ~0.5 us a call).
     def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
-        from resloc.cl.kernels_fusion_step import compiled_tracked_predict
-
-        return compiled_tracked_predict(joint, x, u, dt, params)
+        return _step_kernels()[0].compiled_tracked_predict(joint, x, u, dt, params)
 
     def finish(self, memory, P, j, delivered) -> np.ndarray:
-        from resloc.cl.kernels_fusion_step import compiled_tracked_finish
-
         joint = self._joint(memory)
-        compiled = compiled_tracked_finish(joint)
+        compiled = _step_kernels()[0].compiled_tracked_finish(joint)
         return joint.finish(P) if compiled is None else compiled
 
 
@@ -374,15 +371,11 @@ class FactorizedFusion(TrackedFusion):
             _warm_up_joint_form()
 
     def _compiled_predict(self, joint, x, u, dt, params, P_pred) -> np.ndarray | None:
-        from resloc.cl.kernels_fusion_step import compiled_factorized_predict
-
-        return compiled_factorized_predict(joint, x, u, dt, P_pred)
+        return _step_kernels()[0].compiled_factorized_predict(joint, x, u, dt, P_pred)
 
     def finish(self, memory, P, j, delivered) -> np.ndarray:
-        from resloc.cl.kernels_fusion_step import compiled_factorized_finish
-
         joint = self._joint(memory)
-        return P if compiled_factorized_finish(joint) else joint.finish(P)
+        return P if _step_kernels()[0].compiled_factorized_finish(joint) else joint.finish(P)
 
 
 class GaugeFusion(_Bookkept):

@@ -13,7 +13,9 @@ function                           numpy twin
 :func:`compiled_tracked_predict`   :meth:`resloc.cl.tracking.JointCovariance.predict`
 :func:`compiled_tracked_finish`    :meth:`resloc.cl.tracking.JointCovariance.finish`
 :func:`compiled_factorized_predict`  :meth:`resloc.cl.factorized.FactorizedCovariance.predict`
+                                   (:mod:`resloc.cl.kernels_factorized_step`)
 :func:`compiled_factorized_finish`   :meth:`resloc.cl.factorized.FactorizedCovariance.finish`
+                                   (:mod:`resloc.cl.kernels_factorized_step`)
 :func:`compiled_independent_predict`    :func:`resloc.cl.fusion.propagate_independent`
 =================================  ======================================================
 """
@@ -28,8 +30,11 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_predict as _kernels_predict
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl.backend import backend
-from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.kernels_math import jit, jit_inline, mul3, mul3_t, per_params, stamp_with_pieces
+from resloc.cl.kernels_factorized_step import (  # (the strategies find them here)
+    compiled_factorized_finish,
+    compiled_factorized_predict,
+)
+from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
 from resloc.cl.tracking import JointCovariance
@@ -289,93 +294,6 @@ def _block_product(M, S, N, out):
                 out[r + 2, q] += m20 * s0 + m21 * s1 + m22 * s2
 
 
-def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | None:
-    """``FactorizedCovariance.predict`` compiled: ``sigma_il <- F_i sigma_il`` for every
-    factor, the step's bookkeeping started; returns ``P_pred``."""
-    if backend() != "numba" or not isinstance(joint, FactorizedCovariance) or joint.local:
-        return None
-    if not _inputs_ok(x, u, joint.B):
-        return None
-    sig = np.array(joint.sig, dtype=float, order="C", copy=True)
-    _left_multiply_factors(
-        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt), sig
-    )
-    joint.sig = sig
-    joint._start_step(P_pred)
-    return P_pred
-
-
-@jit
-def _left_multiply_factors(x, u, dt, sig):
-    """``sig[b, m] <- F_b sig[b, m]`` in place: rows 0, 1 of each factor plus ``F[p, 2]``
-    times its row 2 (``F`` the identity elsewhere, :func:`_propagate_joint`: the same sums
-    as the 3 x 3 product's to the bit for finite entries)."""
-    for b in range(sig.shape[0]):
-        v = u[b, 0]
-        f0 = -v * math.sin(x[b, 2]) * dt  # (as unicycle_jacobian_into)
-        f1 = v * math.cos(x[b, 2]) * dt
-        for m in range(sig.shape[1]):
-            for q in range(3):
-                s2q = sig[b, m, 2, q]
-                sig[b, m, 0, q] = sig[b, m, 0, q] + f0 * s2q
-                sig[b, m, 1, q] = sig[b, m, 1, q] + f1 * s2q
-
-
-def compiled_factorized_finish(joint) -> bool:
-    """``FactorizedCovariance.finish`` compiled: for every pair of teammates that fused in
-    either direction this step, the lower id keeps the pair's new cross-covariance
-    (``_pair_cross``) as its factor, the higher id the identity. False when it does not
-    apply."""
-    if backend() != "numba" or not isinstance(joint, FactorizedCovariance) or joint.local:
-        return False
-    if joint.B % joint.N:
-        return False
-    sig = np.array(joint.sig, dtype=float, order="C", copy=True)
-    _close_pairs(
-        np.ascontiguousarray(joint.fused, dtype=np.bool_), np.ascontiguousarray(joint.A),
-        np.ascontiguousarray(joint.Bm), np.ascontiguousarray(joint.P_pred),
-        np.ascontiguousarray(joint.sig_pred), joint.N, sig,
-    )  # fmt: skip
-    joint.sig = sig
-    return True
-
-
-@jit
-def _close_pairs(fused, A, Bm, P_pred, sig_pred, N, sig):
-    """Twin of ``FactorizedCovariance.finish`` and ``_pair_cross``: ``[A_a, B_ac] [[P_a,
-    P_ac], [P_ca, P_c]]_pred [B_ca, A_c]^T`` with ``P_ac = sigma_ac sigma_ca^T`` (pred)."""
-    P_ac = np.zeros((3, 3))
-    T1 = np.zeros((3, 3))
-    T2 = np.zeros((3, 3))
-    C = np.zeros((3, 3))
-    for t in range(A.shape[0] // N):
-        for la in range(N):
-            a = t * N + la
-            for lc in range(la + 1, N):
-                c = t * N + lc
-                if not (fused[a, lc] or fused[c, la]):
-                    continue
-                mul3_t(sig_pred[a, lc], sig_pred[c, la], P_ac)
-                mul3(A[a], P_pred[a], T1)  # A_a P_a B_ca^T
-                mul3_t(T1, Bm[c, la], C)
-                mul3(A[a], P_ac, T1)  # + A_a P_ac A_c^T
-                mul3_t(T1, A[c], T2)
-                for p in range(3):
-                    for q in range(3):
-                        C[p, q] += T2[p, q]
-                mul3_t(Bm[a, lc], P_ac, T1)  # + B_ac P_ac^T B_ca^T
-                mul3_t(T1, Bm[c, la], T2)
-                for p in range(3):
-                    for q in range(3):
-                        C[p, q] += T2[p, q]
-                mul3(Bm[a, lc], P_pred[c], T1)  # + B_ac P_c A_c^T
-                mul3_t(T1, A[c], T2)
-                for p in range(3):
-                    for q in range(3):
-                        sig[a, lc, p, q] = C[p, q] + T2[p, q]
-                        sig[c, la, p, q] = 1.0 if p == q else 0.0
-
-
 def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray | None:
     """:func:`resloc.cl.fusion.propagate_independent` compiled: ``sym(F P_ind F^T + Q)`` of
     every robot (shapes as there) with the noise of ``params`` (its variances kept for the
@@ -444,7 +362,6 @@ def _propagate_independent(x, P_ind, u, dt, odometry_var, floor_var, out):
 
 for _kernel in (
     _propagate_joint,
-    _left_multiply_factors,
     _propagate_independent,
     _propagated_independent,
 ):

@@ -25,8 +25,8 @@ differ in where ``C_ij`` comes from and what an update records:
     H_j``. The kernel multiplies only ``A_i`` per link: a factor robot i holds is then
     ``A_i sigma_il`` (``sigma_il`` as the step began), formed where a link reads it, and
     :func:`joint_commit` applies the products once (the factors by ``A_i``, each ``B_ij``
-    by the gains of i's later links), not ``N`` matrix products per update. The
-    end-of-step pair exchange is :mod:`resloc.cl.kernels_fusion_step`'s.
+    by the gains of i's later links), not ``N`` matrix products per update, and closes
+    the end-of-step pairs in the same pass (:mod:`resloc.cl.kernels_factorized_step`).
 
 The per-link pieces are in :mod:`resloc.cl.kernels_joint_links` and
 :mod:`resloc.cl.kernels_joint_records` (``joint_record``), their rounds in
@@ -60,6 +60,7 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.factorized import FactorizedCovariance
+from resloc.cl.kernels_factorized_step import commit_factorized
 from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
 from resloc.cl.kernels_math import jit
 from resloc.cl.tracking import JointCovariance, identity_stack
@@ -127,15 +128,17 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
         if not isinstance(joint, JointCovariance) or joint.updates:
             return None
         B = joint.T * joint.N
+        recorded = _NO_JOINT.fused
     elif code == FACTORIZED:
-        if not isinstance(joint, FactorizedCovariance) or joint.local or joint.fused.any():
+        if not isinstance(joint, FactorizedCovariance) or joint.local:
             return None
         B = joint.B
+        recorded = np.ascontiguousarray(joint.fused, dtype=np.bool_)
     else:
         return _NO_JOINT
     N = joint.N
-    if not _links_within_teams(np.ascontiguousarray(i, dtype=np.int64), nbr, B, N):
-        return None  # an index out of range, or a link across teams: the reference decides
+    if not _links_within_teams(np.ascontiguousarray(i, dtype=np.int64), nbr, B, N, recorded):
+        return None  # an index out of range, a link across teams, or factorized's records
     A = identity_stack(B)  # no update recorded yet: each A_i = I, B_il = 0
     work = np.zeros((5, 3, 3))
     J6 = np.zeros((2, 6, 6))
@@ -156,10 +159,16 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
 
 
 @jit
-def _links_within_teams(i, nbr, B, N):
-    """Every link's observer and neighbour in ``[0, B)`` and in the same team of ``N``."""
+def _links_within_teams(i, nbr, B, N, recorded):
+    """Every link's observer and neighbour in ``[0, B)`` and in the same team of ``N``, and
+    no update recorded in ``recorded`` (factorized's pairs that fused, (B, N) bool; (0, 0)
+    for none): one compiled call, ``recorded.any()`` in numpy alone cost ~0.8 us."""
     for e in range(i.shape[0]):
         if not (0 <= i[e] < B and 0 <= nbr[e] < B) or i[e] // N != nbr[e] // N:
+            return False
+    flat = recorded.reshape(recorded.size)
+    for k in range(flat.shape[0]):
+        if flat[k]:
             return False
     return True
 
@@ -167,8 +176,9 @@ def _links_within_teams(i, nbr, B, N):
 def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -> None:
     """Hand the kernel's records to ``memory.joint`` as the reference leaves them before its
     ``finish``: ``tracked``, the dense ``M`` (each robot's ``A_i`` at its own column and its
-    fused links' ``B_ij`` at theirs) and the noise; ``factorized``, the factors, ``A``,
-    ``B`` and the pairs that fused."""
+    fused links' ``B_ij`` at theirs) and the noise; ``factorized``, ``A``, ``B`` and the
+    pairs that fused, and the factors as its ``finish`` then leaves them
+    (:func:`~resloc.cl.kernels_factorized_step.commit_factorized`)."""
     li = np.ascontiguousarray(i, dtype=np.int64)
     fused = np.ascontiguousarray(fused, dtype=np.bool_)
     joint = memory.joint
@@ -179,16 +189,8 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
         joint.noise = state.noise
         joint.updates = int(np.count_nonzero(fused))
         joint.m_sigma = state.rows  # M Sigma as the records kept it (the finish's first product)
-    elif state.code == FACTORIZED:
-        sig = np.empty_like(state.sig)
-        _factorized_products(
-            state.A, state.sig, state.Bij, state.gains, li, state.nbr, fused, state.N, sig,
-            state.Bm,
-        )  # fmt: skip
-        joint.sig = sig
-        joint.A = state.A
-        joint.Bm = state.Bm
-        joint.fused = state.fused
+    elif state.code == FACTORIZED:  # and the end of step's pairs in the same pass
+        commit_factorized(state, joint, li, fused)
 
 
 @jit
@@ -208,50 +210,6 @@ def _scatter_tracked_blocks(M, A, Bij, obs, nbr, fused, N):
         for p in range(3):
             for q in range(3):
                 M[obs[e], p, c0 + q] = Bij[e, p, q]
-
-
-@jit
-def _factorized_products(A, sig, Bij, gains, obs, nbr, fused, N, sig_out, Bm):
-    """The products the ``factorized`` kernel deferred: every factor robot i holds,
-    ``sig_out[i, l] = A_i sig[i, l]``, and each fused link's ``B_ij`` (recorded as ``-K
-    H_j``) times the gains ``G`` of i's later fused links, added into ``Bm[i, j % N]``
-    (rows sorted by observer)."""
-    S = np.empty((3, 3))
-    T = np.empty((3, 3))
-    for b in range(sig.shape[0]):
-        for m in range(sig.shape[1]):
-            for p in range(3):
-                for q in range(3):
-                    sig_out[b, m, p, q] = (
-                        A[b, p, 0] * sig[b, m, 0, q]
-                        + A[b, p, 1] * sig[b, m, 1, q]
-                        + A[b, p, 2] * sig[b, m, 2, q]
-                    )
-    e = obs.shape[0] - 1
-    while e >= 0:  # robot by robot from the last row: S = the product of the later gains
-        i = obs[e]
-        for p in range(3):
-            for q in range(3):
-                S[p, q] = 1.0 if p == q else 0.0
-        while e >= 0 and obs[e] == i:
-            if fused[e]:
-                lj = nbr[e] % N
-                for p in range(3):
-                    for q in range(3):
-                        Bm[i, lj, p, q] += (
-                            S[p, 0] * Bij[e, 0, q] + S[p, 1] * Bij[e, 1, q] + S[p, 2] * Bij[e, 2, q]
-                        )
-                for p in range(3):
-                    for q in range(3):
-                        T[p, q] = (
-                            S[p, 0] * gains[e, 0, q]
-                            + S[p, 1] * gains[e, 1, q]
-                            + S[p, 2] * gains[e, 2, q]
-                        )
-                for p in range(3):
-                    for q in range(3):
-                        S[p, q] = T[p, q]
-            e -= 1
 
 
 _WARMED: list = []
