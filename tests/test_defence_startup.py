@@ -181,3 +181,64 @@ def test_the_correction_uses_the_floor_on_both_paths():
             np.testing.assert_allclose(
                 runs["numba", "on"][k], runs["numpy", "on"][k], rtol=0, atol=1e-9
             )
+
+
+def test_the_claims_an_observer_fuses_are_floored_during_its_start():
+    """``startup_claims``: each link's claim is raised to its observer's floor of the step
+    (robot 0: 10 mm for five corrections, then 5 mm, 2.5 mm with decay 0.5); robot 1's
+    claims are raised by its own floor; once the floor is over the claims go as sent."""
+    from resloc.cl.detection_startup import claims_floored, floored_claims
+
+    params = replace(PARAMS, startup_decay=0.5, startup_claims=True)
+    links = _links()
+    claims = np.tile(np.diag([1e-6, 4e-6, 1e-4]), (len(links.i), 1, 1))  # 2 mm (y)
+    memory = LinkMemory(N)
+    factors = []
+    for _ in range(20):
+        startup_floor(params, memory, links, _P())
+        used = floored_claims(params, memory, links.i, claims)
+        factors.append(used[:, 1, 1] / claims[:, 1, 1])
+        if used is not claims:
+            np.testing.assert_allclose(used[0], claims[0] * factors[-1][0])
+    factors = np.array(factors)
+    assert factors[:5, 0] == pytest.approx(25.0)  # (10 mm / 2 mm)^2
+    assert factors[5:7, 0] == pytest.approx([6.25, 1.5625])
+    assert (factors[7:] == 1.0).all()
+    np.testing.assert_array_equal(factors[:, 0], factors[:, 2])  # per observer (robot 1)
+    assert not claims_floored(replace(params, startup_claims=False), memory)
+    assert floored_claims(replace(params, startup_claims=False), memory, links.i, claims) is claims
+
+
+def test_floored_claims_on_both_paths():
+    """Robot 0 (1 mm) fuses five neighbours claiming 1 mm: with ``startup_claims`` their
+    claims are raised to its 10 mm floor too; compiled equals reference (1e-9)."""
+    import dataclasses
+
+    import resloc.cl.step
+    from resloc.cl import kernels
+    from resloc.filters.base import make_filter
+    from test_defence_redundancy import POSE, _compromised_scene
+
+    base = CLParams(trigger=False, detector=False)
+    links, *_ = _compromised_scene(base)
+    claims = np.tile(np.diag([1e-6, 1e-6, 1e-4]), (5, 1, 1))
+    links = dataclasses.replace(links, P_nb=claims, neighbours=None)
+    P = np.tile(np.diag([1e-6, 1e-6, 1e-4]), (6, 1, 1))
+    filt = make_filter("ckf")
+    floor = replace(base, startup_steps=3, startup_floor_std=0.01)
+    runs = {}
+    backends = ("numpy", "numba") if kernels.HAVE_NUMBA else ("numpy",)
+    for backend in backends:
+        for name, params in (("floor", floor), ("claims", replace(floor, startup_claims=True))):
+            with kernels.use_backend(backend):
+                runs[backend, name] = resloc.cl.step.correct(
+                    filt, POSE.copy(), P, links, params, LinkMemory(6)
+                )
+    # the neighbours' 1 mm claims raised to 10 mm: the posterior is wider
+    assert runs["numpy", "claims"][1][0, 0, 0] > 1.5 * runs["numpy", "floor"][1][0, 0, 0]
+    if kernels.HAVE_NUMBA:
+        assert runs["numba", "claims"][2].compiled
+        for k in (0, 1):
+            np.testing.assert_allclose(
+                runs["numba", "claims"][k], runs["numpy", "claims"][k], rtol=0, atol=1e-9
+            )

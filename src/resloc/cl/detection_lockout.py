@@ -52,9 +52,11 @@ Why a share and a majority, and what an attacker can do:
   neighbour is a liar.
 
 It runs before the correction on both paths (:func:`resloc.cl.step.correct`): the
-compiled correction is handed the floored covariances (``compiled = True``; the stage's
-own pass is a few numpy operations on per-robot arrays). The share is recorded after the
-correction from its outcome (:func:`record_lockout`), on both paths.
+compiled correction is handed the floored covariances (``compiled = True``). The share is
+recorded after the correction from its outcome (:func:`record_lockout`), on both paths.
+With the numba backend both passes run compiled (:mod:`resloc.cl.kernels_lockout`); the
+numpy functions here are their specification (:func:`reference_floor`,
+:func:`reference_record`).
 """
 
 from __future__ import annotations
@@ -79,20 +81,40 @@ __all__ = [
     "discarded_shares",
     "lockout_floor",
     "record_lockout",
+    "reference_floor",
+    "reference_record",
 ]
 
 #: Per robot (keyed (i, i)): its discarded share ``s_i`` and the factor its covariance was
 #: raised by in its last correction (1: none).
 LOCKOUT_STATE = "lockout"
 
+#: :mod:`resloc.cl.kernels_lockout` once imported.
+_FAST: list = []
+
 
 def lockout_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndarray) -> np.ndarray:
     """``P (B, 3, 3)`` with every observer of ``links`` whose discarded share is above
     ``params.lockout_share`` raised to the floor (module docstring); ``P`` itself when none
-    is raised (or the stage is off). Records each observer's factor (1: none)."""
+    is raised (or the stage is off). Records each observer's factor (1: none). The compiled
+    twin with the numba backend (:func:`resloc.cl.kernels_lockout.fast_floor`), else the
+    numpy spec (:func:`reference_floor`)."""
     if params.lockout_share <= 0.0 or memory is None:
         return P
     state = memory.stage_statistic(LOCKOUT_STATE, width=2)
+    if not _FAST:  # numba's import, on first use
+        from resloc.cl import kernels_lockout
+
+        _FAST.append(kernels_lockout)
+    fast = _FAST[0].fast_floor(params, state, links, P)
+    if fast is not None:
+        return fast
+    return reference_floor(params, state, links, P)
+
+
+def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray:
+    """:func:`lockout_floor` in numpy (its executable specification; the stage on) on the
+    stage's store ``state`` (:data:`LOCKOUT_STATE`)."""
     robots = np.unique(np.asarray(links.i))
     known = state.get(robots, robots)
     share = known[:, 0]
@@ -144,13 +166,27 @@ def record_lockout(
     robot inside a zone would raise its floor)."""
     if params.lockout_share <= 0.0 or memory is None or len(links) == 0:
         return
+    state = memory.stage_statistic(LOCKOUT_STATE, width=2)
+    if not _FAST:  # numba's import, on first use
+        from resloc.cl import kernels_lockout
+
+        _FAST.append(kernels_lockout)
+    if _FAST[0].fast_record(params, state, links, outcome.detected, x):
+        return
     judged = np.asarray(links.channel_ok, bool)
     if params.zone_trust:
         judged = judged & ~inside_zone_map(np.asarray(x)[links.i, :2], params.zone_trust_map)
-    robots, step_share = discard_share(links.i, outcome.detected, judged)
+    reference_record(params, state, links.i, outcome.detected, judged)
+
+
+def reference_record(
+    params: CLParams, state, i: np.ndarray, detected: np.ndarray, judged: np.ndarray
+) -> None:
+    """:func:`record_lockout`'s update in numpy (its executable specification) on the
+    stage's store ``state``: ``i``, ``detected``, ``judged`` per link, shape (E,)."""
+    robots, step_share = discard_share(i, detected, judged)
     if robots.size == 0:
         return
-    state = memory.stage_statistic(LOCKOUT_STATE, width=2)
     known = state.get(robots, robots)
     weight = 1.0 / float(params.lockout_window)
     share = (1.0 - weight) * known[:, 0] + weight * step_share

@@ -68,7 +68,9 @@ if TYPE_CHECKING:
 __all__ = [
     "StartupFloor",
     "applied_startup_factors",
+    "claims_floored",
     "floor_over",
+    "floored_claims",
     "reference_floor",
     "startup_floor",
     "startup_floor_schedule",
@@ -116,6 +118,44 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
         return reference_floor(params, state, links, P)
     _OVER[state] = (state.keys, state.values, schedule)
     return P
+
+
+def claims_floored(params: CLParams, memory: LinkMemory | None) -> bool:
+    """Whether :func:`floored_claims` may raise a claim: the option on and the stage not
+    over for ``memory``'s store (every floor ended: :func:`floor_over`, as
+    :func:`startup_floor` found it)."""
+    if not params.startup_claims or params.startup_steps <= 0 or memory is None:
+        return False
+    state = memory.stage_statistic(STARTUP_STATE, width=2)
+    over = _OVER.get(state)
+    return not (over is not None and over[0] is state.keys and over[1] is state.values)
+
+
+def floored_claims(params: CLParams, memory: LinkMemory | None, i, P_nb: np.ndarray) -> np.ndarray:
+    """The claims ``P_nb (E, 3, 3)`` an observer fuses, each raised to its observer ``i
+    (E,)``'s start-up floor of this step (``startup_claims``; ``P_nb`` itself when none
+    is raised, the option is off or the stage is over). Called after :func:`startup_floor`
+    in the same step (it reads the count the stage has just advanced).
+
+    Why: the floor widens the observer's own prior during its start, but its neighbours'
+    claims stay as sent: an honest neighbour's 1-2 mm after a few steps, a compromised
+    one's whatever it likes (x0.01 of its covariance). The observer then weighs each
+    neighbour far above its own floored estimate and a lie accepted in the wide gate moves
+    it almost the whole way. Floored as its own prior, every claim weighs as much as the
+    observer's estimate during the start (``docs/attack/lockout.md`` section 4)."""
+    if not claims_floored(params, memory):
+        return P_nb
+    state = memory.stage_statistic(STARTUP_STATE, width=2)
+    i = np.asarray(i)
+    floor = startup_floor_schedule(params, state.get(i, i)[:, 0] - 1.0)
+    if not (floor > 0.0).any():
+        return P_nb
+    claims = np.asarray(P_nb, float)
+    largest = np.maximum(claims[:, 0, 0], claims[:, 1, 1])
+    factor = np.where(floor > 0.0, np.maximum(floor**2 / largest, 1.0), 1.0)
+    if not (factor > 1.0).any():
+        return P_nb
+    return claims * factor[:, None, None]
 
 
 def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray:

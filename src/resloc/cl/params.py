@@ -199,6 +199,9 @@ class CLParams:
     startup_decay : float
         After the ``startup_steps`` corrections the floor is not dropped but multiplied by
         this at each further correction (a geometric decay, no cliff; 0: dropped at once).
+    startup_claims : bool
+        While an observer's floor is raised, the claimed covariances it fuses are raised
+        to the same floor (:func:`resloc.cl.detection_startup.floored_claims`).
     lockout_share : float
         A robot whose detector discarded more than this share of its judged links (an
         exponentially weighted mean over its corrections) raises its prior covariance to
@@ -272,6 +275,7 @@ class CLParams:
     startup_steps: int = 0
     startup_floor_std: float = 0.01
     startup_decay: float = 0.0
+    startup_claims: bool = False
     lockout_share: float = 0.0
     lockout_window: float = 10.0
     lockout_floor_std: float = 0.01

@@ -20,7 +20,7 @@ from resloc.cl.detection_lockout import lockout_floor, record_lockout
 from resloc.cl.detection_outvoted import widen_outvoted
 from resloc.cl.detection_reciprocal import reciprocal_evidence
 from resloc.cl.detection_redundancy import capped_claims, fix_evidence
-from resloc.cl.detection_startup import startup_floor
+from resloc.cl.detection_startup import claims_floored, floored_claims, startup_floor
 from resloc.cl.detection_widening import keep_exempt
 from resloc.cl.detection_witness import step_notes
 from resloc.cl.detection_witness_frames import deliver_witness, record_witness
@@ -359,6 +359,10 @@ def correct(
     P_before = P
     P = widen_outvoted(params, memory, links, P)
     P = startup_floor(params, memory, links, P)  # no robot shrinks below a floor at first
+    if claims_floored(params, memory):  # nor trusts its neighbours' claims more at first
+        claims = floored_claims(params, memory, links.i, links.P_nb)
+        if claims is not links.P_nb:
+            links = dataclasses.replace(links, P_nb=claims)
     P = lockout_floor(params, memory, links, P)  # nor stays locked out by its own gate
     if memory is not None:  # a compromised robot's software skips them (simulation)
         P = keep_exempt(P, P_before, memory.exempt)

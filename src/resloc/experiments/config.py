@@ -309,6 +309,11 @@ class DetectorSpec:
         min=0.0,
         max=1.0,
     )
+    startup_claims: bool = option(
+        False,
+        "startup: while an observer's floor is raised, the claims it fuses are raised to "
+        "the same floor (docs/attack/lockout.md)",
+    )
     lockout_share: float = option(
         0.0,
         "a robot whose detector discarded more than this share of its links (a mean over "
@@ -452,6 +457,7 @@ class Scenario:
             startup_steps=int(d.startup_steps),
             startup_floor_std=float(d.startup_floor_std),
             startup_decay=float(d.startup_decay),
+            startup_claims=bool(d.startup_claims),
             lockout_share=float(d.lockout_share),
             lockout_window=float(d.lockout_window),
             lockout_floor_std=float(d.lockout_floor_std),

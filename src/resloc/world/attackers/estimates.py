@@ -9,7 +9,7 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.cl.detection_lockout import discarded_shares
-from resloc.cl.detection_startup import applied_startup_factors
+from resloc.cl.detection_startup import applied_startup_factors, floored_claims
 from resloc.cl.detection_zone import reciprocal_rows
 from resloc.world.adversary import ReplayBuffer
 from resloc.world.attackers.base import SensingLie, Strategy
@@ -253,7 +253,9 @@ class CompromisedRobot(Strategy):
                 cand[..., 1] = wrap_angle(cand[..., 1])
                 return cand
 
-            context = fix_context(links, r, judged, P_nb, memory)
+            # the claims as the victims fuse them (raised during their start-up floor)
+            fused_claims = floored_claims(params, memory, links.i, P_nb)
+            context = fix_context(links, r, judged, fused_claims, memory)
             a = largest_accepted_along(
                 path, zh, S[hit], links.i[r], links.j[r], judged, memory, context=context
             )
@@ -271,7 +273,7 @@ class CompromisedRobot(Strategy):
                     source.x[links.i],
                     widened(source.P, memory, params)[links.i],
                     links.x_nb,
-                    P_nb,
+                    fused_claims,
                     links.i,
                     links.j,
                     links.channel_ok,

@@ -1,0 +1,220 @@
+"""The lock-out floor compiled: one pass before the correction, one after.
+
+Twins of :func:`~resloc.cl.detection_lockout.reference_floor` and
+:func:`~resloc.cl.detection_lockout.reference_record` (the numpy specification:
+``np.unique`` of the observers, the stage store's ``get`` and ``set``, ``np.bincount``,
+the zone map test and :func:`~resloc.cl.detection_widening.scale_robots`). Their numpy
+glue cost about 50 microseconds a step on the paper's 17 robots (floor ~15, record ~37),
+the stage's whole cost. The passes read and write the stage's per-robot store (keyed
+``r * n + r``: the discarded share and the factor applied) where it lies in the memory.
+
+A pass writes the store only when every robot it would write is stored already (a run's
+steady state, from its second step); otherwise it writes nothing and the spec runs (the
+only code that inserts). An observer id outside the store's id space or the covariances'
+rows is the spec's to decide (it raises, or indexes as numpy does).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from resloc.cl.backend import backend
+from resloc.cl.kernels_math import jit_lanes
+
+__all__ = ["LOCKOUT_RUNS", "fast_floor", "fast_record", "floor_pass", "record_pass"]
+
+#: How often each compiled pass ran or left the step to the spec (the tests read it).
+LOCKOUT_RUNS = {"floors": 0, "records": 0, "fallbacks": 0}
+
+#: A pass's status besides the number of robots raised / recorded (>= 0): an observer is
+#: not stored yet, or an id is out of range (nothing written: the spec runs).
+REFUSED = -2
+
+
+@jit_lanes
+def _slots(skeys, n, li, B):
+    """Each observer's row in the store (keys ``r * n + r`` ascending); ``observer[r]``
+    whether ``r`` observes in the step. ``ok`` False when an id is out of range or an
+    observer is not stored yet."""
+    E = li.shape[0]
+    observer = np.zeros(n, np.bool_)
+    slot = np.empty(n, np.int64)
+    for e in range(E):
+        if li[e] < 0 or li[e] >= n or li[e] >= B:
+            return observer, slot, False
+        observer[li[e]] = True
+    S = skeys.shape[0]
+    q = 0
+    for r in range(n):
+        if observer[r]:
+            key = r * n + r
+            while q < S and skeys[q] < key:
+                q += 1
+            if q >= S or skeys[q] != key:
+                return observer, slot, False
+            slot[r] = q
+    return observer, slot, True
+
+
+@jit_lanes
+def floor_pass(skeys, svals, n, li, P, out, share, std):
+    """Every observer whose stored share is above ``share`` raised to the floor ``std``.
+
+    Parameters
+    ----------
+    skeys, svals : ndarray, shapes (S,), (S, 2)
+        The stage's store (keys ``r * n + r``, sorted; values the share and the last
+        factor), written in place.
+    n : int
+        The store's id space.
+    li : ndarray of int64, shape (E,)
+        The step's observers (one per link, any order).
+    P : ndarray, shape (B, 3, 3)
+        The covariances before the stage.
+    out : ndarray, shape (B, 3, 3)
+        Receives ``P`` with every raised robot's block times its factor (written only when
+        one is raised).
+    share, std : float
+        ``lockout_share``, ``lockout_floor_std``.
+
+    Returns
+    -------
+    int
+        The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
+        unchanged otherwise), or :data:`REFUSED` (nothing written).
+    """
+    observer, slot, ok = _slots(skeys, n, li, P.shape[0])
+    if not ok:
+        return REFUSED
+    factor = np.ones(n)
+    raised = 0
+    for r in range(n):
+        if observer[r] and svals[slot[r], 0] > share:
+            a, d = P[r, 0, 0], P[r, 1, 1]
+            largest = a if (math.isnan(a) or a >= d) else d  # np.maximum: nan wins
+            if math.isnan(d):
+                largest = d
+            f = std * std / largest
+            if not (f >= 1.0) and not math.isnan(f):
+                f = 1.0
+            factor[r] = f
+            if f > 1.0:
+                raised += 1
+    for r in range(n):
+        if observer[r]:
+            svals[slot[r], 1] = factor[r]
+    if raised:
+        out[:] = P
+        for r in range(n):
+            if observer[r] and factor[r] > 1.0:
+                f = factor[r]
+                for a in range(3):
+                    for b in range(3):
+                        out[r, a, b] *= f
+    return raised
+
+
+@jit_lanes
+def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
+    """Each observer's share updated with the step's: ``s <- (1 - w) s + w d / m`` over
+    its judged links (``detected``, ``channel_ok``: bool, shape (E,); judged: the channel
+    through and the observer's estimate ``x (B, 3)`` outside every disc ``(cx, cy, r)`` of
+    ``discs (Z, 3)``, the spec's :func:`~resloc.cl.detection_zone.inside_zone_map`); an
+    observer with none judged is left. Returns the number of observers recorded, or
+    :data:`REFUSED`."""
+    E = li.shape[0]
+    observer = np.zeros(n, np.bool_)
+    judged = np.zeros(E, np.bool_)
+    for e in range(E):
+        if li[e] < 0 or li[e] >= n or li[e] >= x.shape[0]:
+            return REFUSED
+        ok = channel_ok[e]
+        if ok:
+            for z in range(discs.shape[0]):
+                gap = math.hypot(x[li[e], 0] - discs[z, 0], x[li[e], 1] - discs[z, 1])
+                if gap - discs[z, 2] <= 0.0:
+                    ok = False
+                    break
+        judged[e] = ok
+        if ok:
+            observer[li[e]] = True
+    S = skeys.shape[0]
+    slot = np.empty(n, np.int64)
+    q = 0
+    for r in range(n):
+        if observer[r]:
+            key = r * n + r
+            while q < S and skeys[q] < key:
+                q += 1
+            if q >= S or skeys[q] != key:
+                return REFUSED
+            slot[r] = q
+    m = np.zeros(n)
+    d = np.zeros(n)
+    for e in range(E):
+        if judged[e]:
+            m[li[e]] += 1.0
+            if detected[e]:
+                d[li[e]] += 1.0
+    recorded = 0
+    for r in range(n):
+        if observer[r]:
+            known = svals[slot[r], 0]
+            svals[slot[r], 0] = (1.0 - weight) * known + weight * (d[r] / max(m[r], 1.0))
+            if not (svals[slot[r], 1] > 1.0):
+                svals[slot[r], 1] = 1.0
+            recorded += 1
+    return recorded
+
+
+def fast_floor(params, state, links, P: np.ndarray) -> np.ndarray | None:
+    """:func:`~resloc.cl.detection_lockout.lockout_floor` by :func:`floor_pass` on the
+    stage's store ``state`` (the stage on): the covariances, or None with the numpy
+    backend, arrays it does not take, or a step the pass refuses (then the spec runs)."""
+    if backend() != "numba":
+        return None
+    li = np.ascontiguousarray(links.i, np.int64)
+    Pa = np.ascontiguousarray(P, float)
+    if state.values.ndim != 2 or Pa.ndim != 3 or Pa.shape[1:] != (3, 3) or li.ndim != 1:
+        LOCKOUT_RUNS["fallbacks"] += 1
+        return None
+    out = np.empty_like(Pa)
+    status = floor_pass(
+        state.keys, state.values, state.n_nodes, li, Pa, out,
+        float(params.lockout_share), float(params.lockout_floor_std),
+    )  # fmt: skip
+    if status == REFUSED:
+        LOCKOUT_RUNS["fallbacks"] += 1
+        return None
+    LOCKOUT_RUNS["floors"] += 1
+    return out if status > 0 else P
+
+
+def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bool:
+    """:func:`~resloc.cl.detection_lockout.record_lockout`'s update by :func:`record_pass`
+    (the stage on; ``x (B, 3)`` the estimates the correction started from): whether it
+    ran (False: the spec runs)."""
+    if backend() != "numba" or state.values.ndim != 2:
+        return False
+    xa = np.ascontiguousarray(x, float)
+    if xa.ndim != 2 or xa.shape[1] < 2:
+        LOCKOUT_RUNS["fallbacks"] += 1
+        return False
+    zone = params.zone_trust and len(params.zone_trust_map)
+    discs = np.asarray(params.zone_trust_map, float).reshape(-1, 3) if zone else _NO_DISCS
+    status = record_pass(
+        state.keys, state.values, state.n_nodes, np.ascontiguousarray(links.i, np.int64),
+        np.ascontiguousarray(detected, np.bool_),
+        np.ascontiguousarray(links.channel_ok, np.bool_), xa, discs,
+        1.0 / float(params.lockout_window),
+    )  # fmt: skip
+    if status == REFUSED:
+        LOCKOUT_RUNS["fallbacks"] += 1
+        return False
+    LOCKOUT_RUNS["records"] += 1
+    return True
+
+
+_NO_DISCS = np.zeros((0, 3))
