@@ -91,6 +91,13 @@ OPTIONS: dict[str, dict | str] = {
     "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay": dict(
         DEFENCES["zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay"]
     ),
+    "defence zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay+lockout": (
+        dict(
+            DEFENCES[
+                "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay+lockout"
+            ]
+        )
+    ),
     "examples/beyond/resilient.toml": "examples/beyond/resilient.toml",
 }
 
