@@ -22,6 +22,7 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
+from resloc.cl.kernels_startup import floor_factor, write_raised
 
 __all__ = ["LOCKOUT_RUNS", "fast_floor", "fast_record", "floor_pass", "record_pass"]
 
@@ -34,17 +35,18 @@ REFUSED = -2
 
 
 @jit_lanes
-def _slots(skeys, n, li, B):
-    """Each observer's row in the store (keys ``r * n + r`` ascending); ``observer[r]``
-    whether ``r`` observes in the step. ``ok`` False when an id is out of range or an
-    observer is not stored yet."""
+def _slots(skeys, n, li, mask, B):
+    """Each marked observer's row in the store (keys ``r * n + r`` ascending);
+    ``observer[r]`` whether ``r`` observes on a link with ``mask`` set. ``ok`` False when
+    an id is out of range or a marked observer is not stored yet."""
     E = li.shape[0]
     observer = np.zeros(n, np.bool_)
     slot = np.empty(n, np.int64)
     for e in range(E):
         if li[e] < 0 or li[e] >= n or li[e] >= B:
             return observer, slot, False
-        observer[li[e]] = True
+        if mask[e]:
+            observer[li[e]] = True
     S = skeys.shape[0]
     q = 0
     for r in range(n):
@@ -85,34 +87,21 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
         The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
         unchanged otherwise), or :data:`REFUSED` (nothing written).
     """
-    observer, slot, ok = _slots(skeys, n, li, P.shape[0])
+    observer, slot, ok = _slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
     if not ok:
         return REFUSED
     factor = np.ones(n)
     raised = 0
     for r in range(n):
         if observer[r] and svals[slot[r], 0] > share:
-            a, d = P[r, 0, 0], P[r, 1, 1]
-            largest = a if (math.isnan(a) or a >= d) else d  # np.maximum: nan wins
-            if math.isnan(d):
-                largest = d
-            f = std * std / largest
-            if not (f >= 1.0) and not math.isnan(f):
-                f = 1.0
-            factor[r] = f
-            if f > 1.0:
+            factor[r] = floor_factor(P, r, std)
+            if factor[r] > 1.0:
                 raised += 1
     for r in range(n):
         if observer[r]:
             svals[slot[r], 1] = factor[r]
     if raised:
-        out[:] = P
-        for r in range(n):
-            if observer[r] and factor[r] > 1.0:
-                f = factor[r]
-                for a in range(3):
-                    for b in range(3):
-                        out[r, a, b] *= f
+        write_raised(out, P, observer, factor)
     return raised
 
 
@@ -125,7 +114,6 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
     observer with none judged is left. Returns the number of observers recorded, or
     :data:`REFUSED`."""
     E = li.shape[0]
-    observer = np.zeros(n, np.bool_)
     judged = np.zeros(E, np.bool_)
     for e in range(E):
         if li[e] < 0 or li[e] >= n or li[e] >= x.shape[0]:
@@ -138,19 +126,9 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
                     ok = False
                     break
         judged[e] = ok
-        if ok:
-            observer[li[e]] = True
-    S = skeys.shape[0]
-    slot = np.empty(n, np.int64)
-    q = 0
-    for r in range(n):
-        if observer[r]:
-            key = r * n + r
-            while q < S and skeys[q] < key:
-                q += 1
-            if q >= S or skeys[q] != key:
-                return REFUSED
-            slot[r] = q
+    observer, slot, ok = _slots(skeys, n, li, judged, x.shape[0])
+    if not ok:
+        return REFUSED
     m = np.zeros(n)
     d = np.zeros(n)
     for e in range(E):

@@ -26,7 +26,14 @@ import numpy as np
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
 
-__all__ = ["STARTUP_RUNS", "fast_floor", "stage_over", "startup_pass"]
+__all__ = [
+    "STARTUP_RUNS",
+    "fast_floor",
+    "floor_factor",
+    "stage_over",
+    "startup_pass",
+    "write_raised",
+]
 
 #: How often the compiled pass ran, left the step to the spec (an observer not stored yet,
 #: an id out of range, arrays it does not take) and found the stage over (the tests read it).
@@ -48,6 +55,35 @@ def _floor(seen, steps, std, decay, end):
         past = past if math.isnan(past) else 0.0
     floor = std * decay**past
     return floor if floor >= end else 0.0
+
+
+@jit_lanes
+def floor_factor(P, r, floor):
+    """``max(floor^2 / max(P_r,xx, P_r,yy), 1)``: the factor that raises robot ``r``'s
+    covariance in ``P (B, 3, 3)`` to the floor, as numpy computes it (``np.maximum``: a
+    nan wins; shared with :mod:`resloc.cl.kernels_lockout`)."""
+    a, d = P[r, 0, 0], P[r, 1, 1]
+    largest = a if (math.isnan(a) or a >= d) else d
+    if math.isnan(d):
+        largest = d
+    f = floor * floor / largest
+    if not (f >= 1.0) and not math.isnan(f):
+        f = 1.0
+    return f
+
+
+@jit_lanes
+def write_raised(out, P, observer, factor):
+    """``out (B, 3, 3)`` <- ``P`` with every observer's block times its factor above 1
+    (``observer (n,)`` bool, ``factor (n,)``): the spec's
+    :func:`~resloc.cl.detection_widening.scale_robots`."""
+    out[:] = P
+    for r in range(observer.shape[0]):
+        if observer[r] and factor[r] > 1.0:
+            f = factor[r]
+            for a in range(3):
+                for b in range(3):
+                    out[r, a, b] *= f
 
 
 @jit_lanes
@@ -121,15 +157,7 @@ def startup_pass(skeys, svals, n, li, P, out, steps, std, decay, end):
             continue
         seen = svals[slot[r], 0]
         floor = _floor(seen, steps, std, decay, end)
-        f = 1.0
-        if floor > 0.0:
-            a, d = P[r, 0, 0], P[r, 1, 1]
-            largest = a if (math.isnan(a) or a >= d) else d  # np.maximum: nan wins
-            if math.isnan(d):
-                largest = d
-            f = floor * floor / largest
-            if not (f >= 1.0) and not math.isnan(f):
-                f = 1.0
+        f = floor_factor(P, r, floor) if floor > 0.0 else 1.0
         factor[r] = f
         if f > 1.0:
             raised += 1
@@ -138,13 +166,7 @@ def startup_pass(skeys, svals, n, li, P, out, steps, std, decay, end):
             svals[slot[r], 0] += 1.0
             svals[slot[r], 1] = factor[r]
     if raised:
-        out[:] = P
-        for r in range(n):
-            if observer[r] and factor[r] > 1.0:
-                f = factor[r]
-                for a in range(3):
-                    for b in range(3):
-                        out[r, a, b] *= f
+        write_raised(out, P, observer, factor)
     return raised
 
 
