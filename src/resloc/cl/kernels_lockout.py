@@ -22,7 +22,7 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_startup import floor_factor, write_raised
+from resloc.cl.kernels_startup import floor_factor, stored_slots, write_raised
 
 __all__ = ["LOCKOUT_RUNS", "fast_floor", "fast_record", "floor_pass", "record_pass"]
 
@@ -32,32 +32,6 @@ LOCKOUT_RUNS = {"floors": 0, "records": 0, "fallbacks": 0}
 #: A pass's status besides the number of robots raised / recorded (>= 0): an observer is
 #: not stored yet, or an id is out of range (nothing written: the spec runs).
 REFUSED = -2
-
-
-@jit_lanes
-def _slots(skeys, n, li, mask, B):
-    """Each marked observer's row in the store (keys ``r * n + r`` ascending);
-    ``observer[r]`` whether ``r`` observes on a link with ``mask`` set. ``ok`` False when
-    an id is out of range or a marked observer is not stored yet."""
-    E = li.shape[0]
-    observer = np.zeros(n, np.bool_)
-    slot = np.empty(n, np.int64)
-    for e in range(E):
-        if li[e] < 0 or li[e] >= n or li[e] >= B:
-            return observer, slot, False
-        if mask[e]:
-            observer[li[e]] = True
-    S = skeys.shape[0]
-    q = 0
-    for r in range(n):
-        if observer[r]:
-            key = r * n + r
-            while q < S and skeys[q] < key:
-                q += 1
-            if q >= S or skeys[q] != key:
-                return observer, slot, False
-            slot[r] = q
-    return observer, slot, True
 
 
 @jit_lanes
@@ -87,7 +61,7 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
         The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
         unchanged otherwise), or :data:`REFUSED` (nothing written).
     """
-    observer, slot, ok = _slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
+    observer, slot, ok = stored_slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
     if not ok:
         return REFUSED
     factor = np.ones(n)
@@ -126,7 +100,7 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
                     ok = False
                     break
         judged[e] = ok
-    observer, slot, ok = _slots(skeys, n, li, judged, x.shape[0])
+    observer, slot, ok = stored_slots(skeys, n, li, judged, x.shape[0])
     if not ok:
         return REFUSED
     m = np.zeros(n)

@@ -32,6 +32,7 @@ __all__ = [
     "floor_factor",
     "stage_over",
     "startup_pass",
+    "stored_slots",
     "write_raised",
 ]
 
@@ -87,6 +88,33 @@ def write_raised(out, P, observer, factor):
 
 
 @jit_lanes
+def stored_slots(skeys, n, li, mask, B):
+    """Each marked observer's row in a per-robot store (shared with
+    :mod:`resloc.cl.kernels_lockout`) (keys ``r * n + r`` ascending);
+    ``observer[r]`` whether ``r`` observes on a link with ``mask`` set. ``ok`` False when
+    an id is out of range or a marked observer is not stored yet."""
+    E = li.shape[0]
+    observer = np.zeros(n, np.bool_)
+    slot = np.empty(n, np.int64)
+    for e in range(E):
+        if li[e] < 0 or li[e] >= n or li[e] >= B:
+            return observer, slot, False
+        if mask[e]:
+            observer[li[e]] = True
+    S = skeys.shape[0]
+    q = 0
+    for r in range(n):
+        if observer[r]:
+            key = r * n + r
+            while q < S and skeys[q] < key:
+                q += 1
+            if q >= S or skeys[q] != key:
+                return observer, slot, False
+            slot[r] = q
+    return observer, slot, True
+
+
+@jit_lanes
 def stage_over(skeys, svals, n, steps, std, decay, end):
     """Whether the store ``skeys, svals (S,), (S, 2)`` holds every robot id ``0 .. n - 1``
     (keys ``r * n + r``) with its floor ended and factor 1, for a schedule that never rises
@@ -128,28 +156,12 @@ def startup_pass(skeys, svals, n, li, P, out, steps, std, decay, end):
         The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
         unchanged otherwise), :data:`OVER` or :data:`REFUSED` (nothing written).
     """
-    E = li.shape[0]
-    B = P.shape[0]
-    for e in range(E):  # ids the spec would index with (or fail on): the spec decides
-        if li[e] < 0 or li[e] >= n or li[e] >= B:
-            return REFUSED
+    # every observer's row (ids out of range and observers not stored yet: the spec's)
+    observer, slot, ok = stored_slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
+    if not ok:
+        return REFUSED
     if stage_over(skeys, svals, n, steps, std, decay, end):
         return OVER
-    observer = np.zeros(n, np.bool_)
-    for e in range(E):
-        observer[li[e]] = True
-    # every observer's row (the keys and the observers both ascending: one walk)
-    S = skeys.shape[0]
-    slot = np.empty(n, np.int64)
-    q = 0
-    for r in range(n):
-        if observer[r]:
-            key = r * n + r
-            while q < S and skeys[q] < key:
-                q += 1
-            if q >= S or skeys[q] != key:
-                return REFUSED  # not stored yet: the spec inserts it
-            slot[r] = q
     factor = np.empty(n)
     raised = 0
     for r in range(n):
