@@ -32,7 +32,7 @@ import numpy as np
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.kernels_memory import int64_rows, same_keys
-from resloc.cl.kernels_stores import group_slots
+from resloc.cl.kernels_stores import group_slots, keep_state, steady_state
 from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
 
@@ -212,9 +212,12 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     cusum, k, h, cap, mean, mk, mh = _detection_gains(params)
     if (cusum or mean) and memory is None:
         return None
-    slot = mslot = None
+    slot = mslot = stores = None
     if cusum or mean:  # one look-up and one save for both stores (kernels_stores)
         stores = (memory.cusum,) * cusum + (memory.mean_cusum,) * mean
+        state = steady_state(stores, params, i, j)  # the last step's, looked up again
+        if state is not None:
+            return state
         slot = mslot = group_slots(stores, i, j, saved)
     if cusum:
         if slot is None:
@@ -233,7 +236,10 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     kernel = KernelDetection(
         cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES, no_zone(), _NO_FIXES
     )
-    return DetectorState(kernel, tuple(saved))
+    state = DetectorState(kernel, tuple(saved))
+    if stores is not None:
+        keep_state(stores, params, state, slot if cusum else mslot)
+    return state
 
 
 #: Innovation-norm codes shared with the kernels.
