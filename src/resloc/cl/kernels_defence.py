@@ -213,21 +213,21 @@ def recovery_step(start, spread, applied, detected, stat, trace, after, gate, ca
     ``RejectionRecovery.discard`` (with ``recovery_inflation``, ``remaining_inflation``,
     ``_record_applied`` and ``update_rejection_runs``).
     """
-    f = math.nan
-    if start >= after:
+    f = math.nan  # not in recovery: stays NaN, as np.minimum keeps it
+    if start >= after:  # (the bounds' divisions only here: a NaN f compares False)
         f = np.exp2((start - after) / after)
         if f > cap:
             f = cap
-    growth = trace / spread if spread > 0.0 else math.inf
-    if growth < 1.0:
-        growth = 1.0
-    if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
-        f = growth
-    remaining = (cap * cap) / (applied if applied > 1.0 else 1.0)
-    if remaining < 1.0:
-        remaining = 1.0
-    if f > remaining:
-        f = remaining
+        growth = trace / spread if spread > 0.0 else math.inf
+        if growth < 1.0:
+            growth = 1.0
+        if f > growth:
+            f = growth
+        remaining = (cap * cap) / (applied if applied > 1.0 else 1.0)
+        if remaining < 1.0:
+            remaining = 1.0
+        if f > remaining:
+            f = remaining
     new_spread = spread
     new_applied = applied
     if not detected:

@@ -262,6 +262,13 @@ def nis_of(nu0, nu1, l00, l10, l11):
     the same solve order as :func:`resloc.linalg.solve_spd`)."""
     y0 = nu0 / l00
     y1 = (nu1 - l10 * y0) / l11
+    return nis_of_white(nu0, nu1, y0, y1, l00, l10, l11)
+
+
+@jit_inline
+def nis_of_white(nu0, nu1, y0, y1, l00, l10, l11):
+    """:func:`nis_of` from the whitened innovation ``(y0, y1) = L^-1 Lambda``
+    (:func:`whiten_of`'s, the same operations: the same bits), for a stage that has it."""
     w1 = y1 / l11
     w0 = (y0 - l10 * w1) / l00
     q = nu0 * w0 + nu1 * w1
