@@ -15,6 +15,7 @@ reference path then starts from the same memory.
 kernel function                numpy twin
 =============================  ========================================================
 :func:`nis_of`                   :func:`resloc.cl.cusum.nis`
+:func:`nis_of_white`           :func:`resloc.cl.cusum.nis` (from :func:`whiten_of`'s result)
 :func:`whiten_of`              :func:`resloc.cl.cusum.whiten`
 :func:`cusum_step`             :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``

@@ -16,6 +16,10 @@ values arrays, which a store replaces when it inserts (and ``undo`` puts the old
 back); the keys are compared only when one of them changed. Anything else (a link not
 stored yet, arrays not as the compiled path passes them) answers None and the caller takes
 the store-by-store path, the only one that inserts.
+
+A group also keeps the stage's state built on it (:func:`keep_state`): on a later step with
+the same parameters, stores and number of links, :func:`steady_state` gives it back after
+the group's call, with no kernel tuple or ``undo`` record built again.
 """
 
 from __future__ import annotations
