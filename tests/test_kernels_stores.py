@@ -143,3 +143,76 @@ def test_a_copied_store_leaves_the_group_behind() -> None:
     DetectorState(None, tuple(saved)).undo()
     for store, b in zip(copies, before, strict=True):
         np.testing.assert_array_equal(store.values, b)
+
+
+FULL = dict(detector_norm="nis", cusum=True, mean_cusum=True, robot_cusum=True, recovery=True)
+
+
+def _full_stores(memory) -> list:
+    stores = [memory.cusum, memory.mean_cusum]
+    stores += [memory.stage_statistic(n) for n in ("robot_cusum", "recovery")]
+    return stores + [memory.stage_statistic(n) for n in ("recovery_spread", "recovery_applied")]
+
+
+def _assert_states_of(params, memory, i, j, detection, defence) -> None:
+    """The states' gains are ``params``', their slots the store-by-store look-up's and
+    their arrays the stores'."""
+    kernel = detection.kernel
+    assert kernel.cusum_h[0] == params.cusum_h and kernel.mean_h[0] == params.mean_cusum_h
+    assert defence.kernel.robot_h[0] == params.robot_cusum_h
+    np.testing.assert_array_equal(kernel.cusum_slot, memory.cusum.slots(i, j))
+    np.testing.assert_array_equal(kernel.mean_slot, memory.mean_cusum.slots(i, j))
+    assert kernel.cusum_g is memory.cusum.values and kernel.mean_g is memory.mean_cusum.values
+    stores = _full_stores(memory)
+    for k, store in zip((4, 10, 12, 14), stores[2:], strict=True):
+        np.testing.assert_array_equal(defence.kernel[k], store.slots(i, i))
+        assert defence.kernel[k - 1] is store.values
+
+
+def test_a_steady_step_reuses_the_last_state_with_this_steps_slots_and_save(
+    monkeypatch,
+) -> None:
+    """From the third step of the same links and parameters, detector_state and
+    defence_state return the states of the step before (no group built, no state built):
+    one compiled call each looks the links up and saves the values *of this step* for
+    undo. Another parameters object, fewer links or a link not stored yet give a state
+    built again, with that step's gains and slots."""
+    params = CLParams(**FULL)
+    memory = LinkMemory(4)
+    rng = np.random.default_rng(5)
+    states = []
+    for _ in range(2):  # the first inserts every key, the second builds the groups
+        states.append(
+            (detector_state(params, memory, OBS, NBR), defence_state(params, memory, OBS))
+        )
+    stores = _full_stores(memory)
+    for store in stores:  # what the second step's loop wrote
+        store.values[...] = rng.normal(size=store.values.shape)
+    before = [s.values.copy() for s in stores]
+    calls = []
+    for store in (memory.cusum, stores[2]):  # the groups' compiled calls, counted
+        monkeypatch.setattr(store.group, "call", _counted(store.group.call, calls))
+    monkeypatch.setattr(kernels_stores, "_build", None)  # no group built
+    detection = detector_state(params, memory, OBS, NBR)
+    defence = defence_state(params, memory, OBS)
+    assert detection is states[1][0] and defence is states[1][1]
+    assert len(calls) == 2
+    monkeypatch.undo()
+    _assert_states_of(params, memory, OBS, NBR, detection, defence)
+    for store in stores:
+        store.values += 1.0
+    defence.undo()
+    detection.undo()
+    for store, b in zip(stores, before, strict=True):  # this step's values, not the last's
+        np.testing.assert_array_equal(store.values, b)
+    # another parameters object (other gains): states built again
+    other = CLParams(**FULL, cusum_h=7.0, mean_cusum_h=4.0, robot_cusum_h=9.0)
+    detection = detector_state(other, memory, OBS, NBR)
+    defence = defence_state(other, memory, OBS)
+    assert detection is not states[1][0] and defence is not states[1][1]
+    _assert_states_of(other, memory, OBS, NBR, detection, defence)
+    # fewer links (every one stored), then a link not stored yet: their own slots
+    for i, j in ((OBS[2:], NBR[2:]), (np.append(OBS, 3), np.append(NBR, 3))):
+        detection = detector_state(other, memory, i, j)
+        defence = defence_state(other, memory, i)
+        _assert_states_of(other, memory, i, j, detection, defence)

@@ -47,7 +47,7 @@ from resloc.cl.kernels_detection import (
     store_slots,
 )
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
-from resloc.cl.kernels_stores import group_slots
+from resloc.cl.kernels_stores import group_slots, keep_state, steady_state
 from resloc.cl.params import CLParams
 
 __all__ = [
@@ -119,6 +119,18 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
     robot_gains, recovery_gains = _defence_gains(params)
     if (robot_gains or recovery_gains) and memory is None:
         return None
+    robot = memory.stage_statistic("robot_cusum") if robot_gains else None
+    if recovery_gains:
+        # the stores of RejectionRecovery (detection_recovery._runs, its spread and the
+        # inflation applied)
+        runs = memory.stage_statistic("recovery", width=None)
+        spread = memory.stage_statistic("recovery_spread")
+        applied = memory.stage_statistic("recovery_applied")
+    stores = ((robot,) if robot_gains else ()) + ((runs, spread, applied) if recovery_gains else ())
+    if stores:  # the last step's state, its links looked up again (kernels_stores)
+        state = steady_state(stores, params, i, i)
+        if state is not None:
+            return state
     saved: list = []
     first: list = []  # the first store's (store, slots): the others share them when they can
 
@@ -132,14 +144,6 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
                 first.append((store, slots))
         return slots
 
-    robot = memory.stage_statistic("robot_cusum") if robot_gains else None
-    if recovery_gains:
-        # the stores of RejectionRecovery (detection_recovery._runs, its spread and the
-        # inflation applied)
-        runs = memory.stage_statistic("recovery", width=None)
-        spread = memory.stage_statistic("recovery_spread")
-        applied = memory.stage_statistic("recovery_applied")
-    stores = ((robot,) if robot_gains else ()) + ((runs, spread, applied) if recovery_gains else ())
     # one look-up and one save for every store in a run's steady state (kernels_stores)
     shared = group_slots(stores, i, i, saved) if stores else None
 
@@ -161,7 +165,10 @@ def defence_state(params: CLParams, memory, i: np.ndarray) -> DetectorState | No
     else:
         recovery_part = (False, _NO_GAIN, _NO_GAIN, _NO_GAIN)
         recovery_part += (_NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS, _NO_VALUES, _NO_SLOTS)
-    return DetectorState(KernelDefence(*robot_part, *recovery_part), tuple(saved))
+    state = DetectorState(KernelDefence(*robot_part, *recovery_part), tuple(saved))
+    if shared is not None:
+        keep_state(stores, params, state, shared)
+    return state
 
 
 # ---------------------------------------------------------------------------------------
@@ -206,21 +213,21 @@ def recovery_step(start, spread, applied, detected, stat, trace, after, gate, ca
     ``RejectionRecovery.discard`` (with ``recovery_inflation``, ``remaining_inflation``,
     ``_record_applied`` and ``update_rejection_runs``).
     """
-    f = math.nan
-    if start >= after:
+    f = math.nan  # not in recovery: stays NaN, as np.minimum keeps it
+    if start >= after:  # (the bounds' divisions only here: a NaN f compares False)
         f = np.exp2((start - after) / after)
         if f > cap:
             f = cap
-    growth = trace / spread if spread > 0.0 else math.inf
-    if growth < 1.0:
-        growth = 1.0
-    if f > growth:  # False for a NaN f: not in recovery stays NaN, as np.minimum keeps it
-        f = growth
-    remaining = (cap * cap) / (applied if applied > 1.0 else 1.0)
-    if remaining < 1.0:
-        remaining = 1.0
-    if f > remaining:
-        f = remaining
+        growth = trace / spread if spread > 0.0 else math.inf
+        if growth < 1.0:
+            growth = 1.0
+        if f > growth:
+            f = growth
+        remaining = (cap * cap) / (applied if applied > 1.0 else 1.0)
+        if remaining < 1.0:
+            remaining = 1.0
+        if f > remaining:
+            f = remaining
     new_spread = spread
     new_applied = applied
     if not detected:

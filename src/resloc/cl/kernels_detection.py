@@ -15,6 +15,7 @@ reference path then starts from the same memory.
 kernel function                numpy twin
 =============================  ========================================================
 :func:`nis_of`                   :func:`resloc.cl.cusum.nis`
+:func:`nis_of_white`           :func:`resloc.cl.cusum.nis` (from :func:`whiten_of`'s result)
 :func:`whiten_of`              :func:`resloc.cl.cusum.whiten`
 :func:`cusum_step`             :func:`resloc.cl.cusum.link_cusum` (``cusum_update``,
                                ``cusum_alarm``) and ``NISCusum.discard``
@@ -32,7 +33,7 @@ import numpy as np
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.kernels_memory import int64_rows, same_keys
-from resloc.cl.kernels_stores import group_slots
+from resloc.cl.kernels_stores import group_slots, keep_state, steady_state
 from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
 from resloc.cl.params import CLParams
 
@@ -212,9 +213,12 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     cusum, k, h, cap, mean, mk, mh = _detection_gains(params)
     if (cusum or mean) and memory is None:
         return None
-    slot = mslot = None
+    slot = mslot = stores = None
     if cusum or mean:  # one look-up and one save for both stores (kernels_stores)
         stores = (memory.cusum,) * cusum + (memory.mean_cusum,) * mean
+        state = steady_state(stores, params, i, j)  # the last step's, looked up again
+        if state is not None:
+            return state
         slot = mslot = group_slots(stores, i, j, saved)
     if cusum:
         if slot is None:
@@ -233,7 +237,10 @@ def detector_state(params: CLParams, memory, i: np.ndarray, j: np.ndarray) -> De
     kernel = KernelDetection(
         cusum, k, h, cap, g, slot, mean, mk, mh, mg, mslot, _NO_FIXES, no_zone(), _NO_FIXES
     )
-    return DetectorState(kernel, tuple(saved))
+    state = DetectorState(kernel, tuple(saved))
+    if stores is not None:
+        keep_state(stores, params, state, slot if cusum else mslot)
+    return state
 
 
 #: Innovation-norm codes shared with the kernels.
@@ -256,6 +263,13 @@ def nis_of(nu0, nu1, l00, l10, l11):
     the same solve order as :func:`resloc.linalg.solve_spd`)."""
     y0 = nu0 / l00
     y1 = (nu1 - l10 * y0) / l11
+    return nis_of_white(nu0, nu1, y0, y1, l00, l10, l11)
+
+
+@jit_inline
+def nis_of_white(nu0, nu1, y0, y1, l00, l10, l11):
+    """:func:`nis_of` from the whitened innovation ``(y0, y1) = L^-1 Lambda``
+    (:func:`whiten_of`'s, the same operations: the same bits), for a stage that has it."""
     w1 = y1 / l11
     w0 = (y0 - l10 * w1) / l00
     q = nu0 * w0 + nu1 * w1

@@ -53,7 +53,7 @@ from resloc.cl.kernels_detection import (
     cusum_step,
     gain_at,
     mean_cusum_step,
-    nis_of,
+    nis_of_white,
     whiten_of,
 )
 from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
@@ -198,6 +198,7 @@ def screen_lanes(
     verdict = zone[3]
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
+    whitened = mean or robot or recovery or (cusum and det_norm != NIS_CODE)
     for c in range(n):
         e = lane_e[c]
         i = obs[c]
@@ -213,27 +214,31 @@ def screen_lanes(
         # (not on a row zone trust substituted: fused as the partner's fix)
         detected = gated or (fixed and fixes[e] and not (zoned and verdict[e] == SUBSTITUTED))
         detected = detected or (convicted and witness[e])
+        # the whitened innovation once for the stages that read it (whiten_of; the NIS
+        # from it: nis_of's operations, the same bits)
+        y0 = y1 = 0.0
+        if whitened:
+            y0, y1 = whiten_of(nu0, nu1, l00, l10, l11)
         if cusum:  # detect_link: the NIS CUSUM of the link
             if det_norm == NIS_CODE:
                 stat = norms[1, c] * norms[1, c]
             else:
-                stat = nis_of(nu0, nu1, l00, l10, l11)
+                stat = nis_of_white(nu0, nu1, y0, y1, l00, l10, l11)
             s = cslot[e]
             cg[s], discard = cusum_step(
                 cg[s], stat, gain_at(ck, i), gain_at(ch, i), gain_at(ccap, i)
             )
             detected = detected or discard
         if mean:  # detect_link: the signed CUSUMs of the link
-            w0, w1 = whiten_of(nu0, nu1, l00, l10, l11)
             s = mslot[e]
             mg[s, 0], mg[s, 1], mg[s, 2], mg[s, 3], discard = mean_cusum_step(
-                mg[s, 0], mg[s, 1], mg[s, 2], mg[s, 3], w0, w1, gain_at(mk, i),
+                mg[s, 0], mg[s, 1], mg[s, 2], mg[s, 3], y0, y1, gain_at(mk, i),
                 gain_at(mh, i), not gated,
             )  # fmt: skip
             detected = detected or discard
         f = 1.0
         if robot or recovery:  # defend_link
-            stat = nis_of(nu0, nu1, l00, l10, l11)
+            stat = nis_of_white(nu0, nu1, y0, y1, l00, l10, l11)
         if robot:
             s = rslot[e]
             rg[s], discard = robot_cusum_step(

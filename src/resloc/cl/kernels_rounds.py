@@ -82,7 +82,7 @@ from resloc.cl.kernels_link_stages import (
     robot_lanes,
 )
 from resloc.cl.kernels_links import NOT_PD, OK, correct_links
-from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces
 from resloc.cl.kernels_round_cached import (
     cached_lanes,
     fresh_covariances,
@@ -228,6 +228,17 @@ def run_link_loop(
         out.flags[...] = False
     LOOP_RUNS["row_order"] += 1
     return correct_links(x_out, P_out, *args)
+
+
+@jit_inline
+def retried_lanes(n, inflation, decision, fresh):
+    """Whether a lane of the round needs :func:`~resloc.cl.kernels_round_stages.
+    inflated_moments`' second pass (delivered, and re-admitted with ``f > 1`` or fused with
+    a cached estimate's fresh moments: the lanes that function selects)."""
+    for c in range(n):
+        if decision[3, c] == 1.0 and (inflation[c] > 1.0 or fresh[c] == 1.0):
+            return True
+    return False
 
 
 @_jit
@@ -384,13 +395,21 @@ def _rounds(
                 cached_lanes(lane_e, n, known, channel_ok, options, decision, sent, fresh)
                 if ahead and n2 > n:  # the delivered lanes' second pass from lanes n .. 2n - 1
                     take_fresh(n, inflation, decision, fresh, ok_j, bad, moments, pxz, update)
-            if beyond is not None and (recovering or cached):
+            # the second pass only in a round that has a lane for it: a call of
+            # inflated_moments takes ~40 arrays (a reference count up and down each), ~0.7
+            # us, 16 rounds a step; a step of the full defence re-admits a link rarely
+            if (
+                beyond is not None
+                and (recovering or cached)
+                and retried_lanes(n, inflation, decision, fresh)
+            ):
                 status = inflated_moments(
                     P, obs, src, n, inflation, decision, fresh, xi, xr, zl, sin_cos, Li, Lj,
                     moments, pxz, update, retry, filt, R, jitter, x_nb, P_nb,
                 )  # fmt: skip
                 if status != OK:
                     return status
+                # (its lanes: substituted ones among the second pass's re-admitted)
                 if zoned and zone_lanes(
                     zone, x_nb, P_nb, P, obs, src, lane_e, n, xi, update, inflation,
                     decision, True, R, zone_pxz, zone_h,

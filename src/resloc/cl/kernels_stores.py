@@ -16,6 +16,10 @@ values arrays, which a store replaces when it inserts (and ``undo`` puts the old
 back); the keys are compared only when one of them changed. Anything else (a link not
 stored yet, arrays not as the compiled path passes them) answers None and the caller takes
 the store-by-store path, the only one that inserts.
+
+A group also keeps the stage's state built on it (:func:`keep_state`): on a later step with
+the same parameters, stores and number of links, :func:`steady_state` gives it back after
+the group's call, with no kernel tuple or ``undo`` record built again.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 from resloc.cl import kernels_memory
 from resloc.cl.kernels_memory import int64_rows, same_keys
 
-__all__ = ["StoreGroup", "group_slots"]
+__all__ = ["StoreGroup", "group_slots", "keep_state", "steady_state"]
 
 _EMPTY = np.zeros(0)
 
@@ -34,7 +38,7 @@ class StoreGroup:
     """Stores with the same keys and the buffers their values are saved in (kept by the
     first store, :attr:`LinkStatistic.group <resloc.cl.memory.LinkStatistic>`)."""
 
-    __slots__ = ("arrays", "call", "keys", "pos", "saved", "stores", "views")
+    __slots__ = ("arrays", "call", "keys", "pos", "saved", "state", "stores", "views")
 
     def __init__(self, stores: tuple, keys: np.ndarray) -> None:
         self.stores = stores
@@ -54,6 +58,8 @@ class StoreGroup:
         self.saved = tuple(a for pair in zip(flat + pad, buffers + pad, strict=True) for a in pair)
         # the slots, reused from step to step (read within the step that looked them up)
         self.pos = np.empty(0, np.int64)
+        # (key, the stage's state built on the group's arrays: keep_state), or None
+        self.state = None
 
     def current(self, stores: tuple) -> bool:
         """Whether ``stores`` are this group's, each with the arrays it was built on."""
@@ -116,3 +122,41 @@ def group_slots(stores: tuple, i: np.ndarray, j: np.ndarray, saved: list) -> np.
     for store, view in zip(stores, group.views, strict=True):
         saved.append((store, store.keys, None, pos, view))
     return pos
+
+
+def keep_state(stores: tuple, key, state, slots: np.ndarray) -> None:
+    """Remember ``state`` (a :class:`~resloc.cl.kernels_detection.DetectorState` built by
+    ``key``, the step's :class:`~resloc.cl.params.CLParams`, on ``stores``' group with the
+    group's ``slots``) for :func:`steady_state`; nothing when ``slots`` are not the
+    group's (the store-by-store path)."""
+    group = stores[0].group
+    if group is not None and slots is group.pos:
+        group.state = (key, state)
+
+
+def steady_state(stores: tuple, key, i: np.ndarray, j: np.ndarray):
+    """The state :func:`keep_state` remembered for ``key`` on ``stores``' group, after this
+    step's look-up of links ``(i, j)`` into the group's slots and the save of every
+    store's values into the group's buffers (:func:`group_slots`' call); None (the caller
+    builds the state, nothing done) when the group is not in its steady state: another
+    ``key``, a store with new arrays, a step with another number of links or a link not
+    stored.
+
+    Everything the state holds is the group's and the stores' own arrays (the values,
+    written in place by the loops; the slots and the buffers, rewritten by each call), so
+    one built on an earlier step of the same arrays is this step's: a step of the full
+    defence rebuilt two kernel tuples, their gains' look-ups and the ``undo`` records,
+    ~1 us of Python each."""
+    group = stores[0].group
+    if group is None or group.state is None or group.state[0] is not key:
+        return None
+    ri = int64_rows(i)
+    rj = ri if j is i else int64_rows(j)
+    pos = group.pos
+    if ri is None or rj is None or len(ri) != len(pos) or len(rj) != len(pos):
+        return None
+    if not group.current(stores):
+        return None
+    if not group.call(group.keys, stores[0].n_nodes, ri, rj, pos, *group.saved):
+        return None
+    return group.state[1]
