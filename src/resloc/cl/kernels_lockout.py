@@ -154,8 +154,12 @@ def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bo
     if xa.ndim != 2 or xa.shape[1] < 2:
         LOCKOUT_RUNS["fallbacks"] += 1
         return False
-    zone = params.zone_trust and len(params.zone_trust_map)
-    discs = np.asarray(params.zone_trust_map, float).reshape(-1, 3) if zone else _NO_DISCS
+    discs = _NO_DISCS
+    if params.zone_trust and params.zone_trust_map:
+        discs = _DISCS.get(params.zone_trust_map)
+        if discs is None:  # the map is a tuple of the frozen params: built once per map
+            discs = np.asarray(params.zone_trust_map, float).reshape(-1, 3)
+            _DISCS[params.zone_trust_map] = discs
     status = record_pass(
         state.keys, state.values, state.n_nodes, np.ascontiguousarray(links.i, np.int64),
         np.ascontiguousarray(detected, np.bool_),
@@ -170,3 +174,5 @@ def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bo
 
 
 _NO_DISCS = np.zeros((0, 3))
+#: The zone maps as arrays, by the params' tuple.
+_DISCS: dict = {}
