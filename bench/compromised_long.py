@@ -31,6 +31,38 @@ POINTS = ({"robots": 1}, {"robots": 1, "claimed_cov": 0.01}, {"robots": 3, "clai
 POINTS = (*POINTS, {"robots": 3})
 
 
+def honest_msle_series(robot_counts: list[int]) -> None:
+    """Also record, in every run, the MSLE over the honest robots only: for each count ``r``
+    of compromised robots, the paper's MSLE of the team without the first ``r`` ids of
+    :data:`~resloc.world.attackers.estimates.COMPROMISED_ORDER` (pairs among the others,
+    normalized by their number), as series ``msle_honest{r}`` beside ``msle`` (the clean
+    run too, so that the ratio is paired on the same robots). Why beside and not instead:
+    the paper's MSLE counts every robot, the compromised ones' own estimates included
+    (``docs/attack/lockout.md`` section 5)."""
+    from resloc.experiments.metrics import AccuracyRecorder, msle_of_distances, pair_distances
+    from resloc.world.attackers.estimates import COMPROMISED_ORDER
+
+    flush = AccuracyRecorder.flush
+
+    def flush_with_honest(self) -> None:
+        C, T, N = self.filled, self.trials, self.robots
+        if C:
+            rows = self.rows[:C]
+            pose = self.pose[:C].reshape(C * T, N, 3)
+            x = self.x[:C].reshape(C * T, N, 3)
+            for r in robot_counts:
+                honest = np.setdiff1d(np.arange(N), [t for t in COMPROMISED_ORDER if t < N][:r])
+                series = self.series.setdefault(
+                    f"msle_honest{r}", np.full_like(self.series["msle"], np.nan)
+                )
+                series[rows] = msle_of_distances(
+                    pair_distances(pose[:, honest, :2]), pair_distances(x[:, honest, :2])
+                ).reshape(C, T)
+        flush(self)
+
+    AccuracyRecorder.flush = flush_with_honest
+
+
 def reused_clean(path: Path, run: dict) -> np.ndarray:
     """The per-seed clean MSLE of an earlier run (its JSON), which must have been run with
     the same defence, overrides, seeds, steps and first trial as ``run`` (``ValueError``
@@ -66,8 +98,18 @@ def main() -> None:
         help="reuse the clean MSLE of an earlier run's JSON (same defence, --set, seeds, "
         "steps, first trial; checked) instead of running it again",
     )  # fmt: skip
+    ap.add_argument(
+        "--honest", action="store_true",
+        help="also report the MSLE over the honest robots only (clean run included)",
+    )  # fmt: skip
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
+    counts = sorted({int({**POINTS[p]}.get("robots", 1)) for p in args.points})
+    if args.honest:
+        if args.clean_from:
+            print("--honest needs the clean run: drop --clean-from", file=sys.stderr)
+            raise SystemExit(2)
+        honest_msle_series(counts)
     attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
     base = default_scenario().replace(
         **defence_overrides(args.defence),
@@ -91,7 +133,12 @@ def main() -> None:
             raise SystemExit(2) from None
         out["clean_from"] = str(args.clean_from)
     else:
-        clean = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"].per_trial("msle_mean")
+        clean_run = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"]
+        clean = clean_run.per_trial("msle_mean")
+        if args.honest:
+            out["clean_honest"] = {
+                str(r): clean_run.per_trial(f"msle_honest{r}_mean").tolist() for r in counts
+            }
     if attack:
         out["attack"] = attack
     out["clean"] = clean.tolist()
@@ -109,6 +156,17 @@ def main() -> None:
             + " ".join(f"{r:.2f}" for r in ratio),
             flush=True,
         )
+        if args.honest:  # printed after the paper's MSLE line
+            r = str(int(params.get("robots", 1)))
+            honest = res.estimators["ckf"].per_trial(f"msle_honest{r}_mean")
+            h_ratio = honest / np.asarray(out["clean_honest"][r])
+            out[json.dumps(params, sort_keys=True)]["honest_msle"] = honest.tolist()
+            out[json.dumps(params, sort_keys=True)]["honest_ratio"] = h_ratio.tolist()
+            print(
+                f"    honest robots only: mean x{h_ratio.mean():.3g}, worst x{h_ratio.max():.3g}; "
+                "per seed " + " ".join(f"{v:.2f}" for v in h_ratio),
+                flush=True,
+            )
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps(out, indent=1))
