@@ -3,7 +3,9 @@
 The study's cells (``resloc attack``) run one seed each; this runs the same scenario, defence
 and attacker points with every seed batched (the same per-seed worlds and results, several
 times faster on a loaded machine), clean run (no SDZ) included, and prints the per-seed MSLE
-ratios. Extra scenario overrides (``--set key=value``, JSON values) vary a defence's option.
+ratios. Extra scenario overrides (``--set key=value``, JSON values) vary a defence's option;
+``--honest`` also reports the MSLE over the honest robots only (the compromised robots'
+own estimates left out, in the clean run too), beside the paper's MSLE of every robot.
 
     .venv/bin/python bench/compromised_long.py \
         --defence zone+full+redundancy+sequence+cap+landmarks \
