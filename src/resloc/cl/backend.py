@@ -41,6 +41,7 @@ __all__ = [
     "HAVE_NUMBA",
     "FilterKernelSpec",
     "backend",
+    "c_float",
     "filter_kernel_spec",
     "kernel_refusal",
     "per_filter",
@@ -73,6 +74,17 @@ def set_backend(name: str) -> None:
     if name == "numba" and not HAVE_NUMBA:
         raise ConfigError("backend 'numba' needs numba: pip install 'resloc[fast]'")
     _backend = name
+
+
+def c_float(a) -> np.ndarray:
+    """``a`` itself when it is a C-contiguous float64 array (the run's), else a copy that
+    is: what the compiled kernels take, without a copy in the common case."""
+    if type(a) is np.ndarray and a.dtype == _FLOAT and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(a, dtype=float)
+
+
+_FLOAT = np.dtype(float)
 
 
 def backend() -> str:

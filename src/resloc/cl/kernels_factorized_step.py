@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from resloc.cl.backend import backend
+from resloc.cl.backend import backend, c_float
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_math import jit, jit_inline
 
@@ -41,17 +41,6 @@ __all__ = [
     "compiled_factorized_finish",
     "compiled_factorized_predict",
 ]
-
-
-def _c_float(a):
-    """``a`` itself when it is a C-contiguous float64 array (the run's), else a copy that
-    is."""
-    if type(a) is np.ndarray and a.dtype == _FLOAT and a.flags.c_contiguous:
-        return a
-    return np.ascontiguousarray(a, dtype=float)
-
-
-_FLOAT = np.dtype(float)
 
 
 def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | None:
@@ -63,7 +52,7 @@ def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | 
     if np.shape(x) != (B, 3) or np.shape(u) != (B, 2):
         return None
     sig = np.array(joint.sig, dtype=float, order="C", copy=True)
-    _left_multiply_factors(_c_float(x), _c_float(u), float(dt), sig)
+    _left_multiply_factors(c_float(x), c_float(u), float(dt), sig)
     joint.sig = sig
     joint._start_step(P_pred)
     return P_pred
@@ -95,7 +84,7 @@ def commit_factorized(state, joint, obs: np.ndarray, link_fused: np.ndarray) -> 
     set: the compiled finish has nothing left to do)."""
     sig = np.empty_like(state.sig)
     _commit_factors(
-        state.A, state.sig, state.sig_pred, _c_float(joint.P_pred), state.Bij, state.gains,
+        state.A, state.sig, state.sig_pred, c_float(joint.P_pred), state.Bij, state.gains,
         obs, state.nbr, link_fused, state.fused, state.N, sig, state.Bm,
     )  # fmt: skip
     joint.sig = sig
@@ -204,10 +193,10 @@ def compiled_factorized_finish(joint) -> bool:
     if getattr(joint, "pairs_closed", False):  # (a joint pickled before the flag: no)
         joint.pairs_closed = False  # (a later update of the step would need a new closing)
         return True
-    sig = _c_float(joint.sig)
+    sig = c_float(joint.sig)
     _close_pairs(
-        np.ascontiguousarray(joint.fused, dtype=np.bool_), _c_float(joint.A),
-        _c_float(joint.Bm), _c_float(joint.P_pred), _c_float(joint.sig_pred), joint.N, sig,
+        np.ascontiguousarray(joint.fused, dtype=np.bool_), c_float(joint.A),
+        c_float(joint.Bm), c_float(joint.P_pred), c_float(joint.sig_pred), joint.N, sig,
     )  # fmt: skip
     joint.sig = sig
     return True

@@ -29,7 +29,7 @@ import numpy as np
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_predict as _kernels_predict
 from resloc.cl import kernels_split as _kernels_split
-from resloc.cl.backend import backend
+from resloc.cl.backend import backend, c_float
 from resloc.cl.kernels_factorized_step import (  # (the strategies find them here)
     compiled_factorized_finish,
     compiled_factorized_predict,
@@ -311,19 +311,8 @@ def compiled_independent_predict(x, P_ind, u, dt: float, params) -> np.ndarray |
     if x.shape != (B, 3) or P_ind.shape != (B, 3, 3) or np.shape(u) != (B, 2):
         return None
     return _propagated_independent(
-        _c_float(x), _c_float(P_ind), _c_float(u), float(dt), odometry_var, floor_var
+        c_float(x), c_float(P_ind), c_float(u), float(dt), odometry_var, floor_var
     )
-
-
-def _c_float(a):
-    """``a`` itself when it is a C-contiguous float64 array (the run's), else a copy that
-    is."""
-    if type(a) is np.ndarray and a.dtype == _FLOAT and a.flags.c_contiguous:
-        return a
-    return np.ascontiguousarray(a, dtype=float)
-
-
-_FLOAT = np.dtype(float)
 
 
 @jit
