@@ -65,7 +65,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from resloc.cl.detection_widening import applied_stage_factors, scale_robots
+from resloc.cl.detection_widening import applied_stage_factors, floor_factors, scale_robots
 from resloc.cl.detection_zone import inside_zone_map
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
@@ -121,9 +121,7 @@ def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray
     factor = np.ones(len(robots))
     alarm = share > params.lockout_share
     if alarm.any():
-        Pp = np.asarray(P, float)[robots[alarm], :2, :2]
-        largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
-        factor[alarm] = np.maximum(params.lockout_floor_std**2 / largest, 1.0)
+        factor[alarm] = floor_factors(np.asarray(P, float)[robots[alarm]], params.lockout_floor_std)
     if alarm.any() or (known[:, 1] > 1.0).any():
         state.set(robots, robots, np.column_stack([share, factor]))
     return scale_robots(P, robots, factor)

@@ -66,7 +66,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from resloc.cl.detection_widening import applied_stage_factors, scale_robots
+from resloc.cl.detection_widening import applied_stage_factors, floor_factors, scale_robots
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 
@@ -214,8 +214,8 @@ def reference_widen(params: CLParams, memory: LinkMemory, links, P: np.ndarray) 
         factor[a] = np.clip(np.einsum("ni,ni->n", m[a], w) / 2.0, 1.0, params.outvoted_cap)
         # Bounded: unbounded, repeated widenings let the displaced robot's consistent lies
         # run the team's estimates away (kilometres; docs/attack/outvoted.md, section 7).
-        largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
-        factor[a] = np.minimum(factor[a], np.maximum(params.outvoted_max_std**2 / largest, 1.0))
+        ceiling = floor_factors(np.asarray(P, float)[robots_all[a]], params.outvoted_max_std)
+        factor[a] = np.minimum(factor[a], ceiling)
     state.set(robots_all, robots_all, np.column_stack([S, factor]))
     return scale_robots(P, robots_all, factor)
 

@@ -58,7 +58,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from resloc.cl.detection_widening import applied_stage_factors, scale_robots
+from resloc.cl.detection_widening import applied_stage_factors, floor_factors, scale_robots
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
 
@@ -151,8 +151,7 @@ def floored_claims(params: CLParams, memory: LinkMemory | None, i, P_nb: np.ndar
     if not (floor > 0.0).any():
         return P_nb
     claims = np.asarray(P_nb, float)
-    largest = np.maximum(claims[:, 0, 0], claims[:, 1, 1])
-    factor = np.where(floor > 0.0, np.maximum(floor**2 / largest, 1.0), 1.0)
+    factor = np.where(floor > 0.0, floor_factors(claims, floor), 1.0)
     if not (factor > 1.0).any():
         return P_nb
     return claims * factor[:, None, None]
@@ -167,9 +166,7 @@ def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray
     young = floor > 0.0
     factor = np.ones(len(robots))
     if young.any():
-        Pp = np.asarray(P, float)[robots[young], :2, :2]
-        largest = np.maximum(Pp[:, 0, 0], Pp[:, 1, 1])
-        factor[young] = np.maximum(floor[young] ** 2 / largest, 1.0)
+        factor[young] = floor_factors(np.asarray(P, float)[robots[young]], floor[young])
     state.set(robots, robots, np.column_stack([seen + 1.0, factor]))
     return scale_robots(P, robots, factor)
 

@@ -12,7 +12,17 @@ import numpy as np
 
 from resloc.cl.memory import LinkMemory
 
-__all__ = ["applied_stage_factors", "keep_exempt", "scale_robots"]
+__all__ = ["applied_stage_factors", "floor_factors", "keep_exempt", "scale_robots"]
+
+
+def floor_factors(P: np.ndarray, floor) -> np.ndarray:
+    """The factor ``(K,)`` that raises each block of ``P (K, 3, 3)`` to a position
+    standard deviation of ``floor`` (m; a scalar or ``(K,)``):
+    ``max(floor^2 / max(P_xx, P_yy), 1)`` (1 where the larger diagonal entry is already
+    above it; a nan entry gives nan, as ``np.maximum`` does)."""
+    P = np.asarray(P, float)
+    largest = np.maximum(P[:, 0, 0], P[:, 1, 1])
+    return np.maximum(np.asarray(floor, float) ** 2 / largest, 1.0)
 
 
 def scale_robots(P: np.ndarray, robots: np.ndarray, factor: np.ndarray) -> np.ndarray:
