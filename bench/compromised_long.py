@@ -79,6 +79,19 @@ def reused_clean(path: Path, run: dict) -> np.ndarray:
     return np.asarray(earlier["clean"], float)
 
 
+def reused_clean_honest(path: Path, counts: list[int]) -> dict[str, list[float]]:
+    """The honest robots' clean MSLE of an earlier ``--honest`` run (its JSON) for each
+    count of compromised robots in ``counts`` (``ValueError`` naming the count it lacks)."""
+    held = json.loads(path.read_text()).get("clean_honest", {})
+    missing = [r for r in counts if str(r) not in held]
+    if missing:
+        raise ValueError(
+            f"--clean-from {path}: it has no honest clean MSLE for {missing[0]} compromised "
+            "robot(s) (run it with --honest and those points, or drop --clean-from)"
+        )
+    return {str(r): held[str(r)] for r in counts}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--defence", required=True)
@@ -102,15 +115,13 @@ def main() -> None:
     )  # fmt: skip
     ap.add_argument(
         "--honest", action="store_true",
-        help="also report the MSLE over the honest robots only (clean run included)",
+        help="also report the MSLE over the honest robots only (clean run included; "
+        "with --clean-from, that run's must have been recorded)",
     )  # fmt: skip
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     counts = sorted({int({**POINTS[p]}.get("robots", 1)) for p in args.points})
     if args.honest:
-        if args.clean_from:
-            print("--honest needs the clean run: drop --clean-from", file=sys.stderr)
-            raise SystemExit(2)
         honest_msle_series(counts)
     attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
     base = default_scenario().replace(
@@ -130,6 +141,8 @@ def main() -> None:
     if args.clean_from:
         try:
             clean = reused_clean(args.clean_from, out)
+            if args.honest:
+                out["clean_honest"] = reused_clean_honest(args.clean_from, counts)
         except ValueError as exc:
             print(exc, file=sys.stderr)
             raise SystemExit(2) from None

@@ -45,6 +45,15 @@ CLEAN = "clean"
 #: Per-seed metrics of a cell.
 CELL_METRICS = ("msle", "nees", "nees_rel", "tpr", "fpr", "comm_rate", "bytes_per_step")
 
+#: Per-seed metric of a cell whose attacker runs robots: the MSLE of the other robots (the
+#: clean run records it as ``msle_honest <ids>`` for each set of robots a point runs).
+HONEST = "msle_honest"
+
+
+def honest_name(owned) -> str:
+    """The clean run's metric of the MSLE without robots ``owned``: ``msle_honest 5,10,15``."""
+    return f"{HONEST} {','.join(str(int(i)) for i in owned)}"
+
 
 def attack_cells(
     scenario: Scenario,
@@ -56,18 +65,33 @@ def attack_cells(
 ) -> list[dict]:
     """Run ``scenario`` (its ``run.trials`` seeds from ``first_trial``, batched) under
     ``defence`` against one attacker with ``params`` (or :data:`CLEAN`); one metrics
-    mapping per seed (picklable; runs on a worker)."""
+    mapping per seed (picklable; runs on a worker).
+
+    An attacker that runs robots (``owned``) adds :data:`HONEST`, the MSLE without them;
+    the clean run's ``params`` may name ``owned_sets`` (lists of ids), each adding
+    :func:`honest_name` of the set, so that the two are paired on the same robots."""
     from resloc.experiments.runner import run_scenario
     from resloc.world.attackers import make_attacker
 
     changes = {**dict(defence), "run.filters": [filt], "run.dead_reckoning": False}
     adversary = None
+    without = {}
     if attacker_name == CLEAN:
         changes["sdz"] = []
+        for ids in dict(params).get("owned_sets", []):
+            without[honest_name(ids).removeprefix("msle_")] = np.asarray(ids, int)
     else:
         adversary = make_attacker(attacker_name, **dict(params))
         changes.update(adversary.overrides)
-    result = run_scenario(scenario.replace(**changes), adversary=adversary, first_trial=first_trial)
+        owned = adversary.owned(scenario.world.team.robots)
+        if owned.size:
+            without[HONEST.removeprefix("msle_")] = owned
+    result = run_scenario(
+        scenario.replace(**changes),
+        adversary=adversary,
+        first_trial=first_trial,
+        without=without,
+    )
     est = result.estimators[filt]
     t = est.totals
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -81,6 +105,7 @@ def attack_cells(
         "fpr": fpr,
         "comm_rate": est.per_trial("comm_rate"),
         "bytes_per_step": est.bytes_per_step(result.scenario.estimator.fusion),
+        **{f"msle_{k}": est.per_trial(f"msle_{k}_mean") for k in without},
     }
     return [{k: float(v[s]) for k, v in per_seed.items()} for s in range(scenario.run.trials)]
 
@@ -129,6 +154,9 @@ class AttackStudyResult:
     searched : list of dict
         Per defence and strategy, the row of its worst grid point (the defence x attacker
         table).
+    protected : list of dict
+        Per defence, the row of the worst attacker point by :func:`protected_ratio` (the
+        MSLE over the robots the attacker does not run).
     """
 
     cells: dict
@@ -136,6 +164,7 @@ class AttackStudyResult:
     worst: list[dict]
     config: dict = field(default_factory=dict)
     searched: list[dict] = field(default_factory=list)
+    protected: list[dict] = field(default_factory=list)
 
 
 def run_attack_study(
@@ -193,6 +222,12 @@ def run_attack_study(
                 points.append((adv.name, adv.label, dict(adv.params)))
                 grids.setdefault(adv.name, []).append(adv.label)
     names = list(grids)
+    owned_sets = sorted(
+        {tuple(int(i) for i in make_attacker(f, **p).owned(scenario.world.team.robots))
+         for f, _, p in points[1:]} - {()}
+    )  # fmt: skip
+    if owned_sets:  # the clean run's MSLE without each, paired with the attacked runs'
+        points[0] = (CLEAN, CLEAN, {"owned_sets": [list(ids) for ids in owned_sets]})
     seeds = int(seeds)
     base = scenario.replace(**{"run.trials": seeds})
     digest = hashlib.sha256(canonical_json(group_data(base)).encode("utf-8")).hexdigest()
@@ -238,10 +273,11 @@ def run_attack_study(
         cells[dname] = {}
         for _, label, _ in points:
             per = [found[key] for key in keys[dname, label]]
-            cells[dname][label] = {m: [p[m] for p in per] for m in CELL_METRICS}
+            metrics = [*CELL_METRICS, *(m for m in per[0] if m.startswith(HONEST))]
+            cells[dname][label] = {m: [p[m] for p in per] for m in metrics}
     family_of = {label: (family, params) for family, label, params in points}
-    table = _table(cells, family_of)
-    searched, worst = [], []
+    table = _table(cells, family_of, scenario.world.team.robots)
+    searched, worst, protected = [], [], []
     for dname in defences:
         rows = [r for r in table if r["defence"] == dname and r["attacker"] != CLEAN]
         for name in names:
@@ -250,6 +286,7 @@ def run_attack_study(
                 searched.append(max(mine, key=lambda r: _finite(r["msle_ratio"]["mean"])))
         if rows:
             worst.append(max(rows, key=lambda r: _finite(r["msle_ratio"]["mean"])))
+            protected.append(max(rows, key=lambda r: _finite(protected_ratio(r))))
     config = {
         "seeds": seeds,
         "steps": base.run.steps,
@@ -260,31 +297,51 @@ def run_attack_study(
         "grids": grids,
         "stats": study.stats.to_dict(),
     }
-    return AttackStudyResult(cells, table, worst, config, searched)
+    return AttackStudyResult(cells, table, worst, config, searched, protected)
+
+
+def protected_ratio(row: dict) -> float:
+    """The mean MSLE ratio of what a defence can protect: over the robots the attacker does
+    not run (``honest_ratio``) when it runs some, the whole team's otherwise. Why: a robot
+    the attacker runs holds whatever estimate the attacker gives it (``own`` of the
+    compromised attacker), so no defence bounds a metric that counts it."""
+    honest = row.get("honest_ratio")
+    return (row["msle_ratio"] if honest is None else honest)["mean"]
 
 
 def _finite(v: float) -> float:
     return v if np.isfinite(v) else -np.inf
 
 
-def _table(cells: dict, family_of: dict) -> list[dict]:
+def _table(cells: dict, family_of: dict, robots: int) -> list[dict]:
+    """One row per defence and attacker point; ``robots``: the team's size (which robots an
+    attacker runs)."""
     rows = []
+    from resloc.world.attackers import make_attacker
+
     for dname, per in cells.items():
         clean = per[CLEAN]
         for aname, m in per.items():
             family, params = family_of[aname]
-            rows.append(
-                {
-                    "defence": dname,
-                    "attacker": aname,
-                    "family": family,
-                    "params": dict(params),
-                    "msle": mean_ci(m["msle"]).to_dict(),
-                    "msle_ratio": ratio(m["msle"], clean["msle"]).to_dict(),
-                    "msle_ratio_min": float(np.nanmin(np.divide(m["msle"], clean["msle"]))),
-                    **{k: mean_ci(m[k]).to_dict() for k in CELL_METRICS if k != "msle"},
-                }
-            )
+            row = {
+                "defence": dname,
+                "attacker": aname,
+                "family": family,
+                "params": dict(params),
+                "msle": mean_ci(m["msle"]).to_dict(),
+                "msle_ratio": ratio(m["msle"], clean["msle"]).to_dict(),
+                "msle_ratio_min": float(np.nanmin(np.divide(m["msle"], clean["msle"]))),
+                "msle_ratio_max": float(np.nanmax(np.divide(m["msle"], clean["msle"]))),
+                **{k: mean_ci(m[k]).to_dict() for k in CELL_METRICS if k != "msle"},
+                "honest_ratio": None,
+                "honest_ratio_max": None,
+            }
+            if HONEST in m:  # paired with the clean run's MSLE without the same robots
+                owned = make_attacker(family, **params).owned(robots)
+                reference = clean[honest_name(owned)]
+                row["honest_ratio"] = ratio(m[HONEST], reference).to_dict()
+                row["honest_ratio_max"] = float(np.nanmax(np.divide(m[HONEST], reference)))
+            rows.append(row)
     return rows
 
 
@@ -303,6 +360,10 @@ CSV_COLUMNS = (
     "fpr",
     "comm_rate",
     "bytes_per_step",
+    "msle_ratio_max",
+    "honest_ratio",
+    "honest_ratio_ci",
+    "honest_ratio_max",
 )
 
 
@@ -320,7 +381,17 @@ def _csv(result: AttackStudyResult) -> str:
                 f"{r['msle_ratio']['mean']:.6g}",
                 f"{r['msle_ratio']['ci_half']:.6g}",
                 f"{r['msle_ratio_min']:.6g}",
-                *(f"{r[k]['mean']:.6g}" for k in CSV_COLUMNS[7:]),
+                *(f"{r[k]['mean']:.6g}" for k in CSV_COLUMNS[7:14]),
+                f"{r['msle_ratio_max']:.6g}",
+                *(
+                    ("", "", "")
+                    if r["honest_ratio"] is None
+                    else (
+                        f"{r['honest_ratio']['mean']:.6g}",
+                        f"{r['honest_ratio']['ci_half']:.6g}",
+                        f"{r['honest_ratio_max']:.6g}",
+                    )
+                ),
             ]
         )
     return buf.getvalue()
@@ -351,6 +422,20 @@ def _matrix(result: AttackStudyResult) -> list[str]:
     return lines
 
 
+def _honest_cell(r: dict) -> str:
+    if r.get("honest_ratio") is None:
+        return "-"
+    return f"{_cell(r['honest_ratio'])} (max {r['honest_ratio_max']:.3g})"
+
+
+def _worst_line(r: dict) -> str:
+    return (
+        f"| {r['defence']} | {r['attacker']} | {_cell(r['msle_ratio'])} | "
+        f"{r['msle_ratio_min']:.3g} | {r['msle_ratio_max']:.3g} | {_honest_cell(r)} | "
+        f"{_cell(r['nees_rel'])} | {_cell(r['tpr'], '.2f')} | {_cell(r['fpr'], '.3f')} |"
+    )
+
+
 def markdown(result: AttackStudyResult) -> str:
     """The study as a markdown section: worst cases first, the defence x attacker matrix
     (worst point of each attacker's search), then every point."""
@@ -365,19 +450,28 @@ def markdown(result: AttackStudyResult) -> str:
         "removed). TPR / FPR: the detector on the links the attacker falsified / did not. "
         "Every attacker is run at each of its parameter points listed under 'Searched' "
         "below (its whole grid unless pinned) against every defence; an attacker's entry is "
-        "its worst point (largest mean MSLE ratio) for that defence.",
+        "its worst point (largest mean MSLE ratio) for that defence. 'Honest robots': "
+        "against an attacker that runs robots (compromised robots), the same ratio over "
+        "the other robots only, paired with the clean run's MSLE over the same robots "
+        "(the robots it runs hold whatever estimate it gives them).",
         "",
         "### Worst case per defence",
         "",
-        "| defence | worst attacker | MSLE ratio | min | NEES rel. | TPR | FPR |",
-        "|---|---|---|---|---|---|---|",
+        "| defence | worst attacker | MSLE ratio | min | max | honest robots | NEES rel. | "
+        "TPR | FPR |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result.worst:
-        lines.append(
-            f"| {r['defence']} | {r['attacker']} | {_cell(r['msle_ratio'])} | "
-            f"{r['msle_ratio_min']:.3g} | {_cell(r['nees_rel'])} | "
-            f"{_cell(r['tpr'], '.2f')} | {_cell(r['fpr'], '.3f')} |"
-        )
+        lines.append(_worst_line(r))
+    lines += [
+        "",
+        "### Worst case per defence over the robots the attacker does not run",
+        "",
+        "| defence | worst attacker | MSLE ratio | min | max | honest robots | NEES rel. | "
+        "TPR | FPR |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *(_worst_line(r) for r in result.protected),
+    ]
     lines += [
         "",
         "### Defence x attacker (mean MSLE ratio at the attacker's worst grid point)",
@@ -386,14 +480,15 @@ def markdown(result: AttackStudyResult) -> str:
         "",
         "### Every defence and attacker point",
         "",
-        "| defence | attacker | MSLE ratio | MSLE | NEES | NEES rel. | TPR | FPR | comm. "
-        "rate | bytes/step |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| defence | attacker | MSLE ratio | honest robots | MSLE | NEES | NEES rel. | TPR | "
+        "FPR | comm. rate | bytes/step |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result.table:
         lines.append(
             f"| {r['defence']} | {r['attacker']} | {_cell(r['msle_ratio'])} | "
-            f"{_cell(r['msle'])} | {_cell(r['nees'])} | {_cell(r['nees_rel'])} | "
+            f"{_honest_cell(r)} | {_cell(r['msle'])} | {_cell(r['nees'])} | "
+            f"{_cell(r['nees_rel'])} | "
             f"{_cell(r['tpr'], '.2f')} | {_cell(r['fpr'], '.3f')} | "
             f"{_cell(r['comm_rate'], '.3f')} | {_cell(r['bytes_per_step'], '.4g')} |"
         )
@@ -418,6 +513,7 @@ def save_attack_study(result: AttackStudyResult, out: Path) -> list[Path]:
             {
                 "config": result.config,
                 "worst": result.worst,
+                "protected": result.protected,
                 "searched": result.searched,
                 "table": result.table,
                 "cells": result.cells,

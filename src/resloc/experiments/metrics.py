@@ -497,6 +497,10 @@ class AccuracyRecorder:
     truth : TruthDistances, optional
         Shared by the recorders of estimators that see the same truth at every step (one
         run), so the true pair distances of a buffer are computed once, not per estimator.
+    without : dict of str to ndarray, optional
+        ``{name: ids}``: also a row ``msle_<name>``, the MSLE of the team without robots
+        ``ids`` (the pairs among the others, normalized by their number): the robots an
+        attacker runs left out (:meth:`~resloc.world.attackers.base.Strategy.owned`).
     """
 
     #: Most bytes the buffered steps and their metric temporaries may take.
@@ -511,9 +515,14 @@ class AccuracyRecorder:
         trials: int,
         robots: int,
         truth: TruthDistances | None = None,
+        without: dict[str, np.ndarray] | None = None,
     ) -> None:
         self.series, self.totals = series, totals
         self.truth = truth
+        self.kept = {}
+        for name, ids in (without or {}).items():
+            self.kept[name] = np.setdiff1d(np.arange(robots), np.asarray(ids, int))
+            series[f"msle_{name}"] = np.full_like(series["msle"], np.nan)
         self.trials, self.robots = trials, robots
         self.last_row = len(series["msle"]) - 1
         robots_total = trials * robots
@@ -559,7 +568,11 @@ class AccuracyRecorder:
             d_true = pair_distances(pose[..., :2])
         else:
             d_true = self.truth.distances(rows, pose[..., :2])
-        s["msle"][rows] = msle_of_distances(d_true, pair_distances(x[..., :2])).reshape(C, T)
+        d_est = pair_distances(x[..., :2])
+        s["msle"][rows] = msle_of_distances(d_true, d_est).reshape(C, T)
+        for name, kept in self.kept.items():
+            pairs = np.ix_(np.arange(C * T), kept, kept)
+            s[f"msle_{name}"][rows] = msle_of_distances(d_true[pairs], d_est[pairs]).reshape(C, T)
         s["rmse"][rows] = position_rmse(pose[..., :2], x[..., :2]).reshape(C, T)
         per_robot = nees(pose.reshape(-1, 3), x.reshape(-1, 3), P.reshape(-1, 3, 3))
         per_robot = per_robot.reshape(C, T, N)

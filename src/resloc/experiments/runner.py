@@ -80,6 +80,7 @@ class EstimatorTrack(EstimatorState):
         N: int,
         fusion: FusionStrategy | None = None,
         truth: TruthDistances | None = None,
+        without: dict[str, np.ndarray] | None = None,
     ):
         super().__init__(name, filt, x0, P0, T * N, fusion)
         self.series = {k: np.full((steps, T), np.nan) for k in SERIES}
@@ -90,7 +91,7 @@ class EstimatorTrack(EstimatorState):
         self.cov = np.zeros((steps + 1, N, 3, 3), dtype=np.float32)
         self.cov[0] = P0[:N]
         self.link_flags: list[np.ndarray] = []  # trial 0, packed
-        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N, truth)
+        self.accuracy = AccuracyRecorder(self.series, self.totals, T, N, truth, without)
         exchanges = () if fusion is None else fusion.node_exchanges
         # gauge acknowledges every fusion with a 3x3 block; split CI with the id alone
         acks = (
@@ -166,6 +167,7 @@ def run_scenario(
     params: CLParams | None = None,
     first_trial: int = 0,
     adversary=None,
+    without: dict[str, np.ndarray] | None = None,
 ) -> RunResult:
     """Simulate ``scenario`` and run its estimators.
 
@@ -190,6 +192,10 @@ def run_scenario(
     adversary : Attacker, optional
         A strategy of the adversary suite (:mod:`resloc.world.attackers`): it chooses the
         links it falsifies each step and what every estimator receives on them.
+    without : dict of str to ndarray, optional
+        ``{name: ids}``: every estimator also records the MSLE of the team without robots
+        ``ids`` as series ``msle_<name>`` (e.g. the robots an attacker runs left out;
+        :class:`~resloc.experiments.metrics.AccuracyRecorder`).
 
     Returns
     -------
@@ -224,7 +230,7 @@ def run_scenario(
     truth = TruthDistances()  # every estimator's metrics see the same truth
     for name in run.filters:
         filt = make_filter(FilterKind(name), est.ukf_alpha, est.ukf_beta, est.ukf_kappa)
-        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion, truth))
+        tracks.append(EstimatorTrack(name, filt, x0, P0, steps, T, N, fusion, truth, without))
         fusion.init(tracks[-1].memory, x0, P0, N, rounds=rounds)
     dr = None
     if run.dead_reckoning:

@@ -125,13 +125,25 @@ class Strategy:
             for k in self.params
             if len({str(p.get(k)) for p in self.grid}) > 1 or self.params[k] != self.defaults[k]
         ]
-        inner = ",".join(f"{k}={self.params[k]:g}" for k in searched)
+        inner = ",".join(f"{k}={_spelled(self.params[k])}" for k in searched)
         return f"{self.name}[{inner}]" if inner else self.name
+
+    def owned(self, robots: int) -> np.ndarray:
+        """The ids (``0 .. robots - 1``) of the robots this attacker runs in a team of
+        ``robots``: their software, hence their own estimates, are its (none: an attacker
+        of the sensing or the channel). A study reports the MSLE over the other robots
+        beside the paper's (:mod:`resloc.experiments.attack`)."""
+        return np.zeros(0, dtype=int)
 
     @classmethod
     def variants(cls) -> list[Strategy]:
         """One instance per point of :attr:`grid` (the study's search)."""
         return [cls(**point) for point in cls.grid]
+
+
+def _spelled(value) -> str:
+    """A parameter's value in a label: numbers as ``:g`` (2 and 2.0 alike), names as is."""
+    return value if isinstance(value, str) else f"{value:g}"
 
 
 def _like(default, value):

@@ -18,7 +18,7 @@ from resloc.world.attackers.outvoted import shielding_notes, widened
 from resloc.world.attackers.sensing import measurement_difference
 from resloc.world.attackers.witness import WITNESS_BUDGETS, lying_notes, within_witness
 
-__all__ = ["SHIELDS", "CompromisedRobot", "Replay", "shifted_prediction"]
+__all__ = ["OWN_ESTIMATES", "SHIELDS", "CompromisedRobot", "Replay", "shifted_prediction"]
 
 #: When the compromised robots' notes shield their honest victims, by the defence's params.
 SHIELDS = {
@@ -26,6 +26,14 @@ SHIELDS = {
     "on": lambda params: True,
     "off": lambda params: False,
 }
+
+#: What a compromised robot does with its own estimate: ``"localized"``, it keeps fusing
+#: what it sees (its estimate is as good as its neighbours' lies let it be);
+#: ``"dead_reckoning"``, it fuses nothing (its own estimate, and what it broadcasts, drift
+#: with its odometry). The robot is the attacker's: its own estimate is whatever the
+#: attacker makes it, so a metric that counts it (the paper's MSLE over every robot) can be
+#: driven as high as the attacker likes by any defence; ``"dead_reckoning"`` measures that.
+OWN_ESTIMATES = ("localized", "dead_reckoning")
 
 #: Robots compromised first, second, ... (spread over the default 17-robot lattice).
 COMPROMISED_ORDER = (5, 10, 15, 2, 8, 13)
@@ -108,7 +116,8 @@ class CompromisedRobot(Strategy):
     #: detectors accept, not cut by the witness budget (:meth:`spends`). ``under``: no
     #: lie to a victim whose lock-out share (:mod:`resloc.cl.detection_lockout`) has
     #: reached this (0: off; the answer to that stage: keep every victim's share under
-    #: its threshold, so that its floor never rises).
+    #: its threshold, so that its floor never rises). ``own``: what the liars do with their
+    #: own estimates (:data:`OWN_ESTIMATES`).
     defaults: ClassVar[dict] = {
         "robots": 1,
         "reach": 2.0,
@@ -119,6 +128,7 @@ class CompromisedRobot(Strategy):
         "quiet": 0,
         "harder": 0.0,
         "under": 0.0,
+        "own": "localized",
     }
     grid: ClassVar[tuple] = (
         {"robots": 1},
@@ -137,6 +147,11 @@ class CompromisedRobot(Strategy):
             raise ValueError(
                 f"attacker 'compromised', parameter budget: {self.budget!r} is not one of "
                 f"{', '.join(WITNESS_BUDGETS)}"
+            )
+        if self.own not in OWN_ESTIMATES:
+            raise ValueError(
+                f"attacker 'compromised', parameter own: {self.own!r} is not one of "
+                f"{', '.join(OWN_ESTIMATES)}"
             )
         if not 0.0 <= self.under <= 1.0:
             raise ValueError(
@@ -191,6 +206,9 @@ class CompromisedRobot(Strategy):
         ids = [t for t in COMPROMISED_ORDER if t < robots][: int(self.robots)]
         return np.array(ids, dtype=int)
 
+    def owned(self, robots: int) -> np.ndarray:
+        return self.targets(robots)
+
     def mark(self, sdz_attacked, step):
         return np.isin(step.j % step.robots, self.targets(step.robots))
 
@@ -200,6 +218,9 @@ class CompromisedRobot(Strategy):
             memory.exempt = np.isin(
                 np.arange(memory.n_nodes) % step.robots, self.targets(step.robots)
             )
+        if self.own == "dead_reckoning":  # a liar's own readings: none fused (no estimate)
+            to_liar = np.isin(links.i % step.robots, self.targets(step.robots))
+            links = dataclasses.replace(links, channel_ok=links.channel_ok & ~to_liar)
         if not from_liar.any() or step.k < int(self.quiet):
             return dataclasses.replace(links, tamper=None)
         is_liar = np.isin(np.arange(len(step.pose)) % step.robots, self.targets(step.robots))
