@@ -43,8 +43,8 @@ __all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass"]
 OUTVOTED_RUNS = {"passes": 0, "fallbacks": 0, "enumerated": 0}
 
 #: :func:`outvoted_pass`'s status: done; refused (a position block the 2 x 2 solve does
-#: not take, or an id out of range: the spec decides); ``-c`` (c > 0): ``gates`` stops
-#: short of a group of ``c`` notes.
+#: not take, an id out of range, pending keys out of range or unsorted: the spec decides);
+#: ``-c`` (c > 0): ``gates`` stops short of a group of ``c`` notes.
 DONE, REFUSED = 0, 1
 
 
@@ -145,19 +145,28 @@ def outvoted_pass(
         if is_recv[r]:
             robots[G] = r
             G += 1
-    # the waiting rows bucketed by the robot they are on (ascending rows: by observer)
+    # the waiting rows bucketed by the robot they are on (ascending rows: by observer);
+    # each row's observer by a scan, not a division a row (the keys ascend)
     Np = pkeys.shape[0]
     onfirst = np.zeros(n + 1, np.int64)
+    p_obs = np.empty(Np, np.int64)
+    o = 0
     for p in range(Np):
+        key = pkeys[p]
+        if key < 0 or key >= n * n or key < o * n:  # (keys out of range or unsorted)
+            return empty, np.zeros((0, 2)), empty, REFUSED, 0, False, 0, none
+        while key >= (o + 1) * n:
+            o += 1
+        p_obs[p] = o
         if pvals[p, 10] > 0.0:
-            onfirst[pkeys[p] % n + 1] += 1
+            onfirst[key - o * n + 1] += 1
     for r in range(n):
         onfirst[r + 1] += onfirst[r]
     by_on = np.empty(onfirst[n], np.int64)
     fill = onfirst[:n].copy()
     for p in range(Np):
         if pvals[p, 10] > 0.0:
-            on = pkeys[p] % n
+            on = pkeys[p] - p_obs[p] * n
             by_on[fill[on]] = p
             fill[on] += 1
     # each receiver's group: the notes on it from the observers it heard
@@ -174,7 +183,7 @@ def outvoted_pass(
         gstart[g] = M
         for t in range(onfirst[r], onfirst[r + 1]):
             p = by_on[t]
-            if heard[pkeys[p] // n] == r:
+            if heard[p_obs[p]] == r:
                 grows[M] = p
                 M += 1
         gcount[g] = M - gstart[g]

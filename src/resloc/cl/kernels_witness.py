@@ -288,22 +288,19 @@ def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
 
 
 @jit_lanes
-def _smallest(terms, tot, idx, kept, order, m, dmax, gates, P00, P01, P11, enough):
+def _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, enough):
     """The smallest statistic over the consistent sets of the ``m`` notes ``terms (m, 6)``
     (their sums ``tot (6,)``) left after dropping at most ``dmax``; the enumeration stops
-    at the first set at most ``enough`` (-inf: every set). Up to three notes are dropped
-    in the order ``order (m,)`` (a permutation of the notes: the likeliest to drop first,
-    when the enumeration may stop early); each subset's dropped sums are formed in
-    ascending index order whatever the order, so a set's statistic, and the smallest, are
-    the same."""
+    at the first set at most ``enough`` (-inf: every set)."""
     best = np.inf
+    # up to three notes dropped (the usual f): loops by the number dropped
     best = _merge_set(best, tot, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, m, gates, P00, P01, P11)
     if best <= enough:
         return best
     # by the number dropped (a single far note, the usual reason a set needs enumerating,
-    # is found first when the enumeration may stop early)
-    for oa in range(m if dmax >= 1 else 0):
-        a = order[oa]
+    # is found first when the enumeration may stop early); each subset's dropped sums in
+    # ascending index order, as the generic enumeration below
+    for a in range(m if dmax >= 1 else 0):
         best = _merge_set(
             best,
             tot,
@@ -322,40 +319,35 @@ def _smallest(terms, tot, idx, kept, order, m, dmax, gates, P00, P01, P11, enoug
         if best <= enough:
             return best
     for deep in range(2, min(dmax, 3) + 1):
-        for oa in range(m):
-            for ob in range(oa + 1, m):
-                a, b = min(order[oa], order[ob]), max(order[oa], order[ob])
+        for a in range(m):
+            for b in range(a + 1, m):
+                d0, d1, d2 = (
+                    terms[a, 0] + terms[b, 0],
+                    terms[a, 1] + terms[b, 1],
+                    terms[a, 2] + terms[b, 2],
+                )
+                d3, d4, d5 = (
+                    terms[a, 3] + terms[b, 3],
+                    terms[a, 4] + terms[b, 4],
+                    terms[a, 5] + terms[b, 5],
+                )
                 if deep == 2:
                     best = _merge_set(
-                        best,
-                        tot,
-                        terms[a, 0] + terms[b, 0],
-                        terms[a, 1] + terms[b, 1],
-                        terms[a, 2] + terms[b, 2],
-                        terms[a, 3] + terms[b, 3],
-                        terms[a, 4] + terms[b, 4],
-                        terms[a, 5] + terms[b, 5],
-                        m - 2,
-                        gates,
-                        P00,
-                        P01,
-                        P11,
+                        best, tot, d0, d1, d2, d3, d4, d5, m - 2, gates, P00, P01, P11
                     )
                     if best <= enough:
                         return best
                     continue
-                for oc in range(ob + 1, m):
-                    c = order[oc]  # (a < b; the three in ascending order: x < y < z)
-                    x, y, z = (c, a, b) if c < a else ((a, c, b) if c < b else (a, b, c))
+                for c in range(b + 1, m):
                     best = _merge_set(
                         best,
                         tot,
-                        terms[x, 0] + terms[y, 0] + terms[z, 0],
-                        terms[x, 1] + terms[y, 1] + terms[z, 1],
-                        terms[x, 2] + terms[y, 2] + terms[z, 2],
-                        terms[x, 3] + terms[y, 3] + terms[z, 3],
-                        terms[x, 4] + terms[y, 4] + terms[z, 4],
-                        terms[x, 5] + terms[y, 5] + terms[z, 5],
+                        d0 + terms[c, 0],
+                        d1 + terms[c, 1],
+                        d2 + terms[c, 2],
+                        d3 + terms[c, 3],
+                        d4 + terms[c, 4],
+                        d5 + terms[c, 5],
                         m - 3,
                         gates,
                         P00,
@@ -403,29 +395,6 @@ def _smallest(terms, tot, idx, kept, order, m, dmax, gates, P00, P01, P11, enoug
 
 
 @jit_lanes
-def _farthest_first(terms, tot, u, s0, m, order):
-    """``order (m,)`` <- the notes by their distance from the whole set's mean, the
-    farthest first (``(u_k - m)^T Y_k (u_k - m)``; ties, and nan, by index): the notes a
-    set most likely drops, tried first by :func:`_smallest` when it may stop early."""
-    _, _, _, ma, mb, _ = set_moments(tot[0], tot[1], tot[2], tot[3], tot[4], tot[5])
-    far = np.empty(m)
-    for k in range(m):
-        d0 = u[s0 + k, 0] - ma
-        d1 = u[s0 + k, 1] - mb
-        v = terms[k, 0] * d0 * d0 + 2.0 * terms[k, 1] * d0 * d1 + terms[k, 2] * d1 * d1
-        far[k] = v if not math.isnan(v) else -np.inf
-        order[k] = k
-    for k in range(1, m):  # (insertion sort, stable: a set is a few notes)
-        o = order[k]
-        v = far[o]
-        t = k - 1
-        while t >= 0 and far[order[t]] < v:
-            order[t + 1] = order[t]
-            t -= 1
-        order[t + 1] = o
-
-
-@jit_lanes
 def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, judged):
     """The step's statistic of every group of notes: group ``g`` is rows ``start[g] ..
     start[g] + count[g] - 1`` of ``u (E, 2)``, ``Q (E, 2, 2)``, ``P_pos (E, 2, 2)``;
@@ -444,7 +413,7 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
     terms = np.zeros((max(count.max() if count.shape[0] else 0, 1), 6))
     idx = np.zeros(max(f.max() if f.shape[0] else 0, 1) + 1, np.int64)
     kept = np.zeros(6)
-    order = np.empty(terms.shape[0], np.int64)
+    tot = np.zeros(6)
     for g in range(start.shape[0]):
         m = count[g]
         s0 = start[g]
@@ -452,7 +421,7 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         judged[g] = m > f[g]
         if not judged[g]:
             continue
-        tot = np.zeros(6)
+        tot[:] = 0.0  # (one scratch for every group: an allocation a group costs)
         big = s0
         best_trace = -np.inf
         tame = True
@@ -488,12 +457,7 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
         safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
         stop = enough[g] if safe else -np.inf
-        if stop > -np.inf and dmax > 0:  # (the order only matters when it may stop early)
-            _farthest_first(terms, tot, u, s0, m, order)
-        else:
-            for k in range(m):
-                order[k] = k
-        best = _smallest(terms, tot, idx, kept, order, m, dmax, gates, P00, P01, P11, stop)
+        best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
         T[g] = best if math.isfinite(best) else half_h[g]
 
 
