@@ -99,8 +99,6 @@ def outvoted_pass(
         The receivers (ascending).
     values : ndarray, shape (G, 2)
         Their new ``S`` and factor (1: none), the store's rows.
-    slot : ndarray of int, shape (G,)
-        Each receiver's row in ``skeys`` (-1: not stored yet).
     status : int
         :data:`DONE`, :data:`REFUSED` or ``-c`` (module docstring).
     enumerated : int
@@ -119,7 +117,7 @@ def outvoted_pass(
     none = np.empty((0, 3, 3))
     for e in range(E):  # ids the spec would index with (or fail on): the spec decides
         if li[e] < 0 or lj[e] < 0 or li[e] >= n or lj[e] >= n or li[e] >= P.shape[0]:
-            return empty, np.zeros((0, 2)), empty, REFUSED, 0, False, 0, none
+            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
     # the receivers (ascending) and each one's senders whose frame got through
     is_recv = np.zeros(n, np.bool_)
     rfirst = np.zeros(n + 1, np.int64)
@@ -154,7 +152,7 @@ def outvoted_pass(
     for p in range(Np):
         key = pkeys[p]
         if key < 0 or key >= n * n or key < o * n:  # (keys out of range or unsorted)
-            return empty, np.zeros((0, 2)), empty, REFUSED, 0, False, 0, none
+            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
         while key >= (o + 1) * n:
             o += 1
         p_obs[p] = o
@@ -191,7 +189,7 @@ def outvoted_pass(
     values = np.zeros((G, 2))
     slot = np.full(G, -1, np.int64)
     if largest >= gates.shape[0]:
-        return robots, values, slot, -largest, 0, False, 0, none
+        return robots, values, -largest, 0, False, 0, none
     # the stored S and factor (0 for a robot never stored), and where to stop enumerating
     ns = skeys.shape[0]
     S0 = np.zeros(G)
@@ -246,7 +244,7 @@ def outvoted_pass(
         a, b, d = P[r, 0, 0], 0.5 * (P[r, 0, 1] + P[r, 1, 0]), P[r, 1, 1]
         det = a * d - b * b
         if not (a > 0.0 and det > 0.0 and P[r, 0, 1] == P[r, 1, 0]):
-            return robots, values, slot, REFUSED, enumerated, False, 0, none
+            return robots, values, REFUSED, enumerated, False, 0, none
         # covariance matching, 2 dof: lambda = m^T P^-1 m / 2
         lam = (d * m0 * m0 - 2.0 * b * m0 * m1 + a * m1 * m1) / det / 2.0
         if not math.isnan(lam):
@@ -267,7 +265,7 @@ def outvoted_pass(
         svals[slot[g], 0] = values[g, 0]
         svals[slot[g], 1] = values[g, 1]
     if not widened:
-        return robots, values, slot, DONE, enumerated, written, 0, none
+        return robots, values, DONE, enumerated, written, 0, none
     out = P.copy()
     for g in range(G):
         lam = values[g, 1]
@@ -275,7 +273,7 @@ def outvoted_pass(
             for a in range(3):
                 for b in range(3):
                     out[robots[g], a, b] *= lam
-    return robots, values, slot, DONE, enumerated, written, widened, out
+    return robots, values, DONE, enumerated, written, widened, out
 
 
 class _Options(NamedTuple):
@@ -355,7 +353,7 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     largest = 16
     while True:
         gates = opt.gates if largest == 16 else consistency_gates(opt.p_fa, largest)
-        robots, values, _, status, enumerated, written, widened, out = outvoted_pass(
+        robots, values, status, enumerated, written, widened, out = outvoted_pass(
             *args, gates, opt.cap, opt.max_std
         )
         if status >= 0:

@@ -75,6 +75,7 @@ __all__ = [
     "notes_of",
     "set_moments",
     "statistic_of_groups",
+    "terms_statistic",
     "witness_links",
     "witness_verdict",
 ]
@@ -421,14 +422,13 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         judged[g] = m > f[g]
         if not judged[g]:
             continue
-        tot[:] = 0.0  # (one scratch for every group: an allocation a group costs)
         big = s0
         best_trace = -np.inf
-        tame = True
+        positive = True
         for k in range(m):
             e = s0 + k
             det = Q[e, 0, 0] * Q[e, 1, 1] - Q[e, 0, 1] * Q[e, 1, 0]
-            tame = tame and Q[e, 0, 0] > 0.0 and det > 0.0
+            positive = positive and Q[e, 0, 0] > 0.0 and det > 0.0
             Ya = Q[e, 1, 1] / det
             Yb = -0.5 * (Q[e, 0, 1] + Q[e, 1, 0]) / det
             Yc = Q[e, 0, 0] / det
@@ -440,9 +440,6 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
             terms[k, 3] = ya
             terms[k, 4] = yb
             terms[k, 5] = u[e, 0] * ya + u[e, 1] * yb
-            for c in range(6):
-                tot[c] += terms[k, c]
-                tame = tame and abs(terms[k, c]) < 1e100
             trace = P_pos[e, 0, 0] + P_pos[e, 1, 1]
             if math.isnan(best_trace):
                 pass  # (argmax: the first nan wins)
@@ -452,13 +449,32 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         P00 = P_pos[big, 0, 0]
         P01 = 0.5 * (P_pos[big, 0, 1] + P_pos[big, 1, 0])
         P11 = P_pos[big, 1, 1]
-        dmax = min(f[g], m - 1)
-        # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
-        safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
-        safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
-        stop = enough[g] if safe else -np.inf
-        best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
-        T[g] = best if math.isfinite(best) else half_h[g]
+        T[g] = terms_statistic(
+            terms, m, positive, P00, P01, P11, f[g], half_h[g], gates, enough[g], idx, kept, tot
+        )
+
+
+@jit_lanes
+def terms_statistic(terms, m, positive, P00, P01, P11, f, half_h, gates, enough, idx, kept, tot):
+    """The statistic of one judged group (:func:`group_statistics`) from its ``m`` notes'
+    information terms ``terms[:m]`` (rows ``Y``'s three entries, ``Y u``, ``u^T Y u``, in
+    the group's order), ``positive``: every note's ``Q`` positive definite, ``P00``,
+    ``P01``, ``P11``: the position block of the note with the largest claim; ``idx``,
+    ``kept``, ``tot`` scratch. The receivers' pass gives the terms it summed its sets with
+    (:mod:`resloc.cl.kernels_witness_frames`: the same values, computed once per note)."""
+    tot[:] = 0.0
+    tame = positive
+    for k in range(m):
+        for c in range(6):
+            tot[c] += terms[k, c]
+            tame = tame and abs(terms[k, c]) < 1e100
+    dmax = min(f, m - 1)
+    # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
+    safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
+    safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
+    stop = enough if safe else -np.inf
+    best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
+    return best if math.isfinite(best) else half_h
 
 
 @jit_lanes
