@@ -422,13 +422,14 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         judged[g] = m > f[g]
         if not judged[g]:
             continue
+        tot[:] = 0.0  # (one scratch for every group: an allocation a group costs)
         big = s0
         best_trace = -np.inf
-        positive = True
+        tame = True
         for k in range(m):
             e = s0 + k
             det = Q[e, 0, 0] * Q[e, 1, 1] - Q[e, 0, 1] * Q[e, 1, 0]
-            positive = positive and Q[e, 0, 0] > 0.0 and det > 0.0
+            tame = tame and Q[e, 0, 0] > 0.0 and det > 0.0
             Ya = Q[e, 1, 1] / det
             Yb = -0.5 * (Q[e, 0, 1] + Q[e, 1, 0]) / det
             Yc = Q[e, 0, 0] / det
@@ -440,6 +441,9 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
             terms[k, 3] = ya
             terms[k, 4] = yb
             terms[k, 5] = u[e, 0] * ya + u[e, 1] * yb
+            for c in range(6):
+                tot[c] += terms[k, c]
+                tame = tame and abs(terms[k, c]) < 1e100
             trace = P_pos[e, 0, 0] + P_pos[e, 1, 1]
             if math.isnan(best_trace):
                 pass  # (argmax: the first nan wins)
@@ -450,24 +454,19 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         P01 = 0.5 * (P_pos[big, 0, 1] + P_pos[big, 1, 0])
         P11 = P_pos[big, 1, 1]
         T[g] = terms_statistic(
-            terms, m, positive, P00, P01, P11, f[g], half_h[g], gates, enough[g], idx, kept, tot
+            terms, tot, m, tame, P00, P01, P11, f[g], half_h[g], gates, enough[g], idx, kept
         )
 
 
 @jit_lanes
-def terms_statistic(terms, m, positive, P00, P01, P11, f, half_h, gates, enough, idx, kept, tot):
+def terms_statistic(terms, tot, m, tame, P00, P01, P11, f, half_h, gates, enough, idx, kept):
     """The statistic of one judged group (:func:`group_statistics`) from its ``m`` notes'
     information terms ``terms[:m]`` (rows ``Y``'s three entries, ``Y u``, ``u^T Y u``, in
-    the group's order), ``positive``: every note's ``Q`` positive definite, ``P00``,
-    ``P01``, ``P11``: the position block of the note with the largest claim; ``idx``,
-    ``kept``, ``tot`` scratch. The receivers' pass gives the terms it summed its sets with
+    the group's order) and their sums ``tot (6,)`` (in that order); ``tame``: every note's
+    ``Q`` positive definite and every term under 1e100 in size; ``P00``, ``P01``, ``P11``:
+    the position block of the note with the largest claim; ``idx``, ``kept``: scratch.
+    The receivers' pass gives the terms it summed its sets with
     (:mod:`resloc.cl.kernels_witness_frames`: the same values, computed once per note)."""
-    tot[:] = 0.0
-    tame = positive
-    for k in range(m):
-        for c in range(6):
-            tot[c] += terms[k, c]
-            tame = tame and abs(terms[k, c]) < 1e100
     dmax = min(f, m - 1)
     # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
     safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0

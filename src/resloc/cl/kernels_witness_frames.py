@@ -336,14 +336,17 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             j = s_on[a]
             rn = s_recv[a] * n
             m = 0
-            positive = True
+            tot[:] = 0.0
+            tame = True
             big = jrows[jfirst[j]]
             best_trace = -np.inf
             for t in range(jfirst[j], jfirst[j + 1]):
                 for _ in range(times[rn + jobs[t]]):  # (its rows, as summed)
+                    tame = tame and jterm[t, 7] > 0.0
                     for col in range(6):
                         terms[m, col] = jterm[t, col]
-                    positive = positive and jterm[t, 7] > 0.0
+                        tot[col] += jterm[t, col]
+                        tame = tame and abs(jterm[t, col]) < 1e100
                     trace = jterm[t, 6]
                     if m == 0:
                         big = jrows[t]
@@ -355,8 +358,8 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
                     m += 1
             P01 = 0.5 * (pvals[big, 7] + pvals[big, 8])
             Tn[a] = terms_statistic(
-                terms, m, positive, pvals[big, 6], P01, pvals[big, 9], f_at[j],
-                0.5 * h_at[j], gates, stop[a], idx, kept, tot,
+                terms, tot, m, tame, pvals[big, 6], P01, pvals[big, 9], f_at[j],
+                0.5 * h_at[j], gates, stop[a], idx, kept,
             )  # fmt: skip
     # the new store: each group's CUSUM, the silent pairs' decay (keys ascending)
     keys = np.empty(NN, np.int64)
