@@ -300,6 +300,15 @@ class _Options(NamedTuple):
         return self.at[n]
 
 
+def _rows_of(values, rows: int, width: int) -> bool:
+    """Whether a store's ``values`` are the C-contiguous float64 ``(rows, width)`` array the
+    pass takes as it is (a run's; else a reshaped copy is passed)."""
+    return values.dtype == _FLOAT and values.flags.c_contiguous and values.shape == (rows, width)
+
+
+_FLOAT = np.dtype(float)
+
+
 @per_params
 def _options(params: CLParams) -> _Options:
     return _Options(
@@ -331,13 +340,15 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     opt = _options(params)
     f_at, half_h_at = opt.per_robot(params, n)
     svals = state.values
-    in_place = svals.dtype == np.float64 and svals.flags.c_contiguous
-    in_place = in_place and svals.shape == (len(state.keys), 2)
+    in_place = _rows_of(svals, len(state.keys), 2)
     if not in_place:  # (a store the pass cannot write: it writes a copy, set below)
         svals = np.ascontiguousarray(svals, float).reshape(len(state), 2)
+    pvals = pending.values
+    if not _rows_of(pvals, len(pending.keys), PENDING_WIDTH):
+        pvals = np.ascontiguousarray(pvals, float).reshape(len(pending), PENDING_WIDTH)
     args = (
         np.ascontiguousarray(pending.keys, np.int64),
-        np.ascontiguousarray(pending.values, float).reshape(len(pending), PENDING_WIDTH),
+        pvals,
         n,
         li,
         lj,
