@@ -21,6 +21,8 @@ function                       numpy twin
 :func:`group_statistics`       :func:`~resloc.cl.detection_witness.reference_statistic`
                                (any grouping of the notes: rows sorted by a group key,
                                each group its first row and size)
+:func:`terms_statistic`        the same, for one group given its notes' information
+                               terms (``delivered_pass`` gives those it summed)
 :func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
 =============================  ==========================================================
 
