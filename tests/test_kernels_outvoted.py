@@ -21,7 +21,7 @@ import pytest
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_outvoted, predict
 from resloc.cl.detection_outvoted import OUTVOTED_STATE, reference_widen, widen_outvoted
 from resloc.cl.detection_witness import WitnessNotes
-from resloc.cl.detection_witness_frames import reference_record
+from resloc.cl.detection_witness_frames import PENDING, reference_record
 from resloc.cl.params import CLParams
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
@@ -155,3 +155,28 @@ def test_compiled_outvoted_equals_the_reference_under_attack(shield, seed, foole
     steps = lockstep(make_filter("ckf"), params, 60, seed, shield, fooled)
     widened = sum(len(w) for w in steps)
     assert widened > 0, "nobody widened: the case tests nothing"
+
+
+def test_pending_keys_out_of_order_are_left_to_the_spec():
+    """The pass finds each pending row's observer by a scan of the ascending keys: a store
+    whose keys are not in order is refused (nothing written, the spec runs)."""
+    rng = np.random.default_rng(3)
+    params = CLParams(witness=True, outvoted=True, witness_liars=2.0)
+    memories = (LinkMemory(ROBOTS), LinkMemory(ROBOTS))
+    notes, links = _random_step(rng, np.zeros((ROBOTS, 2)), np.full(ROBOTS, 0.01))
+    for memory in memories:
+        reference_record(notes, memory)
+    P = np.tile(np.eye(3) * 1e-4, (ROBOTS, 1, 1))
+    _widen_both(params, memories, links, P)  # sorted: the pass runs (checked)
+    for memory in memories:
+        pending = memory.stage_statistic(PENDING)
+        pending.keys, pending.values = pending.keys[::-1].copy(), pending.values[::-1].copy()
+    before = dict(kernels_outvoted.OUTVOTED_RUNS)
+    with kernels.use_backend("numba"):
+        fast = widen_outvoted(params, memories[0], links, P)
+    assert kernels_outvoted.OUTVOTED_RUNS["passes"] == before["passes"], "not refused"
+    assert kernels_outvoted.OUTVOTED_RUNS["fallbacks"] == before["fallbacks"] + 1
+    with kernels.use_backend("numpy"):
+        ref = reference_widen(params, memories[1], links, P)
+    np.testing.assert_array_equal(fast, ref)
+    _assert_same_store(*memories)

@@ -161,6 +161,11 @@ def group_medians(u: np.ndarray, start: np.ndarray, count: np.ndarray) -> np.nda
     return out
 
 
+#: :func:`resloc.cl.kernels_outvoted.fast_widen` once imported (an import statement a
+#: step costs ~0.5 us).
+_FAST: list = []
+
+
 def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.ndarray) -> np.ndarray:
     """``P (B, 3, 3)`` with the covariance of every robot its observers' notes outvote
     widened; ``P`` itself when none is (or the stage is off). Reads the notes waiting in
@@ -176,9 +181,11 @@ def widen_outvoted(params: CLParams, memory: LinkMemory | None, links, P: np.nda
     if view is not None:  # one robot's process: the notes on it its runtime delivered
         memory.outvoted_view = None
         memory = view
-    from resloc.cl.kernels_outvoted import fast_widen  # numba's import, on first use
+    if not _FAST:  # numba's import, on first use
+        from resloc.cl.kernels_outvoted import fast_widen
 
-    fast = fast_widen(params, memory, links, P)
+        _FAST.append(fast_widen)
+    fast = _FAST[0](params, memory, links, P)
     if fast is not None:
         return fast
     return reference_widen(params, memory, links, P)

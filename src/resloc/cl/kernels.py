@@ -397,9 +397,7 @@ def fast_correct(
         return None
     witness = None
     if params.witness:  # the notes read the claims as sent (kernels_witness)
-        from resloc.cl.kernels_witness import WitnessInputs
-
-        witness = WitnessInputs.of(links)
+        witness = _stage("kernels_witness").WitnessInputs.of(links)
     if params.redundancy:
         # The redundancy stage judges the links as reported at the predicted estimates
         # (claims capped, a tamper hook applied to every row: kernels_redundancy)
@@ -413,11 +411,10 @@ def fast_correct(
 
         links = claimed_links(params, links)
     if witness is not None:  # the readings as reported; the verdict known before the loop
-        from resloc.cl.kernels_witness import witness_links, witness_verdict
-
+        witness_stage = _stage("kernels_witness")
         strategy = fusion_strategy(params.fusion)
-        links = witness_links(filt, x, P, links, strategy, memory, params.R)
-        witness = witness_verdict(params, memory, x, P, links, witness)
+        links = witness_stage.witness_links(filt, x, P, links, strategy, memory, params.R)
+        witness = witness_stage.witness_verdict(params, memory, x, P, links, witness)
         if witness is None:
             return None  # the reference path raises the explanatory error
     if params.reciprocal:

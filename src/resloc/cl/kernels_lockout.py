@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from resloc.cl.backend import backend
-from resloc.cl.kernels_math import jit_lanes
+from resloc.cl.kernels_math import jit_lanes, per_params
 from resloc.cl.kernels_startup import floor_factor, stored_slots, write_raised
 
 __all__ = ["LOCKOUT_RUNS", "fast_floor", "fast_record", "floor_pass", "record_pass"]
@@ -89,17 +89,21 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
     :data:`REFUSED`."""
     E = li.shape[0]
     judged = np.zeros(E, np.bool_)
+    inside = np.zeros(n, np.int8)  # per observer: 0 not tested yet, 1 inside, -1 outside
     for e in range(E):
-        if li[e] < 0 or li[e] >= n or li[e] >= x.shape[0]:
+        r = li[e]
+        if r < 0 or r >= n or r >= x.shape[0]:
             return REFUSED
-        ok = channel_ok[e]
-        if ok:
+        if not channel_ok[e]:
+            continue
+        if inside[r] == 0:  # (the zone map test once per observer, not per link)
+            inside[r] = -1
             for z in range(discs.shape[0]):
-                gap = math.hypot(x[li[e], 0] - discs[z, 0], x[li[e], 1] - discs[z, 1])
+                gap = math.hypot(x[r, 0] - discs[z, 0], x[r, 1] - discs[z, 1])
                 if gap - discs[z, 2] <= 0.0:
-                    ok = False
+                    inside[r] = 1
                     break
-        judged[e] = ok
+        judged[e] = inside[r] < 0
     observer, slot, ok = stored_slots(skeys, n, li, judged, x.shape[0])
     if not ok:
         return REFUSED
@@ -133,10 +137,8 @@ def fast_floor(params, state, links, P: np.ndarray) -> np.ndarray | None:
         LOCKOUT_RUNS["fallbacks"] += 1
         return None
     out = np.empty_like(Pa)
-    status = floor_pass(
-        state.keys, state.values, state.n_nodes, li, Pa, out,
-        float(params.lockout_share), float(params.lockout_floor_std),
-    )  # fmt: skip
+    share, std, _, _ = _constants(params)
+    status = floor_pass(state.keys, state.values, state.n_nodes, li, Pa, out, share, std)
     if status == REFUSED:
         LOCKOUT_RUNS["fallbacks"] += 1
         return None
@@ -154,17 +156,11 @@ def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bo
     if xa.ndim != 2 or xa.shape[1] < 2:
         LOCKOUT_RUNS["fallbacks"] += 1
         return False
-    discs = _NO_DISCS
-    if params.zone_trust and params.zone_trust_map:
-        discs = _DISCS.get(params.zone_trust_map)
-        if discs is None:  # the map is a tuple of the frozen params: built once per map
-            discs = np.asarray(params.zone_trust_map, float).reshape(-1, 3)
-            _DISCS[params.zone_trust_map] = discs
+    _, _, discs, weight = _constants(params)
     status = record_pass(
         state.keys, state.values, state.n_nodes, np.ascontiguousarray(links.i, np.int64),
         np.ascontiguousarray(detected, np.bool_),
-        np.ascontiguousarray(links.channel_ok, np.bool_), xa, discs,
-        1.0 / float(params.lockout_window),
+        np.ascontiguousarray(links.channel_ok, np.bool_), xa, discs, weight,
     )  # fmt: skip
     if status == REFUSED:
         LOCKOUT_RUNS["fallbacks"] += 1
@@ -173,6 +169,17 @@ def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bo
     return True
 
 
-_NO_DISCS = np.zeros((0, 3))
-#: The zone maps as arrays, by the params' tuple.
-_DISCS: dict = {}
+@per_params
+def _constants(params) -> tuple[float, float, np.ndarray, float]:
+    """``(lockout_share, lockout_floor_std, discs, weight)`` as the passes take them (kept
+    per ``params``): the zone map ``(Z, 3)`` (empty without zone trust) and ``1 /
+    lockout_window``."""
+    discs = np.zeros((0, 3))
+    if params.zone_trust and params.zone_trust_map:
+        discs = np.asarray(params.zone_trust_map, float).reshape(-1, 3)
+    return (
+        float(params.lockout_share),
+        float(params.lockout_floor_std),
+        np.ascontiguousarray(discs),
+        1.0 / float(params.lockout_window),
+    )

@@ -28,6 +28,9 @@ from typing import NamedTuple
 import numpy as np
 
 from resloc.cl.backend import backend
+from resloc.cl.detection_outvoted import OUTVOTED_STATE
+from resloc.cl.detection_witness import consistency_gates
+from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
 from resloc.cl.kernels_math import jit_lanes, per_params
 from resloc.cl.kernels_witness import group_statistics
 from resloc.cl.kernels_witness_frames import copy_note
@@ -40,8 +43,8 @@ __all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass"]
 OUTVOTED_RUNS = {"passes": 0, "fallbacks": 0, "enumerated": 0}
 
 #: :func:`outvoted_pass`'s status: done; refused (a position block the 2 x 2 solve does
-#: not take, or an id out of range: the spec decides); ``-c`` (c > 0): ``gates`` stops
-#: short of a group of ``c`` notes.
+#: not take, an id out of range, pending keys out of range or unsorted: the spec decides);
+#: ``-c`` (c > 0): ``gates`` stops short of a group of ``c`` notes.
 DONE, REFUSED = 0, 1
 
 
@@ -66,7 +69,9 @@ def _sorted_median(buf, c):
 def outvoted_pass(
     pkeys, pvals, n, li, lj, ok, skeys, svals, P, f_at, half_h_at, k, h, gates, cap, max_std
 ):
-    """Every receiver's sequence test and widening factor after the pending notes on it.
+    """Every receiver's sequence test and widening factor after the pending notes on it;
+    the store written in place and the widened covariances made when it can (``written``,
+    ``widened``: the steady state's whole step in one call, no numpy glue after it).
 
     Parameters
     ----------
@@ -94,18 +99,25 @@ def outvoted_pass(
         The receivers (ascending).
     values : ndarray, shape (G, 2)
         Their new ``S`` and factor (1: none), the store's rows.
-    slot : ndarray of int, shape (G,)
-        Each receiver's row in ``skeys`` (-1: not stored yet).
     status : int
         :data:`DONE`, :data:`REFUSED` or ``-c`` (module docstring).
     enumerated : int
         Judged receivers whose enumeration did not stop early (every set of notes).
+    written : bool
+        :data:`DONE` and every receiver stored before (a run's steady state): ``values``
+        written into ``svals`` at their rows (else the caller sets them: the store inserts).
+    widened : int
+        Receivers whose factor is above 1 (:data:`DONE`).
+    out : ndarray, shape (B, 3, 3) or (0, 3, 3)
+        ``P`` with every widened receiver's block times its factor (the spec's
+        :func:`~resloc.cl.detection_widening.scale_robots`) when ``widened``, else empty.
     """
     E = li.shape[0]
     empty = np.empty(0, np.int64)
+    none = np.empty((0, 3, 3))
     for e in range(E):  # ids the spec would index with (or fail on): the spec decides
         if li[e] < 0 or lj[e] < 0 or li[e] >= n or lj[e] >= n or li[e] >= P.shape[0]:
-            return empty, np.zeros((0, 2)), empty, REFUSED, 0
+            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
     # the receivers (ascending) and each one's senders whose frame got through
     is_recv = np.zeros(n, np.bool_)
     rfirst = np.zeros(n + 1, np.int64)
@@ -131,19 +143,28 @@ def outvoted_pass(
         if is_recv[r]:
             robots[G] = r
             G += 1
-    # the waiting rows bucketed by the robot they are on (ascending rows: by observer)
+    # the waiting rows bucketed by the robot they are on (ascending rows: by observer);
+    # each row's observer by a scan, not a division a row (the keys ascend)
     Np = pkeys.shape[0]
     onfirst = np.zeros(n + 1, np.int64)
+    p_obs = np.empty(Np, np.int64)
+    o = 0
     for p in range(Np):
+        key = pkeys[p]
+        if key < 0 or key >= n * n or key < o * n:  # (keys out of range or unsorted)
+            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
+        while key >= (o + 1) * n:
+            o += 1
+        p_obs[p] = o
         if pvals[p, 10] > 0.0:
-            onfirst[pkeys[p] % n + 1] += 1
+            onfirst[key - o * n + 1] += 1
     for r in range(n):
         onfirst[r + 1] += onfirst[r]
     by_on = np.empty(onfirst[n], np.int64)
     fill = onfirst[:n].copy()
     for p in range(Np):
         if pvals[p, 10] > 0.0:
-            on = pkeys[p] % n
+            on = pkeys[p] - p_obs[p] * n
             by_on[fill[on]] = p
             fill[on] += 1
     # each receiver's group: the notes on it from the observers it heard
@@ -160,7 +181,7 @@ def outvoted_pass(
         gstart[g] = M
         for t in range(onfirst[r], onfirst[r + 1]):
             p = by_on[t]
-            if heard[pkeys[p] // n] == r:
+            if heard[p_obs[p]] == r:
                 grows[M] = p
                 M += 1
         gcount[g] = M - gstart[g]
@@ -168,7 +189,7 @@ def outvoted_pass(
     values = np.zeros((G, 2))
     slot = np.full(G, -1, np.int64)
     if largest >= gates.shape[0]:
-        return robots, values, slot, -largest, 0
+        return robots, values, -largest, 0, False, 0, none
     # the stored S and factor (0 for a robot never stored), and where to stop enumerating
     ns = skeys.shape[0]
     S0 = np.zeros(G)
@@ -223,7 +244,7 @@ def outvoted_pass(
         a, b, d = P[r, 0, 0], 0.5 * (P[r, 0, 1] + P[r, 1, 0]), P[r, 1, 1]
         det = a * d - b * b
         if not (a > 0.0 and det > 0.0 and P[r, 0, 1] == P[r, 1, 0]):
-            return robots, values, slot, REFUSED, enumerated
+            return robots, values, REFUSED, enumerated, False, 0, none
         # covariance matching, 2 dof: lambda = m^T P^-1 m / 2
         lam = (d * m0 * m0 - 2.0 * b * m0 * m1 + a * m1 * m1) / det / 2.0
         if not math.isnan(lam):
@@ -234,7 +255,25 @@ def outvoted_pass(
         elif not math.isnan(lam):
             lam = min(lam, max(bound, 1.0))
         values[g, 1] = lam
-    return robots, values, slot, DONE, enumerated
+    written = True
+    widened = 0
+    for g in range(G):
+        written = written and slot[g] >= 0
+        if values[g, 1] > 1.0:
+            widened += 1
+    for g in range(G if written else 0):
+        svals[slot[g], 0] = values[g, 0]
+        svals[slot[g], 1] = values[g, 1]
+    if not widened:
+        return robots, values, DONE, enumerated, written, 0, none
+    out = P.copy()
+    for g in range(G):
+        lam = values[g, 1]
+        if lam > 1.0:
+            for a in range(3):
+                for b in range(3):
+                    out[robots[g], a, b] *= lam
+    return robots, values, DONE, enumerated, written, widened, out
 
 
 class _Options(NamedTuple):
@@ -245,6 +284,7 @@ class _Options(NamedTuple):
     cap: float
     max_std: float
     p_fa: float
+    gates: np.ndarray  # consistency_gates(p_fa, 16), the first the pass is given
     at: dict  # n -> (f_at, half_h_at), shapes (n,)
 
     def per_robot(self, params: CLParams, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -260,6 +300,15 @@ class _Options(NamedTuple):
         return self.at[n]
 
 
+def _rows_of(values, rows: int, width: int) -> bool:
+    """Whether a store's ``values`` are the C-contiguous float64 ``(rows, width)`` array the
+    pass takes as it is (a run's; else a reshaped copy is passed)."""
+    return values.dtype == _FLOAT and values.flags.c_contiguous and values.shape == (rows, width)
+
+
+_FLOAT = np.dtype(float)
+
+
 @per_params
 def _options(params: CLParams) -> _Options:
     return _Options(
@@ -268,6 +317,7 @@ def _options(params: CLParams) -> _Options:
         float(params.outvoted_cap),
         float(params.outvoted_max_std),
         float(np.max(params.witness_false_alarm)),
+        consistency_gates(float(np.max(params.witness_false_alarm)), 16),
         {},
     )
 
@@ -275,13 +325,10 @@ def _options(params: CLParams) -> _Options:
 def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | None:
     """:func:`~resloc.cl.detection_outvoted.widen_outvoted` by :func:`outvoted_pass` (the
     stage on, a memory given); None with the numpy backend, arrays it does not take, or
-    what the compiled pass refuses (then the spec runs)."""
+    what the compiled pass refuses (then the spec runs). In a run's steady state the pass
+    writes the store and widens the covariances itself: the glue only checks and calls."""
     if backend() != "numba":
         return None
-    from resloc.cl.detection_outvoted import OUTVOTED_STATE
-    from resloc.cl.detection_witness import consistency_gates
-    from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
-
     state = memory.stage_statistic(OUTVOTED_STATE, width=2)
     pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
     n = state.n_nodes
@@ -292,15 +339,22 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
         return None
     opt = _options(params)
     f_at, half_h_at = opt.per_robot(params, n)
+    svals = state.values
+    in_place = _rows_of(svals, len(state.keys), 2)
+    if not in_place:  # (a store the pass cannot write: it writes a copy, set below)
+        svals = np.ascontiguousarray(svals, float).reshape(len(state), 2)
+    pvals = pending.values
+    if not _rows_of(pvals, len(pending.keys), PENDING_WIDTH):
+        pvals = np.ascontiguousarray(pvals, float).reshape(len(pending), PENDING_WIDTH)
     args = (
         np.ascontiguousarray(pending.keys, np.int64),
-        np.ascontiguousarray(pending.values, float).reshape(len(pending), PENDING_WIDTH),
+        pvals,
         n,
         li,
         lj,
         np.ascontiguousarray(links.channel_ok, np.bool_),
         np.ascontiguousarray(state.keys, np.int64),
-        np.ascontiguousarray(state.values, float).reshape(len(state), 2),
+        svals,
         Pa,
         f_at,
         half_h_at,
@@ -309,23 +363,18 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     )
     largest = 16
     while True:
-        gates = consistency_gates(opt.p_fa, largest)
-        robots, values, slot, status, enumerated = outvoted_pass(*args, gates, opt.cap, opt.max_std)
+        gates = opt.gates if largest == 16 else consistency_gates(opt.p_fa, largest)
+        robots, values, status, enumerated, written, widened, out = outvoted_pass(
+            *args, gates, opt.cap, opt.max_std
+        )
         if status >= 0:
             break
         largest = max(-status, 2 * largest)
     if status == REFUSED:
         OUTVOTED_RUNS["fallbacks"] += 1
         return None
-    if (slot >= 0).all() and state.values.flags.c_contiguous and state.values.dtype == float:
-        state.values[slot] = values  # every receiver stored before (a run's steady state)
-    else:
+    if not (written and in_place):  # (a receiver not stored yet: the store inserts)
         state.set(robots, robots, values)
     OUTVOTED_RUNS["passes"] += 1
     OUTVOTED_RUNS["enumerated"] += enumerated
-    widen = values[:, 1] > 1.0
-    if not widen.any():
-        return P
-    P = np.array(P, float)
-    P[robots[widen]] *= values[widen, 1, None, None]
-    return P
+    return out if widened else P

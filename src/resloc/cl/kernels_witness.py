@@ -21,6 +21,8 @@ function                       numpy twin
 :func:`group_statistics`       :func:`~resloc.cl.detection_witness.reference_statistic`
                                (any grouping of the notes: rows sorted by a group key,
                                each group its first row and size)
+:func:`terms_statistic`        the same, for one group given its notes' information
+                               terms (``delivered_pass`` gives those it summed)
 :func:`cusum_of`               :func:`~resloc.cl.detection_witness.witness_cusum`
 =============================  ==========================================================
 
@@ -75,6 +77,7 @@ __all__ = [
     "notes_of",
     "set_moments",
     "statistic_of_groups",
+    "terms_statistic",
     "witness_links",
     "witness_verdict",
 ]
@@ -413,6 +416,7 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
     terms = np.zeros((max(count.max() if count.shape[0] else 0, 1), 6))
     idx = np.zeros(max(f.max() if f.shape[0] else 0, 1) + 1, np.int64)
     kept = np.zeros(6)
+    tot = np.zeros(6)
     for g in range(start.shape[0]):
         m = count[g]
         s0 = start[g]
@@ -420,7 +424,7 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         judged[g] = m > f[g]
         if not judged[g]:
             continue
-        tot = np.zeros(6)
+        tot[:] = 0.0  # (one scratch for every group: an allocation a group costs)
         big = s0
         best_trace = -np.inf
         tame = True
@@ -451,13 +455,27 @@ def group_statistics(u, Q, P_pos, start, count, f, half_h, gates, enough, T, jud
         P00 = P_pos[big, 0, 0]
         P01 = 0.5 * (P_pos[big, 0, 1] + P_pos[big, 1, 0])
         P11 = P_pos[big, 1, 1]
-        dmax = min(f[g], m - 1)
-        # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
-        safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
-        safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
-        stop = enough[g] if safe else -np.inf
-        best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
-        T[g] = best if math.isfinite(best) else half_h[g]
+        T[g] = terms_statistic(
+            terms, tot, m, tame, P00, P01, P11, f[g], half_h[g], gates, enough[g], idx, kept
+        )
+
+
+@jit_lanes
+def terms_statistic(terms, tot, m, tame, P00, P01, P11, f, half_h, gates, enough, idx, kept):
+    """The statistic of one judged group (:func:`group_statistics`) from its ``m`` notes'
+    information terms ``terms[:m]`` (rows ``Y``'s three entries, ``Y u``, ``u^T Y u``, in
+    the group's order) and their sums ``tot (6,)`` (in that order); ``tame``: every note's
+    ``Q`` positive definite and every term under 1e100 in size; ``P00``, ``P01``, ``P11``:
+    the position block of the note with the largest claim; ``idx``, ``kept``: scratch.
+    The receivers' pass gives the terms it summed its sets with
+    (:mod:`resloc.cl.kernels_witness_frames`: the same values, computed once per note)."""
+    dmax = min(f, m - 1)
+    # no set can make a nan (a nan anywhere counts h / 2): the stop is exact
+    safe = tame and P00 >= 0.0 and P11 >= 0.0 and P00 * P11 - P01 * P01 >= 0.0
+    safe = safe and abs(P00) < 1e100 and abs(P01) < 1e100 and abs(P11) < 1e100
+    stop = enough if safe else -np.inf
+    best = _smallest(terms, tot, idx, kept, m, dmax, gates, P00, P01, P11, stop)
+    return best if math.isfinite(best) else half_h
 
 
 @jit_lanes

@@ -18,9 +18,10 @@ sets by a random 64-bit word per row; the masks identify them exactly). A receiv
 holds a frame twice (a duplicate link) gets sets of its own, with the rows repeated as
 the spec repeats them. Each set's whole set is judged; a group left at 0 by a consistent
 whole set skips the enumeration (the spec's rule), the others' sets are enumerated by
-:func:`~resloc.cl.kernels_witness.group_statistics`, each once, stopping at the first
-consistent subset whose statistic clips every group holding the set at 0 (``S + T - k
-<= 0``: the smallest would give the same 0; the spec enumerates them all). The store is
+:func:`~resloc.cl.kernels_witness.terms_statistic` (``group_statistics``' enumeration, on
+the information terms the sums used: computed once per note), each once, stopping at the
+first consistent subset whose statistic clips every group holding the set at 0 (``S + T -
+k <= 0``: the smallest would give the same 0; the spec enumerates them all). The store is
 made dense (``n * n``) for the pass: the new one comes out in key order.
 """
 
@@ -32,7 +33,7 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import WITNESS_RUNS, group_statistics, set_moments
+from resloc.cl.kernels_witness import WITNESS_RUNS, set_moments, terms_statistic
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 
@@ -103,7 +104,8 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     NN = n * n
     # the waiting rows on each robot j, by observer (ascending: the pending keys are
     # sorted by (observer, on)): jrows[jfirst[j] : jfirst[j + 1]], with each row's
-    # information terms, claimed trace and observer in jterm (read in that order);
+    # information terms, claimed trace, whether Q is positive definite and observer in
+    # jterm, jobs (read in that order);
     # notes_on[j]: the observers' mask
     Pn = pkeys.shape[0]
     jfirst = np.zeros(n + 1, np.int64)
@@ -128,7 +130,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
     j_rows = np.empty((2, jfirst[n]), np.int64)
     jrows = j_rows[0]
     jobs = j_rows[1]
-    jterm = np.empty((jfirst[n], 7))
+    jterm = np.empty((jfirst[n], 8))
     fill = jfirst[:n].copy()
     for p in range(Pn):
         on = p_on[p]
@@ -152,6 +154,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         jterm[t, 4] = yb
         jterm[t, 5] = u0 * ya + u1 * yb
         jterm[t, 6] = pvals[p, 6] + pvals[p, 9]
+        jterm[t, 7] = 1.0 if (Q00 > 0.0 and det > 0.0) else 0.0  # (Q positive definite)
         jobs[t] = p_obs[p]
     # each receiver's frames: itself and the senders of its links whose channel is ok
     # (times[r * n + o]: how often; a receiver holding a frame twice has its own sets)
@@ -314,43 +317,50 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         wanted[a] = True
         v = k - S_old[key]
         stop[a] = -np.inf if math.isnan(v) else min(stop[a], v)
+    # each wanted set's statistic from its rows' terms as summed above (the same values
+    # group_statistics would compute from the notes: computed once per note)
     need = 0
-    m_need = 0
+    widest_set = 1
     for a in range(D):
         if wanted[a]:
             need += 1
-            m_need += s_count[a]
+            widest_set = max(widest_set, s_count[a])
     if need:
-        u = np.empty((m_need, 2))
-        Q = np.empty((m_need, 2, 2))
-        Pp = np.empty((m_need, 2, 2))
-        n_ints = np.empty((4, need), np.int64)
-        nstart, ncount, nf, which = n_ints[0], n_ints[1], n_ints[2], n_ints[3]
-        n_floats = np.zeros((3, need))
-        nhalf, nstop, Tb = n_floats[0], n_floats[1], n_floats[2]
-        q2 = 0
-        b = 0
+        terms = np.empty((widest_set, 6))
+        idx = np.zeros(max(f_at.max(), 1) + 1, np.int64)
+        kept = np.zeros(6)
+        tot = np.zeros(6)
         for a in range(D):
             if not wanted[a]:
                 continue
-            which[b] = a
-            nstart[b] = q2
-            ncount[b] = s_count[a]
-            nf[b] = f_at[s_on[a]]
-            nhalf[b] = 0.5 * h_at[s_on[a]]
-            nstop[b] = stop[a]
             j = s_on[a]
             rn = s_recv[a] * n
+            m = 0
+            tot[:] = 0.0
+            tame = True
+            big = jrows[jfirst[j]]
+            best_trace = -np.inf
             for t in range(jfirst[j], jfirst[j + 1]):
-                e = jrows[t]
                 for _ in range(times[rn + jobs[t]]):  # (its rows, as summed)
-                    copy_note(pvals, e, u, Q, Pp, q2)
-                    q2 += 1
-            b += 1
-        jb = np.zeros(need, np.bool_)
-        group_statistics(u, Q, Pp, nstart, ncount, nf, nhalf, gates, nstop, Tb, jb)
-        for b in range(need):
-            Tn[which[b]] = Tb[b]
+                    tame = tame and jterm[t, 7] > 0.0
+                    for col in range(6):
+                        terms[m, col] = jterm[t, col]
+                        tot[col] += jterm[t, col]
+                        tame = tame and abs(jterm[t, col]) < 1e100
+                    trace = jterm[t, 6]
+                    if m == 0:
+                        big = jrows[t]
+                    if math.isnan(best_trace):
+                        pass  # (argmax: the first nan wins, as group_statistics)
+                    elif math.isnan(trace) or trace > best_trace:
+                        best_trace = trace
+                        big = jrows[t]
+                    m += 1
+            P01 = 0.5 * (pvals[big, 7] + pvals[big, 8])
+            Tn[a] = terms_statistic(
+                terms, tot, m, tame, pvals[big, 6], P01, pvals[big, 9], f_at[j],
+                0.5 * h_at[j], gates, stop[a], idx, kept,
+            )  # fmt: skip
     # the new store: each group's CUSUM, the silent pairs' decay (keys ascending)
     keys = np.empty(NN, np.int64)
     values = np.empty(NN)

@@ -152,9 +152,11 @@ def witness_pass(
     Q = np.empty((1, 2, 2))
     for e in range(E):
         r = li[e]
+        if inside[r] or not ok[e]:
+            continue  # (not sent: inside the map, j's estimate not received)
         note_at(z, e, x, r, P, x_nb, R, u, Q, 0, lengthen[r])
-        if inside[r] or not ok[e] or not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
-            continue  # (not sent: inside the map, j's estimate not received, no number)
+        if not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
+            continue  # (not sent: no number)
         p = slot[r * n + lj[e]]
         if p < 0:  # a link not stored yet: the spec records (it inserts)
             return DONE, keys, values, need, discard, pvals, False
