@@ -228,6 +228,43 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
     assert not np.array_equal(verdicts[0], verdicts[1])
 
 
+def test_the_pre_pass_fixes_in_blocks_equal_fix_evidence_out_of_the_polynomials_range() -> None:
+    """The pre-pass computes its rows' fixes by blocks of ``FIX_BLOCK`` rows in SIMD lanes
+    (``_fixes_of_block``), the sine and cosine of ``theta_i + b`` by branch-free
+    polynomials and, out of their range, by libm. Over five steps of two teams (more rows
+    than two blocks, observers' rows across a block's edge), with the headings of every
+    third robot far out of that range and a liar, its verdicts and sequence-test state equal
+    :func:`fix_evidence`'s."""
+    from resloc.cl.kernels_lanes import SINCOS_LANES_MAX
+    from resloc.cl.kernels_redundancy import FIX_BLOCK, redundancy_verdict
+
+    params = _params("full+redundancy+sequence")
+    sc = default_scenario()
+    world = World(sc.world, 2, 8, sc.trigger.lambda2)
+    x, P = world.initial_estimates()
+    # ~1e10 turns (the same directions to ~1e-5 rad), far beyond the polynomials' range
+    x[::3, 2] += 2.0 * np.pi * 1e10
+    crossing = 0
+    for _ in range(5):
+        ws = world.step()
+        ref_memory, memory = LinkMemory(world.B), LinkMemory(world.B)
+        li, lj = ws.i.astype(np.int64), ws.j.astype(np.int64)
+        assert len(li) > 2 * FIX_BLOCK
+        crossing += sum(li[k * FIX_BLOCK - 1] == li[k * FIX_BLOCK] for k in (1, 2))
+        assert (np.abs(x[li, 2] + ws.z[:, 1]) > SINCOS_LANES_MAX).any()
+        x_nb, P_nb = x[ws.j].copy(), P[ws.j].copy()
+        x_nb[ws.j == LIARS[0], 0] += 0.4
+        ev = fix_evidence(ws.z, x[ws.i], P[ws.i], x_nb, P_nb, ws.i, params, ws.j, ref_memory)
+        nb = np.arange(len(li), dtype=np.int64)
+        detection = detector_state(params, memory, li, lj).kernel
+        verdict = redundancy_verdict(params, memory, li, lj, ws.z, x, P, x_nb, P_nb, nb, detection)
+        np.testing.assert_array_equal(verdict.discard, ev["fix_excluded"] | ev["sequence_discard"])
+        state = memory.stage_statistic(SEQUENCE, width=WIDTH).get(ws.i, ws.j)
+        np.testing.assert_allclose(state, ev["sequence_state"], rtol=0, atol=1e-12)
+        assert verdict.discard[ws.j == LIARS[0]].any()
+    assert crossing > 0  # an observer's rows in two blocks
+
+
 def test_capped_claims_twin() -> None:
     from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_covariances
     from resloc.cl.kernels_redundancy import claim_scales

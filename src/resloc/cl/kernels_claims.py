@@ -116,8 +116,9 @@ def claimed_rows(li, x_src, P_src, rows, cap, discs, inflation):
     gather of them was half of the claims' cost."""
     E = li.shape[0]
     out = np.empty((E, 3, 3))
+    scratch = np.empty((2, E))  # the factors and the medians' scratch (one allocation)
     inside = claimed_covariances(
-        li, x_src, P_src, rows, cap, discs, inflation, out, np.empty(E), np.empty(E)
+        li, x_src, P_src, rows, cap, discs, inflation, out, scratch[0], scratch[1]
     )
     if inside < 0:
         return inside, np.empty((0, 3, 3)), np.empty((0, 3))
