@@ -103,7 +103,7 @@ class CompromisedRobot(Strategy):
         "neighbour the largest shift along world +x (at most {reach:g} m a step, "
         "compounding) its detector accepts, claimed covariance x{claimed_cov:g}; every "
         "sensor honest (against the witness stage: budget {budget}, giving up {give_up:g} "
-        "receiver(s))"
+        "receiver(s)); their own estimates {own}"
     )
     #: ``shield``: whether the liars' notes shield their honest victims (the response to the
     #: outvoted stage, :mod:`resloc.world.attackers.outvoted`): ``"auto"`` against that
