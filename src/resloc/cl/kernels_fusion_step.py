@@ -207,15 +207,15 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
     """``out[t] = sym(M_t sigma[t] M_t^T + blockdiag(noise))`` with ``M_t`` the team's rows of
     ``M`` (B, 3, 3N); the diagonal blocks into ``diagonal: (B, 3, 3)``. ``U = M_t sigma[t]``
     is ``rows`` (B, 3, 3N: the records' ``M Sigma``) when given (else no rows: computed),
-    then ``M_t U^T`` (``sigma`` symmetric: the same product), both over ``M``'s non-zero
-    3 x 3 blocks (:func:`_block_product`; about a third of them in the paper's scenario).
-    Measured at 17 robots with 99 of 289 blocks non-zero: 5.4 us with the rows, 7.7
-    without, where the two BLAS products of 51 x 51 alone took 14."""
+    then ``M_t U^T`` (``sigma`` symmetric: the same product) into ``out[t]``, symmetrized
+    there, both products over ``M``'s non-zero 3 x 3 blocks (:func:`_block_product`; about
+    a third of them in the paper's scenario). Measured at 17 robots with 99 of 289 blocks
+    non-zero: 5.4 us with the rows, 7.7 without, where the two BLAS products of 51 x 51
+    alone took 14; 4.3 with the rows since the product is symmetrized in place (no
+    scratch ``V``, ``U`` only without the rows, no division per entry)."""
     n3 = 3 * N
     teams = M.reshape(sigma.shape[0], n3, n3)
-    U = np.empty((n3, n3))
     UT = np.empty((n3, n3))
-    V = np.empty((n3, n3))
     for t in range(sigma.shape[0]):
         Mt = teams[t]
         finite = False  # U^T finite (a non-finite sigma stays non-finite in the rows)
@@ -226,6 +226,7 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
                         UT[q, 3 * a + p] = rows[t * N + a, p, q]
             finite = _finite(UT)
         if not finite:
+            U = np.empty((n3, n3))
             if _finite(sigma[t]):
                 _block_product(Mt, sigma[t], N, U)
             else:  # 0 * inf is not 0: the dense product, as the reference's
@@ -234,21 +235,21 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
                 for q in range(n3):
                     UT[q, p] = U[p, q]
             finite = _finite(UT)
-        if finite:
-            _block_product(Mt, UT, N, V)
-        else:
-            V[:, :] = np.dot(Mt, UT)
         result = out[t]
-        for p in range(n3):  # out = sym(V + blockdiag(noise))
+        if finite:
+            _block_product(Mt, UT, N, result)
+        else:
+            result[:, :] = np.dot(Mt, UT)
+        for p in range(n3):  # result = sym(result + blockdiag(noise)), each pair once
             a = p // 3
             d = 3 * a  # (the blocks left of p's diagonal block, then its own: no division
-            for q in range(d):  # per entry, -0.3 us a step)
-                v = 0.5 * (V[p, q] + V[q, p])
+            for q in range(d):  # per entry)
+                v = 0.5 * (result[p, q] + result[q, p])
                 result[p, q] = v
                 result[q, p] = v
             for k in range(p - d + 1):
                 q = d + k
-                v = 0.5 * (V[p, q] + V[q, p])
+                v = 0.5 * (result[p, q] + result[q, p])
                 v += 0.5 * (noise[t * N + a, p - d, k] + noise[t * N + a, k, p - d])
                 result[p, q] = v
                 result[q, p] = v
