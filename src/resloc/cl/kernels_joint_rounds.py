@@ -322,16 +322,24 @@ def _joint_rounds(
      pxz, mean) = moment_scratch(C, m)  # fmt: skip
     # the joint's lane arrays, LANE_STRIDE columns (kernels_joint_lanes: not 2 KiB rows)
     S = LANE_STRIDE
-    Li = np.zeros((3, 3, S))
-    X = np.zeros((3, 3, S))
-    Ls = np.zeros((3, 3, S))
+    # the factors' lower triangles and X are written for every lane a stage reads
+    # (joint_factor_lanes, pad_lanes): only the upper triangles need their zeros, not a
+    # memset of the three arrays (57 KiB a step, more than the first-level cache)
+    Li = np.empty((3, 3, S))
+    X = np.empty((3, 3, S))
+    Ls = np.empty((3, 3, S))
+    for a in range(3):
+        for b in range(a + 1, 3):
+            Li[a, b, :] = 0.0
+            Ls[a, b, :] = 0.0
     blocks = np.empty((27, S))
     J = np.empty((21, S))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
     L = np.empty((21, S))
     ok = np.empty(C)
-    cross_in = np.empty((CROSS_INPUT_ROWS, S))  # factorized_cross_lanes' gathered inputs
-    now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     tracked = joint[0] == TRACKED
+    # factorized_cross_lanes' gathered inputs (factorized only)
+    cross_in = np.empty((0 if tracked else CROSS_INPUT_ROWS, S))
+    now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     fused_lanes = np.empty(C, np.int64)  # tracked_record_lanes' fused lanes and rows
     record_in = np.empty((RECORD_INPUT_ROWS if tracked else 0, S))
     record_out = np.empty((RECORD_OUTPUT_ROWS if tracked else 0, S))
