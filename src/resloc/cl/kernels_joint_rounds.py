@@ -77,7 +77,6 @@ from resloc.cl.kernels_link_stages import (
     gather_lanes,
     kalman_lanes,
     load_robot_covariances,
-    moment_scratch,
     moments_lanes,
     norms_lanes,
     point_axes,
@@ -318,8 +317,8 @@ def _joint_rounds(
     block_start = np.empty(C, np.int64)
     block_count = np.empty(C, np.int64)
     lane_first = np.empty(C, np.int64)
-    (lane_e, obs, src, xi, xr, zl, sin_cos, _, _, _, _, _, bad, Z0, Z1, sums, moments,
-     pxz, mean) = moment_scratch(C, m)  # fmt: skip
+    (lane_e, obs, src, xi, xr, zl, sin_cos, bad, Z0, Z1, sums, moments, pxz,
+     mean) = _joint_moment_scratch(C, m)  # fmt: skip
     # the joint's lane arrays, LANE_STRIDE columns (kernels_joint_lanes: not 2 KiB rows)
     S = LANE_STRIDE
     # the factors' lower triangles and X are written for every lane a stage reads
@@ -417,6 +416,30 @@ def _joint_rounds(
                     work, now, blocks,
                 )  # fmt: skip
     return OK
+
+
+@jit_inline
+def _joint_moment_scratch(C, m):
+    """The arrays of :func:`~resloc.cl.kernels_link_stages.moment_scratch` the joints'
+    rounds use (the same shapes), without the independent factors ``Li``, ``Lj`` it zeroes
+    (36 KiB a step) and the other arrays these rounds do not read: ``(lane_e, obs, src, xi,
+    xr, zl, sin_cos, bad, Z0, Z1, sums, moments, pxz, mean)``."""
+    return (
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty((3, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.empty(C),
+        np.empty((m, C)),
+        np.empty((m, C)),
+        np.empty((4, C)),
+        np.empty((5, C)),
+        np.empty((6, C)),
+        np.empty((3, C)),
+    )
 
 
 @_jit
