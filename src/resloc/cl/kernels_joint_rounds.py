@@ -323,14 +323,17 @@ def _joint_rounds(
     S = LANE_STRIDE
     # the factors' lower triangles and X are written for every lane a stage reads
     # (joint_factor_lanes, pad_lanes): only the upper triangles need their zeros, not a
-    # memset of the three arrays (57 KiB a step, more than the first-level cache)
+    # memset of the three arrays (57 KiB a step, more than the first-level cache), and
+    # only in the lanes a round can use (a lane per observer, padded: padded_lanes)
     Li = np.empty((3, 3, S))
     X = np.empty((3, 3, S))
     Ls = np.empty((3, 3, S))
+    used = padded_lanes(min(P.shape[0], C), C)
     for a in range(3):
         for b in range(a + 1, 3):
-            Li[a, b, :] = 0.0
-            Ls[a, b, :] = 0.0
+            for c in range(used):
+                Li[a, b, c] = 0.0
+                Ls[a, b, c] = 0.0
     blocks = np.empty((27, S))
     J = np.empty((21, S))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
     L = np.empty((21, S))
