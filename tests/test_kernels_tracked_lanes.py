@@ -281,3 +281,76 @@ def test_tracked_cross_lanes_are_the_scalar_cross(n: int) -> None:
     np.testing.assert_array_equal(_bits(J[:, :n]), _bits(J_ref[:, :n]))
     np.testing.assert_array_equal(_bits(now), _bits(now_ref))
     assert first.any() and not first.all()
+
+
+def _random_joint(teams: int, robots: int, seed: int) -> JointCovariance:
+    rng = np.random.default_rng(seed)
+    B, n3 = teams * robots, 3 * robots
+    joint = JointCovariance(np.broadcast_to(0.1 * np.eye(3), (B, 3, 3)).copy(), robots)
+    G = rng.normal(size=(teams, n3, n3))
+    joint.sigma = G @ np.swapaxes(G, -1, -2) / n3
+    return joint
+
+
+@pytest.mark.parametrize("teams, robots", [(1, 5), (2, 17)])
+def test_compiled_prediction_leaves_the_joint_it_started_from(teams: int, robots: int) -> None:
+    """The compiled prediction writes the propagated joint into a new array in its first
+    pass (no copy of the joint first): the reference's prediction to 1e-12, its diagonal
+    blocks returned, and the array the joint held before (a caller may keep it, as the
+    reference's new array leaves it) unchanged to the bit."""
+    from resloc.cl.kernels_fusion_step import compiled_tracked_predict
+    from resloc.models.motion import process_noise
+
+    rng = np.random.default_rng(robots)
+    joint = _random_joint(teams, robots, seed=3 * robots)
+    B = teams * robots
+    x = rng.normal(size=(B, 3))
+    u = np.column_stack([rng.uniform(0.1, 1.0, B), rng.normal(0.0, 0.3, B)])
+    dt = 0.1
+    params = default_scenario().cl_params()
+    reference = copy.deepcopy(joint)
+    Q = process_noise(x, dt, np.asarray(params.odometry_std), np.asarray(params.process_floor_std))
+    expected = reference.predict(x, u, dt, Q)
+    held = joint.sigma
+    held_bits = held.copy()
+    with kernels.use_backend("numba"):
+        out = compiled_tracked_predict(joint, x, u, dt, params)
+    assert out is not None
+    assert joint.sigma is not held
+    np.testing.assert_array_equal(_bits(held), _bits(held_bits))
+    np.testing.assert_allclose(joint.sigma, reference.sigma, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(_bits(out), _bits(joint.diagonal()))
+
+
+def test_a_step_builds_its_maps_where_first_read() -> None:
+    """A step starts without building ``M`` and the noise (a compiled step starts twice,
+    at its end and at the next prediction, and its commit hands both over): they are built
+    where first read, ``M`` every robot's own identity block and the noise zero, and a write
+    into them stays (the reference's ``update`` writes rows of both in place) until the next
+    step starts."""
+    joint = _random_joint(2, 4, seed=5)
+    joint.finish()  # (the end of a step starts the next)
+    assert joint._M is None and joint._noise is None
+    expected = np.zeros((8, 3, 12))
+    for b in range(8):
+        expected[b, :, 3 * (b % 4) : 3 * (b % 4) + 3] = np.eye(3)
+    np.testing.assert_array_equal(joint.M, expected)
+    np.testing.assert_array_equal(joint.noise, np.zeros((8, 3, 3)))
+    joint.M[1, 0, 5] = 2.0
+    joint.noise[2, 1, 1] = 3.0
+    assert joint.M[1, 0, 5] == 2.0 and joint.noise[2, 1, 1] == 3.0
+    sigma = joint.sigma.copy()
+    joint.finish()  # the written M and noise enter the end of step
+    M = expected.copy()
+    M[1, 0, 5] = 2.0
+    noise = np.zeros((8, 3, 3))
+    noise[2, 1, 1] = 3.0
+    Mt = M.reshape(2, 12, 12)
+    dense = Mt @ sigma @ np.swapaxes(Mt, -1, -2)
+    for b in range(8):
+        t, c = divmod(b, 4)
+        dense[t, 3 * c : 3 * c + 3, 3 * c : 3 * c + 3] += noise[b]
+    np.testing.assert_allclose(joint.sigma, 0.5 * (dense + np.swapaxes(dense, -1, -2)), atol=1e-12)
+    np.testing.assert_array_equal(joint.M, expected)  # the next step's start
+    np.testing.assert_array_equal(joint.noise, np.zeros((8, 3, 3)))

@@ -91,11 +91,12 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
     noise = _odometry(params, dt, B)
     if noise is None or not _inputs_ok(x, u, B):
         return None
-    sigma = np.array(joint.sigma, dtype=float, order="C", copy=True)
+    before = np.ascontiguousarray(joint.sigma, dtype=float)
+    sigma = np.empty_like(before)  # (written by the first pass: no copy of the joint first)
     diagonal = np.empty((B, 3, 3))
     _propagate_joint(
         np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt),
-        *noise, joint.N, sigma, diagonal,
+        *noise, joint.N, before, sigma, diagonal,
     )  # fmt: skip
     joint.sigma = sigma
     joint._start_step()
@@ -114,10 +115,10 @@ def _diagonal_blocks(sigma, N, diagonal):
 
 
 @jit
-def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma, diagonal):
-    """``sigma[t]_(ab) <- F_a sigma_(ab) F_b^T`` for every pair of robots of every team,
-    ``+ Q_a`` on the diagonal blocks, then symmetrized, in place; the diagonal blocks into
-    ``diagonal: (B, 3, 3)``.
+def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagonal):
+    """``sigma[t]_(ab) = F_a before[t]_(ab) F_b^T`` for every pair of robots of every team,
+    ``+ Q_a`` on the diagonal blocks, then symmetrized (``sigma``, ``before``: (T, 3N, 3N),
+    distinct); the diagonal blocks into ``diagonal: (B, 3, 3)``.
 
     The unicycle's ``F`` is the identity but for ``F[0, 2]`` and ``F[1, 2]``
     (:func:`unicycle_jacobian_into`): ``F_a`` on the left adds ``F[p, 2]`` times each
@@ -141,14 +142,16 @@ def _propagate_joint(x, u, dt, odometry_var, floor_var, N, sigma, diagonal):
     n3 = 3 * N
     for t in range(sigma.shape[0]):
         S = sigma[t]
+        S0 = before[t]
         for a in range(N):  # F_a on the left: rows 3a, 3a + 1 += F[p, 2] * row 3a + 2
-            r0 = 3 * a
+            r0 = 3 * a  # (from before into sigma: the pass is the copy)
             f0 = f[t * N + a, 0]
             f1 = f[t * N + a, 1]
             for q in range(n3):
-                s2q = S[r0 + 2, q]
-                S[r0, q] = S[r0, q] + f0 * s2q
-                S[r0 + 1, q] = S[r0 + 1, q] + f1 * s2q
+                s2q = S0[r0 + 2, q]
+                S[r0, q] = S0[r0, q] + f0 * s2q
+                S[r0 + 1, q] = S0[r0 + 1, q] + f1 * s2q
+                S[r0 + 2, q] = s2q
         for p in range(n3):  # F_b^T on the right: columns 3b, 3b + 1 += col 3b + 2 * F[q, 2]
             for c in range(N):
                 c0 = 3 * c
@@ -204,15 +207,15 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
     """``out[t] = sym(M_t sigma[t] M_t^T + blockdiag(noise))`` with ``M_t`` the team's rows of
     ``M`` (B, 3, 3N); the diagonal blocks into ``diagonal: (B, 3, 3)``. ``U = M_t sigma[t]``
     is ``rows`` (B, 3, 3N: the records' ``M Sigma``) when given (else no rows: computed),
-    then ``M_t U^T`` (``sigma`` symmetric: the same product), both over ``M``'s non-zero
-    3 x 3 blocks (:func:`_block_product`; about a third of them in the paper's scenario).
-    Measured at 17 robots with 99 of 289 blocks non-zero: 5.4 us with the rows, 7.7
-    without, where the two BLAS products of 51 x 51 alone took 14."""
+    then ``M_t U^T`` (``sigma`` symmetric: the same product) into ``out[t]``, symmetrized
+    there, both products over ``M``'s non-zero 3 x 3 blocks (:func:`_block_product`; about
+    a third of them in the paper's scenario). Measured at 17 robots with 99 of 289 blocks
+    non-zero: 5.4 us with the rows, 7.7 without, where the two BLAS products of 51 x 51
+    alone took 14; 4.3 with the rows since the product is symmetrized in place (no
+    scratch ``V``, ``U`` only without the rows, no division per entry)."""
     n3 = 3 * N
     teams = M.reshape(sigma.shape[0], n3, n3)
-    U = np.empty((n3, n3))
     UT = np.empty((n3, n3))
-    V = np.empty((n3, n3))
     for t in range(sigma.shape[0]):
         Mt = teams[t]
         finite = False  # U^T finite (a non-finite sigma stays non-finite in the rows)
@@ -223,6 +226,7 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
                         UT[q, 3 * a + p] = rows[t * N + a, p, q]
             finite = _finite(UT)
         if not finite:
+            U = np.empty((n3, n3))
             if _finite(sigma[t]):
                 _block_product(Mt, sigma[t], N, U)
             else:  # 0 * inf is not 0: the dense product, as the reference's
@@ -231,17 +235,22 @@ def _joint_finish(M, sigma, noise, N, rows, out, diagonal):
                 for q in range(n3):
                     UT[q, p] = U[p, q]
             finite = _finite(UT)
-        if finite:
-            _block_product(Mt, UT, N, V)
-        else:
-            V[:, :] = np.dot(Mt, UT)
         result = out[t]
-        for p in range(n3):  # out = sym(V + blockdiag(noise))
-            for q in range(p + 1):
-                a = p // 3
-                v = 0.5 * (V[p, q] + V[q, p])
-                if a == q // 3:
-                    v += 0.5 * (noise[t * N + a, p % 3, q % 3] + noise[t * N + a, q % 3, p % 3])
+        if finite:
+            _block_product(Mt, UT, N, result)
+        else:
+            result[:, :] = np.dot(Mt, UT)
+        for p in range(n3):  # result = sym(result + blockdiag(noise)), each pair once
+            a = p // 3
+            d = 3 * a  # (the blocks left of p's diagonal block, then its own: no division
+            for q in range(d):  # per entry)
+                v = 0.5 * (result[p, q] + result[q, p])
+                result[p, q] = v
+                result[q, p] = v
+            for k in range(p - d + 1):
+                q = d + k
+                v = 0.5 * (result[p, q] + result[q, p])
+                v += 0.5 * (noise[t * N + a, p - d, k] + noise[t * N + a, k, p - d])
                 result[p, q] = v
                 result[q, p] = v
     _diagonal_blocks(out, N, diagonal)

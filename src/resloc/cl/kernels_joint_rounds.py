@@ -77,7 +77,6 @@ from resloc.cl.kernels_link_stages import (
     gather_lanes,
     kalman_lanes,
     load_robot_covariances,
-    moment_scratch,
     moments_lanes,
     norms_lanes,
     point_axes,
@@ -318,20 +317,31 @@ def _joint_rounds(
     block_start = np.empty(C, np.int64)
     block_count = np.empty(C, np.int64)
     lane_first = np.empty(C, np.int64)
-    (lane_e, obs, src, xi, xr, zl, sin_cos, _, _, _, _, _, bad, Z0, Z1, sums, moments,
-     pxz, mean) = moment_scratch(C, m)  # fmt: skip
+    (lane_e, obs, src, xi, xr, zl, sin_cos, bad, Z0, Z1, sums, moments, pxz,
+     mean) = _joint_moment_scratch(C, m)  # fmt: skip
     # the joint's lane arrays, LANE_STRIDE columns (kernels_joint_lanes: not 2 KiB rows)
     S = LANE_STRIDE
-    Li = np.zeros((3, 3, S))
-    X = np.zeros((3, 3, S))
-    Ls = np.zeros((3, 3, S))
+    # the factors' lower triangles and X are written for every lane a stage reads
+    # (joint_factor_lanes, pad_lanes): only the upper triangles need their zeros, not a
+    # memset of the three arrays (57 KiB a step, more than the first-level cache), and
+    # only in the lanes a round can use (a lane per observer, padded: padded_lanes)
+    Li = np.empty((3, 3, S))
+    X = np.empty((3, 3, S))
+    Ls = np.empty((3, 3, S))
+    used = padded_lanes(min(P.shape[0], C), C)
+    for a in range(3):
+        for b in range(a + 1, 3):
+            for c in range(used):
+                Li[a, b, c] = 0.0
+                Ls[a, b, c] = 0.0
     blocks = np.empty((27, S))
     J = np.empty((21, S))  # the lanes' 6 x 6 joints and factors (chol6_lanes)
     L = np.empty((21, S))
     ok = np.empty(C)
-    cross_in = np.empty((CROSS_INPUT_ROWS, S))  # factorized_cross_lanes' gathered inputs
-    now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     tracked = joint[0] == TRACKED
+    # factorized_cross_lanes' gathered inputs (factorized only)
+    cross_in = np.empty((0 if tracked else CROSS_INPUT_ROWS, S))
+    now = np.empty((P.shape[0], 3, 3))  # tracked: each robot's covariance under the joint
     fused_lanes = np.empty(C, np.int64)  # tracked_record_lanes' fused lanes and rows
     record_in = np.empty((RECORD_INPUT_ROWS if tracked else 0, S))
     record_out = np.empty((RECORD_OUTPUT_ROWS if tracked else 0, S))
@@ -409,6 +419,30 @@ def _joint_rounds(
                     work, now, blocks,
                 )  # fmt: skip
     return OK
+
+
+@jit_inline
+def _joint_moment_scratch(C, m):
+    """The arrays of :func:`~resloc.cl.kernels_link_stages.moment_scratch` the joints'
+    rounds use (the same shapes), without the independent factors ``Li``, ``Lj`` it zeroes
+    (36 KiB a step) and the other arrays these rounds do not read: ``(lane_e, obs, src, xi,
+    xr, zl, sin_cos, bad, Z0, Z1, sums, moments, pxz, mean)``."""
+    return (
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty(C, np.int64),
+        np.empty((3, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.empty((2, C)),
+        np.empty(C),
+        np.empty((m, C)),
+        np.empty((m, C)),
+        np.empty((4, C)),
+        np.empty((5, C)),
+        np.empty((6, C)),
+        np.empty((3, C)),
+    )
 
 
 @_jit

@@ -180,13 +180,40 @@ class JointCovariance:
             for a in range(3):
                 identity[b, a, 3 * local + a] = 1.0
             self._identity_M = identity
-        self.M = identity.copy()
-        self.noise = np.zeros((B, 3, 3))
+        # M and the noise are built where first read (the properties below): a compiled
+        # step starts twice (its finish, then the next prediction) and hands both over from
+        # its kernel (resloc.cl.kernels_joint.joint_commit), so eager copies were thrown away
+        self._M: np.ndarray | None = None
+        self._noise: np.ndarray | None = None
         self.updates = 0  # updates recorded since (M, noise) were reset
         # M Sigma, (B, 3, 3N), where a compiled correction kept it (its commit,
         # resloc.cl.kernels_joint.joint_commit) for the compiled finish; None after any
         # other change of M (this class never reads it)
         self.m_sigma: np.ndarray | None = None
+
+    @property
+    def M(self) -> np.ndarray:
+        """Every robot's map ``M_b`` (B, 3, 3N): its current error is ``M_b e_pred + w_b``
+        (``E_b``, its own block the identity, where the step starts)."""
+        if self._M is None:
+            self._M = self._identity_M.copy()
+        return self._M
+
+    @M.setter
+    def M(self, value: np.ndarray) -> None:
+        self._M = value
+
+    @property
+    def noise(self) -> np.ndarray:
+        """Every robot's propagated measurement noise ``cov(w_b)`` (B, 3, 3), zero where
+        the step starts."""
+        if self._noise is None:
+            self._noise = np.zeros((self.T * self.N, 3, 3))
+        return self._noise
+
+    @noise.setter
+    def noise(self, value: np.ndarray) -> None:
+        self._noise = value
 
     # ------------------------------------------------------------------ step
     def predict(
