@@ -286,8 +286,10 @@ def reciprocal_verdict(
     E = len(li)
     if z_rec is None:
         z_rec = _IN_BATCH  # the reverse links' readings, found in the batch
-    elif np.shape(z_rec) != (E, 2):
-        return None
+    else:
+        z_rec = np.ascontiguousarray(z_rec, dtype=float)
+        if z_rec.shape != (E, 2):
+            return None
     saved: list = []
     store = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH)
     slots = None
@@ -298,9 +300,8 @@ def reciprocal_verdict(
     discard = np.zeros(E, dtype=np.bool_) if other is None else other
     verdict = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
     if not reciprocal_verdicts(
-        li, lj, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(z_rec, dtype=float),
-        np.ascontiguousarray(x, dtype=float), x_nb, nb, *_options(params), store.values, slots,
-        verdict.discard,
+        li, lj, np.ascontiguousarray(z, dtype=float), z_rec, np.ascontiguousarray(x, dtype=float),
+        x_nb, nb, *_options(params), store.values, slots, discard,
     ):  # fmt: skip
         verdict.undo()
         return None  # rows not sorted by observer: the reference judges them

@@ -196,8 +196,9 @@ def keep_unjudged_state(state: ZoneState, fixes, li, lj) -> None:
         for saved in () if fix is None else fix.state.saved[:1]:
             store, _, _, slots, old = saved
             values = store.values
-            if old is not None and values.ndim == 2 and values.flags.c_contiguous:
-                # the steady state: one compiled pass, no index arrays (restore_unjudged)
+            if old is not None and values.ndim == 2:
+                # the steady state: one compiled pass, no index arrays (restore_unjudged;
+                # the stores' values are contiguous: kernels_detection.store_slots)
                 restore_unjudged(verdict, slots, values, old)
                 RESTORE_RUNS["compiled"] += 1
                 continue
