@@ -254,3 +254,34 @@ def test_the_capped_claims_median_from_the_first_order_is_a_full_sorts() -> None
         claimed_covariances(li, x_src, P, rows, True, discs, 2.0, out, np.empty(E), np.empty(E))
         np.testing.assert_array_equal(out, want)
     assert checked > 250
+
+
+def test_claims_of_other_shapes_are_refused_by_the_pass() -> None:
+    """``claimed_rows`` refuses (``CLAIMS_UNSORTED``: the caller then takes the numpy
+    stage's way, or the reference's) estimates of fewer than two components, claims that
+    are not 3 x 3 and rows that are not one per link, writing nothing; ``claimed_links``
+    then gives the numpy stage's batch (landmarks alone) or None (with the cap)."""
+    from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_links, claimed_rows
+
+    links, discs, _, _ = _scene()
+    li = links.i.astype(np.int64)
+    E = len(li)
+    rows = np.arange(E, dtype=np.int64)
+    x_nb = np.ascontiguousarray(links.x_nb)
+    P_nb = np.ascontiguousarray(links.P_nb)
+    disc_array = np.asarray(discs, float)
+    for x_src, P_src, at in (
+        (x_nb[:, :1].copy(), P_nb, rows),
+        (x_nb, P_nb[:, :2, :2].copy(), rows),
+        (x_nb, P_nb, rows[:-1].copy()),
+    ):
+        inside, out, x_out = claimed_rows(li, x_src, P_src, at, True, disc_array, 3.0)
+        assert inside == CLAIMS_UNSORTED and out.shape == (0, 3, 3) and x_out.shape == (0, 3)
+    inside, out, _ = claimed_rows(li, x_nb, P_nb, rows, True, disc_array, 3.0)
+    assert inside > 0 and out.shape == (E, 3, 3)
+    flat = LinkBatch(
+        links.i, links.j, links.z, x_nb[:, :1].copy(), P_nb, links.channel_ok, links.risk_s,
+        links.risk_c, links.lambda2,
+    )  # fmt: skip
+    capped = CLParams(redundancy=True, redundancy_cap_fusion=True)
+    assert claimed_links(capped, flat) is None

@@ -196,17 +196,14 @@ def claimed_rows(li, x_src, P_src, rows, cap, discs, inflation):
     D = x_src.shape[1]
     if D < 2 or P_src.shape[1] != 3 or P_src.shape[2] != 3 or rows.shape[0] != E:
         return CLAIMS_UNSORTED, np.empty((0, 3, 3)), np.empty((0, 3))  # (refused alike)
-    # the claims, the estimates, the factors and the medians' scratch: one allocation
-    # (C-contiguous slices; four allocations and their release were ~0.4 us)
-    block = np.empty(E * (11 + D))
-    out = block[: 9 * E].reshape((E, 3, 3))
-    x_out = block[9 * E : (9 + D) * E].reshape((E, D))
-    scratch = block[(9 + D) * E :].reshape((2, E))
+    out = np.empty((E, 3, 3))
+    scratch = np.empty((2, E))  # the factors and the medians' scratch (one allocation)
     inside = claimed_covariances(
         li, x_src, P_src, rows, cap, discs, inflation, out, scratch[0], scratch[1]
     )
     if inside < 0:
         return inside, np.empty((0, 3, 3)), np.empty((0, 3))
+    x_out = np.empty((E, D))
     for e in range(E):
         n = rows[e]
         for a in range(D):
