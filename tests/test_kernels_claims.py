@@ -199,3 +199,89 @@ def test_the_claimed_batch_carries_its_rows_estimates() -> None:
     )
     np.testing.assert_array_equal(P_rows, expected)
     assert by_index.__dict__.get("_x_nb") is None  # the original gathered nothing
+
+
+def test_the_capped_claims_median_from_the_first_order_is_a_full_sorts() -> None:
+    """With the cap and the map, the median of the capped claims is read from the order of
+    the claims before the cap merged with the raised rows' new traces
+    (``raised_trace_scales``): the same factors as sorting the capped traces
+    (``trace_scales``) and the numpy stages' claims, on groups of tied traces, zero and
+    negative traces, traces just above and below the median, and a NaN (then sorted)."""
+    from resloc.cl.kernels_claims import claimed_covariances, raised_trace_scales
+    from resloc.cl.kernels_redundancy import claim_scales, trace_scales
+
+    rng = np.random.default_rng(12)
+    checked = 0
+    for trial in range(300):
+        sizes = rng.integers(1, 18, rng.integers(1, 9))
+        li = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
+        E = len(li)
+        # few distinct values per trial: ties inside and across the raised run
+        levels = rng.choice([0.0, -0.5, 1e-3, 0.2, 0.2, 1.0, 1.0 + 1e-15, 3.0, 7.5], 6)
+        P = np.zeros((E, 3, 3))
+        P[:, 0, 0] = rng.choice(levels, E) * rng.choice([1.0, 1.0, 1.0 / 3.0], E)
+        P[:, 1, 1] = rng.choice(levels, E)
+        P[:, 2, 2] = 1.0
+        if trial % 50 == 7:
+            P[rng.integers(E), 1, 1] = np.nan
+        rows = np.arange(E, dtype=np.int64)
+        scale, ranked = np.empty(E), np.empty(E)
+        claim_scales(li, P, rows, scale, ranked)
+        capped = P * scale[:, None, None]
+        traces = capped[:, 0, 0] + capped[:, 1, 1]
+        expected = traces.copy()
+        trace_scales(li, expected, np.empty(E))
+        got = traces.copy()
+        if raised_trace_scales(li, got, scale != 1.0, ranked, np.empty(E)):
+            np.testing.assert_array_equal(got, expected)
+            checked += 1
+        else:
+            assert np.isnan(traces).any()
+            np.testing.assert_array_equal(got, traces)  # nothing written
+            continue
+        # the whole pass, every neighbour inside the map: the numpy stages' claims
+        x_src = np.zeros((E, 3))
+        params = CLParams(
+            zone_landmarks=True,
+            zone_landmarks_map=((0.0, 0.0, 1.0),),
+            zone_landmarks_inflation=2.0,
+            redundancy=True,
+            redundancy_cap_fusion=True,
+        )
+        want = landmark_claims(params, x_src, capped_claims(P, li), li)
+        out = np.empty((E, 3, 3))
+        discs = np.array([[0.0, 0.0, 1.0]])
+        claimed_covariances(li, x_src, P, rows, True, discs, 2.0, out, np.empty(E), np.empty(E))
+        np.testing.assert_array_equal(out, want)
+    assert checked > 250
+
+
+def test_claims_of_other_shapes_are_refused_by_the_pass() -> None:
+    """``claimed_rows`` refuses (``CLAIMS_UNSORTED``: the caller then takes the numpy
+    stage's way, or the reference's) estimates of fewer than two components, claims that
+    are not 3 x 3 and rows that are not one per link, writing nothing; ``claimed_links``
+    then gives the numpy stage's batch (landmarks alone) or None (with the cap)."""
+    from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_links, claimed_rows
+
+    links, discs, _, _ = _scene()
+    li = links.i.astype(np.int64)
+    E = len(li)
+    rows = np.arange(E, dtype=np.int64)
+    x_nb = np.ascontiguousarray(links.x_nb)
+    P_nb = np.ascontiguousarray(links.P_nb)
+    disc_array = np.asarray(discs, float)
+    for x_src, P_src, at in (
+        (x_nb[:, :1].copy(), P_nb, rows),
+        (x_nb, P_nb[:, :2, :2].copy(), rows),
+        (x_nb, P_nb, rows[:-1].copy()),
+    ):
+        inside, out, x_out = claimed_rows(li, x_src, P_src, at, True, disc_array, 3.0)
+        assert inside == CLAIMS_UNSORTED and out.shape == (0, 3, 3) and x_out.shape == (0, 3)
+    inside, out, _ = claimed_rows(li, x_nb, P_nb, rows, True, disc_array, 3.0)
+    assert inside > 0 and out.shape == (E, 3, 3)
+    flat = LinkBatch(
+        links.i, links.j, links.z, x_nb[:, :1].copy(), P_nb, links.channel_ok, links.risk_s,
+        links.risk_c, links.lambda2,
+    )  # fmt: skip
+    capped = CLParams(redundancy=True, redundancy_cap_fusion=True)
+    assert claimed_links(capped, flat) is None

@@ -331,3 +331,34 @@ def test_partner_rows_are_the_reference_rows() -> None:
             assert partner_rows(li[order] + offset, lj[order] + offset, got)
             np.testing.assert_array_equal(got, reciprocal_rows(li[order], lj[order]))
     assert not partner_rows(li[::-1].copy(), lj[::-1].copy(), np.empty(E, np.int64))
+
+
+def test_the_pre_pass_ors_its_verdict_into_the_redundancy_stages() -> None:
+    """Given another pre-pass's discards (``other``: the redundancy stage's), the verdict
+    is ORed into that array in place (no second array, no ``|`` a step): the union of the
+    two, and the same state as alone."""
+    from resloc.cl.kernels_reciprocal import reciprocal_verdict
+
+    links = links_of_one_step(8)
+    sc = default_scenario()
+    world = World(sc.world, 1, 8, sc.trigger.lambda2)
+    x, _ = world.initial_estimates()
+    li, lj = links.i.astype(np.int64), links.j.astype(np.int64)
+    z = links.z.copy()
+    z[::5, 0] += 0.05  # over the one-step gate
+    x_nb = x[lj]
+    nb = np.arange(len(li), dtype=np.int64)
+    params = _params("full+reciprocal")
+    memory = LinkMemory(world.B)
+    detection = detector_state(params, memory, li, lj).kernel
+    alone = reciprocal_verdict(params, memory, li, lj, z, None, x, x_nb, nb, detection)
+    state = _store(memory).get(li, lj).copy()
+    alone.undo()
+    other = np.zeros(len(li), dtype=np.bool_)
+    other[1::3] = True  # the redundancy stage's discards
+    before = other.copy()
+    both = reciprocal_verdict(params, memory, li, lj, z, None, x, x_nb, nb, detection, other)
+    assert both.discard is other
+    assert alone.discard.any() and (before & ~alone.discard).any()
+    np.testing.assert_array_equal(other, before | alone.discard)
+    np.testing.assert_array_equal(_store(memory).get(li, lj), state)

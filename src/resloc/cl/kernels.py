@@ -503,7 +503,8 @@ def fast_correct(
     if params.reciprocal:  # every link's range against its partner's (kernels_reciprocal)
         reciprocal_verdict = _stage("kernels_reciprocal").reciprocal_verdict
         z_rec = links.z_reciprocal if zone is None else zone.kernel.z_reciprocal  # (found)
-        paired = reciprocal_verdict(params, memory, li, lj, z, z_rec, x, x_nb, nb, detect)
+        other = None if fixes is None else fixes.discard  # (ORed into in place)
+        paired = reciprocal_verdict(params, memory, li, lj, z, z_rec, x, x_nb, nb, detect, other)
         if paired is None:
             if fixes is not None:
                 fixes.undo()
@@ -511,8 +512,7 @@ def fast_correct(
             defence.undo()
             detection.undo()
             return None  # the reference path raises the explanatory error
-        both = paired.discard if fixes is None else fixes.discard | paired.discard
-        changes["fixes"] = both
+        changes["fixes"] = paired.discard  # (with the redundancy pre-pass's)
     if zone is not None:
         changes["zone"] = zone.kernel
     if witness is not None:

@@ -33,7 +33,7 @@ import copy
 import numpy as np
 
 from resloc.cl.detection_landmark import landmark_links
-from resloc.cl.kernels_math import jit, per_params
+from resloc.cl.kernels_math import jit, jit_inline, per_params
 from resloc.cl.kernels_reciprocal import inside_discs
 from resloc.cl.kernels_redundancy import claim_scales, trace_scales
 from resloc.cl.links import LinkBatch
@@ -46,6 +46,7 @@ __all__ = [
     "claimed_covariances",
     "claimed_links",
     "claimed_rows",
+    "raised_trace_scales",
 ]
 
 #: :func:`claimed_covariances`'s results besides the number of rows inside the map.
@@ -95,9 +96,13 @@ def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scal
                 out[e, a, b] = P_src[n, a, b] * f if cap else P_src[n, a, b]
     if inside == 0:
         return inside
+    raised = np.empty(E if cap else 0, np.bool_)
     for e in range(E):  # the median of the (capped) claims: their traces, then factors
+        if cap:
+            raised[e] = scale[e] != 1.0
         scale[e] = out[e, 0, 0] + out[e, 1, 1]
-    trace_scales(li, scale, scratch)
+    if not (cap and raised_trace_scales(li, scale, raised, scratch, np.empty(E))):
+        trace_scales(li, scale, scratch)
     for e in range(E):
         if place[rows[e]] == 2:
             for a in range(3):
@@ -106,15 +111,91 @@ def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scal
     return inside
 
 
+@jit_inline
+def raised_trace_scales(li, scale, raised, ranked, work):
+    """:func:`~resloc.cl.kernels_redundancy.trace_scales` of the capped claims' traces
+    ``scale: (E,)`` (replaced by their factors), from the order of the traces before the
+    cap: ``ranked: (E,)`` holds each observer's traces before the cap sorted (the scratch
+    :func:`~resloc.cl.kernels_redundancy.claim_scales` leaves), ``raised: (E,)`` whether
+    the cap's factor of a row was not 1. False, nothing written, when a trace is NaN (the
+    caller then sorts). ``work: (E,)`` scratch. Rows sorted by observer (the caller tested
+    them).
+
+    Why the same median: a row the cap left (factor 1) keeps its trace to the bit
+    (``P * 1.0``), and the raised rows are those of trace ``t > 0`` with ``m / t > 1``
+    (``m`` the median before the cap): as the division is monotone, in the sorted traces
+    they follow the ``t <= 0`` ones, one contiguous run. So the capped traces, sorted, are
+    the traces before the cap without that run merged with the raised rows' new traces,
+    sorted; only these (about half a group) are sorted here, and the median is read from
+    the merge. The values at the median's two places are those of a full sort (ties
+    between equal values do not change them)."""
+    E = li.shape[0]
+    for e in range(E):
+        if scale[e] != scale[e]:
+            return False
+    start = 0
+    while start < E:
+        stop = start + 1
+        while stop < E and li[stop] == li[start]:
+            stop += 1
+        count = stop - start
+        c = 0  # the raised rows' traces, sorted (insertion) into work[start:start + c]
+        for e in range(start, stop):
+            if raised[e]:
+                t = scale[e]
+                k = start + c
+                while k > start and work[k - 1] > t:
+                    work[k] = work[k - 1]
+                    k -= 1
+                work[k] = t
+                c += 1
+        p = start  # the run of raised rows in ``ranked``: after the traces <= 0
+        while p < stop and ranked[p] <= 0.0:
+            p += 1
+        lo = (count - 1) // 2
+        hi = count // 2
+        a = start  # the merge up to the place hi; a skips the run [p, p + c)
+        b = start
+        low = 0.0
+        v = 0.0
+        for r in range(hi + 1):
+            if a == p:
+                a = p + c
+            if b < start + c and (a >= stop or work[b] < ranked[a]):
+                v = work[b]
+                b += 1
+            else:
+                v = ranked[a]
+                a += 1
+            if r == lo:
+                low = v
+        median = 0.5 * (low + v)
+        for e in range(start, stop):
+            t = scale[e]
+            s = 1.0
+            if t > 0.0:
+                s = median / t
+                if s < 1.0:  # np.maximum: a NaN stays NaN
+                    s = 1.0
+            scale[e] = s
+        start = stop
+    return True
+
+
 @jit
 def claimed_rows(li, x_src, P_src, rows, cap, discs, inflation):
     """:func:`claimed_covariances` into new arrays, with the claimed rows' estimates
     gathered beside them: ``(inside, P_out: (E, 3, 3), x_out: (E, D))``, ``x_out[e] =
     x_src[rows[e]]`` (``x_src: (S, D)``; both empty when ``inside`` is
-    ``CLAIMS_UNCHANGED`` or ``CLAIMS_UNSORTED``). The batch that carries per-row claims
-    carries per-row estimates (:meth:`~resloc.cl.links.LinkBatch.neighbour_rows`): numpy's
-    gather of them was half of the claims' cost."""
+    ``CLAIMS_UNCHANGED`` or ``CLAIMS_UNSORTED``, the latter also for estimates of fewer
+    than 2 components, claims not ``(S, 3, 3)`` or ``rows`` not ``(E,)``). The batch that
+    carries per-row claims carries per-row estimates
+    (:meth:`~resloc.cl.links.LinkBatch.neighbour_rows`): numpy's gather of them was half of
+    the claims' cost."""
     E = li.shape[0]
+    D = x_src.shape[1]
+    if D < 2 or P_src.shape[1] != 3 or P_src.shape[2] != 3 or rows.shape[0] != E:
+        return CLAIMS_UNSORTED, np.empty((0, 3, 3)), np.empty((0, 3))  # (refused alike)
     out = np.empty((E, 3, 3))
     scratch = np.empty((2, E))  # the factors and the medians' scratch (one allocation)
     inside = claimed_covariances(
@@ -122,23 +203,24 @@ def claimed_rows(li, x_src, P_src, rows, cap, discs, inflation):
     )
     if inside < 0:
         return inside, np.empty((0, 3, 3)), np.empty((0, 3))
-    x_out = np.empty((E, x_src.shape[1]))
+    x_out = np.empty((E, D))
     for e in range(E):
         n = rows[e]
-        for a in range(x_src.shape[1]):
+        for a in range(D):
             x_out[e, a] = x_src[n, a]
     return inside, out, x_out
 
 
 @per_params
-def _claim_options(params: CLParams) -> tuple[bool, np.ndarray, float]:
-    """``(cap, discs, inflation)`` as :func:`claimed_covariances` takes them (no discs
-    without the landmarks)."""
+def _claim_options(params: CLParams) -> tuple[bool, bool, np.ndarray, float]:
+    """``(on, cap, discs, inflation)``: whether either option changes a claim, then the
+    options as :func:`claimed_covariances` takes them (no discs without the landmarks)."""
     cap = bool(params.redundancy and params.redundancy_cap_fusion)
     discs = np.zeros((0, 3))
     if params.zone_landmarks and params.zone_landmarks_map:
         discs = np.asarray(params.zone_landmarks_map, dtype=float).reshape(-1, 3)
-    return cap, np.ascontiguousarray(discs), float(params.zone_landmarks_inflation)
+    on = cap or discs.shape[0] > 0
+    return on, cap, np.ascontiguousarray(discs), float(params.zone_landmarks_inflation)
 
 
 def claimed_links(params: CLParams, links: LinkBatch) -> LinkBatch | None:
@@ -149,26 +231,25 @@ def claimed_links(params: CLParams, links: LinkBatch) -> LinkBatch | None:
     sorted by observer: None with the cap on (the reference path then judges them), else
     the numpy stage's batch (:func:`~resloc.cl.detection_landmark.landmark_links`). Twin:
     the head of ``resloc.cl.step._correct_reference``."""
-    cap, discs, inflation = _claim_options(params)
-    if not cap and not discs.shape[0]:
+    on, cap, discs, inflation = _claim_options(params)
+    if not on:
         return links
     nb, x_src, P_src = links.neighbour_rows()
     li = np.ascontiguousarray(links.i, dtype=np.int64)
-    E = len(li)
-    rows = np.arange(E, dtype=np.int64) if nb is None else np.ascontiguousarray(nb, np.int64)
+    rows = np.arange(len(li), dtype=np.int64) if nb is None else np.ascontiguousarray(nb, np.int64)
     x_src = np.ascontiguousarray(x_src, dtype=float)
     P_src = np.ascontiguousarray(P_src, dtype=float)
-    if x_src.ndim != 2 or x_src.shape[1] < 2 or P_src.shape[1:] != (3, 3) or rows.shape != (E,):
-        return None if cap else landmark_links(params, links)
-    inside, out, x_out = claimed_rows(li, x_src, P_src, rows, cap, discs, inflation)
-    CLAIMS_RUNS["compiled"] += 1
-    if inside == CLAIMS_UNSORTED:
-        return None if cap else landmark_links(params, links)
+    inside = CLAIMS_UNSORTED  # (the other shapes are tested by the pass)
+    if x_src.ndim == 2 and P_src.ndim == 3 and rows.ndim == 1:
+        inside, out, x_out = claimed_rows(li, x_src, P_src, rows, cap, discs, inflation)
+        CLAIMS_RUNS["compiled"] += 1
+    if inside >= 0:
+        # the other fields shared, as dataclasses.replace does; the per-row estimates are
+        # what reading ``x_nb`` would gather (LinkBatch.neighbour_rows)
+        return _shallow_copy(links, out, x_out)
     if inside == CLAIMS_UNCHANGED:
         return links
-    # the other fields shared, as dataclasses.replace does; the per-row estimates are what
-    # reading ``x_nb`` would gather (LinkBatch.neighbour_rows)
-    return _shallow_copy(links, out, x_out)
+    return None if cap else landmark_links(params, links)  # refused: the reference's way
 
 
 #: Where a batch keeps the claims and estimates it was given or gathered (the ``__dict__``

@@ -180,9 +180,10 @@ def reciprocal_verdicts(
     ``(0, 2)``: the reverse link's reading in ``z``, found here) and, with a map
     (``discs: (Z, 3)``), is left to it when exactly one of the observer's predicted position
     ``x[li[e]]`` and the neighbour's transmitted one ``x_nb[nb[e]]`` is inside.
-    ``state[slot[e]]``: the link's ``[s, V, hold]``, updated in place; ``discard: (E,)``
-    receives the verdict (held out, flagged by the sum, or over the one-step gate). Rows
-    sorted by observer (False otherwise). Twin:
+    ``state[slot[e]]``: the link's ``[s, V, hold]``, updated in place; the verdict (held
+    out, flagged by the sum, or over the one-step gate) is ORed into ``discard: (E,)``
+    (zeros, or another pre-pass's discards: no second array and ``|`` a step). Rows sorted
+    by observer (False otherwise). Twin:
     :func:`~resloc.cl.detection_reciprocal.reciprocal_evidence` with
     ``ReciprocalCheck.discard``."""
     E = li.shape[0]
@@ -221,7 +222,6 @@ def reciprocal_verdicts(
             discard[e] = True
             continue
         if not judged:  # nothing to compare: the sums stay as they are
-            discard[e] = False
             continue
         lam = gain_at(forget, i)
         d = z[e, 0] - partner
@@ -236,7 +236,8 @@ def reciprocal_verdicts(
         else:
             state[k, _SUM] = s
             state[k, _VAR] = V
-        discard[e] = alarm or one_step
+        if alarm or one_step:
+            discard[e] = True
     return True
 
 
@@ -268,23 +269,27 @@ _IN_BATCH = np.zeros((0, 2))
 
 
 def reciprocal_verdict(
-    params, memory, li, lj, z, z_rec, x, x_nb, nb, detection
+    params, memory, li, lj, z, z_rec, x, x_nb, nb, detection, other=None
 ) -> PrepassVerdict | None:
     """The pre-pass of one step (:func:`reciprocal_verdicts`): ``li``, ``lj`` int64
     ``(E,)``, ``z``, ``z_rec: (E, 2)`` the readings as reported and the partners', ``x``
     the predicted estimates, ``x_nb`` the transmitted estimates at rows ``nb``
     (contiguous); ``detection``: the step's
     :class:`~resloc.cl.kernels_detection.KernelDetection` (the NIS CUSUM's store holds the
-    same links as this stage's in a run's steady state: its slots are reused). None
-    without a memory to keep the state in (the reference path then raises the explanatory
-    error) or when the rows are not sorted by observer."""
+    same links as this stage's in a run's steady state: its slots are reused); ``other``:
+    another pre-pass's discards ``(E,)`` bool (the redundancy stage's), into which this
+    one's are ORed in place (the verdict's ``discard`` is then ``other``: the loops read
+    the union). None without a memory to keep the state in (the reference path then raises
+    the explanatory error) or when the rows are not sorted by observer."""
     if memory is None:
         return None
     E = len(li)
     if z_rec is None:
         z_rec = _IN_BATCH  # the reverse links' readings, found in the batch
-    elif np.shape(z_rec) != (E, 2):
-        return None
+    else:
+        z_rec = np.ascontiguousarray(z_rec, dtype=float)
+        if z_rec.shape != (E, 2):
+            return None
     saved: list = []
     store = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH)
     slots = None
@@ -292,11 +297,11 @@ def reciprocal_verdict(
         slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
     if slots is None:
         slots = store_slots(store, li, lj, saved)
-    verdict = PrepassVerdict(np.empty(E, dtype=np.bool_), DetectorState(None, tuple(saved)))
+    discard = np.zeros(E, dtype=np.bool_) if other is None else other
+    verdict = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
     if not reciprocal_verdicts(
-        li, lj, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(z_rec, dtype=float),
-        np.ascontiguousarray(x, dtype=float), x_nb, nb, *_options(params), store.values, slots,
-        verdict.discard,
+        li, lj, np.ascontiguousarray(z, dtype=float), z_rec, np.ascontiguousarray(x, dtype=float),
+        x_nb, nb, *_options(params), store.values, slots, discard,
     ):  # fmt: skip
         verdict.undo()
         return None  # rows not sorted by observer: the reference judges them

@@ -40,6 +40,7 @@ kernel function                numpy twin
                                partners' readings)
 :func:`partner_readings`       the same without a tamper hook
                                (:func:`~resloc.cl.detection_zone.reciprocal_rows`)
+:func:`zone_rows`              the same into new arrays, with the verdicts' array
 =============================  ==========================================================
 
 The fix is a linear measurement of the observer's position, so the kernels cover it for the
@@ -79,6 +80,7 @@ __all__ = [
     "withhold_lanes",
     "zone_lanes",
     "zone_links",
+    "zone_rows",
     "zone_state",
     "zone_verdict",
 ]
@@ -130,21 +132,19 @@ def zone_state(
     """The stage for the links of one step: ``links`` as the kernel reads them (an
     adversary's hook applied, :func:`zone_links`) and the stage's state. Without a hook and
     without the partners' readings, these are gathered by one compiled pass
-    (:func:`partner_readings`). None when the readings are not ``(E, 2)`` (the reference
-    path then raises the explanatory error)."""
+    (:func:`zone_rows`). None when the readings are not ``(E, 2)`` (the reference path
+    then raises the explanatory error)."""
     E = len(links)
-    z_rec = None
     if links.z_reciprocal is None and links.tamper is None:
-        z_rec = np.empty((E, 2))
-        li = np.ascontiguousarray(links.i, dtype=np.int64)
-        lj = np.ascontiguousarray(links.j, dtype=np.int64)
-        if np.shape(links.z) != (E, 2) or not partner_readings(
-            li, lj, np.ascontiguousarray(links.z, dtype=float), z_rec
-        ):
-            z_rec = None  # rows not sorted by observer: the reference's way
-    if z_rec is None:
-        links = zone_links(filt, x, P, links, params, strategy, memory)
-        z_rec = links.z_reciprocal
+        z = np.ascontiguousarray(links.z, dtype=float)
+        if z.shape == (E, 2):
+            li = np.ascontiguousarray(links.i, dtype=np.int64)
+            lj = np.ascontiguousarray(links.j, dtype=np.int64)
+            found, z_rec, verdict = zone_rows(li, lj, z)
+            if found:  # (else rows not sorted by observer: the reference's way)
+                return links, ZoneState(KernelZone(True, _discs(params), z_rec, verdict))
+    links = zone_links(filt, x, P, links, params, strategy, memory)
+    z_rec = links.z_reciprocal
     if z_rec is None or np.shape(z_rec) != (E, 2):
         return None
     kernel = KernelZone(
@@ -196,8 +196,9 @@ def keep_unjudged_state(state: ZoneState, fixes, li, lj) -> None:
         for saved in () if fix is None else fix.state.saved[:1]:
             store, _, _, slots, old = saved
             values = store.values
-            if old is not None and values.ndim == 2 and values.flags.c_contiguous:
-                # the steady state: one compiled pass, no index arrays (restore_unjudged)
+            if old is not None and values.ndim == 2:
+                # the steady state: one compiled pass, no index arrays (restore_unjudged;
+                # the stores' values are contiguous: kernels_detection.store_slots)
                 restore_unjudged(verdict, slots, values, old)
                 RESTORE_RUNS["compiled"] += 1
                 continue
@@ -285,6 +286,17 @@ def partner_readings(li, lj, z, out):
                 break
             lo += 1
     return True
+
+
+@jit
+def zone_rows(li, lj, z):
+    """:func:`partner_readings` into a new ``(E, 2)`` array, with the stage's verdicts
+    ``(E,)`` int64 (``OUTSIDE``) beside it: ``(sorted, z_rec, verdict)``. The glue's
+    numpy calls (the two arrays' allocations, ~0.2 us each) in the compiled call."""
+    E = li.shape[0]
+    z_rec = np.empty((E, 2))
+    verdict = np.zeros(E, np.int64)
+    return partner_readings(li, lj, z, z_rec), z_rec, verdict
 
 
 @jit
