@@ -229,12 +229,9 @@ def test_compiled_reciprocal_check_equals_the_reference(case: str) -> None:
     assert liar_detected > 0.2 * liar_rows, "the check did not catch the one-ended liar"
 
 
-def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> None:
-    """The verdict and state of :func:`~resloc.cl.kernels_reciprocal.reciprocal_verdict`
-    are the numpy stage's on a step with one-ended liars (over the gate, under it, and
-    held links), with the map's blame rule and without; the map changes the verdict."""
-    from resloc.cl.kernels_reciprocal import reciprocal_verdict
-
+def _step_with_one_ended_liars():
+    """One step of the default world (seed 8): ``(world, x, li, lj, z)``, every fifth
+    reading lengthened past the reciprocal check's one-step gate."""
     links = links_of_one_step(8)
     sc = default_scenario()
     world = World(sc.world, 1, 8, sc.trigger.lambda2)
@@ -242,7 +239,17 @@ def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> Non
     li, lj = links.i.astype(np.int64), links.j.astype(np.int64)
     z = links.z.copy()
     z[::5, 0] += 0.05  # over the one-step gate
-    z[1::7, 0] += 0.015  # under it
+    return world, x, li, lj, z
+
+
+def test_the_pre_pass_equals_reciprocal_evidence_with_and_without_a_map() -> None:
+    """The verdict and state of :func:`~resloc.cl.kernels_reciprocal.reciprocal_verdict`
+    are the numpy stage's on a step with one-ended liars (over the gate, under it, and
+    held links), with the map's blame rule and without; the map changes the verdict."""
+    from resloc.cl.kernels_reciprocal import reciprocal_verdict
+
+    world, x, li, lj, z = _step_with_one_ended_liars()
+    z[1::7, 0] += 0.015  # under the one-step gate
     partner = z[reciprocal_rows(li, lj)]
     partner[reciprocal_rows(li, lj) < 0] = np.nan
     x_nb = x[lj]
@@ -339,13 +346,7 @@ def test_the_pre_pass_ors_its_verdict_into_the_redundancy_stages() -> None:
     two, and the same state as alone."""
     from resloc.cl.kernels_reciprocal import reciprocal_verdict
 
-    links = links_of_one_step(8)
-    sc = default_scenario()
-    world = World(sc.world, 1, 8, sc.trigger.lambda2)
-    x, _ = world.initial_estimates()
-    li, lj = links.i.astype(np.int64), links.j.astype(np.int64)
-    z = links.z.copy()
-    z[::5, 0] += 0.05  # over the one-step gate
+    world, x, li, lj, z = _step_with_one_ended_liars()
     x_nb = x[lj]
     nb = np.arange(len(li), dtype=np.int64)
     params = _params("full+reciprocal")

@@ -35,7 +35,7 @@ import numpy as np
 from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.kernels_math import jit, jit_inline, per_params
 from resloc.cl.kernels_reciprocal import inside_discs
-from resloc.cl.kernels_redundancy import claim_scales, trace_scales
+from resloc.cl.kernels_redundancy import claim_scales, scales_to_median, trace_scales
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -170,14 +170,7 @@ def raised_trace_scales(li, scale, raised, ranked, work):
             if r == lo:
                 low = v
         median = 0.5 * (low + v)
-        for e in range(start, stop):
-            t = scale[e]
-            s = 1.0
-            if t > 0.0:
-                s = median / t
-                if s < 1.0:  # np.maximum: a NaN stays NaN
-                    s = 1.0
-            scale[e] = s
+        scales_to_median(scale, start, stop, median)
         start = stop
     return True
 

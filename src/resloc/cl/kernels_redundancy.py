@@ -72,6 +72,7 @@ __all__ = [
     "fix_verdicts",
     "position_fix_of_link",
     "redundancy_verdict",
+    "scales_to_median",
     "sequence_group",
     "trace_scales",
 ]
@@ -145,6 +146,21 @@ def claim_scales(li, P_nb, nb, scale, scratch):
 
 
 @jit_inline
+def scales_to_median(scale, start, stop, median):
+    """``scale[start:stop]``, a group's traces, replaced by ``max(median / t, 1)`` (1 where
+    ``t <= 0`` or NaN; a NaN ratio stays NaN, as ``np.maximum``): the factor that raises
+    each claim of the group to the group's median."""
+    for e in range(start, stop):
+        t = scale[e]
+        s = 1.0
+        if t > 0.0:
+            s = median / t
+            if s < 1.0:  # np.maximum: a NaN stays NaN
+                s = 1.0
+        scale[e] = s
+
+
+@jit_inline
 def trace_scales(li, scale, scratch):
     """:func:`claim_scales` from the rows' traces, given in ``scale: (E,)`` and replaced by
     their factors (for callers that hold the claims per row: no index array)."""
@@ -165,14 +181,7 @@ def trace_scales(li, scale, scratch):
                 k -= 1
             scratch[k] = t
         median = 0.5 * (scratch[start + (count - 1) // 2] + scratch[start + count // 2])
-        for e in range(start, stop):
-            t = scale[e]
-            s = 1.0
-            if t > 0.0:
-                s = median / t
-                if s < 1.0:  # np.maximum: a NaN stays NaN
-                    s = 1.0
-            scale[e] = s
+        scales_to_median(scale, start, stop, median)
         start = stop
     return True
 
