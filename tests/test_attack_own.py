@@ -76,7 +76,8 @@ def _six(steps):
 
 
 def test_the_study_pairs_the_honest_robots_msle_with_the_clean_runs_over_them():
-    from resloc.experiments.attack import CLEAN, HONEST, markdown, run_attack_study
+    from resloc.experiments.attack import CLEAN, HONEST, run_attack_study
+    from resloc.experiments.attack_report import markdown
 
     base = _six(20)
     res = run_attack_study(

@@ -11,7 +11,8 @@ from resloc.cl.cusum import chi2_gate
 from resloc.cl.detector import InnovationNorm
 from resloc.cl.memory import LinkMemory
 from resloc.cl.params import CLParams
-from resloc.experiments.attack import CLEAN, run_attack_study, save_attack_study
+from resloc.experiments.attack import CLEAN, run_attack_study
+from resloc.experiments.attack_report import save_attack_study
 from resloc.world.attackers import (
     ATTACKERS,
     accepted,
