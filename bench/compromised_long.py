@@ -33,36 +33,18 @@ POINTS = ({"robots": 1}, {"robots": 1, "claimed_cov": 0.01}, {"robots": 3, "clai
 POINTS = (*POINTS, {"robots": 3})
 
 
-def honest_msle_series(robot_counts: list[int]) -> None:
-    """Also record, in every run, the MSLE over the honest robots only: for each count ``r``
-    of compromised robots, the paper's MSLE of the team without the first ``r`` ids of
-    :data:`~resloc.world.attackers.estimates.COMPROMISED_ORDER` (pairs among the others,
-    normalized by their number), as series ``msle_honest{r}`` beside ``msle`` (the clean
-    run too, so that the ratio is paired on the same robots). Why beside and not instead:
-    the paper's MSLE counts every robot, the compromised ones' own estimates included
-    (``docs/attack/lockout.md`` section 5)."""
-    from resloc.experiments.metrics import AccuracyRecorder, msle_of_distances, pair_distances
+def honest_msle_series(robot_counts: list[int]) -> dict[str, np.ndarray]:
+    """The ``without`` of :func:`~resloc.experiments.runner.run_scenario` that also records,
+    for each count ``r`` of compromised robots, the MSLE of the team without the first ``r``
+    ids of :data:`~resloc.world.attackers.estimates.COMPROMISED_ORDER` (series
+    ``msle_honest{r}``, beside ``msle``; in the clean run too, so that the ratio is paired on
+    the same robots). Why beside and not instead: the paper's MSLE counts every robot, the
+    compromised ones' own estimates included (``docs/attack/own_estimates.md``)."""
     from resloc.world.attackers.estimates import COMPROMISED_ORDER
 
-    flush = AccuracyRecorder.flush
-
-    def flush_with_honest(self) -> None:
-        C, T, N = self.filled, self.trials, self.robots
-        if C:
-            rows = self.rows[:C]
-            pose = self.pose[:C].reshape(C * T, N, 3)
-            x = self.x[:C].reshape(C * T, N, 3)
-            for r in robot_counts:
-                honest = np.setdiff1d(np.arange(N), [t for t in COMPROMISED_ORDER if t < N][:r])
-                series = self.series.setdefault(
-                    f"msle_honest{r}", np.full_like(self.series["msle"], np.nan)
-                )
-                series[rows] = msle_of_distances(
-                    pair_distances(pose[:, honest, :2]), pair_distances(x[:, honest, :2])
-                ).reshape(C, T)
-        flush(self)
-
-    AccuracyRecorder.flush = flush_with_honest
+    robots = default_scenario().world.team.robots
+    order = [t for t in COMPROMISED_ORDER if t < robots]
+    return {f"honest{r}": np.asarray(order[:r], int) for r in robot_counts}
 
 
 def reused_clean(path: Path, run: dict) -> np.ndarray:
@@ -121,8 +103,7 @@ def main() -> None:
     args = ap.parse_args()
     extra = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.set)}
     counts = sorted({int({**POINTS[p]}.get("robots", 1)) for p in args.points})
-    if args.honest:
-        honest_msle_series(counts)
+    without = honest_msle_series(counts) if args.honest else None
     attack = {k: json.loads(v) for k, v in (s.split("=", 1) for s in args.attack)}
     base = default_scenario().replace(
         **defence_overrides(args.defence),
@@ -148,7 +129,7 @@ def main() -> None:
             raise SystemExit(2) from None
         out["clean_from"] = str(args.clean_from)
     else:
-        clean_run = run_scenario(base.replace(sdz=[]), **first).estimators["ckf"]
+        clean_run = run_scenario(base.replace(sdz=[]), **first, without=without).estimators["ckf"]
         clean = clean_run.per_trial("msle_mean")
         if args.honest:
             out["clean_honest"] = {
@@ -161,7 +142,7 @@ def main() -> None:
     for p in args.points:
         params = {**POINTS[p], **attack}
         adv = make_attacker("compromised", **params)
-        res = run_scenario(base.replace(**adv.overrides), adversary=adv, **first)
+        res = run_scenario(base.replace(**adv.overrides), adversary=adv, **first, without=without)
         msle = res.estimators["ckf"].per_trial("msle_mean")
         ratio = msle / clean
         out[json.dumps(params, sort_keys=True)] = {"msle": msle.tolist(), "ratio": ratio.tolist()}

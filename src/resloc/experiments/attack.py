@@ -72,22 +72,22 @@ def attack_cells(
 
     changes = {**dict(defence), "run.filters": [filt], "run.dead_reckoning": False}
     adversary = None
-    without = {}
+    left_out = {}  # a metric's name -> the robots its MSLE leaves out
     if attacker_name == CLEAN:
         changes["sdz"] = []
         for ids in dict(params).get("owned_sets", []):
-            without[honest_name(ids).removeprefix("msle_")] = np.asarray(ids, int)
+            left_out[honest_name(ids)] = np.asarray(ids, int)
     else:
         adversary = make_attacker(attacker_name, **dict(params))
         changes.update(adversary.overrides)
         owned = adversary.owned(scenario.world.team.robots)
         if owned.size:
-            without[HONEST.removeprefix("msle_")] = owned
+            left_out[HONEST] = owned
     result = run_scenario(
         scenario.replace(**changes),
         adversary=adversary,
         first_trial=first_trial,
-        without=without,
+        without={m.removeprefix("msle_"): ids for m, ids in left_out.items()},  # (msle_<name>)
     )
     est = result.estimators[filt]
     t = est.totals
@@ -102,7 +102,7 @@ def attack_cells(
         "fpr": fpr,
         "comm_rate": est.per_trial("comm_rate"),
         "bytes_per_step": est.bytes_per_step(result.scenario.estimator.fusion),
-        **{f"msle_{k}": est.per_trial(f"msle_{k}_mean") for k in without},
+        **{m: est.per_trial(f"{m}_mean") for m in left_out},
     }
     return [{k: float(v[s]) for k, v in per_seed.items()} for s in range(scenario.run.trials)]
 
