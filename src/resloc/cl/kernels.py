@@ -398,7 +398,11 @@ def fast_correct(
     witness = None
     if params.witness:  # the notes read the claims as sent (kernels_witness)
         witness = _stage("kernels_witness").WitnessInputs.of(links)
-    if params.redundancy:
+    prepared = _prepared(params)
+    # the claims, zone's readings and the pre-passes in one compiled call after the stores'
+    # look-ups (kernels_prepass), where nothing runs between them
+    one_pass = _stage("kernels_prepass").applies(params, links, prepared.cached)
+    if params.redundancy and not one_pass:
         # The redundancy stage judges the links as reported at the predicted estimates
         # (claims capped, a tamper hook applied to every row: kernels_redundancy)
         links = _stage("kernels_redundancy").capped_links(  # compiled on first use
@@ -406,7 +410,7 @@ def fast_correct(
         )
         if links is None:
             return None
-    elif params.zone_landmarks:  # (with it, between the cap and the hook)
+    elif params.zone_landmarks and not params.redundancy:  # (with it: between cap and hook)
         from resloc.cl.kernels_claims import claimed_links  # compiled on first use
 
         links = claimed_links(params, links)
@@ -417,22 +421,21 @@ def fast_correct(
         witness = witness_stage.witness_verdict(params, memory, x, P, links, witness)
         if witness is None:
             return None  # the reference path raises the explanatory error
-    if params.reciprocal:
+    if params.reciprocal and links.tamper is not None:
         # The reciprocal check compares the readings as reported with the partners'
-        # (a tamper hook applied to every row: kernels_reciprocal)
+        # (a tamper hook applied to every row: kernels_reciprocal; params.R is a new array)
         strategy = fusion_strategy(params.fusion)  # (the prepared one, before shapes)
         links = _stage("kernels_reciprocal").partner_readings(
             filt, x, P, links, strategy, memory, params.R
         )
     zone = None
-    if params.zone_trust:  # the partners' readings attached (kernels_zone)
+    if params.zone_trust and not one_pass:  # the partners' readings attached (kernels_zone)
         zoned = _stage("kernels_zone").zone_state(
             filt, x, P, links, params, fusion_strategy(params.fusion), memory
         )
         if zoned is None:
             return None  # the reference path raises the explanatory error
         links, zone = zoned
-    prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
     if need_memory and memory is None:
@@ -489,7 +492,23 @@ def fast_correct(
     detect = detection.kernel
     changes = {}  # the pre-passes' verdicts for the loops (KernelDetection's fields)
     fixes = None
-    if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
+    paired = None
+    if one_pass:  # the claims, zone's readings, the pre-passes (kernels_prepass)
+        passes = _stage("kernels_prepass").prepass(
+            params, memory, li, lj, _contiguous(z), _contiguous(x), _contiguous(P), x_nb, P_nb,
+            nb, detect,
+        )  # fmt: skip
+        if passes is None:
+            bookkeeping.undo(memory, gauge)
+            defence.undo()
+            detection.undo()
+            return None  # the reference path raises the explanatory error
+        x_nb, P_nb, nb, zone, fixes, paired = passes
+        x_ref, P_ref = x_nb, P_nb
+        changes["fixes"] = fixes.discard  # (with the reciprocal check's)
+        if zone is not None:
+            changes["zone"] = zone.kernel
+    elif params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
         fixes = _stage("kernels_redundancy").redundancy_verdict(
             params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detect
         )
@@ -499,8 +518,7 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         changes["fixes"] = fixes.discard
-    paired = None
-    if params.reciprocal:  # every link's range against its partner's (kernels_reciprocal)
+    if params.reciprocal and not one_pass:  # every link's range against its partner's
         reciprocal_verdict = _stage("kernels_reciprocal").reciprocal_verdict
         z_rec = links.z_reciprocal if zone is None else zone.kernel.z_reciprocal  # (found)
         other = None if fixes is None else fixes.discard  # (ORed into in place)
@@ -513,7 +531,7 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         changes["fixes"] = paired.discard  # (with the redundancy pre-pass's)
-    if zone is not None:
+    if zone is not None and not one_pass:
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard

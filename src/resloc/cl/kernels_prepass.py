@@ -1,0 +1,239 @@
+"""The defences' passes before the link loop, in one compiled call per step.
+
+With the redundancy stage on, the compiled correction runs up to four passes over a step's
+links before its link loop, each a numba call of its own with its Python glue:
+
+* the claims the correction fuses (:func:`~resloc.cl.kernels_claims.claimed_covariances`:
+  the redundancy stage's cap and the zone landmarks),
+* zone trust's partners' readings (:func:`~resloc.cl.kernels_zone.partner_readings`),
+* the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`),
+* the reciprocal check's pre-pass (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`).
+
+None of them depends on the order in which the links are fused, and none on the others'
+Python glue: :func:`prepass_rows` calls the four kernels in one compiled call, on arrays
+packed once per ``params`` (:func:`_options`), and :func:`prepass` is its glue (the stores'
+slots and ``undo`` records, as each stage's own dispatch keeps them). The kernels and their
+order are the stages' own, so the values are the same bits as the stage-by-stage path's
+(``resloc.cl.kernels.fast_correct`` takes that path where this one does not apply: an
+adversary's tamper hook, partners' readings the batch carries, the witness stage between
+the claims and the readings, cached neighbour estimates).
+
+=============================  ==========================================================
+kernel function                numpy twin
+=============================  ==========================================================
+:func:`prepass_rows`           the head of ``resloc.cl.step._correct_reference`` (the
+                               claims, the partners' readings), ``fix_evidence`` and
+                               ``reciprocal_evidence`` with their stages' ``discard``
+=============================  ==========================================================
+
+The kernel is compiled (or loaded from numba's cache) on the first step that runs the
+redundancy stage: a run without it does not pay for it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from resloc.cl import kernels_detection as _kernels_detection
+from resloc.cl import kernels_lanes as _kernels_lanes
+from resloc.cl.detection_reciprocal import STATE_WIDTH, ReciprocalCheck
+from resloc.cl.detection_sequence import WIDTH, RedundancySequence
+from resloc.cl.kernels_claims import CLAIMS_UNCHANGED, _claim_options, claimed_covariances
+from resloc.cl.kernels_detection import DetectorState, PrepassVerdict, shared_slots, store_slots
+from resloc.cl.kernels_math import jit, per_params, stamp_with_pieces
+from resloc.cl.kernels_reciprocal import _options as _reciprocal_options
+from resloc.cl.kernels_reciprocal import reciprocal_verdicts
+from resloc.cl.kernels_redundancy import _named_fix_options, fix_verdicts
+from resloc.cl.kernels_zone import KernelZone, ZoneState, _discs, partner_readings
+from resloc.cl.params import CLParams
+
+__all__ = ["PREPASS_RUNS", "Prepass", "prepass", "prepass_rows"]
+
+#: :func:`prepass_rows`'s status: done, or the rows are not sorted by observer (nothing
+#: written; the reference path then judges them, as each stage's pass would have it).
+PREPASS_OK = 0
+PREPASS_UNSORTED = 1
+
+#: How often :func:`prepass` ran the compiled pass (the tests read it).
+PREPASS_RUNS = {"compiled": 0}
+
+
+@jit
+def prepass_rows(
+    li, lj, z, x, P, x_src, P_src, rows, cap, claim_discs, inflation, zone, R, gate,
+    min_peers, sequence, seq_gate, seq_hold, seq_forget, seq_state, seq_slot, reciprocal,
+    variance, rec_gate, rec_sequence_gate, rec_hold, rec_forget, rec_discs, rec_state,
+    rec_slot,
+):  # fmt: skip
+    """The passes before the link loop of one step, in the stage-by-stage path's order:
+    link ``e`` (observer ``li[e]``, neighbour ``lj[e]``, reading ``z[e]``, the neighbour's
+    transmitted estimate ``x_src[rows[e]]``, ``P_src[rows[e]]``; ``x``, ``P``: the
+    predicted estimates)
+
+    1. its claim (with ``cap``, or a map ``claim_discs: (Z, 3)``:
+       :func:`~resloc.cl.kernels_claims.claimed_covariances`, ``inflation``), into new
+       per-row arrays ``(E, 3)``, ``(E, 3, 3)`` whose rows are ``arange(E)``, or the
+       transmitted ones where no claim changes;
+    2. with ``zone``, its partner's reading (:func:`~resloc.cl.kernels_zone.partner_readings`)
+       into a new ``(E, 2)`` array, and zone trust's verdicts ``(E,)`` (``OUTSIDE``);
+    3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
+       sequence test's state ``seq_state[seq_slot[e]]``) into a new ``discard: (E,)``;
+    4. with ``reciprocal``, the reciprocal check
+       (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`, its state
+       ``rec_state[rec_slot[e]]``), ORed into ``discard``.
+
+    Returns ``(status, x_nb, P_nb, nb, z_rec, verdict, discard)``: ``PREPASS_UNSORTED``
+    and nothing written when the rows are not sorted by observer (the arrays then empty),
+    else ``PREPASS_OK``. Shapes and indices as the link loop checks them (the caller's
+    ``_shapes_ok``). Twin: the stages' passes, each (the same kernels, the same order)."""
+    E = li.shape[0]
+    for e in range(1, E):
+        if li[e] < li[e - 1]:
+            return (
+                PREPASS_UNSORTED, np.empty((0, 3)), np.empty((0, 3, 3)), rows,
+                np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.bool_),
+            )  # fmt: skip
+    x_nb = x_src
+    P_nb = P_src
+    nb = rows
+    if cap or claim_discs.shape[0] > 0:  # (kernels_claims.claimed_rows)
+        out = np.empty((E, 3, 3))
+        scratch = np.empty((2, E))
+        inside = claimed_covariances(
+            li, x_src, P_src, rows, cap, claim_discs, inflation, out, scratch[0], scratch[1]
+        )
+        if inside != CLAIMS_UNCHANGED:  # (sorted: tested above)
+            D = x_src.shape[1]
+            x_out = np.empty((E, D))
+            for e in range(E):
+                n = rows[e]
+                for a in range(D):
+                    x_out[e, a] = x_src[n, a]
+            x_nb = x_out
+            P_nb = out
+            nb = np.arange(E)
+    z_rec = np.empty((E if zone else 0, 2))
+    verdict = np.zeros(E if zone else 0, np.int64)
+    if zone:
+        partner_readings(li, lj, z, z_rec)
+    discard = np.zeros(E, np.bool_)
+    fix_verdicts(
+        li, z, x, P, x_nb, P_nb, nb,
+        (R, gate, min_peers, sequence, seq_gate, seq_hold, seq_forget),
+        seq_state, seq_slot, discard,
+    )  # fmt: skip
+    if reciprocal:  # (z_rec of shape (0, 2): the reverse links' readings found in z)
+        reciprocal_verdicts(
+            li, lj, z, z_rec, x, x_nb, nb, variance, rec_gate, rec_sequence_gate, rec_hold,
+            rec_forget, rec_discs, rec_state, rec_slot, discard,
+        )  # fmt: skip
+    return PREPASS_OK, x_nb, P_nb, nb, z_rec, verdict, discard
+
+
+stamp_with_pieces(prepass_rows, _kernels_detection, _kernels_lanes)
+
+
+# ---------------------------------------------------------------------------------------
+# The dispatch's side (called by resloc.cl.kernels.fast_correct)
+# ---------------------------------------------------------------------------------------
+class Prepass(NamedTuple):
+    """:func:`prepass`'s result: the neighbours' estimates the loop reads (``x_nb: (S,
+    3)``, ``P_nb: (S, 3, 3)``, link ``e``'s at row ``nb[e]``), zone trust's state (None
+    without it), the redundancy pre-pass's verdict and the reciprocal check's (None without
+    it; its ``discard`` is the redundancy pre-pass's array, the union)."""
+
+    x_nb: np.ndarray
+    P_nb: np.ndarray
+    nb: np.ndarray
+    zone: ZoneState | None
+    fixes: PrepassVerdict
+    paired: PrepassVerdict | None
+
+
+_NO_STATE = np.zeros((0, WIDTH))
+_NO_SLOTS = np.zeros(0, np.int64)
+_NO_RECIPROCAL_STATE = np.zeros((0, STATE_WIDTH))
+_NO_DISCS = np.zeros((0, 3))
+_NO_GAIN = np.zeros(1)
+
+
+@per_params
+def _options(params: CLParams) -> tuple:
+    """The options of :func:`prepass_rows` after its ``(li, ..., rows)`` arguments, in
+    three runs split by the stores' state and slots: ``(claims and zone, redundancy,
+    reciprocal)`` (numba unboxes a tuple argument in ~1 us, an array in ~0.04 us: the
+    kernel takes them flat)."""
+    _, cap, claim_discs, inflation = _claim_options(params)
+    head = (cap, claim_discs, inflation, bool(params.zone_trust))
+    fix = tuple(_named_fix_options(params))
+    reciprocal = (False, 1.0, _NO_GAIN, _NO_GAIN, _NO_GAIN, _NO_GAIN, _NO_DISCS)
+    if params.reciprocal:
+        reciprocal = (True, *_reciprocal_options(params))
+    return head + fix, reciprocal
+
+
+def applies(params: CLParams, links, cached: bool) -> bool:
+    """Whether :func:`prepass` runs the step's passes (else the stages' own dispatch):
+    the redundancy stage on, the witness stage off (its readings come between the claims
+    and the partners'), no tamper hook, no partners' readings carried by the batch, the
+    transmitted neighbour estimates."""
+    return bool(
+        params.redundancy
+        and not params.witness
+        and links.tamper is None
+        and links.z_reciprocal is None
+        and not cached
+    )
+
+
+def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> Prepass | None:
+    """The passes of one step (:func:`prepass_rows`): ``li``, ``lj`` int64 ``(E,)``, ``z:
+    (E, 2)`` the readings, ``x``, ``P`` the predicted estimates, ``x_src``, ``P_src`` the
+    transmitted estimates at rows ``rows`` (contiguous, checked by the caller);
+    ``detection``: the step's :class:`~resloc.cl.kernels_detection.KernelDetection` (the
+    stores' slots are the NIS CUSUM's when they hold the same links). None when a stage
+    needs a memory and there is none, or the rows are not sorted by observer (the
+    reference path then raises the explanatory error, or judges them)."""
+    head, reciprocal = _options(params)
+    sequence = head[7]  # FixOptions.sequence
+    on = reciprocal[0]
+    if memory is None and (sequence or on):
+        return None
+    saved: list = []
+    seq_state, seq_slot = _NO_STATE, _NO_SLOTS
+    if sequence:
+        store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
+        seq_slot = None
+        if detection.cusum:  # both stores hold every link of every step
+            seq_slot = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
+        if seq_slot is None:
+            seq_slot = store_slots(store, li, lj, saved)
+        seq_state = store.values
+    rec_saved: list = []
+    rec_state, rec_slot = _NO_RECIPROCAL_STATE, _NO_SLOTS
+    if on:
+        store = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH)
+        rec_slot = None
+        if detection.cusum:
+            rec_slot = shared_slots(store, memory.cusum, detection.cusum_slot, rec_saved)
+        if rec_slot is None:
+            rec_slot = store_slots(store, li, lj, rec_saved)
+        rec_state = store.values
+    status, x_nb, P_nb, nb, z_rec, verdict, discard = prepass_rows(
+        li, lj, z, x, P, x_src, P_src, rows, *head, seq_state, seq_slot, *reciprocal,
+        rec_state, rec_slot,
+    )  # fmt: skip
+    PREPASS_RUNS["compiled"] += 1
+    fixes = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
+    paired = None if not on else PrepassVerdict(discard, DetectorState(None, tuple(rec_saved)))
+    if status != PREPASS_OK:
+        if paired is not None:
+            paired.undo()
+        fixes.undo()
+        return None
+    zone = None
+    if head[3]:
+        zone = ZoneState(KernelZone(True, _discs(params), z_rec, verdict))
+    return Prepass(x_nb, P_nb, nb, zone, fixes, paired)
