@@ -214,6 +214,24 @@ def _plain(structure: tuple) -> tuple:
     return tuple(fields)
 
 
+#: Per structure type: its fields' positions by name.
+_FIELDS: dict[type, dict[str, int]] = {}
+
+
+def _plain_with(structure: tuple, changes: dict) -> tuple:
+    """``_plain(structure._replace(**changes))`` without the NamedTuple built between
+    (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more)."""
+    if not changes:
+        return _plain(structure)
+    index = _FIELDS.get(type(structure))
+    if index is None:
+        index = _FIELDS[type(structure)] = {name: k for k, name in enumerate(structure._fields)}
+    fields = list(structure)
+    for name, value in changes.items():
+        fields[index[name]] = value
+    return _plain(tuple.__new__(type(structure), fields))
+
+
 def _per_robot(v) -> np.ndarray:
     """A scalar or per-robot gain as a contiguous float array of shape (1,) or (B,)."""
     return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
@@ -535,8 +553,7 @@ def fast_correct(
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard
-    if changes:  # (one _replace: ~0.7 us each)
-        detect = detect._replace(**changes)
+    detect = _plain_with(detect, changes)  # (no _replace: ~2 us with two fields)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -571,7 +588,7 @@ def fast_correct(
         tuple(spec),
         prepared.plain_options,
         _plain(fusion),
-        _plain(detect),
+        detect,
         _plain(defence.kernel),
         tuple(gauge),
         _plain(tamper),

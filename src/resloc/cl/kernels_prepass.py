@@ -63,9 +63,9 @@ PREPASS_RUNS = {"compiled": 0}
 @jit
 def prepass_rows(
     li, lj, z, x, P, x_src, P_src, rows, cap, claim_discs, inflation, zone, R, gate,
-    min_peers, sequence, seq_gate, seq_hold, seq_forget, seq_state, seq_slot, reciprocal,
-    variance, rec_gate, rec_sequence_gate, rec_hold, rec_forget, rec_discs, rec_state,
-    rec_slot,
+    min_peers, sequence, seq_gate, seq_hold, seq_forget, seq_state, seq_slot, seq_old,
+    reciprocal, variance, rec_gate, rec_sequence_gate, rec_hold, rec_forget, rec_discs,
+    rec_state, rec_slot, rec_old,
 ):  # fmt: skip
     """The passes before the link loop of one step, in the stage-by-stage path's order:
     link ``e`` (observer ``li[e]``, neighbour ``lj[e]``, reading ``z[e]``, the neighbour's
@@ -84,10 +84,16 @@ def prepass_rows(
        (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`, its state
        ``rec_state[rec_slot[e]]``), ORed into ``discard``.
 
-    Returns ``(status, x_nb, P_nb, nb, z_rec, verdict, discard)``: ``PREPASS_UNSORTED``
-    and nothing written when the rows are not sorted by observer (the arrays then empty),
-    else ``PREPASS_OK``. Shapes and indices as the link loop checks them (the caller's
+    First, ``seq_old``, ``rec_old`` (of the states' shapes, or empty: not asked) receive
+    a copy of the states before the step (the ``undo`` records' values). Returns
+    ``(status, x_nb, P_nb, nb, z_rec, verdict, discard)``: ``PREPASS_UNSORTED``, nothing
+    else written, when the rows are not sorted by observer (the arrays then empty), else
+    ``PREPASS_OK``. Shapes and indices as the link loop checks them (the caller's
     ``_shapes_ok``). Twin: the stages' passes, each (the same kernels, the same order)."""
+    if seq_old.shape[0] > 0:
+        seq_old[...] = seq_state
+    if rec_old.shape[0] > 0:
+        rec_old[...] = rec_state
     E = li.shape[0]
     for e in range(1, E):
         if li[e] < li[e - 1]:
@@ -174,6 +180,37 @@ def _options(params: CLParams) -> tuple:
     return head + fix, reciprocal
 
 
+#: Per store (by id): ``(store, its keys, its values, the NIS CUSUM store's keys, the
+#: buffer its values are saved in)`` while the two stores hold the same keys.
+_BUFFERS: dict = {}
+
+
+def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> tuple:
+    """``(slots, buffer)``: the slots of the step's links in ``store`` and the buffer
+    :func:`prepass_rows` saves its values in (``empty``: saved here), recording in ``saved``
+    what ``undo`` needs. In a run's steady state the store holds the NIS CUSUM's keys: its
+    slots (:func:`~resloc.cl.kernels_detection.shared_slots`), and a buffer kept from step
+    to step (``undo`` runs within the step that saved) which the kernel fills (the numpy
+    copy and the keys' comparison were ~1.5 us a store and step)."""
+    if not detection.cusum:
+        return store_slots(store, li, lj, saved), empty
+    keys, values, other = store.keys, store.values, memory.cusum.keys
+    kept = _BUFFERS.get(id(store))
+    if kept is not None and kept[0] is store and kept[1] is keys and kept[2] is values:
+        if kept[3] is other:  # the same arrays: the same keys, the same buffer
+            saved.append((store, keys, None, detection.cusum_slot, kept[4]))
+            return detection.cusum_slot, kept[4]
+    slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
+    if slots is None:
+        return store_slots(store, li, lj, saved), empty
+    values = store.values  # (made contiguous by shared_slots)
+    if values.dtype == np.float64 and values.shape[1:] == empty.shape[1:] and len(values):
+        if len(_BUFFERS) >= 64:  # (old stores: finished runs')
+            _BUFFERS.clear()
+        _BUFFERS[id(store)] = (store, keys, values, other, np.empty_like(values))
+    return slots, empty
+
+
 def applies(params: CLParams, links, cached: bool) -> bool:
     """Whether :func:`prepass` runs the step's passes (else the stages' own dispatch):
     the redundancy stage on, the witness stage off (its readings come between the claims
@@ -202,28 +239,22 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> P
     if memory is None and (sequence or on):
         return None
     saved: list = []
-    seq_state, seq_slot = _NO_STATE, _NO_SLOTS
+    seq_state, seq_slot, seq_old = _NO_STATE, _NO_SLOTS, _NO_STATE
     if sequence:
         store = memory.stage_statistic(RedundancySequence.name, width=WIDTH)
-        seq_slot = None
-        if detection.cusum:  # both stores hold every link of every step
-            seq_slot = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
-        if seq_slot is None:
-            seq_slot = store_slots(store, li, lj, saved)
+        seq_slot, seq_old = _slots(store, memory, li, lj, detection, saved, _NO_STATE)
         seq_state = store.values
     rec_saved: list = []
-    rec_state, rec_slot = _NO_RECIPROCAL_STATE, _NO_SLOTS
+    rec_state, rec_slot, rec_old = _NO_RECIPROCAL_STATE, _NO_SLOTS, _NO_RECIPROCAL_STATE
     if on:
         store = memory.stage_statistic(ReciprocalCheck.name, width=STATE_WIDTH)
-        rec_slot = None
-        if detection.cusum:
-            rec_slot = shared_slots(store, memory.cusum, detection.cusum_slot, rec_saved)
-        if rec_slot is None:
-            rec_slot = store_slots(store, li, lj, rec_saved)
+        rec_slot, rec_old = _slots(
+            store, memory, li, lj, detection, rec_saved, _NO_RECIPROCAL_STATE
+        )
         rec_state = store.values
     status, x_nb, P_nb, nb, z_rec, verdict, discard = prepass_rows(
-        li, lj, z, x, P, x_src, P_src, rows, *head, seq_state, seq_slot, *reciprocal,
-        rec_state, rec_slot,
+        li, lj, z, x, P, x_src, P_src, rows, *head, seq_state, seq_slot, seq_old, *reciprocal,
+        rec_state, rec_slot, rec_old,
     )  # fmt: skip
     PREPASS_RUNS["compiled"] += 1
     fixes = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
