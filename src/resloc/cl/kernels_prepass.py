@@ -59,31 +59,38 @@ PREPASS_UNSORTED = 1
 #: How often :func:`prepass` ran the compiled pass (the tests read it).
 PREPASS_RUNS = {"compiled": 0}
 
+#: :func:`prepass_rows`' ``flags``: the cap, the landmarks' inflation, zone trust, the
+#: sequence test, the reciprocal check, its variance ``2 sigma_r^2``, then ``R`` (4).
+_CAP, _INFLATION, _ZONE, _SEQUENCE, _RECIPROCAL, _VARIANCE, _R = range(7)
+#: Its ``gains``' rows: the redundancy stage's (``FixOptions``), the reciprocal check's.
+_GATE, _MIN_PEERS, _SEQ_GATE, _SEQ_HOLD, _SEQ_FORGET = range(5)
+_REC_GATE, _REC_SEQUENCE_GATE, _REC_HOLD, _REC_FORGET = range(5, 9)
+
 
 @jit
 def prepass_rows(
-    li, lj, z, x, P, x_src, P_src, rows, cap, claim_discs, inflation, zone, R, gate,
-    min_peers, sequence, seq_gate, seq_hold, seq_forget, seq_state, seq_slot, seq_old,
-    reciprocal, variance, rec_gate, rec_sequence_gate, rec_hold, rec_forget, rec_discs,
-    rec_state, rec_slot, rec_old,
+    li, lj, z, x, P, x_src, P_src, rows, flags, gains, claim_discs, rec_discs, seq_state,
+    seq_slot, seq_old, rec_state, rec_slot, rec_old,
 ):  # fmt: skip
     """The passes before the link loop of one step, in the stage-by-stage path's order:
     link ``e`` (observer ``li[e]``, neighbour ``lj[e]``, reading ``z[e]``, the neighbour's
     transmitted estimate ``x_src[rows[e]]``, ``P_src[rows[e]]``; ``x``, ``P``: the
     predicted estimates)
 
-    1. its claim (with ``cap``, or a map ``claim_discs: (Z, 3)``:
-       :func:`~resloc.cl.kernels_claims.claimed_covariances`, ``inflation``), into new
-       per-row arrays ``(E, 3)``, ``(E, 3, 3)`` whose rows are ``arange(E)``, or the
-       transmitted ones where no claim changes;
-    2. with ``zone``, its partner's reading (:func:`~resloc.cl.kernels_zone.partner_readings`)
+    1. its claim (with the cap, or a map ``claim_discs: (Z, 3)``:
+       :func:`~resloc.cl.kernels_claims.claimed_covariances`), into new per-row arrays
+       ``(E, 3)``, ``(E, 3, 3)`` whose rows are ``arange(E)``, or the transmitted ones
+       where no claim changes;
+    2. with zone trust, its partner's reading (:func:`~resloc.cl.kernels_zone.partner_readings`)
        into a new ``(E, 2)`` array, and zone trust's verdicts ``(E,)`` (``OUTSIDE``);
     3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
        sequence test's state ``seq_state[seq_slot[e]]``) into a new ``discard: (E,)``;
-    4. with ``reciprocal``, the reciprocal check
-       (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`, its state
-       ``rec_state[rec_slot[e]]``), ORed into ``discard``.
+    4. with the reciprocal check (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`,
+       its map ``rec_discs``, its state ``rec_state[rec_slot[e]]``), ORed into ``discard``.
 
+    The options packed (:func:`_options`: a numba call pays ~0.04 us an argument):
+    ``flags`` the switches and scalars (``_CAP`` ... ``_R``), ``gains: (9, L)`` the gains
+    (``_GATE`` ... ``_REC_FORGET``; a row of ``L = 1`` or per observer: ``gain_at``).
     First, ``seq_old``, ``rec_old`` (of the states' shapes, or empty: not asked) receive
     a copy of the states before the step (the ``undo`` records' values). Returns
     ``(status, x_nb, P_nb, nb, z_rec, verdict, discard)``: ``PREPASS_UNSORTED``, nothing
@@ -94,6 +101,13 @@ def prepass_rows(
         seq_old[...] = seq_state
     if rec_old.shape[0] > 0:
         rec_old[...] = rec_state
+    cap = flags[_CAP] != 0.0
+    zone = flags[_ZONE] != 0.0
+    R = np.empty((2, 2))
+    R[0, 0] = flags[_R]
+    R[0, 1] = flags[_R + 1]
+    R[1, 0] = flags[_R + 2]
+    R[1, 1] = flags[_R + 3]
     E = li.shape[0]
     for e in range(1, E):
         if li[e] < li[e - 1]:
@@ -108,8 +122,9 @@ def prepass_rows(
         out = np.empty((E, 3, 3))
         scratch = np.empty((2, E))
         inside = claimed_covariances(
-            li, x_src, P_src, rows, cap, claim_discs, inflation, out, scratch[0], scratch[1]
-        )
+            li, x_src, P_src, rows, cap, claim_discs, flags[_INFLATION], out, scratch[0],
+            scratch[1],
+        )  # fmt: skip
         if inside != CLAIMS_UNCHANGED:  # (sorted: tested above)
             D = x_src.shape[1]
             x_out = np.empty((E, D))
@@ -125,15 +140,16 @@ def prepass_rows(
     if zone:
         partner_readings(li, lj, z, z_rec)
     discard = np.zeros(E, np.bool_)
-    fix_verdicts(
-        li, z, x, P, x_nb, P_nb, nb,
-        (R, gate, min_peers, sequence, seq_gate, seq_hold, seq_forget),
-        seq_state, seq_slot, discard,
+    options = (
+        R, gains[_GATE], gains[_MIN_PEERS], flags[_SEQUENCE] != 0.0, gains[_SEQ_GATE],
+        gains[_SEQ_HOLD], gains[_SEQ_FORGET],
     )  # fmt: skip
-    if reciprocal:  # (z_rec of shape (0, 2): the reverse links' readings found in z)
+    fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard)
+    if flags[_RECIPROCAL] != 0.0:  # (z_rec of shape (0, 2): the reverse links' readings)
         reciprocal_verdicts(
-            li, lj, z, z_rec, x, x_nb, nb, variance, rec_gate, rec_sequence_gate, rec_hold,
-            rec_forget, rec_discs, rec_state, rec_slot, discard,
+            li, lj, z, z_rec, x, x_nb, nb, flags[_VARIANCE], gains[_REC_GATE],
+            gains[_REC_SEQUENCE_GATE], gains[_REC_HOLD], gains[_REC_FORGET], rec_discs,
+            rec_state, rec_slot, discard,
         )  # fmt: skip
     return PREPASS_OK, x_nb, P_nb, nb, z_rec, verdict, discard
 
@@ -166,18 +182,28 @@ _NO_GAIN = np.zeros(1)
 
 
 @per_params
-def _options(params: CLParams) -> tuple:
-    """The options of :func:`prepass_rows` after its ``(li, ..., rows)`` arguments, in
-    three runs split by the stores' state and slots: ``(claims and zone, redundancy,
-    reciprocal)`` (numba unboxes a tuple argument in ~1 us, an array in ~0.04 us: the
-    kernel takes them flat)."""
+def _options(params: CLParams) -> tuple | None:
+    """``(flags, gains, claim_discs, rec_discs, sequence, reciprocal, zone)``: the options of
+    :func:`prepass_rows` packed, then the stages on; None when the gains are per observer
+    with different lengths (the stages' own dispatch then runs them)."""
     _, cap, claim_discs, inflation = _claim_options(params)
-    head = (cap, claim_discs, inflation, bool(params.zone_trust))
-    fix = tuple(_named_fix_options(params))
-    reciprocal = (False, 1.0, _NO_GAIN, _NO_GAIN, _NO_GAIN, _NO_GAIN, _NO_DISCS)
-    if params.reciprocal:
-        reciprocal = (True, *_reciprocal_options(params))
-    return head + fix, reciprocal
+    fix = _named_fix_options(params)
+    reciprocal = bool(params.reciprocal)
+    variance, rec_gains, rec_discs = 1.0, (_NO_GAIN,) * 4, _NO_DISCS
+    if reciprocal:
+        variance, *rec_gains, rec_discs = _reciprocal_options(params)
+    rows = (fix.gate, fix.min_peers, fix.sequence_gate, fix.sequence_hold, fix.sequence_forget)
+    rows += tuple(rec_gains)
+    lengths = {len(g) for g in rows} - {1}
+    if len(lengths) > 1:
+        return None
+    gains = np.empty((len(rows), lengths.pop() if lengths else 1))
+    gains[...] = np.stack([np.broadcast_to(g, gains.shape[1:]) for g in rows])
+    zone = bool(params.zone_trust)
+    flags = np.array(
+        [cap, inflation, zone, fix.sequence, reciprocal, variance, *fix.R.reshape(4)], float
+    )
+    return flags, gains, claim_discs, rec_discs, fix.sequence, reciprocal, zone
 
 
 #: Per store (by id): ``(store, its keys, its values, the NIS CUSUM store's keys, the
@@ -222,20 +248,20 @@ def applies(params: CLParams, links, cached: bool) -> bool:
         and links.tamper is None
         and links.z_reciprocal is None
         and not cached
+        and _options(params) is not None
     )
 
 
-def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> Prepass | None:
+def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> tuple | None:
     """The passes of one step (:func:`prepass_rows`): ``li``, ``lj`` int64 ``(E,)``, ``z:
     (E, 2)`` the readings, ``x``, ``P`` the predicted estimates, ``x_src``, ``P_src`` the
     transmitted estimates at rows ``rows`` (contiguous, checked by the caller);
     ``detection``: the step's :class:`~resloc.cl.kernels_detection.KernelDetection` (the
     stores' slots are the NIS CUSUM's when they hold the same links). None when a stage
     needs a memory and there is none, or the rows are not sorted by observer (the
-    reference path then raises the explanatory error, or judges them)."""
-    head, reciprocal = _options(params)
-    sequence = head[7]  # FixOptions.sequence
-    on = reciprocal[0]
+    reference path then raises the explanatory error, or judges them). Else the fields of
+    a :class:`Prepass` (a plain tuple: the NamedTuple's ``__new__`` is ~0.3 us)."""
+    flags, gains, claim_discs, rec_discs, sequence, on, zoned = _options(params)
     if memory is None and (sequence or on):
         return None
     saved: list = []
@@ -253,8 +279,8 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> P
         )
         rec_state = store.values
     status, x_nb, P_nb, nb, z_rec, verdict, discard = prepass_rows(
-        li, lj, z, x, P, x_src, P_src, rows, *head, seq_state, seq_slot, seq_old, *reciprocal,
-        rec_state, rec_slot, rec_old,
+        li, lj, z, x, P, x_src, P_src, rows, flags, gains, claim_discs, rec_discs, seq_state,
+        seq_slot, seq_old, rec_state, rec_slot, rec_old,
     )  # fmt: skip
     PREPASS_RUNS["compiled"] += 1
     fixes = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
@@ -265,6 +291,6 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> P
         fixes.undo()
         return None
     zone = None
-    if head[3]:
+    if zoned:
         zone = ZoneState(KernelZone(True, _discs(params), z_rec, verdict))
-    return Prepass(x_nb, P_nb, nb, zone, fixes, paired)
+    return x_nb, P_nb, nb, zone, fixes, paired
