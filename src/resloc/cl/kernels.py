@@ -218,18 +218,28 @@ def _plain(structure: tuple) -> tuple:
 _FIELDS: dict[type, dict[str, int]] = {}
 
 
+#: The last structure :func:`_plain_with` was given and its plain form (a run's steady
+#: state gives the same detection structure every step: kernels_stores.steady_state).
+_LAST_PLAIN: list = [None, None]
+
+
 def _plain_with(structure: tuple, changes: dict) -> tuple:
     """``_plain(structure._replace(**changes))`` without the NamedTuple built between
-    (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more)."""
+    (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more), from the plain form of
+    the last ``structure`` when it is the same object (immutable: its plain form too)."""
     if not changes:
         return _plain(structure)
     index = _FIELDS.get(type(structure))
     if index is None:
         index = _FIELDS[type(structure)] = {name: k for k, name in enumerate(structure._fields)}
-    fields = list(structure)
+    last, plain = _LAST_PLAIN
+    if last is not structure:
+        plain = _plain(structure)
+        _LAST_PLAIN[:] = [structure, plain]
+    fields = list(plain)
     for name, value in changes.items():
-        fields[index[name]] = value
-    return _plain(tuple.__new__(type(structure), fields))
+        fields[index[name]] = _plain(value) if isinstance(value, tuple) else value
+    return tuple(fields)
 
 
 def _per_robot(v) -> np.ndarray:

@@ -40,13 +40,17 @@ from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl.detection_reciprocal import STATE_WIDTH, ReciprocalCheck
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
-from resloc.cl.kernels_claims import CLAIMS_UNCHANGED, _claim_options, claimed_covariances
+from resloc.cl.kernels_claims import (
+    CLAIMS_RUNS,
+    CLAIMS_UNCHANGED,
+    claim_options,
+    claimed_covariances,
+)
 from resloc.cl.kernels_detection import DetectorState, PrepassVerdict, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, per_params, stamp_with_pieces
-from resloc.cl.kernels_reciprocal import _options as _reciprocal_options
-from resloc.cl.kernels_reciprocal import reciprocal_verdicts
-from resloc.cl.kernels_redundancy import _named_fix_options, fix_verdicts
-from resloc.cl.kernels_zone import KernelZone, ZoneState, _discs, partner_readings
+from resloc.cl.kernels_reciprocal import reciprocal_options, reciprocal_verdicts
+from resloc.cl.kernels_redundancy import fix_verdicts, named_fix_options
+from resloc.cl.kernels_zone import KernelZone, ZoneState, partner_readings
 from resloc.cl.params import CLParams
 
 __all__ = ["PREPASS_RUNS", "Prepass", "prepass", "prepass_rows"]
@@ -183,15 +187,16 @@ _NO_GAIN = np.zeros(1)
 
 @per_params
 def _options(params: CLParams) -> tuple | None:
-    """``(flags, gains, claim_discs, rec_discs, sequence, reciprocal, zone)``: the options of
-    :func:`prepass_rows` packed, then the stages on; None when the gains are per observer
-    with different lengths (the stages' own dispatch then runs them)."""
-    _, cap, claim_discs, inflation = _claim_options(params)
-    fix = _named_fix_options(params)
+    """``(flags, gains, claim_discs, rec_discs, sequence, reciprocal, zone, claims)``: the
+    options of :func:`prepass_rows` packed, then the stages on (``zone``: zone trust's map,
+    ``(Z, 3)``, or None; ``claims``: whether a claim can change); None when the gains are
+    per observer with different lengths (the stages' own dispatch then runs them)."""
+    claims, cap, claim_discs, inflation = claim_options(params)
+    fix = named_fix_options(params)
     reciprocal = bool(params.reciprocal)
     variance, rec_gains, rec_discs = 1.0, (_NO_GAIN,) * 4, _NO_DISCS
     if reciprocal:
-        variance, *rec_gains, rec_discs = _reciprocal_options(params)
+        variance, *rec_gains, rec_discs = reciprocal_options(params)
     rows = (fix.gate, fix.min_peers, fix.sequence_gate, fix.sequence_hold, fix.sequence_forget)
     rows += tuple(rec_gains)
     lengths = {len(g) for g in rows} - {1}
@@ -199,11 +204,14 @@ def _options(params: CLParams) -> tuple | None:
         return None
     gains = np.empty((len(rows), lengths.pop() if lengths else 1))
     gains[...] = np.stack([np.broadcast_to(g, gains.shape[1:]) for g in rows])
-    zone = bool(params.zone_trust)
+    zone = None
+    if params.zone_trust:  # (kernels_zone's discs)
+        zone = np.ascontiguousarray(np.asarray(params.zone_trust_map, float).reshape(-1, 3))
     flags = np.array(
-        [cap, inflation, zone, fix.sequence, reciprocal, variance, *fix.R.reshape(4)], float
+        [cap, inflation, zone is not None, fix.sequence, reciprocal, variance, *fix.R.reshape(4)],
+        float,
     )
-    return flags, gains, claim_discs, rec_discs, fix.sequence, reciprocal, zone
+    return flags, gains, claim_discs, rec_discs, fix.sequence, reciprocal, zone, claims
 
 
 #: Per store (by id): ``(store, its keys, its values, the NIS CUSUM store's keys, the
@@ -261,7 +269,7 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> t
     needs a memory and there is none, or the rows are not sorted by observer (the
     reference path then raises the explanatory error, or judges them). Else the fields of
     a :class:`Prepass` (a plain tuple: the NamedTuple's ``__new__`` is ~0.3 us)."""
-    flags, gains, claim_discs, rec_discs, sequence, on, zoned = _options(params)
+    flags, gains, claim_discs, rec_discs, sequence, on, zoned, claims = _options(params)
     if memory is None and (sequence or on):
         return None
     saved: list = []
@@ -283,6 +291,8 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> t
         seq_slot, seq_old, rec_state, rec_slot, rec_old,
     )  # fmt: skip
     PREPASS_RUNS["compiled"] += 1
+    if claims:  # (the claims' pass, kernels_claims)
+        CLAIMS_RUNS["compiled"] += 1
     fixes = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
     paired = None if not on else PrepassVerdict(discard, DetectorState(None, tuple(rec_saved)))
     if status != PREPASS_OK:
@@ -291,6 +301,6 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> t
         fixes.undo()
         return None
     zone = None
-    if zoned:
-        zone = ZoneState(KernelZone(True, _discs(params), z_rec, verdict))
+    if zoned is not None:
+        zone = ZoneState(KernelZone(True, zoned, z_rec, verdict))
     return x_nb, P_nb, nb, zone, fixes, paired

@@ -70,6 +70,7 @@ __all__ = [
     "claim_scales",
     "exclude_group",
     "fix_verdicts",
+    "named_fix_options",
     "position_fix_of_link",
     "redundancy_verdict",
     "scales_to_median",
@@ -102,10 +103,11 @@ _NO_GAIN = np.zeros(1)
 def _fix_options(params: CLParams) -> tuple:
     """:class:`FixOptions` of ``params`` as a plain tuple (numba types a NamedTuple
     argument in Python, a plain tuple by its fast fingerprint: ``kernels._plain``)."""
-    return tuple(_named_fix_options(params))
+    return tuple(named_fix_options(params))
 
 
-def _named_fix_options(params: CLParams) -> FixOptions:
+def named_fix_options(params: CLParams) -> FixOptions:
+    """The stages' options of ``params`` (:class:`FixOptions`)."""
     sequence = bool(params.redundancy_sequence)
     seq = (
         tuple(
