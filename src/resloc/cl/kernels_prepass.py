@@ -45,11 +45,17 @@ from resloc.cl.kernels_claims import (
     CLAIMS_UNCHANGED,
     claim_options,
     claimed_covariances,
+    raised_trace_scales,
 )
 from resloc.cl.kernels_detection import DetectorState, PrepassVerdict, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, per_params, stamp_with_pieces
 from resloc.cl.kernels_reciprocal import reciprocal_options, reciprocal_verdicts
-from resloc.cl.kernels_redundancy import fix_verdicts, named_fix_options
+from resloc.cl.kernels_redundancy import (
+    FIX_WORK_ROWS,
+    claim_scales,
+    named_fix_options,
+    scaled_fix_verdicts,
+)
 from resloc.cl.kernels_zone import KernelZone, ZoneState, partner_readings
 from resloc.cl.params import CLParams
 
@@ -89,6 +95,9 @@ def prepass_rows(
        into a new ``(E, 2)`` array, and zone trust's verdicts ``(E,)`` (``OUTSIDE``);
     3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
        sequence test's state ``seq_state[seq_slot[e]]``) into a new ``discard: (E,)``;
+       with the cap alone, the claims' factors it starts with are read from the order of
+       the claims' traces the cap sorted (:func:`~resloc.cl.kernels_claims.raised_trace_scales`,
+       the values of a full sort) where the redundancy pre-pass sorts them again;
     4. with the reciprocal check (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`,
        its map ``rec_discs``, its state ``rec_state[rec_slot[e]]``), ORed into ``discard``.
 
@@ -122,6 +131,8 @@ def prepass_rows(
     x_nb = x_src
     P_nb = P_src
     nb = rows
+    work = np.empty((FIX_WORK_ROWS, E))  # (scaled_fix_verdicts')
+    scaled = False  # the redundancy stage's factors of the claims in work[0]
     if cap or claim_discs.shape[0] > 0:  # (kernels_claims.claimed_rows)
         out = np.empty((E, 3, 3))
         scratch = np.empty((2, E))
@@ -129,6 +140,15 @@ def prepass_rows(
             li, x_src, P_src, rows, cap, claim_discs, flags[_INFLATION], out, scratch[0],
             scratch[1],
         )  # fmt: skip
+        if cap and inside == 0:
+            # the claims are the capped ones: their factors (claim_scales' of ``out``) from
+            # the order of the traces before the cap (scratch[1]; the cap's factors in
+            # scratch[0]), without a second sort (raised_trace_scales; NaN: sorted)
+            raised = np.empty(E, np.bool_)
+            for e in range(E):
+                work[0, e] = out[e, 0, 0] + out[e, 1, 1]
+                raised[e] = scratch[0, e] != 1.0
+            scaled = raised_trace_scales(li, work[0], raised, scratch[1], work[1])
         if inside != CLAIMS_UNCHANGED:  # (sorted: tested above)
             D = x_src.shape[1]
             x_out = np.empty((E, D))
@@ -148,7 +168,9 @@ def prepass_rows(
         R, gains[_GATE], gains[_MIN_PEERS], flags[_SEQUENCE] != 0.0, gains[_SEQ_GATE],
         gains[_SEQ_HOLD], gains[_SEQ_FORGET],
     )  # fmt: skip
-    fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard)
+    if not scaled:  # (fix_verdicts': sorted, tested above)
+        claim_scales(li, P_nb, nb, work[0], work[1])
+    scaled_fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard, work)
     if flags[_RECIPROCAL] != 0.0:  # (z_rec of shape (0, 2): the reverse links' readings)
         reciprocal_verdicts(
             li, lj, z, z_rec, x, x_nb, nb, flags[_VARIANCE], gains[_REC_GATE],
