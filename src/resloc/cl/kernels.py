@@ -18,6 +18,8 @@ kernel function               paper                   numpy twin
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
 ``reciprocal_verdicts``       beyond the paper        ``reciprocal_evidence`` (pre-pass)
+``prepass_rows``              beyond the paper        the claims, zone's readings and the two
+                                                      pre-passes above, in one call
 ``zone_verdict`` (+ fix)      beyond the paper        zone trust (``substitute_reciprocal``,
                                                       ``reciprocal_position_fix``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
@@ -31,7 +33,8 @@ kernel function               paper                   numpy twin
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
 :mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion`,
 :mod:`resloc.cl.kernels_zone` and, imported only when their stages are on,
-:mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`).
+:mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`,
+:mod:`resloc.cl.kernels_prepass`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
