@@ -221,28 +221,35 @@ def _plain(structure: tuple) -> tuple:
 _FIELDS: dict[type, dict[str, int]] = {}
 
 
-#: The last structure :func:`_plain_with` was given and its plain form (a run's steady
-#: state gives the same detection structure every step: kernels_stores.steady_state).
-_LAST_PLAIN: list = [None, None]
+#: The last structure :func:`_plain_with` was given, its plain form, the changes' names and
+#: values and the result (a run's steady state gives the same detection structure every
+#: step, kernels_stores.steady_state, and the same pre-passes' arrays, kernels_prepass).
+_LAST_PLAIN: list = [None, None, (), (), None]
 
 
 def _plain_with(structure: tuple, changes: dict) -> tuple:
     """``_plain(structure._replace(**changes))`` without the NamedTuple built between
     (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more), from the plain form of
-    the last ``structure`` when it is the same object (immutable: its plain form too)."""
+    the last ``structure`` when it is the same object (immutable: its plain form too), the
+    last result when the changes are the same objects too."""
     if not changes:
         return _plain(structure)
+    last, plain, names, values, result = _LAST_PLAIN
+    new_names, new_values = tuple(changes), tuple(changes.values())
+    if last is structure and names == new_names and len(values) == len(new_values):
+        if all(a is b for a, b in zip(values, new_values, strict=True)):
+            return result
+    if last is not structure:
+        plain = _plain(structure)
     index = _FIELDS.get(type(structure))
     if index is None:
         index = _FIELDS[type(structure)] = {name: k for k, name in enumerate(structure._fields)}
-    last, plain = _LAST_PLAIN
-    if last is not structure:
-        plain = _plain(structure)
-        _LAST_PLAIN[:] = [structure, plain]
     fields = list(plain)
     for name, value in changes.items():
         fields[index[name]] = _plain(value) if isinstance(value, tuple) else value
-    return tuple(fields)
+    result = tuple(fields)
+    _LAST_PLAIN[:] = [structure, plain, new_names, new_values, result]
+    return result
 
 
 def _per_robot(v) -> np.ndarray:

@@ -56,7 +56,7 @@ from resloc.cl.kernels_redundancy import (
     named_fix_options,
     scaled_fix_verdicts,
 )
-from resloc.cl.kernels_zone import KernelZone, ZoneState, partner_readings
+from resloc.cl.kernels_zone import OUTSIDE, KernelZone, ZoneState, partner_readings
 from resloc.cl.params import CLParams
 
 __all__ = ["PREPASS_RUNS", "Prepass", "prepass", "prepass_rows"]
@@ -65,6 +65,7 @@ __all__ = ["PREPASS_RUNS", "Prepass", "prepass", "prepass_rows"]
 #: written; the reference path then judges them, as each stage's pass would have it).
 PREPASS_OK = 0
 PREPASS_UNSORTED = 1
+PREPASS_CLAIMED = 2
 
 #: How often :func:`prepass` ran the compiled pass (the tests read it).
 PREPASS_RUNS = {"compiled": 0}
@@ -80,7 +81,7 @@ _REC_GATE, _REC_SEQUENCE_GATE, _REC_HOLD, _REC_FORGET = range(5, 9)
 @jit
 def prepass_rows(
     li, lj, z, x, P, x_src, P_src, rows, flags, gains, claim_discs, rec_discs, seq_state,
-    seq_slot, seq_old, rec_state, rec_slot, rec_old,
+    seq_slot, seq_old, rec_state, rec_slot, rec_old, x_out, P_out, z_rec, verdict, discard,
 ):  # fmt: skip
     """The passes before the link loop of one step, in the stage-by-stage path's order:
     link ``e`` (observer ``li[e]``, neighbour ``lj[e]``, reading ``z[e]``, the neighbour's
@@ -88,13 +89,14 @@ def prepass_rows(
     predicted estimates)
 
     1. its claim (with the cap, or a map ``claim_discs: (Z, 3)``:
-       :func:`~resloc.cl.kernels_claims.claimed_covariances`), into new per-row arrays
-       ``(E, 3)``, ``(E, 3, 3)`` whose rows are ``arange(E)``, or the transmitted ones
-       where no claim changes;
-    2. with zone trust, its partner's reading (:func:`~resloc.cl.kernels_zone.partner_readings`)
-       into a new ``(E, 2)`` array, and zone trust's verdicts ``(E,)`` (``OUTSIDE``);
+       :func:`~resloc.cl.kernels_claims.claimed_covariances`), into ``P_out: (E, 3, 3)``
+       and the neighbours' estimates into ``x_out: (E, D)`` (``x_out[e] = x_src[rows[e]]``)
+       where a claim changes (``PREPASS_CLAIMED``);
+    2. with zone trust (``z_rec``, ``verdict`` of ``E`` rows; else empty), its partner's
+       reading (:func:`~resloc.cl.kernels_zone.partner_readings`) into ``z_rec: (E, 2)``,
+       and zone trust's verdicts ``(E,)`` set to ``OUTSIDE``;
     3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
-       sequence test's state ``seq_state[seq_slot[e]]``) into a new ``discard: (E,)``;
+       sequence test's state ``seq_state[seq_slot[e]]``) into ``discard: (E,)``;
        with the cap alone, the claims' factors it starts with are read from the order of
        the claims' traces the cap sorted (:func:`~resloc.cl.kernels_claims.raised_trace_scales`,
        the values of a full sort) where the redundancy pre-pass sorts them again;
@@ -105,11 +107,14 @@ def prepass_rows(
     ``flags`` the switches and scalars (``_CAP`` ... ``_R``), ``gains: (9, L)`` the gains
     (``_GATE`` ... ``_REC_FORGET``; a row of ``L = 1`` or per observer: ``gain_at``).
     First, ``seq_old``, ``rec_old`` (of the states' shapes, or empty: not asked) receive
-    a copy of the states before the step (the ``undo`` records' values). Returns
-    ``(status, x_nb, P_nb, nb, z_rec, verdict, discard)``: ``PREPASS_UNSORTED``, nothing
-    else written, when the rows are not sorted by observer (the arrays then empty), else
-    ``PREPASS_OK``. Shapes and indices as the link loop checks them (the caller's
-    ``_shapes_ok``). Twin: the stages' passes, each (the same kernels, the same order)."""
+    a copy of the states before the step (the ``undo`` records' values). Returns the
+    status: ``PREPASS_UNSORTED``, nothing else written, when the rows are not sorted by
+    observer; ``PREPASS_CLAIMED`` (the loop reads ``x_out``, ``P_out`` at rows
+    ``arange(E)``) or ``PREPASS_OK`` (no claim changed: ``x_src``, ``P_src`` at ``rows``).
+    The outputs are the caller's (kept from step to step: a new array returned costs
+    ~0.2 us, and its Python objects more). Shapes and indices as the link loop checks
+    them (the caller's ``_shapes_ok``). Twin: the stages' passes, each (the same kernels,
+    the same order)."""
     if seq_old.shape[0] > 0:
         seq_old[...] = seq_state
     if rec_old.shape[0] > 0:
@@ -124,17 +129,15 @@ def prepass_rows(
     E = li.shape[0]
     for e in range(1, E):
         if li[e] < li[e - 1]:
-            return (
-                PREPASS_UNSORTED, np.empty((0, 3)), np.empty((0, 3, 3)), rows,
-                np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.bool_),
-            )  # fmt: skip
+            return PREPASS_UNSORTED
+    status = PREPASS_OK
     x_nb = x_src
     P_nb = P_src
     nb = rows
     work = np.empty((FIX_WORK_ROWS, E))  # (scaled_fix_verdicts')
     scaled = False  # the redundancy stage's factors of the claims in work[0]
     if cap or claim_discs.shape[0] > 0:  # (kernels_claims.claimed_rows)
-        out = np.empty((E, 3, 3))
+        out = P_out
         scratch = np.empty((2, E))
         inside = claimed_covariances(
             li, x_src, P_src, rows, cap, claim_discs, flags[_INFLATION], out, scratch[0],
@@ -150,20 +153,18 @@ def prepass_rows(
                 raised[e] = scratch[0, e] != 1.0
             scaled = raised_trace_scales(li, work[0], raised, scratch[1], work[1])
         if inside != CLAIMS_UNCHANGED:  # (sorted: tested above)
-            D = x_src.shape[1]
-            x_out = np.empty((E, D))
             for e in range(E):
                 n = rows[e]
-                for a in range(D):
+                for a in range(x_out.shape[1]):
                     x_out[e, a] = x_src[n, a]
             x_nb = x_out
             P_nb = out
             nb = np.arange(E)
-    z_rec = np.empty((E if zone else 0, 2))
-    verdict = np.zeros(E if zone else 0, np.int64)
+            status = PREPASS_CLAIMED
     if zone:
         partner_readings(li, lj, z, z_rec)
-    discard = np.zeros(E, np.bool_)
+        verdict[:] = OUTSIDE
+    discard[:] = False
     options = (
         R, gains[_GATE], gains[_MIN_PEERS], flags[_SEQUENCE] != 0.0, gains[_SEQ_GATE],
         gains[_SEQ_HOLD], gains[_SEQ_FORGET],
@@ -177,7 +178,7 @@ def prepass_rows(
             gains[_REC_SEQUENCE_GATE], gains[_REC_HOLD], gains[_REC_FORGET], rec_discs,
             rec_state, rec_slot, discard,
         )  # fmt: skip
-    return PREPASS_OK, x_nb, P_nb, nb, z_rec, verdict, discard
+    return status
 
 
 stamp_with_pieces(prepass_rows, _kernels_detection, _kernels_lanes)
@@ -205,6 +206,8 @@ _NO_SLOTS = np.zeros(0, np.int64)
 _NO_RECIPROCAL_STATE = np.zeros((0, STATE_WIDTH))
 _NO_DISCS = np.zeros((0, 3))
 _NO_GAIN = np.zeros(1)
+#: The key of :func:`prepass`'s outputs without a memory (no stage that keeps state).
+_NO_MEMORY = object()
 
 
 @per_params
@@ -237,7 +240,8 @@ def _options(params: CLParams) -> tuple | None:
 
 
 #: Per store (by id): ``(store, its keys, its values, the NIS CUSUM store's keys, the
-#: buffer its values are saved in)`` while the two stores hold the same keys.
+#: buffer its values are saved in, the last ``undo`` record or None)`` while the two
+#: stores hold the same keys.
 _BUFFERS: dict = {}
 
 
@@ -254,8 +258,12 @@ def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> 
     kept = _BUFFERS.get(id(store))
     if kept is not None and kept[0] is store and kept[1] is keys and kept[2] is values:
         if kept[3] is other:  # the same arrays: the same keys, the same buffer
-            saved.append((store, keys, None, detection.cusum_slot, kept[4]))
-            return detection.cusum_slot, kept[4]
+            slots, record = detection.cusum_slot, kept[5]
+            if record is None or record[3] is not slots:  # (the record kept with its slots)
+                record = (store, keys, None, slots, kept[4])
+                _BUFFERS[id(store)] = (*kept[:5], record)
+            saved.append(record)
+            return slots, kept[4]
     slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
     if slots is None:
         return store_slots(store, li, lj, saved), empty
@@ -263,7 +271,7 @@ def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> 
     if values.dtype == np.float64 and values.shape[1:] == empty.shape[1:] and len(values):
         if len(_BUFFERS) >= 64:  # (old stores: finished runs')
             _BUFFERS.clear()
-        _BUFFERS[id(store)] = (store, keys, values, other, np.empty_like(values))
+        _BUFFERS[id(store)] = (store, keys, values, other, np.empty_like(values), None)
     return slots, empty
 
 
@@ -282,6 +290,58 @@ def applies(params: CLParams, links, cached: bool) -> bool:
     )
 
 
+class _Outputs:
+    """A memory's outputs of :func:`prepass_rows` for steps of ``E`` links, kept from step
+    to step, with the Python objects built on them (the verdicts, zone trust's state),
+    kept while their ``undo`` records are the same objects (a run's steady state:
+    :func:`_slots`' records). Nothing outside a step keeps them: the loops and ``undo``
+    read them within the step, the memory stores copies."""
+
+    __slots__ = (
+        "E", "P_out", "discard", "discs", "fixes", "memory", "paired", "rows", "verdict",
+        "x_out", "z_rec", "zone",
+    )  # fmt: skip
+
+    def __init__(self, memory, E: int, D: int, discs) -> None:
+        self.memory = memory
+        self.E = E
+        self.x_out = np.empty((E, D))
+        self.P_out = np.empty((E, 3, 3))
+        self.rows = np.arange(E, dtype=np.int64)
+        Z = 0 if discs is None else E
+        self.z_rec = np.empty((Z, 2))
+        self.verdict = np.zeros(Z, np.int64)
+        self.discard = np.zeros(E, np.bool_)
+        self.discs = discs
+        self.zone = None
+        if discs is not None:
+            self.zone = ZoneState(KernelZone(True, discs, self.z_rec, self.verdict))
+        self.fixes = self.paired = None
+
+    def verdict_of(self, kept, records: tuple) -> PrepassVerdict:
+        """The verdict on ``discard`` with ``records``: ``kept`` when it has them."""
+        if kept is not None and len(kept.state.saved) == len(records):
+            if all(a is b for a, b in zip(kept.state.saved, records, strict=True)):
+                return kept
+        return PrepassVerdict(self.discard, DetectorState(None, records))
+
+
+#: Per memory (by id): its :class:`_Outputs`.
+_OUTPUTS: dict = {}
+
+
+def _outputs(memory, E: int, D: int, discs) -> _Outputs:
+    kept = _OUTPUTS.get(id(memory))
+    if kept is None or kept.memory is not memory or kept.E != E or kept.discs is not discs:
+        kept = _Outputs(memory, E, D, discs)
+        if len(_OUTPUTS) >= 64:  # (old memories: finished runs')
+            _OUTPUTS.clear()
+        _OUTPUTS[id(memory)] = kept
+    elif kept.x_out.shape[1] != D:
+        kept.x_out = np.empty((E, D))
+    return kept
+
+
 def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> tuple | None:
     """The passes of one step (:func:`prepass_rows`): ``li``, ``lj`` int64 ``(E,)``, ``z:
     (E, 2)`` the readings, ``x``, ``P`` the predicted estimates, ``x_src``, ``P_src`` the
@@ -290,10 +350,13 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> t
     stores' slots are the NIS CUSUM's when they hold the same links). None when a stage
     needs a memory and there is none, or the rows are not sorted by observer (the
     reference path then raises the explanatory error, or judges them). Else the fields of
-    a :class:`Prepass` (a plain tuple: the NamedTuple's ``__new__`` is ~0.3 us)."""
+    a :class:`Prepass` (a plain tuple: the NamedTuple's ``__new__`` is ~0.3 us), on
+    arrays kept for the memory until its next step (:class:`_Outputs`)."""
     flags, gains, claim_discs, rec_discs, sequence, on, zoned, claims = _options(params)
-    if memory is None and (sequence or on):
-        return None
+    if memory is None:
+        if sequence or on:
+            return None
+        memory = _NO_MEMORY
     saved: list = []
     seq_state, seq_slot, seq_old = _NO_STATE, _NO_SLOTS, _NO_STATE
     if sequence:
@@ -308,21 +371,24 @@ def prepass(params, memory, li, lj, z, x, P, x_src, P_src, rows, detection) -> t
             store, memory, li, lj, detection, rec_saved, _NO_RECIPROCAL_STATE
         )
         rec_state = store.values
-    status, x_nb, P_nb, nb, z_rec, verdict, discard = prepass_rows(
+    out = _outputs(memory, len(li), x_src.shape[1], zoned)
+    status = prepass_rows(
         li, lj, z, x, P, x_src, P_src, rows, flags, gains, claim_discs, rec_discs, seq_state,
-        seq_slot, seq_old, rec_state, rec_slot, rec_old,
+        seq_slot, seq_old, rec_state, rec_slot, rec_old, out.x_out, out.P_out, out.z_rec,
+        out.verdict, out.discard,
     )  # fmt: skip
     PREPASS_RUNS["compiled"] += 1
     if claims:  # (the claims' pass, kernels_claims)
         CLAIMS_RUNS["compiled"] += 1
-    fixes = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
-    paired = None if not on else PrepassVerdict(discard, DetectorState(None, tuple(rec_saved)))
-    if status != PREPASS_OK:
+    fixes = out.fixes = out.verdict_of(out.fixes, tuple(saved))
+    paired = None
+    if on:
+        paired = out.paired = out.verdict_of(out.paired, tuple(rec_saved))
+    if status == PREPASS_UNSORTED:
         if paired is not None:
             paired.undo()
         fixes.undo()
         return None
-    zone = None
-    if zoned is not None:
-        zone = ZoneState(KernelZone(True, zoned, z_rec, verdict))
-    return x_nb, P_nb, nb, zone, fixes, paired
+    if status == PREPASS_CLAIMED:
+        return out.x_out, out.P_out, out.rows, out.zone, fixes, paired
+    return x_src, P_src, rows, out.zone, fixes, paired
