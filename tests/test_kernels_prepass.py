@@ -212,17 +212,38 @@ def test_undo_puts_back_the_values_the_kernel_saved() -> None:
     the buffers kept, no numpy copy): ``undo`` after each gives the values before it."""
     params, memory, _, inputs = _one_step("zone+full+redundancy+sequence+reciprocal")
     stores = [memory.stage_statistic(n, width=w) for n, w in STORES]
-    kept = None
+    kept = verdicts = None
     for step in range(3):
         before = [s.values.copy() for s in stores]
         _, _, _, _, fixes, paired = _prepass(params, memory, inputs, inputs[3] + 0.05 * step)
         buffers = [fixes.state.saved[0][4], paired.state.saved[0][4]]
         for store, values in zip(stores, before, strict=True):
             assert not np.array_equal(store.values, values), "the pass wrote no state"
-        if kept is not None:  # the steady state: the buffers kept, not this step's copies
+        if kept is not None:  # the steady state: the buffers kept, not this step's copies,
+            # and the verdicts on them (the same records)
             assert all(b is k for b, k in zip(buffers, kept, strict=True))
-        kept = buffers
+            assert fixes is verdicts[0] and paired is verdicts[1]
+        kept, verdicts = buffers, (fixes, paired)
         paired.undo()
         fixes.undo()
         for store, values in zip(stores, before, strict=True):
             np.testing.assert_array_equal(store.values, values)
+
+
+def test_the_plain_detection_with_changes_is_the_replaced_one() -> None:
+    """``kernels._plain_with``: ``_plain(structure._replace(**changes))``, from the last
+    result when the structure and the changes are the same objects, not otherwise."""
+    params = _params("zone+full+redundancy+sequence")
+    rows = np.arange(4, dtype=np.int64)
+    detect = detector_state(params, LinkMemory(4), rows, (rows + 1) % 4).kernel
+    zone = detect.zone._replace(on=True)
+    fixes, other = np.ones(4, bool), np.zeros(4, bool)
+    for changes in ({}, {"fixes": fixes, "zone": zone}, {"fixes": fixes, "zone": zone},
+                    {"fixes": other, "zone": zone}, {"fixes": other}):  # fmt: skip
+        got = kernels._plain_with(detect, changes)
+        want = kernels._plain(detect._replace(**changes))
+        assert len(got) == len(want)
+        for a, b in zip(got, want, strict=True):
+            assert a is b or (
+                isinstance(a, tuple) and all(x is y for x, y in zip(a, b, strict=True))
+            )

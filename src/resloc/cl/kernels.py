@@ -236,8 +236,11 @@ def _plain_with(structure: tuple, changes: dict) -> tuple:
         return _plain(structure)
     last, plain, names, values, result = _LAST_PLAIN
     new_names, new_values = tuple(changes), tuple(changes.values())
-    if last is structure and names == new_names and len(values) == len(new_values):
-        if all(a is b for a, b in zip(values, new_values, strict=True)):
+    if last is structure and names == new_names:  # (the same names: as many values)
+        for a, b in zip(values, new_values, strict=True):  # (all() of a generator: 0.3 us)
+            if a is not b:
+                break
+        else:
             return result
     if last is not structure:
         plain = _plain(structure)

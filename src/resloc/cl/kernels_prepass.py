@@ -321,7 +321,10 @@ class _Outputs:
     def verdict_of(self, kept, records: tuple) -> PrepassVerdict:
         """The verdict on ``discard`` with ``records``: ``kept`` when it has them."""
         if kept is not None and len(kept.state.saved) == len(records):
-            if all(a is b for a, b in zip(kept.state.saved, records, strict=True)):
+            for a, b in zip(kept.state.saved, records, strict=True):  # (not all(): 0.3 us)
+                if a is not b:
+                    break
+            else:
                 return kept
         return PrepassVerdict(self.discard, DetectorState(None, records))
 
