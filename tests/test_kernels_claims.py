@@ -285,3 +285,54 @@ def test_claims_of_other_shapes_are_refused_by_the_pass() -> None:
     )  # fmt: skip
     capped = CLParams(redundancy=True, redundancy_cap_fusion=True)
     assert claimed_links(capped, flat) is None
+
+
+def test_the_landmark_claims_median_from_the_first_order_is_a_full_sorts() -> None:
+    """With the cap and neighbours inside the map, the redundancy stage's factors of the
+    claims (their per-observer median) are read from the order of the claims before the cap
+    (``landmark_trace_scales``: the raised run skipped, the inside rows' traces removed,
+    the changed rows' traces merged): the same factors as sorting the claims' traces
+    (``claim_scales``) and the numpy stage's (``capped_claims``), on groups of tied, zero
+    and negative traces, rows sharing a source, and a NaN or an inf (then refused)."""
+    from resloc.cl.kernels_claims import claimed_covariances, landmark_trace_scales
+    from resloc.cl.kernels_redundancy import claim_scales
+
+    rng = np.random.default_rng(21)
+    discs = np.array([[0.0, 0.0, 1.0], [5.0, 5.0, 0.5]])
+    checked = 0
+    for trial in range(400):
+        sizes = rng.integers(1, 18, rng.integers(1, 9))
+        li = np.repeat(np.arange(len(sizes)), sizes).astype(np.int64)
+        E = len(li)
+        S = int(rng.integers(1, 20))
+        levels = rng.choice([0.0, -0.5, 1e-3, 0.2, 0.2, 1.0, 1.0 + 1e-15, 3.0, 7.5], 6)
+        P_src = np.zeros((S, 3, 3))
+        P_src[:, 0, 0] = rng.choice(levels, S) * rng.choice([1.0, 1.0, 1.0 / 3.0], S)
+        P_src[:, 1, 1] = rng.choice(levels, S)
+        P_src[:, 2, 2] = 1.0
+        if trial % 40 == 7:
+            P_src[rng.integers(S), 1, 1] = np.nan if trial % 80 == 7 else np.inf
+        x_src = np.zeros((S, 3))
+        x_src[:, :2] = rng.choice([0.2, 3.0, 5.1], (S, 2))  # inside, outside, inside
+        rows = rng.integers(0, S, E).astype(np.int64)
+        inflation = float(rng.choice([1.0, 3.0]))
+        out, scale, ranked = np.empty((E, 3, 3)), np.empty(E), np.empty(E)
+        inside = claimed_covariances(
+            li, x_src, P_src, rows, True, discs, inflation, out, scale, ranked
+        )
+        if inside <= 0:
+            continue
+        expected = np.empty(E)
+        claim_scales(li, out, np.arange(E, dtype=np.int64), expected, np.empty(E))
+        got = np.full(E, -7.0)
+        done = landmark_trace_scales(
+            li, rows, x_src, P_src, discs, out, ranked, got, np.empty(E), np.empty(E)
+        )
+        if not done:
+            assert not np.isfinite(P_src[:, 0, 0] + P_src[:, 1, 1]).all()
+            np.testing.assert_array_equal(got, -7.0)  # nothing written
+            continue
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(out * got[:, None, None], capped_claims(out, li))
+        checked += 1
+    assert checked > 200
