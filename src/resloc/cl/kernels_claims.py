@@ -29,7 +29,6 @@ of the two options on: a run without them does not pay for it.
 from __future__ import annotations
 
 import copy
-import math
 
 import numpy as np
 
@@ -48,7 +47,6 @@ __all__ = [
     "claimed_covariances",
     "claimed_links",
     "claimed_rows",
-    "landmark_trace_scales",
     "raised_trace_scales",
 ]
 
@@ -174,96 +172,6 @@ def raised_trace_scales(li, scale, raised, ranked, work):
                 low = v
         median = 0.5 * (low + v)
         scales_to_median(scale, start, stop, median)
-        start = stop
-    return True
-
-
-@jit_inline
-def landmark_trace_scales(li, rows, x_src, P_src, discs, P_out, ranked, scale, wins, rems):
-    """:func:`~resloc.cl.kernels_redundancy.claim_scales`' factors of the claims ``P_out:
-    (E, 3, 3)`` into ``scale: (E,)``, where ``P_out`` are :func:`claimed_covariances`'
-    with the cap and a map ``discs`` (rows ``rows`` of ``x_src``, ``P_src``), from the
-    order of the traces before the cap: ``ranked: (E,)`` each observer's traces sorted (the
-    scratch :func:`~resloc.cl.kernels_redundancy.claim_scales` leaves). False, nothing
-    decided, when a trace is not finite (the caller then sorts). ``wins``, ``rems``:
-    ``(E,)`` scratch. Rows sorted by observer (the caller tested them).
-
-    Why the same median: a row neither raised by the cap (factor 1: its trace kept to the
-    bit) nor inside the map keeps its trace before the cap. The raised rows are one
-    contiguous run of ``ranked`` (:func:`raised_trace_scales`), their factor recomputed as
-    :func:`~resloc.cl.kernels_redundancy.scales_to_median` does it; the traces of the rows
-    inside and not raised are removed by value (sorted, ``rems``: a multiset); the changed
-    rows' traces, sorted (``wins``), are merged in. The values at the median's two places
-    are those of a full sort of the claims' traces."""
-    E = li.shape[0]
-    for e in range(E):
-        if not (math.isfinite(P_out[e, 0, 0] + P_out[e, 1, 1]) and math.isfinite(ranked[e])):
-            return False
-    for e in range(E):
-        scale[e] = P_out[e, 0, 0] + P_out[e, 1, 1]
-    place = np.zeros(x_src.shape[0], np.int8)  # (claimed_covariances')
-    start = 0
-    while start < E:
-        stop = start + 1
-        while stop < E and li[stop] == li[start]:
-            stop += 1
-        count = stop - start
-        lo = (count - 1) // 2
-        hi = count // 2
-        m = 0.5 * (ranked[start + lo] + ranked[start + hi])  # (trace_scales' median)
-        cw = 0  # the changed rows' traces, sorted into wins[start:start + cw]
-        cr = 0  # the traces before the cap of the rows inside, not raised: rems[...]
-        raised = 0
-        for e in range(start, stop):
-            n = rows[e]
-            t0 = P_src[n, 0, 0] + P_src[n, 1, 1]  # (claim_scales' trace)
-            up = t0 > 0.0 and m / t0 > 1.0  # the cap's factor is not 1 (scales_to_median)
-            if place[n] == 0:
-                place[n] = 2 if inside_discs(x_src[n, 0], x_src[n, 1], discs) else 1
-            inside = place[n] == 2
-            if up:
-                raised += 1
-            if up or inside:
-                t = scale[e]
-                k = start + cw
-                while k > start and wins[k - 1] > t:
-                    wins[k] = wins[k - 1]
-                    k -= 1
-                wins[k] = t
-                cw += 1
-            if inside and not up:
-                k = start + cr
-                while k > start and rems[k - 1] > t0:
-                    rems[k] = rems[k - 1]
-                    k -= 1
-                rems[k] = t0
-                cr += 1
-        p = start  # the run of raised rows in ``ranked``: after the traces <= 0
-        while p < stop and ranked[p] <= 0.0:
-            p += 1
-        a = start  # the merge up to the place hi; a skips the run and the removed traces
-        b = start
-        q = start
-        low = 0.0
-        v = 0.0
-        for r in range(hi + 1):
-            while True:
-                if a == p:
-                    a = p + raised
-                if a < stop and q < start + cr and ranked[a] == rems[q]:
-                    a += 1
-                    q += 1
-                    continue
-                break
-            if b < start + cw and (a >= stop or wins[b] < ranked[a]):
-                v = wins[b]
-                b += 1
-            else:
-                v = ranked[a]
-                a += 1
-            if r == lo:
-                low = v
-        scales_to_median(scale, start, stop, 0.5 * (low + v))
         start = stop
     return True
 

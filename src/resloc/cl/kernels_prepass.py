@@ -45,7 +45,6 @@ from resloc.cl.kernels_claims import (
     CLAIMS_UNCHANGED,
     claim_options,
     claimed_covariances,
-    landmark_trace_scales,
     raised_trace_scales,
 )
 from resloc.cl.kernels_detection import DetectorState, PrepassVerdict, shared_slots, store_slots
@@ -98,10 +97,9 @@ def prepass_rows(
        and zone trust's verdicts ``(E,)`` set to ``OUTSIDE``;
     3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
        sequence test's state ``seq_state[seq_slot[e]]``) into ``discard: (E,)``;
-       with the cap, the claims' factors it starts with are read from the order of the
-       claims' traces the cap sorted (:func:`~resloc.cl.kernels_claims.raised_trace_scales`,
-       with the landmarks :func:`~resloc.cl.kernels_claims.landmark_trace_scales`: the
-       values of a full sort) where the redundancy pre-pass sorts them again;
+       with the cap alone, the claims' factors it starts with are read from the order of
+       the claims' traces the cap sorted (:func:`~resloc.cl.kernels_claims.raised_trace_scales`,
+       the values of a full sort) where the redundancy pre-pass sorts them again;
     4. with the reciprocal check (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`,
        its map ``rec_discs``, its state ``rec_state[rec_slot[e]]``), ORed into ``discard``.
 
@@ -154,10 +152,6 @@ def prepass_rows(
                 work[0, e] = out[e, 0, 0] + out[e, 1, 1]
                 raised[e] = scratch[0, e] != 1.0
             scaled = raised_trace_scales(li, work[0], raised, scratch[1], work[1])
-        elif cap and inside > 0:  # capped, then weakened inside the map: the same order
-            scaled = landmark_trace_scales(
-                li, rows, x_src, P_src, claim_discs, out, scratch[1], work[0], work[1], work[2]
-            )
         if inside != CLAIMS_UNCHANGED:  # (sorted: tested above)
             for e in range(E):
                 n = rows[e]
