@@ -6,7 +6,8 @@ links before its link loop, each a numba call of its own with its Python glue:
 * the claims the correction fuses (:func:`~resloc.cl.kernels_claims.claimed_covariances`:
   the redundancy stage's cap and the zone landmarks),
 * zone trust's partners' readings (:func:`~resloc.cl.kernels_zone.partner_readings`),
-* the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`),
+* the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`: its
+  claims' factors, then :func:`~resloc.cl.kernels_redundancy.scaled_fix_verdicts`),
 * the reciprocal check's pre-pass (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`).
 
 None of them depends on the order in which the links are fused, and none on the others'
@@ -59,10 +60,20 @@ from resloc.cl.kernels_redundancy import (
 from resloc.cl.kernels_zone import OUTSIDE, KernelZone, ZoneState, partner_readings
 from resloc.cl.params import CLParams
 
-__all__ = ["PREPASS_RUNS", "Prepass", "prepass", "prepass_rows"]
+__all__ = [
+    "PREPASS_CLAIMED",
+    "PREPASS_OK",
+    "PREPASS_RUNS",
+    "PREPASS_UNSORTED",
+    "Prepass",
+    "applies",
+    "prepass",
+    "prepass_rows",
+]
 
-#: :func:`prepass_rows`'s status: done, or the rows are not sorted by observer (nothing
-#: written; the reference path then judges them, as each stage's pass would have it).
+#: :func:`prepass_rows`'s status: done (no claim changed), the rows not sorted by observer
+#: (nothing written; the reference path then judges them, as each stage's pass would have
+#: it), done with the claims changed (the loop reads the per-row claims it wrote).
 PREPASS_OK = 0
 PREPASS_UNSORTED = 1
 PREPASS_CLAIMED = 2
