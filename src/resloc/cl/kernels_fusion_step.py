@@ -37,6 +37,7 @@ from resloc.cl.kernels_factorized_step import (  # (the strategies find them her
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
+from resloc.cl.kernels_tracked_step import installed_end_of_step
 from resloc.cl.tracking import JointCovariance
 
 __all__ = [
@@ -70,13 +71,6 @@ def _noise_variances(params):
     return odometry.shape, floor.shape, variances
 
 
-def _odometry(params, dt: float, B: int):
-    odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
-    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,):
-        return None
-    return odometry_var, floor_var * dt
-
-
 def _inputs_ok(x, u, B: int) -> bool:
     return np.shape(x) == (B, 3) and np.shape(u) == (B, 2)
 
@@ -88,15 +82,15 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
     if backend() != "numba" or not isinstance(joint, JointCovariance):
         return None
     B = joint.T * joint.N
-    noise = _odometry(params, dt, B)
-    if noise is None or not _inputs_ok(x, u, B):
+    odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
+    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,) or not _inputs_ok(x, u, B):
         return None
     before = np.ascontiguousarray(joint.sigma, dtype=float)
     sigma = np.empty_like(before)  # (written by the first pass: no copy of the joint first)
     diagonal = np.empty((B, 3, 3))
     _propagate_joint(
         np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt),
-        *noise, joint.N, before, sigma, diagonal,
+        odometry_var, floor_var, joint.N, before, sigma, diagonal,
     )  # fmt: skip
     joint.sigma = sigma
     joint._start_step()
@@ -118,7 +112,8 @@ def _diagonal_blocks(sigma, N, diagonal):
 def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagonal):
     """``sigma[t]_(ab) = F_a before[t]_(ab) F_b^T`` for every pair of robots of every team,
     ``+ Q_a`` on the diagonal blocks, then symmetrized (``sigma``, ``before``: (T, 3N, 3N),
-    distinct); the diagonal blocks into ``diagonal: (B, 3, 3)``.
+    distinct); the diagonal blocks into ``diagonal: (B, 3, 3)``; ``floor_var``: the floor's
+    variances (3,), scaled by ``dt`` here (as the reference's ``floor_std**2 * dt``).
 
     The unicycle's ``F`` is the identity but for ``F[0, 2]`` and ``F[1, 2]``
     (:func:`unicycle_jacobian_into`): ``F_a`` on the left adds ``F[p, 2]`` times each
@@ -131,11 +126,14 @@ def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagon
     per_robot_noise = odometry_var.shape[0] > 1
     f = np.empty((B, 2))  # F[0, 2], F[1, 2] of each robot
     Q = np.zeros((B, 3, 3))
+    floor = np.empty(3)  # the floor's variances times dt (the reference's product, here:
+    for k in range(3):  # numpy's on a 3-vector cost ~0.5 us a step)
+        floor[k] = floor_var[k] * dt
     for b in range(B):
         s2 = math.sin(x[b, 2])
         c2 = math.cos(x[b, 2])
         r = b if per_robot_noise else 0
-        odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor_var, Q[b])
+        odometry_process_noise(c2, s2, dt, odometry_var[r, 0], odometry_var[r, 1], floor, Q[b])
         v = u[b, 0]
         f[b, 0] = -v * s2 * dt  # (as unicycle_jacobian_into)
         f[b, 1] = v * c2 * dt
@@ -179,10 +177,14 @@ def _symmetrize_in_place(S):
 def compiled_tracked_finish(joint) -> np.ndarray | None:
     """``JointCovariance.finish`` compiled: ``Sigma <- M Sigma M^T + blockdiag(N)`` per team,
     symmetrized, the step's bookkeeping started; returns the diagonal blocks (B, 3, 3).
-    ``M Sigma`` is the compiled correction's (``joint.m_sigma``, its records kept it) when
-    its commit left it, else computed."""
+    After a compiled commit, the end of step it computed from ``M``'s blocks
+    (:mod:`resloc.cl.kernels_tracked_step`); else ``M Sigma`` is the compiled correction's
+    (``joint.m_sigma``, its records kept it) when its commit left it, else computed."""
     if backend() != "numba" or not isinstance(joint, JointCovariance):
         return None
+    committed = installed_end_of_step(joint)  # a compiled commit computed it
+    if committed is not None:
+        return committed
     B, n3 = joint.T * joint.N, 3 * joint.N
     rows = getattr(joint, "m_sigma", None)
     if not (isinstance(rows, np.ndarray) and rows.shape == (B, 3, n3) and rows.dtype == float):

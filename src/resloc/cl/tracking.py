@@ -184,24 +184,55 @@ class JointCovariance:
         # step starts twice (its finish, then the next prediction) and hands both over from
         # its kernel (resloc.cl.kernels_joint.joint_commit), so eager copies were thrown away
         self._M: np.ndarray | None = None
+        self._blocks: tuple | None = None  # M by its non-zero blocks (set_blocks)
         self._noise: np.ndarray | None = None
         self.updates = 0  # updates recorded since (M, noise) were reset
         # M Sigma, (B, 3, 3N), where a compiled correction kept it (its commit,
         # resloc.cl.kernels_joint.joint_commit) for the compiled finish; None after any
         # other change of M (this class never reads it)
         self.m_sigma: np.ndarray | None = None
+        # (sigma, diagonal): what finish would make of the step's records, where a compiled
+        # commit computed it (resloc.cl.kernels_tracked_step); None after update or a new
+        # M or noise (this class never reads it)
+        self.end_of_step: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_blocks(
+        self, A: np.ndarray, Bij: np.ndarray, i: np.ndarray, j: np.ndarray, fused: np.ndarray
+    ) -> None:
+        """Set ``M`` by its non-zero 3 x 3 blocks, built dense only where read (a compiled
+        correction's records, :mod:`resloc.cl.kernels_tracked_step`): robot b's ``A[b]``
+        (B, 3, 3) at its own column, and for each link ``e`` with ``fused[e]`` (E,) bool,
+        ``Bij[e]`` (E, 3, 3) added at column ``j[e]`` of robot ``i[e]`` ((E,) batch
+        indices)."""
+        self._M = None
+        self._blocks = (A, Bij, i, j, fused)
+        self.end_of_step = None
 
     @property
     def M(self) -> np.ndarray:
         """Every robot's map ``M_b`` (B, 3, 3N): its current error is ``M_b e_pred + w_b``
         (``E_b``, its own block the identity, where the step starts)."""
         if self._M is None:
-            self._M = self._identity_M.copy()
+            M = self._identity_M.copy()
+            if self._blocks is not None:
+                A, Bij, i, j, fused = self._blocks
+                three = np.arange(3)
+                b = np.arange(len(A))
+                own = 3 * (b % self.N)[:, None] + three
+                M[b[:, None, None], three[:, None], own[:, None, :]] = A
+                e = np.flatnonzero(fused)
+                cols = 3 * (np.asarray(j)[e] % self.N)[:, None] + three
+                rows = np.asarray(i)[e][:, None, None]
+                np.add.at(M, (rows, three[:, None], cols[:, None, :]), Bij[e])
+                self._blocks = None
+            self._M = M
         return self._M
 
     @M.setter
     def M(self, value: np.ndarray) -> None:
         self._M = value
+        self._blocks = None
+        self.end_of_step = None
 
     @property
     def noise(self) -> np.ndarray:
@@ -214,6 +245,7 @@ class JointCovariance:
     @noise.setter
     def noise(self, value: np.ndarray) -> None:
         self._noise = value
+        self.end_of_step = None
 
     # ------------------------------------------------------------------ step
     def predict(
@@ -361,6 +393,7 @@ class JointCovariance:
         Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= KH_j
         self.M[i] = Mi
         self.m_sigma = None
+        self.end_of_step = None
         self.updates += len(i)
         self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
             K, -1, -2
