@@ -71,10 +71,6 @@ def _noise_variances(params):
     return odometry.shape, floor.shape, variances
 
 
-def _inputs_ok(x, u, B: int) -> bool:
-    return np.shape(x) == (B, 3) and np.shape(u) == (B, 2)
-
-
 def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | None:
     """``JointCovariance.predict`` compiled: ``Sigma <- F Sigma F^T + blockdiag(Q)`` per
     team (``F``, ``Q`` at the estimates ``x: (B, 3)`` before the prediction, odometry
@@ -83,15 +79,15 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
         return None
     B = joint.T * joint.N
     odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
-    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,) or not _inputs_ok(x, u, B):
+    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,):
         return None
-    before = np.ascontiguousarray(joint.sigma, dtype=float)
+    x, u = c_float(x), c_float(u)  # (the run's arrays themselves: no copy, no np.shape)
+    if x.shape != (B, 3) or u.shape != (B, 2):
+        return None
+    before = c_float(joint.sigma)
     sigma = np.empty_like(before)  # (written by the first pass: no copy of the joint first)
     diagonal = np.empty((B, 3, 3))
-    _propagate_joint(
-        np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(u, dtype=float), float(dt),
-        odometry_var, floor_var, joint.N, before, sigma, diagonal,
-    )  # fmt: skip
+    _propagate_joint(x, u, float(dt), odometry_var, floor_var, joint.N, before, sigma, diagonal)
     joint.sigma = sigma
     joint._start_step()
     return diagonal

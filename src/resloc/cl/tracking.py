@@ -169,11 +169,10 @@ class JointCovariance:
         v[:, r, :, r, :] = np.swapaxes(P.reshape(self.T, self.N, 3, 3), 0, 1)
 
     def _start_step(self) -> None:
-        B, n3 = self.T * self.N, 3 * self.N
-        identity = getattr(self, "_identity_M", None)
-        if identity is None or identity.shape != (B, 3, n3):
-            # every robot's M_b = E_b (its own block the identity), built once: a step
-            # starts from a copy
+        if getattr(self, "_identity_M", None) is None:
+            # every robot's M_b = E_b (its own block the identity), built once (T and N do
+            # not change): a step starts from a copy
+            B, n3 = self.T * self.N, 3 * self.N
             identity = np.zeros((B, 3, n3))
             b = np.arange(B)
             local = b % self.N
