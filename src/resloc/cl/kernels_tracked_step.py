@@ -78,8 +78,8 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
     each robot's rows of ``M Sigma``) and ``M``'s blocks (``A``: (B, 3, 3) at each robot's
     own column; ``Bij[e]`` at column ``nbr[e]`` of row ``obs[e]`` for each ``fused[e]``;
     blocks at the same place add up, as the reference's records do), the diagonal blocks
-    into ``diagonal``. Returns the number of fused links, or -1 (nothing written) when an
-    entry of ``rows`` is not finite.
+    into ``diagonal``. Returns the number of fused links, or -1 (``out`` and ``diagonal``
+    not valid) when an entry of ``rows`` is not finite.
 
     ``U^T`` per team first (a transposed copy: the block products then run over contiguous
     rows, SIMD); robot a's rows of the result, left of and in its diagonal block only (the
@@ -104,14 +104,17 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
         if fused[e]:
             order[fill[obs[e]]] = e
             fill[obs[e]] += 1
-    if not _finite(rows):
-        return -1
     UT = np.empty((n3, n3))
     for t in range(out.shape[0]):
+        bad = 0  # (the rows' check in the copy: an integer sum, branch-free)
         for a in range(N):  # U^T of the team: UT[k, 3a + p] = rows[a, p, k]
-            for p in range(3):
-                for k in range(n3):
-                    UT[k, 3 * a + p] = rows[t * N + a, p, k]
+            for k in range(n3):  # (three entries stored side by side per k)
+                for p in range(3):
+                    v = rows[t * N + a, p, k]
+                    UT[k, 3 * a + p] = v
+                    bad += 0 if abs(v) < math.inf else 1
+        if bad:
+            return -1
         res = out[t]
         for a in range(N):
             b = t * N + a
@@ -121,21 +124,22 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
             for s in range(start[b], start[b + 1]):
                 e = order[s]
                 _add_block(Bij, e, UT, 3 * (nbr[e] % N), width, res, r, True)
-        for p in range(n3):  # the mirror, the diagonal blocks symmetrized with the noise
+        for a in range(N):  # the mirror, block by block (three entries side by side)
+            for c in range(a):
+                for j in range(3):
+                    for i in range(3):
+                        res[3 * c + j, 3 * a + i] = res[3 * a + i, 3 * c + j]
+        for p in range(n3):  # the diagonal blocks symmetrized with the noise
             a = p // 3
             d = 3 * a
-            for q in range(d):
-                res[q, p] = res[p, q]
             for k in range(p - d + 1):
                 q = d + k
                 v = 0.5 * (res[p, q] + res[q, p])
                 v += 0.5 * (noise[t * N + a, p - d, k] + noise[t * N + a, k, p - d])
                 res[p, q] = v
                 res[q, p] = v
-        for a in range(N):
-            for p in range(3):
-                for q in range(3):
-                    diagonal[t * N + a, p, q] = res[3 * a + p, 3 * a + q]
+                diagonal[t * N + a, p - d, k] = v
+                diagonal[t * N + a, k, p - d] = v
     return nf
 
 
@@ -152,6 +156,17 @@ def _add_block(M, m, UT, k, width, res, r, add):
     m20 = M[m, 2, 0]
     m21 = M[m, 2, 1]
     m22 = M[m, 2, 2]
+    if add and m02 == 0.0 and m12 == 0.0 and m22 == 0.0:
+        # a zero third column (every B_ij: -K H_j, H_j's third column is zero, times the
+        # later gains): two rows of UT, a third fewer products (UT finite: the terms
+        # skipped are zeros)
+        for q in range(width):
+            s0 = UT[k, q]
+            s1 = UT[k + 1, q]
+            res[r, q] += m00 * s0 + m01 * s1
+            res[r + 1, q] += m10 * s0 + m11 * s1
+            res[r + 2, q] += m20 * s0 + m21 * s1
+        return
     if not add:
         for q in range(width):
             s0 = UT[k, q]
@@ -168,13 +183,3 @@ def _add_block(M, m, UT, k, width, res, r, add):
         res[r, q] += m00 * s0 + m01 * s1 + m02 * s2
         res[r + 1, q] += m10 * s0 + m11 * s1 + m12 * s2
         res[r + 2, q] += m20 * s0 + m21 * s1 + m22 * s2
-
-
-@jit
-def _finite(S):
-    """Every entry of ``S`` finite (an integer sum over a flat view: SIMD)."""
-    f = S.reshape(S.size)
-    bad = 0
-    for k in range(f.shape[0]):
-        bad += 0 if abs(f[k]) < math.inf else 1
-    return bad == 0
