@@ -37,7 +37,7 @@ from resloc.cl.kernels_factorized_step import (  # (the strategies find them her
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
-from resloc.cl.kernels_tracked_step import installed_end_of_step
+from resloc.cl.kernels_tracked_step import installed_end_of_step, keep_spare_rows
 from resloc.cl.tracking import JointCovariance
 
 __all__ = [
@@ -86,10 +86,14 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
         return None
     before = c_float(joint.sigma)
     sigma = np.empty_like(before)  # (written by the first pass: no copy of the joint first)
+    spare = np.empty_like(before)
     diagonal = np.empty((B, 3, 3))
-    _propagate_joint(x, u, float(dt), odometry_var, floor_var, joint.N, before, sigma, diagonal)
+    _propagate_joint(
+        x, u, float(dt), odometry_var, floor_var, joint.N, before, sigma, diagonal, spare
+    )
     joint.sigma = sigma
     joint._start_step()
+    keep_spare_rows(joint, sigma, spare)  # (the correction's rows of M Sigma: no copy there)
     return diagonal
 
 
@@ -105,11 +109,13 @@ def _diagonal_blocks(sigma, N, diagonal):
 
 
 @jit
-def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagonal):
+def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagonal, spare):
     """``sigma[t]_(ab) = F_a before[t]_(ab) F_b^T`` for every pair of robots of every team,
     ``+ Q_a`` on the diagonal blocks, then symmetrized (``sigma``, ``before``: (T, 3N, 3N),
-    distinct); the diagonal blocks into ``diagonal: (B, 3, 3)``; ``floor_var``: the floor's
-    variances (3,), scaled by ``dt`` here (as the reference's ``floor_std**2 * dt``).
+    distinct); the diagonal blocks into ``diagonal: (B, 3, 3)``, a copy of ``sigma`` into
+    ``spare`` (the correction's working rows, while in the cache); ``floor_var``: the
+    floor's variances (3,), scaled by ``dt`` here (as the reference's ``floor_std**2 *
+    dt``).
 
     The unicycle's ``F`` is the identity but for ``F[0, 2]`` and ``F[1, 2]``
     (:func:`unicycle_jacobian_into`): ``F_a`` on the left adds ``F[p, 2]`` times each
@@ -199,6 +205,10 @@ def _propagate_joint(x, u, dt, odometry_var, floor_var, N, before, sigma, diagon
                 S[rc + 1, ra + 2] = m21
                 S[rc + 2, ra + 2] = m22
     _diagonal_blocks(sigma, N, diagonal)
+    flat = sigma.reshape(sigma.size)
+    copy = spare.reshape(spare.size)
+    for k in range(flat.shape[0]):
+        copy[k] = flat[k]
 
 
 @jit_inline

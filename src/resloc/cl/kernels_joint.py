@@ -63,7 +63,7 @@ from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_factorized_step import commit_factorized
 from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
 from resloc.cl.kernels_math import jit
-from resloc.cl.kernels_tracked_step import commit_tracked
+from resloc.cl.kernels_tracked_step import commit_tracked, take_spare_rows
 from resloc.cl.tracking import JointCovariance, identity_stack
 
 __all__ = [
@@ -145,7 +145,7 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
-        rows = sigma.reshape(B, 3, 3 * N).copy()  # M = I: each robot's rows of Sigma
+        rows = take_spare_rows(joint, sigma)  # M = I: each robot's rows of Sigma
         # (Bij not zeroed: every reader of tracked's takes the fused links' blocks only,
         # which the records write first; 18 KiB a step at 260 links)
         return KernelJoint(

@@ -34,7 +34,27 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["commit_tracked", "installed_end_of_step"]
+__all__ = ["commit_tracked", "installed_end_of_step", "keep_spare_rows", "take_spare_rows"]
+
+
+def keep_spare_rows(joint, sigma: np.ndarray, spare: np.ndarray) -> None:
+    """Keep ``spare``, a copy of the joint ``sigma`` (T, 3N, 3N) the compiled prediction
+    wrote while it had it in the cache, as the next correction's rows of ``M Sigma`` (``M =
+    I`` at a step's start): :func:`take_spare_rows` takes it instead of copying ``sigma``."""
+    joint._spare_rows = (sigma, spare)
+
+
+def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
+    """Each robot's rows of ``sigma`` (B, 3, 3N), a copy the kernel may update in place: the
+    prediction's spare when it is a copy of this very ``sigma`` (taken: used once), else
+    copied now."""
+    spare = getattr(joint, "_spare_rows", None)
+    B, n3 = sigma.shape[0] * sigma.shape[1] // 3, sigma.shape[1]
+    if spare is not None:
+        joint._spare_rows = None
+        if spare[0] is sigma:
+            return spare[1].reshape(B, 3, n3)
+    return sigma.reshape(B, 3, n3).copy()
 
 
 def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
