@@ -14,6 +14,7 @@ from resloc.cl.kernels_math import jit_inline
 __all__ = [
     "factorized_record",
     "joint_record",
+    "left_multiply_b_row",
     "left_multiply_row",
     "tracked_record",
     "update_m_sigma_rows",
@@ -78,6 +79,25 @@ def left_multiply_row(G, M, r, T3):
 
 
 @jit_inline
+def left_multiply_b_row(G, Bij, r, T3):
+    """``Bij[r] <- G Bij[r]`` in place, for ``tracked``'s ``B_ij``: a zero third column
+    (``-K H_j``, times gains: ``H_j``'s is zero) stays zero, so only the first two columns
+    are formed (in scalars: no scratch); :func:`left_multiply_row` where it is not zero."""
+    if Bij[r, 0, 2] != 0.0 or Bij[r, 1, 2] != 0.0 or Bij[r, 2, 2] != 0.0:
+        left_multiply_row(G, Bij, r, T3)
+        return
+    b00 = Bij[r, 0, 0]
+    b01 = Bij[r, 0, 1]
+    b10 = Bij[r, 1, 0]
+    b11 = Bij[r, 1, 1]
+    b20 = Bij[r, 2, 0]
+    b21 = Bij[r, 2, 1]
+    for a in range(3):
+        Bij[r, a, 0] = G[a, 0] * b00 + G[a, 1] * b10 + G[a, 2] * b20
+        Bij[r, a, 1] = G[a, 0] * b01 + G[a, 1] * b11 + G[a, 2] * b21
+
+
+@jit_inline
 def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
@@ -110,7 +130,7 @@ def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, 
     _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
     for r in range(first, e):
         if fused[r]:
-            left_multiply_row(G, Bij, r, T3)
+            left_multiply_b_row(G, Bij, r, T3)
     for a in range(3):
         for b in range(3):
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
