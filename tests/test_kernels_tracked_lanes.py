@@ -1,7 +1,8 @@
 """``tracked``'s records and end of step compiled: the records keep each robot's rows of
 ``M Sigma`` (the cross of its later links, :func:`resloc.cl.kernels_joint_records.tracked_record`),
-the end of step takes them as its first product and forms ``M U^T`` over ``M``'s non-zero
-blocks (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish`). Against numpy: the
+the commit's end of step takes them as its first product and forms ``M U^T`` over ``M``'s
+blocks (:mod:`resloc.cl.kernels_tracked_step`; the dense paths of
+:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish` without it). Against numpy: the
 rows are ``M Sigma`` of the reference's dense ``M``, and the end of step from the rows, from
 the products over blocks and the reference's ``finish`` agree to 1e-12, with the joints'
 rounds and the compiled end of step asserted to have run."""
@@ -47,18 +48,21 @@ def test_records_keep_m_sigma_and_the_end_of_step_takes_it(name: str, monkeypatc
         if backend() != "numba":  # the lockstep's reference side
             return original(joint)
         assert joint.m_sigma is not None  # the records' rows were handed over
+        assert joint.end_of_step is not None  # and the commit's end of step from M's blocks
         np.testing.assert_allclose(joint.m_sigma, _dense_products(joint), rtol=0, atol=1e-12)
-        without_rows = copy.deepcopy(joint)
+        with_rows = copy.deepcopy(joint)  # the dense paths: from the rows, from products
+        with_rows.end_of_step = None
+        without_rows = copy.deepcopy(with_rows)
         without_rows.m_sigma = None
         reference = copy.deepcopy(joint)
+        from_rows = original(with_rows)
         by_blocks = original(without_rows)
         expected = reference.finish()
         out = original(joint)
-        np.testing.assert_allclose(out, expected, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(by_blocks, expected, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(joint.sigma, reference.sigma, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(without_rows.sigma, reference.sigma, rtol=0, atol=1e-12)
-        assert joint.m_sigma is None  # the next step starts without rows
+        for got, ran in ((out, joint), (from_rows, with_rows), (by_blocks, without_rows)):
+            np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(ran.sigma, reference.sigma, rtol=0, atol=1e-12)
+        assert joint.m_sigma is None and joint.end_of_step is None  # the next step starts anew
         seen.append(True)
         return out
 

@@ -115,11 +115,17 @@ def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
     code = KERNEL_UPDATES[update]
     if code == SPLIT_CI:
         return _split_state(criterion, memory, links, E)
-    fusion = kernel_fusion(code, criterion, E)
-    if code in _JOINT_CODES:
+    if code in _JOINT_CODES:  # (built at once: kernel_fusion's then _replace cost ~1 us)
         joint = joint_state(_JOINT_CODES[code], memory, links.i, links.j)
-        return None if joint is None else fusion._replace(joint=joint)
-    return fusion
+        if joint is None:
+            return None
+        if criterion is not CICriterion.TRACE and criterion is not CICriterion.DET:
+            criterion = CICriterion(criterion)
+        return KernelFusion(
+            code, criterion is CICriterion.DET, _GRID, joint, _NONE3, _NONE3,
+            np.zeros((8, 3, 3)), np.empty(_GRID.shape[1]),
+        )  # fmt: skip
+    return kernel_fusion(code, criterion, E)
 
 
 def _split_state(criterion: CICriterion, memory, links, E: int) -> KernelFusion | None:

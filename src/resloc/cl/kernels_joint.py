@@ -11,13 +11,13 @@ differ in where ``C_ij`` comes from and what an update records:
     fused (``B_ij = -K H_j`` left-multiplied by its later gains): the kernel keeps those
     blocks (:class:`KernelJoint` ``A``, ``Bij``), the propagated noise and each robot's
     rows of ``M Sigma`` (``rows``, updated by every record: ``M_i Sigma <- G M_i Sigma +
-    B_ij Sigma[j]``), whose block at j is ``C_ij = M_i Sigma[:, j]``; the commit hands the
-    rows to the end of step as its first product (``JointCovariance.m_sigma``). The
+    B_ij Sigma[j]``), whose block at j is ``C_ij = M_i Sigma[:, j]``. The
     covariance a robot keeps after an update, ``P_i = M_i Sigma M_i^T + N_i`` in the
     reference, is the same quantity by the update's recursion
     ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
-    the robot's first link). :func:`joint_commit` writes the blocks
-    into the dense ``M`` the reference's ``finish`` (``Sigma <- M Sigma M^T + N``) reads.
+    the robot's first link). :func:`joint_commit` hands ``M`` to the joint by its blocks
+    and computes the end of step (``Sigma <- M Sigma M^T + N``) from them and the rows
+    (:mod:`resloc.cl.kernels_tracked_step`).
 ``factorized`` (:class:`~resloc.cl.factorized.FactorizedCovariance`)
     ``C_ij = sigma_ij sigma_ji,pred^T`` shrunk to a valid joint
     (:func:`~resloc.cl.factorized.valid_cross`); an update left-multiplies every factor
@@ -63,6 +63,7 @@ from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_factorized_step import commit_factorized
 from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
 from resloc.cl.kernels_math import jit
+from resloc.cl.kernels_tracked_step import commit_tracked, take_spare_rows
 from resloc.cl.tracking import JointCovariance, identity_stack
 
 __all__ = [
@@ -144,9 +145,11 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     J6 = np.zeros((2, 6, 6))
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
-        rows = sigma.reshape(B, 3, 3 * N).copy()  # M = I: each robot's rows of Sigma
+        rows = take_spare_rows(joint, sigma)  # M = I: each robot's rows of Sigma
+        # (Bij not zeroed: every reader of tracked's takes the fused links' blocks only,
+        # which the records write first; 18 KiB a step at 260 links)
         return KernelJoint(
-            code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.zeros((E, 3, 3)), _EMPTY4, _EMPTY4,
+            code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.empty((E, 3, 3)), _EMPTY4, _EMPTY4,
             _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3, rows,
         )  # fmt: skip
     # factorized: the kernel reads the factors as the step began (never writes them)
@@ -175,41 +178,20 @@ def _links_within_teams(i, nbr, B, N, recorded):
 
 def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -> None:
     """Hand the kernel's records to ``memory.joint`` as the reference leaves them before its
-    ``finish``: ``tracked``, the dense ``M`` (each robot's ``A_i`` at its own column and its
-    fused links' ``B_ij`` at theirs) and the noise; ``factorized``, ``A``, ``B`` and the
-    pairs that fused, and the factors as its ``finish`` then leaves them
+    ``finish``: ``tracked``, ``M`` by its blocks (each robot's ``A_i`` at its own column and
+    its fused links' ``B_ij`` at theirs) and the noise, and the end of step computed from
+    them (:func:`~resloc.cl.kernels_tracked_step.commit_tracked`); ``factorized``, ``A``,
+    ``B`` and the pairs that fused, and the factors as its ``finish`` then leaves them
     (:func:`~resloc.cl.kernels_factorized_step.commit_factorized`)."""
     li = np.ascontiguousarray(i, dtype=np.int64)
     fused = np.ascontiguousarray(fused, dtype=np.bool_)
     joint = memory.joint
     if state.code == TRACKED:
-        # joint.M is as the step began (joint_state checked): the blocks go in place
-        joint.M = np.ascontiguousarray(joint.M, dtype=float)
-        _scatter_tracked_blocks(joint.M, state.A, state.Bij, li, state.nbr, fused, state.N)
-        joint.noise = state.noise
-        joint.updates = int(np.count_nonzero(fused))
-        joint.m_sigma = state.rows  # M Sigma as the records kept it (the finish's first product)
+        # M by its blocks (dense where the reference reads it) and the end of step computed
+        # from them, while the rows are in the cache (resloc.cl.kernels_tracked_step)
+        commit_tracked(state, joint, li, fused)
     elif state.code == FACTORIZED:  # and the end of step's pairs in the same pass
         commit_factorized(state, joint, li, fused)
-
-
-@jit
-def _scatter_tracked_blocks(M, A, Bij, obs, nbr, fused, N):
-    """The dense ``M`` of ``tracked`` (B, 3, 3N) from the blocks of a correction: robot b's
-    ``A_b`` at its own column, each fused link's ``B_ij`` at j's (``M`` as the step began:
-    identity blocks, zeros elsewhere)."""
-    for b in range(A.shape[0]):
-        c0 = 3 * (b % N)
-        for p in range(3):
-            for q in range(3):
-                M[b, p, c0 + q] = A[b, p, q]
-    for e in range(obs.shape[0]):
-        if not fused[e]:
-            continue
-        c0 = 3 * (nbr[e] % N)
-        for p in range(3):
-            for q in range(3):
-                M[obs[e], p, c0 + q] = Bij[e, p, q]
 
 
 _WARMED: list = []

@@ -14,6 +14,7 @@ from resloc.cl.kernels_math import jit_inline
 __all__ = [
     "factorized_record",
     "joint_record",
+    "left_multiply_b_row",
     "left_multiply_row",
     "tracked_record",
     "update_m_sigma_rows",
@@ -78,6 +79,25 @@ def left_multiply_row(G, M, r, T3):
 
 
 @jit_inline
+def left_multiply_b_row(G, Bij, r, T3):
+    """``Bij[r] <- G Bij[r]`` in place, for ``tracked``'s ``B_ij``: a zero third column
+    (``-K H_j``, times gains: ``H_j``'s is zero) stays zero, so only the first two columns
+    are formed (in scalars: no scratch); :func:`left_multiply_row` where it is not zero."""
+    if Bij[r, 0, 2] != 0.0 or Bij[r, 1, 2] != 0.0 or Bij[r, 2, 2] != 0.0:
+        left_multiply_row(G, Bij, r, T3)
+        return
+    b00 = Bij[r, 0, 0]
+    b01 = Bij[r, 0, 1]
+    b10 = Bij[r, 1, 0]
+    b11 = Bij[r, 1, 1]
+    b20 = Bij[r, 2, 0]
+    b21 = Bij[r, 2, 1]
+    for a in range(3):
+        Bij[r, a, 0] = G[a, 0] * b00 + G[a, 1] * b10 + G[a, 2] * b20
+        Bij[r, a, 1] = G[a, 0] * b01 + G[a, 1] * b11 + G[a, 2] * b21
+
+
+@jit_inline
 def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
@@ -110,7 +130,7 @@ def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, 
     _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
     for r in range(first, e):
         if fused[r]:
-            left_multiply_row(G, Bij, r, T3)
+            left_multiply_b_row(G, Bij, r, T3)
     for a in range(3):
         for b in range(3):
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
@@ -141,7 +161,11 @@ def update_m_sigma_rows(rows, sigma, i, t, cj, G, Bij, e):
     Sigma[j's rows]`` (``B_ij = Bij[e]``, ``Sigma``: team ``t``'s joint as the step began,
     j's rows from ``cj``), column by column in place. The gain and ``B_ij`` in scalars
     first: stores into ``rows`` would otherwise reload them (LLVM cannot prove the arrays
-    apart), and the loop over the 3N columns compiles to SIMD."""
+    apart), and the loop over the 3N columns compiles to SIMD. ``B_ij = -K H_j`` as the
+    record wrote it has a zero third column (``H_j``'s is zero): j's third row of
+    ``Sigma`` is not read (for finite entries the same sums: the terms left out are zeros;
+    the rows are ``M Sigma`` over ``M``'s non-zero blocks already), a sixth of the
+    products."""
     g00 = G[0, 0]
     g01 = G[0, 1]
     g02 = G[0, 2]
@@ -153,23 +177,19 @@ def update_m_sigma_rows(rows, sigma, i, t, cj, G, Bij, e):
     g22 = G[2, 2]
     b00 = Bij[e, 0, 0]
     b01 = Bij[e, 0, 1]
-    b02 = Bij[e, 0, 2]
     b10 = Bij[e, 1, 0]
     b11 = Bij[e, 1, 1]
-    b12 = Bij[e, 1, 2]
     b20 = Bij[e, 2, 0]
     b21 = Bij[e, 2, 1]
-    b22 = Bij[e, 2, 2]
     for q in range(rows.shape[2]):
         w0 = rows[i, 0, q]
         w1 = rows[i, 1, q]
         w2 = rows[i, 2, q]
         s0 = sigma[t, cj, q]
         s1 = sigma[t, cj + 1, q]
-        s2 = sigma[t, cj + 2, q]
-        rows[i, 0, q] = (g00 * w0 + g01 * w1 + g02 * w2) + (b00 * s0 + b01 * s1 + b02 * s2)
-        rows[i, 1, q] = (g10 * w0 + g11 * w1 + g12 * w2) + (b10 * s0 + b11 * s1 + b12 * s2)
-        rows[i, 2, q] = (g20 * w0 + g21 * w1 + g22 * w2) + (b20 * s0 + b21 * s1 + b22 * s2)
+        rows[i, 0, q] = (g00 * w0 + g01 * w1 + g02 * w2) + (b00 * s0 + b01 * s1)
+        rows[i, 1, q] = (g10 * w0 + g11 * w1 + g12 * w2) + (b10 * s0 + b11 * s1)
+        rows[i, 2, q] = (g20 * w0 + g21 * w1 + g22 * w2) + (b20 * s0 + b21 * s1)
 
 
 @jit_inline

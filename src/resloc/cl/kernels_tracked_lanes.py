@@ -13,7 +13,7 @@ import math
 from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl.kernels_joint_lanes import LANE_STRIDE
-from resloc.cl.kernels_joint_records import left_multiply_row, update_m_sigma_rows
+from resloc.cl.kernels_joint_records import left_multiply_b_row, update_m_sigma_rows
 from resloc.cl.kernels_lanes import CHUNK
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces, store_covariance
 from resloc.cl.kernels_round_cached import padded_lanes
@@ -189,7 +189,7 @@ def tracked_record_lanes(
                 now[i, a, b] = rout[36 + r, k]
         for r in range(lane_first[c], e):
             if fused[r]:
-                left_multiply_row(G, Bij, r, T3)
+                left_multiply_b_row(G, Bij, r, T3)
         update_m_sigma_rows(rows, sigma, i, i // N, 3 * (nbr[e] % N), G, Bij, e)
         flags[4, e] = store_covariance(P, i, Pn, T3)
     return nf

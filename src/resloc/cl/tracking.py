@@ -169,11 +169,10 @@ class JointCovariance:
         v[:, r, :, r, :] = np.swapaxes(P.reshape(self.T, self.N, 3, 3), 0, 1)
 
     def _start_step(self) -> None:
-        B, n3 = self.T * self.N, 3 * self.N
-        identity = getattr(self, "_identity_M", None)
-        if identity is None or identity.shape != (B, 3, n3):
-            # every robot's M_b = E_b (its own block the identity), built once: a step
-            # starts from a copy
+        if getattr(self, "_identity_M", None) is None:
+            # every robot's M_b = E_b (its own block the identity), built once (T and N do
+            # not change): a step starts from a copy
+            B, n3 = self.T * self.N, 3 * self.N
             identity = np.zeros((B, 3, n3))
             b = np.arange(B)
             local = b % self.N
@@ -184,24 +183,55 @@ class JointCovariance:
         # step starts twice (its finish, then the next prediction) and hands both over from
         # its kernel (resloc.cl.kernels_joint.joint_commit), so eager copies were thrown away
         self._M: np.ndarray | None = None
+        self._blocks: tuple | None = None  # M by its non-zero blocks (set_blocks)
         self._noise: np.ndarray | None = None
         self.updates = 0  # updates recorded since (M, noise) were reset
         # M Sigma, (B, 3, 3N), where a compiled correction kept it (its commit,
         # resloc.cl.kernels_joint.joint_commit) for the compiled finish; None after any
         # other change of M (this class never reads it)
         self.m_sigma: np.ndarray | None = None
+        # (sigma, diagonal): what finish would make of the step's records, where a compiled
+        # commit computed it (resloc.cl.kernels_tracked_step); None after update or a new
+        # M or noise (this class never reads it)
+        self.end_of_step: tuple[np.ndarray, np.ndarray] | None = None
+
+    def set_blocks(
+        self, A: np.ndarray, Bij: np.ndarray, i: np.ndarray, j: np.ndarray, fused: np.ndarray
+    ) -> None:
+        """Set ``M`` by its non-zero 3 x 3 blocks, built dense only where read (a compiled
+        correction's records, :mod:`resloc.cl.kernels_tracked_step`): robot b's ``A[b]``
+        (B, 3, 3) at its own column, and for each link ``e`` with ``fused[e]`` (E,) bool,
+        ``Bij[e]`` (E, 3, 3) added at column ``j[e]`` of robot ``i[e]`` ((E,) batch
+        indices)."""
+        self._M = None
+        self._blocks = (A, Bij, i, j, fused)
+        self.end_of_step = None
 
     @property
     def M(self) -> np.ndarray:
         """Every robot's map ``M_b`` (B, 3, 3N): its current error is ``M_b e_pred + w_b``
         (``E_b``, its own block the identity, where the step starts)."""
         if self._M is None:
-            self._M = self._identity_M.copy()
+            M = self._identity_M.copy()
+            if self._blocks is not None:
+                A, Bij, i, j, fused = self._blocks
+                three = np.arange(3)
+                b = np.arange(len(A))
+                own = 3 * (b % self.N)[:, None] + three
+                M[b[:, None, None], three[:, None], own[:, None, :]] = A
+                e = np.flatnonzero(fused)
+                cols = 3 * (np.asarray(j)[e] % self.N)[:, None] + three
+                rows = np.asarray(i)[e][:, None, None]
+                np.add.at(M, (rows, three[:, None], cols[:, None, :]), Bij[e])
+                self._blocks = None
+            self._M = M
         return self._M
 
     @M.setter
     def M(self, value: np.ndarray) -> None:
         self._M = value
+        self._blocks = None
+        self.end_of_step = None
 
     @property
     def noise(self) -> np.ndarray:
@@ -214,6 +244,7 @@ class JointCovariance:
     @noise.setter
     def noise(self, value: np.ndarray) -> None:
         self._noise = value
+        self.end_of_step = None
 
     # ------------------------------------------------------------------ step
     def predict(
@@ -361,6 +392,7 @@ class JointCovariance:
         Mi[e, np.arange(3)[None, :, None], cols[:, None, :]] -= KH_j
         self.M[i] = Mi
         self.m_sigma = None
+        self.end_of_step = None
         self.updates += len(i)
         self.noise[i] = IKH @ self.noise[i] @ np.swapaxes(IKH, -1, -2) + K @ R @ np.swapaxes(
             K, -1, -2

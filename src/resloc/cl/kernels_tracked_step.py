@@ -1,0 +1,205 @@
+"""``tracked``'s commit and end of step from the blocks of ``M``, compiled.
+
+After a compiled correction the kernel holds ``M`` by its non-zero 3 x 3 blocks (robot b's
+``A_b`` at its own column, each fused link's ``B_ij`` at j's: :class:`~resloc.cl.kernels_joint.
+KernelJoint`) and each robot's rows of ``U = M Sigma`` (``rows``, the records'). The
+reference's end of step is ``Sigma <- sym(M Sigma M^T + blockdiag(N))``
+(:meth:`resloc.cl.tracking.JointCovariance.finish`). :func:`commit_tracked` hands the
+blocks to the joint (:meth:`~resloc.cl.tracking.JointCovariance.set_blocks`: the dense
+``M`` is built only if the reference reads it) and computes the end of step at once, while
+the rows are still in the cache, from the blocks: ``M U^T`` over each robot's blocks, only
+the lower triangle of the team's joint (the result is symmetric; its upper triangle is the
+mirror), into :attr:`~resloc.cl.tracking.JointCovariance.end_of_step`, which the compiled
+finish (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish`) installs.
+
+Not the reference's sums to the bit (it sums the dense products and averages the two
+triangles): equal to 1e-9 (the tests check 1e-12 relative on random block-sparse maps), as
+the project's rule for compiled twins asks. A non-finite entry in the rows leaves the end
+of step to the dense path (``0 * inf`` is ``nan`` in the reference's dense product, which a
+product over the non-zero blocks skips).
+
+=============================  ======================================================
+function                       numpy twin
+=============================  ======================================================
+:func:`commit_tracked`         the state ``JointCovariance.update`` leaves, then
+                               ``JointCovariance.finish``'s new joint and diagonal
+=============================  ======================================================
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from resloc.cl.kernels_math import jit
+
+__all__ = ["commit_tracked", "installed_end_of_step", "keep_spare_rows", "take_spare_rows"]
+
+
+def keep_spare_rows(joint, sigma: np.ndarray, spare: np.ndarray) -> None:
+    """Keep ``spare``, a copy of the joint ``sigma`` (T, 3N, 3N) the compiled prediction
+    wrote while it had it in the cache, as the next correction's rows of ``M Sigma`` (``M =
+    I`` at a step's start): :func:`take_spare_rows` takes it instead of copying ``sigma``."""
+    joint._spare_rows = (sigma, spare)
+
+
+def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
+    """Each robot's rows of ``sigma`` (B, 3, 3N), a copy the kernel may update in place: the
+    prediction's spare when it is a copy of this very ``sigma`` (taken: used once), else
+    copied now."""
+    spare = getattr(joint, "_spare_rows", None)
+    B, n3 = sigma.shape[0] * sigma.shape[1] // 3, sigma.shape[1]
+    if spare is not None:
+        joint._spare_rows = None
+        if spare[0] is sigma:
+            return spare[1].reshape(B, 3, n3)
+    return sigma.reshape(B, 3, n3).copy()
+
+
+def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
+    """Hand a compiled correction's records (``state``: the kernel's
+    :class:`~resloc.cl.kernels_joint.KernelJoint`; ``obs``, ``fused``: the links' observers
+    (E,) int64 and whether each fused, (E,) bool) to ``joint`` (a
+    :class:`~resloc.cl.tracking.JointCovariance` as the step began: checked by
+    ``joint_state``) and compute its end of step from the blocks (kept in
+    ``joint.end_of_step`` for the compiled finish; left None where a row is not finite)."""
+    joint.set_blocks(state.A, state.Bij, obs, state.nbr, fused)
+    joint.noise = state.noise
+    joint.m_sigma = state.rows  # M Sigma as the records kept it (the dense path's first product)
+    sigma = np.empty(joint.sigma.shape)
+    diagonal = np.empty(state.A.shape)
+    count = _end_of_step(
+        state.rows, state.A, state.Bij, obs, state.nbr, fused, state.noise, state.N, sigma,
+        diagonal,
+    )  # fmt: skip
+    if count >= 0:
+        joint.updates = count
+        joint.end_of_step = (sigma, diagonal)
+    else:
+        joint.updates = int(np.count_nonzero(fused))
+
+
+def installed_end_of_step(joint) -> np.ndarray | None:
+    """The end of step :func:`commit_tracked` computed, installed as ``joint``'s joint and
+    the step's bookkeeping started (the reference's ``finish``); returns the diagonal blocks
+    (B, 3, 3), or None when there is none (then the caller computes it)."""
+    done = joint.end_of_step
+    if done is None:
+        return None
+    joint.sigma = done[0]
+    joint._start_step()
+    return done[1]
+
+
+@jit
+def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
+    """``out[t] = sym(M_t U_t^T + blockdiag(noise))`` per team from ``rows = U`` (B, 3, 3N:
+    each robot's rows of ``M Sigma``) and ``M``'s blocks (``A``: (B, 3, 3) at each robot's
+    own column; ``Bij[e]`` at column ``nbr[e]`` of row ``obs[e]`` for each ``fused[e]``;
+    blocks at the same place add up, as the reference's records do), the diagonal blocks
+    into ``diagonal``. Returns the number of fused links, or -1 (``out`` and ``diagonal``
+    not valid) when an entry of ``rows`` is not finite.
+
+    ``U^T`` per team first (a transposed copy: the block products then run over contiguous
+    rows, SIMD); robot a's rows of the result, left of and in its diagonal block only (the
+    lower triangle by blocks): ``A_a`` and each fused ``B_ad`` times three rows of ``U^T``;
+    then the upper triangle mirrored and the diagonal blocks symmetrized with the noise.
+    About half the flops of the product over all blocks (``kernels_fusion_step.
+    _block_product``), no dense ``M``."""
+    B = A.shape[0]
+    n3 = 3 * N
+    E = obs.shape[0]
+    start = np.zeros(B + 1, np.int64)  # each robot's fused links, grouped (CSR)
+    nf = 0
+    for e in range(E):
+        if fused[e]:
+            start[obs[e] + 1] += 1
+            nf += 1
+    for b in range(B):
+        start[b + 1] += start[b]
+    fill = start[:B].copy()
+    order = np.empty(nf, np.int64)
+    for e in range(E):
+        if fused[e]:
+            order[fill[obs[e]]] = e
+            fill[obs[e]] += 1
+    UT = np.empty((n3, n3))
+    for t in range(out.shape[0]):
+        bad = 0  # (the rows' check in the copy: an integer sum, branch-free)
+        for a in range(N):  # U^T of the team: UT[k, 3a + p] = rows[a, p, k]
+            for k in range(n3):  # (three entries stored side by side per k)
+                for p in range(3):
+                    v = rows[t * N + a, p, k]
+                    UT[k, 3 * a + p] = v
+                    bad += 0 if abs(v) < math.inf else 1
+        if bad:
+            return -1
+        res = out[t]
+        for a in range(N):
+            b = t * N + a
+            r = 3 * a
+            width = r + 3  # the columns left of robot a's diagonal block, and the block
+            _add_block(A, b, UT, r, width, res, r, False)  # (A_a first: it sets the rows)
+            for s in range(start[b], start[b + 1]):
+                e = order[s]
+                _add_block(Bij, e, UT, 3 * (nbr[e] % N), width, res, r, True)
+        for a in range(N):  # the mirror, block by block (three entries side by side)
+            for c in range(a):
+                for j in range(3):
+                    for i in range(3):
+                        res[3 * c + j, 3 * a + i] = res[3 * a + i, 3 * c + j]
+        for p in range(n3):  # the diagonal blocks symmetrized with the noise
+            a = p // 3
+            d = 3 * a
+            for k in range(p - d + 1):
+                q = d + k
+                v = 0.5 * (res[p, q] + res[q, p])
+                v += 0.5 * (noise[t * N + a, p - d, k] + noise[t * N + a, k, p - d])
+                res[p, q] = v
+                res[q, p] = v
+                diagonal[t * N + a, p - d, k] = v
+                diagonal[t * N + a, k, p - d] = v
+    return nf
+
+
+@jit
+def _add_block(M, m, UT, k, width, res, r, add):
+    """``res[r:r + 3, :width] += M[m] UT[k:k + 3, :width]`` (``=`` without ``add``; the
+    block's entries in scalars: the loop over columns compiles to SIMD)."""
+    m00 = M[m, 0, 0]
+    m01 = M[m, 0, 1]
+    m02 = M[m, 0, 2]
+    m10 = M[m, 1, 0]
+    m11 = M[m, 1, 1]
+    m12 = M[m, 1, 2]
+    m20 = M[m, 2, 0]
+    m21 = M[m, 2, 1]
+    m22 = M[m, 2, 2]
+    if add and m02 == 0.0 and m12 == 0.0 and m22 == 0.0:
+        # a zero third column (every B_ij: -K H_j, H_j's third column is zero, times the
+        # later gains): two rows of UT, a third fewer products (UT finite: the terms
+        # skipped are zeros)
+        for q in range(width):
+            s0 = UT[k, q]
+            s1 = UT[k + 1, q]
+            res[r, q] += m00 * s0 + m01 * s1
+            res[r + 1, q] += m10 * s0 + m11 * s1
+            res[r + 2, q] += m20 * s0 + m21 * s1
+        return
+    if not add:
+        for q in range(width):
+            s0 = UT[k, q]
+            s1 = UT[k + 1, q]
+            s2 = UT[k + 2, q]
+            res[r, q] = m00 * s0 + m01 * s1 + m02 * s2
+            res[r + 1, q] = m10 * s0 + m11 * s1 + m12 * s2
+            res[r + 2, q] = m20 * s0 + m21 * s1 + m22 * s2
+        return
+    for q in range(width):
+        s0 = UT[k, q]
+        s1 = UT[k + 1, q]
+        s2 = UT[k + 2, q]
+        res[r, q] += m00 * s0 + m01 * s1 + m02 * s2
+        res[r + 1, q] += m10 * s0 + m11 * s1 + m12 * s2
+        res[r + 2, q] += m20 * s0 + m21 * s1 + m22 * s2
