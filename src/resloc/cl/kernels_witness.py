@@ -60,7 +60,7 @@ from resloc.cl.detection_witness_frames import (
     put_store,
     record_witness,
 )
-from resloc.cl.kernels_math import jit_lanes
+from resloc.cl.kernels_math import jit_inline, jit_lanes
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
@@ -208,7 +208,7 @@ def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
         note_at(z, e, x_obs, e, P_obs, x_nb, R, u, Q, e, lengthen)
 
 
-@jit_lanes
+@jit_inline
 def note_at(z, e, x, o, P, x_nb, R, u, Q, q, lengthen):
     """Row ``e``'s note into ``u[q]``, ``Q[q]``: the reading ``z[e]``, the neighbour's
     broadcast ``x_nb[e]``, the observer's estimate ``x[o]``, ``P[o]`` (:func:`notes_of`);
