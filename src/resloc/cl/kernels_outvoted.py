@@ -348,7 +348,8 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     """:func:`~resloc.cl.detection_outvoted.widen_outvoted` by :func:`outvoted_pass` (the
     stage on, a memory given); None with the numpy backend, arrays it does not take, or
     what the compiled pass refuses (then the spec runs). In a run's steady state the pass
-    writes the store and widens the covariances itself: the glue only checks and calls."""
+    writes the store itself, and a step that widens a robot calls
+    :func:`widened_covariances`: the glue only checks and calls."""
     if backend() != "numba":
         return None
     state = memory.stage_statistic(OUTVOTED_STATE, width=2)
