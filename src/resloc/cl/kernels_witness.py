@@ -296,7 +296,7 @@ def _merge_set(best, tot, d0, d1, d2, d3, d4, d5, size, gates, P00, P01, P11):
 SET_CHUNK = 16
 
 
-@jit_lanes
+@jit_inline
 def _chunk_statistics(tot, drop, lo, hi, size, gate, P00, P01, P11, stat):
     """``stat[k]`` for ``lo <= k < hi``: the statistic of the set ``tot`` minus the dropped
     sums ``drop[:, k]`` (``size`` notes), ``inf`` when it is not consistent (the
@@ -324,7 +324,7 @@ def _chunk_statistics(tot, drop, lo, hi, size, gate, P00, P01, P11, stat):
         stat[k] = value if (single or spread <= gate) else np.inf
 
 
-@jit_lanes
+@jit_inline
 def _chunk(best, tot, drop, K, size, gates, P00, P01, P11, enough):
     """``best`` merged with the ``K`` sets of ``size`` notes whose dropped sums are
     ``drop[:6, :K]`` (row 6 scratch), in order; ``(best, stopped)``: stopped in the chunk
