@@ -18,6 +18,8 @@ kernel function               paper                   numpy twin
 ``defend_link``               beyond the paper        robot CUSUM and recovery stages
 ``fix_verdicts`` (pre-pass)   beyond the paper        redundancy stages (``fix_evidence``)
 ``reciprocal_verdicts``       beyond the paper        ``reciprocal_evidence`` (pre-pass)
+``prepass_rows``              beyond the paper        the claims, zone's readings and the two
+                                                      pre-passes above, in one call
 ``zone_verdict`` (+ fix)      beyond the paper        zone trust (``substitute_reciprocal``,
                                                       ``reciprocal_position_fix``)
 ``_decide_link``              Alg. 1, eqs. (8), (10)  ``resloc.cl.step._decide``
@@ -31,7 +33,8 @@ kernel function               paper                   numpy twin
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
 :mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion`,
 :mod:`resloc.cl.kernels_zone` and, imported only when their stages are on,
-:mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`).
+:mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`,
+:mod:`resloc.cl.kernels_prepass`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
 strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
@@ -212,6 +215,44 @@ def _plain(structure: tuple) -> tuple:
     for k in nested:
         fields[k] = _plain(fields[k])
     return tuple(fields)
+
+
+#: Per structure type: its fields' positions by name.
+_FIELDS: dict[type, dict[str, int]] = {}
+
+
+#: The last structure :func:`_plain_with` was given, its plain form, the changes' names and
+#: values and the result (a run's steady state gives the same detection structure every
+#: step, kernels_stores.steady_state, and the same pre-passes' arrays, kernels_prepass).
+_LAST_PLAIN: list = [None, None, (), (), None]
+
+
+def _plain_with(structure: tuple, changes: dict) -> tuple:
+    """``_plain(structure._replace(**changes))`` without the NamedTuple built between
+    (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more), from the plain form of
+    the last ``structure`` when it is the same object (immutable: its plain form too), the
+    last result when the changes are the same objects too."""
+    if not changes:
+        return _plain(structure)
+    last, plain, names, values, result = _LAST_PLAIN
+    new_names, new_values = tuple(changes), tuple(changes.values())
+    if last is structure and names == new_names:  # (the same names: as many values)
+        for a, b in zip(values, new_values, strict=True):  # (all() of a generator: 0.3 us)
+            if a is not b:
+                break
+        else:
+            return result
+    if last is not structure:
+        plain = _plain(structure)
+    index = _FIELDS.get(type(structure))
+    if index is None:
+        index = _FIELDS[type(structure)] = {name: k for k, name in enumerate(structure._fields)}
+    fields = list(plain)
+    for name, value in changes.items():
+        fields[index[name]] = _plain(value) if isinstance(value, tuple) else value
+    result = tuple(fields)
+    _LAST_PLAIN[:] = [structure, plain, new_names, new_values, result]
+    return result
 
 
 def _per_robot(v) -> np.ndarray:
@@ -398,7 +439,11 @@ def fast_correct(
     witness = None
     if params.witness:  # the notes read the claims as sent (kernels_witness)
         witness = _stage("kernels_witness").WitnessInputs.of(links)
-    if params.redundancy:
+    prepared = _prepared(params)
+    # the claims, zone's readings and the pre-passes in one compiled call after the stores'
+    # look-ups (kernels_prepass), where nothing runs between them
+    one_pass = _stage("kernels_prepass").applies(params, links, prepared.cached)
+    if params.redundancy and not one_pass:
         # The redundancy stage judges the links as reported at the predicted estimates
         # (claims capped, a tamper hook applied to every row: kernels_redundancy)
         links = _stage("kernels_redundancy").capped_links(  # compiled on first use
@@ -406,7 +451,7 @@ def fast_correct(
         )
         if links is None:
             return None
-    elif params.zone_landmarks:  # (with it, between the cap and the hook)
+    elif params.zone_landmarks and not params.redundancy:  # (with it: between cap and hook)
         from resloc.cl.kernels_claims import claimed_links  # compiled on first use
 
         links = claimed_links(params, links)
@@ -417,22 +462,21 @@ def fast_correct(
         witness = witness_stage.witness_verdict(params, memory, x, P, links, witness)
         if witness is None:
             return None  # the reference path raises the explanatory error
-    if params.reciprocal:
+    if params.reciprocal and links.tamper is not None:
         # The reciprocal check compares the readings as reported with the partners'
-        # (a tamper hook applied to every row: kernels_reciprocal)
+        # (a tamper hook applied to every row: kernels_reciprocal; params.R is a new array)
         strategy = fusion_strategy(params.fusion)  # (the prepared one, before shapes)
         links = _stage("kernels_reciprocal").partner_readings(
             filt, x, P, links, strategy, memory, params.R
         )
     zone = None
-    if params.zone_trust:  # the partners' readings attached (kernels_zone)
+    if params.zone_trust and not one_pass:  # the partners' readings attached (kernels_zone)
         zoned = _stage("kernels_zone").zone_state(
             filt, x, P, links, params, fusion_strategy(params.fusion), memory
         )
         if zoned is None:
             return None  # the reference path raises the explanatory error
         links, zone = zoned
-    prepared = _prepared(params)
     last_sent, cached = prepared.last_sent, prepared.cached
     need_memory = last_sent or cached
     if need_memory and memory is None:
@@ -489,7 +533,23 @@ def fast_correct(
     detect = detection.kernel
     changes = {}  # the pre-passes' verdicts for the loops (KernelDetection's fields)
     fixes = None
-    if params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
+    paired = None
+    if one_pass:  # the claims, zone's readings, the pre-passes (kernels_prepass)
+        passes = _stage("kernels_prepass").prepass(
+            params, memory, li, lj, _contiguous(z), _contiguous(x), _contiguous(P), x_nb, P_nb,
+            nb, detect,
+        )  # fmt: skip
+        if passes is None:
+            bookkeeping.undo(memory, gauge)
+            defence.undo()
+            detection.undo()
+            return None  # the reference path raises the explanatory error
+        x_nb, P_nb, nb, zone, fixes, paired = passes
+        x_ref, P_ref = x_nb, P_nb
+        changes["fixes"] = fixes.discard  # (with the reciprocal check's)
+        if zone is not None:
+            changes["zone"] = zone.kernel
+    elif params.redundancy:  # every link judged once, before the loop (kernels_redundancy)
         fixes = _stage("kernels_redundancy").redundancy_verdict(
             params, memory, li, lj, z, x, P, x_nb, P_nb, nb, detect
         )
@@ -499,8 +559,7 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         changes["fixes"] = fixes.discard
-    paired = None
-    if params.reciprocal:  # every link's range against its partner's (kernels_reciprocal)
+    if params.reciprocal and not one_pass:  # every link's range against its partner's
         reciprocal_verdict = _stage("kernels_reciprocal").reciprocal_verdict
         z_rec = links.z_reciprocal if zone is None else zone.kernel.z_reciprocal  # (found)
         other = None if fixes is None else fixes.discard  # (ORed into in place)
@@ -513,12 +572,11 @@ def fast_correct(
             detection.undo()
             return None  # the reference path raises the explanatory error
         changes["fixes"] = paired.discard  # (with the redundancy pre-pass's)
-    if zone is not None:
+    if zone is not None and not one_pass:
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard
-    if changes:  # (one _replace: ~0.7 us each)
-        detect = detect._replace(**changes)
+    detect = _plain_with(detect, changes)  # (no _replace: ~2 us with two fields)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),
@@ -553,7 +611,7 @@ def fast_correct(
         tuple(spec),
         prepared.plain_options,
         _plain(fusion),
-        _plain(detect),
+        detect,
         _plain(defence.kernel),
         tuple(gauge),
         _plain(tamper),

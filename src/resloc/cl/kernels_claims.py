@@ -43,6 +43,7 @@ __all__ = [
     "CLAIMS_RUNS",
     "CLAIMS_UNCHANGED",
     "CLAIMS_UNSORTED",
+    "claim_options",
     "claimed_covariances",
     "claimed_links",
     "claimed_rows",
@@ -205,7 +206,7 @@ def claimed_rows(li, x_src, P_src, rows, cap, discs, inflation):
 
 
 @per_params
-def _claim_options(params: CLParams) -> tuple[bool, bool, np.ndarray, float]:
+def claim_options(params: CLParams) -> tuple[bool, bool, np.ndarray, float]:
     """``(on, cap, discs, inflation)``: whether either option changes a claim, then the
     options as :func:`claimed_covariances` takes them (no discs without the landmarks)."""
     cap = bool(params.redundancy and params.redundancy_cap_fusion)
@@ -224,7 +225,7 @@ def claimed_links(params: CLParams, links: LinkBatch) -> LinkBatch | None:
     sorted by observer: None with the cap on (the reference path then judges them), else
     the numpy stage's batch (:func:`~resloc.cl.detection_landmark.landmark_links`). Twin:
     the head of ``resloc.cl.step._correct_reference``."""
-    on, cap, discs, inflation = _claim_options(params)
+    on, cap, discs, inflation = claim_options(params)
     if not on:
         return links
     nb, x_src, P_src = links.neighbour_rows()

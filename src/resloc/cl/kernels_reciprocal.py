@@ -68,6 +68,7 @@ __all__ = [
     "inside_discs",
     "partner_readings",
     "partner_rows",
+    "reciprocal_options",
     "reciprocal_verdict",
     "reciprocal_verdicts",
 ]
@@ -89,7 +90,8 @@ class ReciprocalOptions(NamedTuple):
 
 
 @per_params
-def _options(params: CLParams) -> ReciprocalOptions:
+def reciprocal_options(params: CLParams) -> ReciprocalOptions:
+    """The stage's options of ``params`` (:class:`ReciprocalOptions`)."""
     discs = np.asarray(params.zone_trust_map, dtype=float).reshape(-1, 3)
     return ReciprocalOptions(
         float(2.0 * params.range_std**2),
@@ -301,7 +303,7 @@ def reciprocal_verdict(
     verdict = PrepassVerdict(discard, DetectorState(None, tuple(saved)))
     if not reciprocal_verdicts(
         li, lj, np.ascontiguousarray(z, dtype=float), z_rec, np.ascontiguousarray(x, dtype=float),
-        x_nb, nb, *_options(params), store.values, slots, discard,
+        x_nb, nb, *reciprocal_options(params), store.values, slots, discard,
     ):  # fmt: skip
         verdict.undo()
         return None  # rows not sorted by observer: the reference judges them

@@ -70,8 +70,10 @@ __all__ = [
     "claim_scales",
     "exclude_group",
     "fix_verdicts",
+    "named_fix_options",
     "position_fix_of_link",
     "redundancy_verdict",
+    "scaled_fix_verdicts",
     "scales_to_median",
     "sequence_group",
     "trace_scales",
@@ -102,10 +104,11 @@ _NO_GAIN = np.zeros(1)
 def _fix_options(params: CLParams) -> tuple:
     """:class:`FixOptions` of ``params`` as a plain tuple (numba types a NamedTuple
     argument in Python, a plain tuple by its fast fingerprint: ``kernels._plain``)."""
-    return tuple(_named_fix_options(params))
+    return tuple(named_fix_options(params))
 
 
-def _named_fix_options(params: CLParams) -> FixOptions:
+def named_fix_options(params: CLParams) -> FixOptions:
+    """The stages' options of ``params`` (:class:`FixOptions`)."""
     sequence = bool(params.redundancy_sequence)
     seq = (
         tuple(
@@ -381,9 +384,10 @@ _FIX_INPUTS = 14
 #: the rows of its results: the fix, its covariance's entries, the information's entries
 #: and the information times the fix (:func:`exclude_group`'s ``fix``, ``cov``, ``info``)
 _FIX_OUTPUTS = 10
-#: :func:`fix_verdicts`' working rows: the claims' factors and their scratch, the fixes,
-#: their covariances, their information, the statistics, the residuals and their covariances
-_WORK_ROWS = 18
+#: :func:`fix_verdicts`' working rows (:func:`scaled_fix_verdicts`'): the claims' factors
+#: and their scratch, the fixes, their covariances, their information, the statistics, the
+#: residuals and their covariances
+FIX_WORK_ROWS = 18
 
 
 @jit_lanes
@@ -436,13 +440,23 @@ def fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, disc
     (False otherwise, nothing written). IEEE division, as numpy's (``jit_lanes``). Twin:
     :func:`~resloc.cl.detection_redundancy.fix_evidence` with ``RedundancyCheck.discard``
     and ``RedundancySequence.discard``."""
+    work = np.empty((FIX_WORK_ROWS, li.shape[0]))
+    if not claim_scales(li, P_nb, nb, work[0], work[1]):
+        return False
+    scaled_fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard, work)
+    return True
+
+
+@jit_lanes
+def scaled_fix_verdicts(
+    li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, discard, work
+):  # fmt: skip
+    """:func:`fix_verdicts` given the claims' factors (:func:`claim_scales`') in
+    ``work[0]``: ``work: (FIX_WORK_ROWS, E)`` its working arrays by component, rows of one
+    allocation (a step made eleven); rows sorted by observer (the caller's test)."""
     R, gate, min_peers, sequence, seq_gate, seq_hold, seq_forget = options
     E = li.shape[0]
-    # the working arrays by component, rows of one allocation (a step made eleven)
-    work = np.empty((_WORK_ROWS, E))
     scale = work[0]
-    if not claim_scales(li, P_nb, nb, scale, work[1]):
-        return False
     fix = work[2:4]  # by component (exclude_group)
     cov = work[4:7]
     info = work[7:12]
@@ -511,10 +525,10 @@ def fix_verdicts(li, z, x, P, x_nb, P_nb, nb, options, seq_state, seq_slot, disc
         for e in range(start, stop):
             discard[e] = discard[e] or not included[e]
         start = stop
-    return True
 
 
 stamp_with_pieces(fix_verdicts, _kernels_detection, _kernels_lanes)
+stamp_with_pieces(scaled_fix_verdicts, _kernels_detection, _kernels_lanes)
 
 
 # ---------------------------------------------------------------------------------------
