@@ -549,3 +549,47 @@ def test_the_step_pass_equals_the_spec(seed):
     # the map or its frame jammed before, too)
     assert counted["in pass"] >= 3, counted
     assert min(counted.values()) > 0, f"the case tests nothing: {counted}"
+
+
+@pytest.mark.parametrize(
+    "chain",
+    [
+        "zone+full+redundancy+sequence+cap+landmarks+witness",
+        "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay+lockout",
+    ],
+)
+@pytest.mark.parametrize("by_index", [False, True])
+def test_the_witness_chains_run_the_one_pass_prepass_as_the_reference(chain, by_index):
+    """With the witness stage on (no tamper hook) the claims, zone's readings and the
+    pre-passes run in one compiled call (kernels_prepass) on every compiled step: the
+    corrections, decisions and every stage's state equal the numpy reference's; the
+    neighbours' broadcasts per link or by index (the simulator's form, which the witness
+    pass reads without gathering them on the batch)."""
+    from test_kernels_prepass import _steps
+    from test_kernels_zone import _params as chain_params
+
+    params = chain_params(chain)
+    original = LinkBatch.__init__
+
+    def by_rows(self, i, j, z, x_nb, P_nb, *rest, **extras):
+        # the links as the simulator makes them (LinkBatch.from_predicted): the test's
+        # per-link copies made rows of the batch's estimates, read by index
+        original(self, i, j, z, x_nb, P_nb, *rest, **extras)
+        if self.neighbours is None:
+            from resloc.cl.links import NeighbourStates
+
+            B = int(max(np.max(i), np.max(j))) + 1
+            xs, Ps = np.zeros((B, 3)), np.tile(np.eye(3), (B, 1, 1))
+            xs[j], Ps[j] = x_nb, P_nb
+            self.__dict__["_x_nb"] = self.__dict__["_P_nb"] = None
+            self.neighbours = NeighbourStates(np.asarray(j), xs, Ps)
+
+    steps = kernels_witness.WITNESS_RUNS["steps"]
+    if by_index:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(LinkBatch, "__init__", by_rows)
+            runs = [n for n, _ in _steps(params, 12, 5)]
+    else:
+        runs = [n for n, _ in _steps(params, 12, 5)]
+    assert runs == [1] * 12, "the one-pass call did not run on every step"
+    assert kernels_witness.WITNESS_RUNS["steps"] - steps == 12, "the step's pass did not run"

@@ -250,7 +250,9 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     z = np.ascontiguousarray(links.z, float)
     xc = np.ascontiguousarray(x, float)
     Pc = np.ascontiguousarray(P, float)
-    x_nb = np.ascontiguousarray(links.x_nb, float)
+    nb_rows, x_sent, _ = links.neighbour_rows()  # (links.x_nb would gather them for good:
+    # the loop then reads every neighbour per link instead of by index)
+    x_nb = np.ascontiguousarray(x_sent if nb_rows is None else x_sent[nb_rows], float)
     crows = _NO_ROWS if inputs.rows is None else np.ascontiguousarray(inputs.rows, np.int64)
     claims = np.ascontiguousarray(inputs.claims, float)
     # (the stores' arrays as LinkStatistic and the pass make them: int64 keys, float64
