@@ -276,6 +276,44 @@ def test_the_compiled_statistic_equals_the_spec_on_adversarial_notes():
     _both(adversarial, per_robot)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_chunked_enumeration_equals_the_spec_and_stops_exactly(seed):
+    """The enumeration's sets judged SET_CHUNK at a time (kernels_witness._chunk): every
+    group's smallest statistic equals the spec's over sizes whose levels span several
+    chunks, with a nan note (the one-by-one path), and a stop at ``enough`` gives a value at
+    most ``enough`` exactly when the spec's smallest is (else the smallest itself)."""
+    from resloc.cl.detection_witness import consistency_gates, reference_groups
+    from resloc.cl.kernels_witness import SET_CHUNK, group_statistics
+
+    rng = np.random.default_rng(seed)
+    params = CLParams(witness=True, witness_liars=3.0, witness_h=30.0)
+    counts = np.array([4, 5, 6, 7, 9, 11, 13, 16])  # C(m, 2), C(m, 3): 1 to 35 chunks
+    notes = _random_notes(rng, len(counts), counts, lie=0.02, spread=20.0)
+    notes.sent[:] = True
+    u = notes.u.copy()
+    u[np.flatnonzero(notes.j == 3)[2]] = np.nan  # a nan note: no stop, nan propagates
+    notes = WitnessNotes(u, notes.Q, notes.P_pos, notes.i, notes.j, notes.sent)
+    rows = np.argsort(notes.j, kind="stable")
+    ids, start, count = np.unique(notes.j[rows], return_index=True, return_counts=True)
+    T_ref, judged_ref = reference_groups(notes, params, rows, start, count, ids)
+    assert max(count) * (max(count) - 1) * (max(count) - 2) // 6 > 30 * SET_CHUNK
+    G = len(ids)
+    f = np.full(G, 3, np.int64)
+    half_h = np.full(G, 0.5 * params.witness_h)
+    gates = consistency_gates(params.witness_false_alarm, 16)
+    args = (notes.u[rows], notes.Q[rows], notes.P_pos[rows], start, count, f, half_h, gates)
+    with kernels.use_backend("numba"):
+        for enough in (np.full(G, -np.inf), T_ref - 1e-6, T_ref + 1e-6, T_ref * 0.5 + 1.0):
+            T, judged = np.zeros(G), np.zeros(G, np.bool_)
+            group_statistics(*args, enough, T, judged)
+            assert group_statistics.signatures, "not compiled"
+            np.testing.assert_array_equal(judged, judged_ref)
+            stops = judged & np.isfinite(T_ref) & (T_ref <= enough) & (ids != 3)
+            assert (T[stops] <= enough[stops]).all()
+            np.testing.assert_allclose(T[~stops], T_ref[~stops], rtol=1e-9, atol=1e-12)
+        assert (T_ref[judged_ref] < half_h[judged_ref]).sum() >= 4  # real minima compared
+
+
 def test_the_compiled_notes_and_cusum_equal_the_spec():
     from resloc.cl.detection_witness import witness_cusum, witness_notes
 
@@ -511,3 +549,47 @@ def test_the_step_pass_equals_the_spec(seed):
     # the map or its frame jammed before, too)
     assert counted["in pass"] >= 3, counted
     assert min(counted.values()) > 0, f"the case tests nothing: {counted}"
+
+
+@pytest.mark.parametrize(
+    "chain",
+    [
+        "zone+full+redundancy+sequence+cap+landmarks+witness",
+        "zone+full+redundancy+sequence+cap+landmarks+witness+outvoted+startup-decay+lockout",
+    ],
+)
+@pytest.mark.parametrize("by_index", [False, True])
+def test_the_witness_chains_run_the_one_pass_prepass_as_the_reference(chain, by_index):
+    """With the witness stage on (no tamper hook) the claims, zone's readings and the
+    pre-passes run in one compiled call (kernels_prepass) on every compiled step: the
+    corrections, decisions and every stage's state equal the numpy reference's; the
+    neighbours' broadcasts per link or by index (the simulator's form, which the witness
+    pass reads without gathering them on the batch)."""
+    from test_kernels_prepass import _steps
+    from test_kernels_zone import _params as chain_params
+
+    params = chain_params(chain)
+    original = LinkBatch.__init__
+
+    def by_rows(self, i, j, z, x_nb, P_nb, *rest, **extras):
+        # the links as the simulator makes them (LinkBatch.from_predicted): the test's
+        # per-link copies made rows of the batch's estimates, read by index
+        original(self, i, j, z, x_nb, P_nb, *rest, **extras)
+        if self.neighbours is None:
+            from resloc.cl.links import NeighbourStates
+
+            B = int(max(np.max(i), np.max(j))) + 1
+            xs, Ps = np.zeros((B, 3)), np.tile(np.eye(3), (B, 1, 1))
+            xs[j], Ps[j] = x_nb, P_nb
+            self.__dict__["_x_nb"] = self.__dict__["_P_nb"] = None
+            self.neighbours = NeighbourStates(np.asarray(j), xs, Ps)
+
+    steps = kernels_witness.WITNESS_RUNS["steps"]
+    if by_index:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(LinkBatch, "__init__", by_rows)
+            runs = [n for n, _ in _steps(params, 12, 5)]
+    else:
+        runs = [n for n, _ in _steps(params, 12, 5)]
+    assert runs == [1] * 12, "the one-pass call did not run on every step"
+    assert kernels_witness.WITNESS_RUNS["steps"] - steps == 12, "the step's pass did not run"

@@ -30,8 +30,10 @@ __all__ = ["LOCKOUT_RUNS", "fast_floor", "fast_record", "floor_pass", "record_pa
 LOCKOUT_RUNS = {"floors": 0, "records": 0, "fallbacks": 0}
 
 #: A pass's status besides the number of robots raised / recorded (>= 0): an observer is
-#: not stored yet, or an id is out of range (nothing written: the spec runs).
-REFUSED = -2
+#: not stored yet, or an id is out of range (nothing written: the spec runs); a robot is
+#: raised and ``out`` is not the covariances' size (nothing written: the caller allocates
+#: it and runs the pass again; a step that raises none, the usual one, allocates none).
+REFUSED, NEED_OUT = -2, -3
 
 
 @jit_lanes
@@ -49,9 +51,9 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
         The step's observers (one per link, any order).
     P : ndarray, shape (B, 3, 3)
         The covariances before the stage.
-    out : ndarray, shape (B, 3, 3)
+    out : ndarray, shape (B, 3, 3) or (0, 3, 3)
         Receives ``P`` with every raised robot's block times its factor (written only when
-        one is raised).
+        one is raised; too small then: :data:`NEED_OUT`).
     share, std : float
         ``lockout_share``, ``lockout_floor_std``.
 
@@ -59,7 +61,7 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
     -------
     int
         The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
-        unchanged otherwise), or :data:`REFUSED` (nothing written).
+        unchanged otherwise), :data:`REFUSED` or :data:`NEED_OUT` (nothing written).
     """
     observer, slot, ok = stored_slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
     if not ok:
@@ -71,6 +73,8 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
             factor[r] = floor_factor(P, r, std)
             if factor[r] > 1.0:
                 raised += 1
+    if raised and out.shape[0] != P.shape[0]:
+        return NEED_OUT
     for r in range(n):
         if observer[r]:
             svals[slot[r], 1] = factor[r]
@@ -125,6 +129,9 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
     return recorded
 
 
+_NO_OUT = np.zeros((0, 3, 3))
+
+
 def fast_floor(params, state, links, P: np.ndarray) -> np.ndarray | None:
     """:func:`~resloc.cl.detection_lockout.lockout_floor` by :func:`floor_pass` on the
     stage's store ``state`` (the stage on): the covariances, or None with the numpy
@@ -136,9 +143,12 @@ def fast_floor(params, state, links, P: np.ndarray) -> np.ndarray | None:
     if state.values.ndim != 2 or Pa.ndim != 3 or Pa.shape[1:] != (3, 3) or li.ndim != 1:
         LOCKOUT_RUNS["fallbacks"] += 1
         return None
-    out = np.empty_like(Pa)
     share, std, _, _ = _constants(params)
+    out = _NO_OUT
     status = floor_pass(state.keys, state.values, state.n_nodes, li, Pa, out, share, std)
+    if status == NEED_OUT:
+        out = np.empty_like(Pa)
+        status = floor_pass(state.keys, state.values, state.n_nodes, li, Pa, out, share, std)
     if status == REFUSED:
         LOCKOUT_RUNS["fallbacks"] += 1
         return None

@@ -36,7 +36,7 @@ from resloc.cl.kernels_witness import group_statistics
 from resloc.cl.kernels_witness_frames import copy_note
 from resloc.cl.params import CLParams, at_robots
 
-__all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass"]
+__all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass", "widened_covariances"]
 
 #: How often the compiled pass ran, fell back to the spec, and how many judged robots' sets
 #: of notes it enumerated in full, without the early stop (the tests read it).
@@ -67,11 +67,31 @@ def _sorted_median(buf, c):
 
 @jit_lanes
 def outvoted_pass(
-    pkeys, pvals, n, li, lj, ok, skeys, svals, P, f_at, half_h_at, k, h, gates, cap, max_std
+    pkeys,
+    pvals,
+    n,
+    li,
+    lj,
+    ok,
+    skeys,
+    svals,
+    P,
+    f_at,
+    half_h_at,
+    k,
+    h,
+    gates,
+    cap,
+    max_std,
+    robots,
+    values,
 ):
     """Every receiver's sequence test and widening factor after the pending notes on it;
     the store written in place and the widened covariances made when it can (``written``,
-    ``widened``: the steady state's whole step in one call, no numpy glue after it).
+    ``widened``: the steady state's whole step in one call, no numpy glue after it). Its
+    arrays are written into the last two (a returned array costs numba's boxing); the
+    widened covariances are :func:`widened_covariances`' (a step that widens none, the
+    usual one, allocates none).
 
     Parameters
     ----------
@@ -92,13 +112,16 @@ def outvoted_pass(
         ``witness_k``, ``witness_h``, ``outvoted_cap``, ``outvoted_max_std``.
     gates : ndarray, shape (M,)
         ``gates[c]``: the consistency gate of ``c`` notes.
+    robots : ndarray of int, shape (n,)
+        Receives the receivers (ascending) in its first ``G`` entries.
+    values : ndarray, shape (n, 2)
+        Receives their new ``S`` and factor (1: none), the store's rows, in its first
+        ``G`` rows.
 
     Returns
     -------
-    robots : ndarray of int, shape (G,)
-        The receivers (ascending).
-    values : ndarray, shape (G, 2)
-        Their new ``S`` and factor (1: none), the store's rows.
+    G : int
+        The number of receivers.
     status : int
         :data:`DONE`, :data:`REFUSED` or ``-c`` (module docstring).
     enumerated : int
@@ -108,16 +131,11 @@ def outvoted_pass(
         written into ``svals`` at their rows (else the caller sets them: the store inserts).
     widened : int
         Receivers whose factor is above 1 (:data:`DONE`).
-    out : ndarray, shape (B, 3, 3) or (0, 3, 3)
-        ``P`` with every widened receiver's block times its factor (the spec's
-        :func:`~resloc.cl.detection_widening.scale_robots`) when ``widened``, else empty.
     """
     E = li.shape[0]
-    empty = np.empty(0, np.int64)
-    none = np.empty((0, 3, 3))
     for e in range(E):  # ids the spec would index with (or fail on): the spec decides
         if li[e] < 0 or lj[e] < 0 or li[e] >= n or lj[e] >= n or li[e] >= P.shape[0]:
-            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
+            return 0, REFUSED, 0, False, 0
     # the receivers (ascending) and each one's senders whose frame got through
     is_recv = np.zeros(n, np.bool_)
     rfirst = np.zeros(n + 1, np.int64)
@@ -137,7 +155,6 @@ def outvoted_pass(
     for r in range(n):
         if is_recv[r]:
             G += 1
-    robots = np.empty(G, np.int64)
     G = 0
     for r in range(n):
         if is_recv[r]:
@@ -152,7 +169,7 @@ def outvoted_pass(
     for p in range(Np):
         key = pkeys[p]
         if key < 0 or key >= n * n or key < o * n:  # (keys out of range or unsorted)
-            return empty, np.zeros((0, 2)), REFUSED, 0, False, 0, none
+            return 0, REFUSED, 0, False, 0
         while key >= (o + 1) * n:
             o += 1
         p_obs[p] = o
@@ -186,10 +203,9 @@ def outvoted_pass(
                 M += 1
         gcount[g] = M - gstart[g]
         largest = max(largest, gcount[g])
-    values = np.zeros((G, 2))
     slot = np.full(G, -1, np.int64)
     if largest >= gates.shape[0]:
-        return robots, values, -largest, 0, False, 0, none
+        return G, -largest, 0, False, 0
     # the stored S and factor (0 for a robot never stored), and where to stop enumerating
     ns = skeys.shape[0]
     S0 = np.zeros(G)
@@ -244,7 +260,7 @@ def outvoted_pass(
         a, b, d = P[r, 0, 0], 0.5 * (P[r, 0, 1] + P[r, 1, 0]), P[r, 1, 1]
         det = a * d - b * b
         if not (a > 0.0 and det > 0.0 and P[r, 0, 1] == P[r, 1, 0]):
-            return robots, values, REFUSED, enumerated, False, 0, none
+            return G, REFUSED, enumerated, False, 0
         # covariance matching, 2 dof: lambda = m^T P^-1 m / 2
         lam = (d * m0 * m0 - 2.0 * b * m0 * m1 + a * m1 * m1) / det / 2.0
         if not math.isnan(lam):
@@ -264,8 +280,14 @@ def outvoted_pass(
     for g in range(G if written else 0):
         svals[slot[g], 0] = values[g, 0]
         svals[slot[g], 1] = values[g, 1]
-    if not widened:
-        return robots, values, DONE, enumerated, written, 0, none
+    return G, DONE, enumerated, written, widened
+
+
+@jit_lanes
+def widened_covariances(P, robots, values, G):
+    """``P (B, 3, 3)`` with every receiver ``robots[g]`` (``g < G``) whose factor
+    ``values[g, 1]`` is above 1 times it (the spec's
+    :func:`~resloc.cl.detection_widening.scale_robots`): a new array."""
     out = P.copy()
     for g in range(G):
         lam = values[g, 1]
@@ -273,7 +295,7 @@ def outvoted_pass(
             for a in range(3):
                 for b in range(3):
                     out[robots[g], a, b] *= lam
-    return robots, values, DONE, enumerated, written, widened, out
+    return out
 
 
 class _Options(NamedTuple):
@@ -326,7 +348,8 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     """:func:`~resloc.cl.detection_outvoted.widen_outvoted` by :func:`outvoted_pass` (the
     stage on, a memory given); None with the numpy backend, arrays it does not take, or
     what the compiled pass refuses (then the spec runs). In a run's steady state the pass
-    writes the store and widens the covariances itself: the glue only checks and calls."""
+    writes the store itself, and a step that widens a robot calls
+    :func:`widened_covariances`: the glue only checks and calls."""
     if backend() != "numba":
         return None
     state = memory.stage_statistic(OUTVOTED_STATE, width=2)
@@ -361,11 +384,14 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
         opt.k,
         opt.h,
     )
+    # the pass's arrays (allocated here: numba boxes a returned array at ~0.3 us)
+    robots = np.empty(n, np.int64)
+    values = np.empty((n, 2))
     largest = 16
     while True:
         gates = opt.gates if largest == 16 else consistency_gates(opt.p_fa, largest)
-        robots, values, status, enumerated, written, widened, out = outvoted_pass(
-            *args, gates, opt.cap, opt.max_std
+        G, status, enumerated, written, widened = outvoted_pass(
+            *args, gates, opt.cap, opt.max_std, robots, values
         )
         if status >= 0:
             break
@@ -374,7 +400,7 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
         OUTVOTED_RUNS["fallbacks"] += 1
         return None
     if not (written and in_place):  # (a receiver not stored yet: the store inserts)
-        state.set(robots, robots, values)
+        state.set(robots[:G], robots[:G], values[:G])
     OUTVOTED_RUNS["passes"] += 1
     OUTVOTED_RUNS["enumerated"] += enumerated
-    return out if widened else P
+    return widened_covariances(Pa, robots, values, G) if widened else P

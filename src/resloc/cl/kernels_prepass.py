@@ -16,8 +16,9 @@ packed once per ``params`` (:func:`_options`), and :func:`prepass` is its glue (
 slots and ``undo`` records, as each stage's own dispatch keeps them). The kernels and their
 order are the stages' own, so the values are the same bits as the stage-by-stage path's
 (``resloc.cl.kernels.fast_correct`` takes that path where this one does not apply: an
-adversary's tamper hook, partners' readings the batch carries, the witness stage between
-the claims and the readings, cached neighbour estimates).
+adversary's tamper hook, partners' readings the batch carries, cached neighbour estimates;
+the witness stage runs before it: without a hook its verdict reads nothing the call
+changes).
 
 =============================  ==========================================================
 kernel function                numpy twin
@@ -288,12 +289,11 @@ def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> 
 
 def applies(params: CLParams, links, cached: bool) -> bool:
     """Whether :func:`prepass` runs the step's passes (else the stages' own dispatch):
-    the redundancy stage on, the witness stage off (its readings come between the claims
-    and the partners'), no tamper hook, no partners' readings carried by the batch, the
-    transmitted neighbour estimates."""
+    the redundancy stage on, no tamper hook (with one, the witness stage's readings as
+    reported come between the claims and the partners'), no partners' readings carried by
+    the batch, the transmitted neighbour estimates."""
     return bool(
         params.redundancy
-        and not params.witness
         and links.tamper is None
         and links.z_reciprocal is None
         and not cached

@@ -33,7 +33,12 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import WITNESS_RUNS, set_moments, terms_statistic
+from resloc.cl.kernels_witness import (
+    SET_CHUNK,
+    WITNESS_RUNS,
+    set_moments,
+    terms_statistic,
+)
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 
@@ -329,6 +334,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
         terms = np.empty((widest_set, 6))
         idx = np.zeros(max(f_at.max(), 1) + 1, np.int64)
         kept = np.zeros(6)
+        drop = np.empty((7, SET_CHUNK))
         tot = np.zeros(6)
         for a in range(D):
             if not wanted[a]:
@@ -359,7 +365,7 @@ def delivered_pass(pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at,
             P01 = 0.5 * (pvals[big, 7] + pvals[big, 8])
             Tn[a] = terms_statistic(
                 terms, tot, m, tame, pvals[big, 6], P01, pvals[big, 9], f_at[j],
-                0.5 * h_at[j], gates, stop[a], idx, kept,
+                0.5 * h_at[j], gates, stop[a], idx, kept, drop,
             )  # fmt: skip
     # the new store: each group's CUSUM, the silent pairs' decay (keys ascending)
     keys = np.empty(NN, np.int64)

@@ -73,8 +73,13 @@ def witness_pass(
     discs,
     zoned,
     record,
+    keys,
+    values,
+    discard,
+    pending,
 ):
-    """The witness stage's whole step.
+    """The witness stage's whole step (its arrays written into the last four: a returned
+    array costs numba's boxing, ~0.5 us each a call).
 
     Parameters
     ----------
@@ -95,23 +100,39 @@ def witness_pass(
     record : bool
         Compute the step's notes and record them (False: an adversary's hook changes
         them first; the caller computes and records them by the spec's functions).
+    keys, values : ndarray, shapes (n * n,), (n * n,)
+        Receive the delivered store (``delivered_pass``) in their first ``K`` entries.
+    discard : ndarray of bool, shape (E,)
+        Receives ``S_{i,j} > h_j`` after the delivery (``WitnessCheck.discard``).
+    pending : ndarray, shape (P, 11)
+        Receives the pending values with the step's sent notes (``step_notes``) recorded
+        (``reference_record``), valid when ``recorded`` (``record`` False: not written,
+        may be empty).
 
     Returns
     -------
     status : int
-        :data:`DONE`, :data:`BAD_IDS` (nothing computed) or :data:`SHORT_GATES`.
-    keys, values, need
-        The delivered store and the sets enumerated (``delivered_pass``).
-    discard : ndarray of bool, shape (E,)
-        ``S_{i,j} > h_j`` after the delivery (``WitnessCheck.discard``).
-    pending : ndarray, shape (P, 11)
-        The pending values with the step's sent notes (``step_notes``) recorded
-        (``reference_record``), valid when ``recorded``.
+        :data:`DONE`, :data:`BAD_IDS` (shapes that do not fit or ids beyond the memory's or
+        the estimates': nothing computed) or :data:`SHORT_GATES`.
+    K : int
+        The delivered store's size (:data:`DONE`).
+    need : int
+        The sets enumerated (``delivered_pass``).
     recorded : bool
         ``record`` and every sent link was in the pending store (else the caller records
         by the spec, which inserts).
     """
     E = li.shape[0]
+    # (the shapes, checked here: a comparison in Python costs ~60 ns)
+    bad = lj.shape[0] != E or ok.shape[0] != E or z.shape[0] != E or z.shape[1] != 2
+    bad = bad or x_nb.shape[0] != E or x_nb.shape[1] != 3 or x.shape[1] != 3
+    bad = bad or P.shape[1] != 3 or P.shape[2] != 3 or claims.shape[1] != 3
+    bad = bad or claims.shape[2] != 3 or pvals.shape[0] != pkeys.shape[0]
+    bad = bad or pvals.shape[1] != PENDING_WIDTH or svals.shape[0] != skeys.shape[0]
+    bad = bad or (record and pending.shape[0] != pvals.shape[0])
+    bad = bad or keys.shape[0] < n * n or values.shape[0] < n * n or discard.shape[0] != E
+    if bad:
+        return BAD_IDS, 0, 0, False
     bad = n > x.shape[0] or n > P.shape[0]
     by_row = crows.shape[0] > 0
     bad = bad or (crows.shape[0] != E if by_row else claims.shape[0] != E)
@@ -119,19 +140,21 @@ def witness_pass(
         bad = bad or li[e] < 0 or li[e] >= n or lj[e] < 0 or lj[e] >= n
         if by_row and not bad:
             bad = crows[e] < 0 or crows[e] >= claims.shape[0]
-    discard = np.zeros(E, np.bool_)
     if bad:
-        return BAD_IDS, np.empty(0, np.int64), np.empty(0), 0, discard, pvals, False
+        return BAD_IDS, 0, 0, False
     on_ok = np.ones(n, np.bool_)
-    keys, values, need, S = delivered_pass(
+    new_keys, new_values, need, S = delivered_pass(
         pkeys, pvals, n, li, lj, ok, skeys, svals, on_ok, f_at, k_at, h_at, gates
     )
     if need < 0:
-        return SHORT_GATES, keys, values, need, discard, pvals, False
+        return SHORT_GATES, 0, need, False
+    K = new_keys.shape[0]
+    keys[:K] = new_keys
+    values[:K] = new_values
     for e in range(E):
         discard[e] = S[li[e] * n + lj[e]] > h_at[lj[e]]
     if not record:
-        return DONE, keys, values, need, discard, pvals, False
+        return DONE, K, need, False
     # the step's notes, recorded into a copy of the pending values (the memory is put
     # right after the loop); per observer, not per link: the reading's lengthening
     # (note_at), inside the map
@@ -142,7 +165,7 @@ def witness_pass(
         for d in range(discs.shape[0] if zoned else 0):  # (inside_zone_map)
             gap = math.hypot(x[r, 0] - discs[d, 0], x[r, 1] - discs[d, 1]) - discs[d, 2]
             inside[r] = inside[r] or gap <= 0.0
-    pending = pvals.copy()
+    pending[:] = pvals
     slot = np.full(n * n, -1, np.int64)  # each stored link's row (a search per link costs)
     for p in range(pkeys.shape[0]):
         pending[p, 10] = 0.0
@@ -159,7 +182,7 @@ def witness_pass(
             continue  # (not sent: no number)
         p = slot[r * n + lj[e]]
         if p < 0:  # a link not stored yet: the spec records (it inserts)
-            return DONE, keys, values, need, discard, pvals, False
+            return DONE, K, need, False
         pending[p, 0] = u[0, 0]
         pending[p, 1] = u[0, 1]
         pending[p, 2] = Q[0, 0, 0]
@@ -172,10 +195,14 @@ def witness_pass(
         pending[p, 8] = claims[c, 1, 0]
         pending[p, 9] = claims[c, 1, 1]
         pending[p, 10] = 1.0
-    return DONE, keys, values, need, discard, pending, True
+    return DONE, K, need, True
 
 
 _NO_ROWS = np.zeros(0, np.int64)
+_NO_PENDING = np.zeros((0, PENDING_WIDTH))
+#: The arrays' dimensions the pass takes (``li .. crows``), and the stores' dtypes.
+_DIMS = (1, 1, 1, 2, 2, 3, 2, 1)
+_INT, _FLOAT = np.dtype(np.int64), np.dtype(np.float64)
 
 #: The constants of the last ``params`` object: (weak reference, n, constants).
 _CONSTANTS: list = [None, -1, None]
@@ -218,70 +245,47 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
     n = stat.n_nodes
     li = np.ascontiguousarray(links.i, np.int64)
-    E = len(li)
-    arrays = (
-        np.ascontiguousarray(links.j, np.int64),
-        np.ascontiguousarray(links.channel_ok, np.bool_),
-        np.ascontiguousarray(links.z, float),
-        np.ascontiguousarray(x, float),
-        np.ascontiguousarray(P, float),
-        np.ascontiguousarray(links.x_nb, float),
-        _NO_ROWS if inputs.rows is None else np.ascontiguousarray(inputs.rows, np.int64),
-        np.ascontiguousarray(inputs.claims, float),
-    )
-    lj, ok, z, xc, Pc, x_nb, crows, claims = arrays
-    if lj.shape != (E,) or ok.shape != (E,) or z.shape != (E, 2):
-        return None
-    if xc.ndim != 2 or xc.shape[1:] != (3,) or Pc.ndim != 3 or Pc.shape[1:] != (3, 3):
-        return None
-    if x_nb.shape != (E, 3) or claims.ndim != 3 or claims.shape[1:] != (3, 3):
-        return None
-    if crows.ndim != 1:
-        return None
+    lj = np.ascontiguousarray(links.j, np.int64)
+    ok = np.ascontiguousarray(links.channel_ok, np.bool_)
+    z = np.ascontiguousarray(links.z, float)
+    xc = np.ascontiguousarray(x, float)
+    Pc = np.ascontiguousarray(P, float)
+    nb_rows, x_sent, _ = links.neighbour_rows()  # (links.x_nb would gather them for good:
+    # the loop then reads every neighbour per link instead of by index)
+    x_nb = np.ascontiguousarray(x_sent if nb_rows is None else x_sent[nb_rows], float)
+    crows = _NO_ROWS if inputs.rows is None else np.ascontiguousarray(inputs.rows, np.int64)
+    claims = np.ascontiguousarray(inputs.claims, float)
     # (the stores' arrays as LinkStatistic and the pass make them: int64 keys, float64
-    # values, contiguous; checked, not converted)
+    # values; checked, not converted; the shapes are checked by the pass)
     pkeys, pvals, skeys, svals = pending.keys, pending.values, stat.keys, stat.values
-    if pvals.shape != (len(pkeys), PENDING_WIDTH) or svals.shape != skeys.shape:
+    dims = (li.ndim, lj.ndim, ok.ndim, z.ndim, xc.ndim, Pc.ndim, x_nb.ndim, crows.ndim)
+    if dims != _DIMS or claims.ndim != 3 or pvals.ndim != 2 or svals.ndim != 1:
         return None
-    if pkeys.dtype != np.int64 or skeys.dtype != np.int64:
+    if pkeys.dtype != _INT or skeys.dtype != _INT:
         return None
-    if pvals.dtype != np.float64 or svals.dtype != np.float64:
+    if pvals.dtype != _FLOAT or svals.dtype != _FLOAT:
         return None
+    E = len(li)
     largest = 0
     record = inputs.lie_notes is None
+    # the pass's arrays (allocated here: numba boxes a returned array at ~0.5 us)
+    keys = np.empty(n * n, np.int64)
+    values = np.empty(n * n)
+    discard = np.empty(E, np.bool_)
+    after = np.empty(pvals.shape) if record else _NO_PENDING
     while True:
         f_at, k_at, h_at, gates, R, discs, zoned = _constants(params, n, largest)
-        status, keys, values, need, discard, after, recorded = witness_pass(
-            pkeys,
-            pvals,
-            n,
-            li,
-            lj,
-            ok,
-            skeys,
-            svals,
-            f_at,
-            k_at,
-            h_at,
-            gates,
-            z,
-            xc,
-            Pc,
-            x_nb,
-            crows,
-            claims,
-            R,
-            discs,
-            zoned,
-            record,
-        )
+        status, K, need, recorded = witness_pass(
+            pkeys, pvals, n, li, lj, ok, skeys, svals, f_at, k_at, h_at, gates, z, xc, Pc,
+            x_nb, crows, claims, R, discs, zoned, record, keys, values, discard, after,
+        )  # fmt: skip
         if status != SHORT_GATES:
             break
         largest = -need
     if status != DONE:
         return None
     store = LinkStatistic(n)
-    store.keys, store.values = keys, values
+    store.keys, store.values = keys[:K], values[:K]
     runs = WITNESS_RUNS
     runs["verdicts"] += 1
     runs["delivered"] += 1
