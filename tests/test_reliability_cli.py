@@ -445,3 +445,79 @@ def test_an_estimate_worse_than_dead_reckoning_is_warned(tmp_path):
     res = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "b"), "--no-plots"])
     assert res.exit_code == 0, res.output
     assert not any("above dead reckoning" in ln for ln in _err_lines(res)), res.output
+
+
+def test_a_signal_during_a_held_block_is_raised_when_it_ends():
+    from resloc.signals import held, raising_handler
+
+    class StopError(Exception):
+        pass
+
+    previous = signal.signal(signal.SIGUSR1, raising_handler(lambda signum: StopError()))
+    reached = []
+    try:
+        with pytest.raises(StopError):
+            with held():
+                with held():  # nested: raised when the outermost ends
+                    os.kill(os.getpid(), signal.SIGUSR1)
+                    time.sleep(0.05)
+                reached.append("inner")
+                time.sleep(0.05)
+                reached.append("outer")
+        # Nothing left pending: a later block ends quietly.
+        with held():
+            reached.append("later")
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert reached == ["inner", "outer", "later"]
+
+
+def test_a_signal_inside_the_recordings_zip_write_leaves_a_whole_file_and_no_traceback(
+    tmp_path, monkeypatch
+):
+    """A signal in numpy's zip member ``close`` left a ZipFile with an open write handle
+    whose ``__del__`` printed a traceback (Ctrl-C during ``resloc run``): the save holds it
+    until the file is whole, then raises it."""
+    import gc
+    import zipfile
+
+    import numpy as np
+
+    from resloc.experiments.recording import Recording
+    from resloc.signals import raising_handler
+
+    class StopError(Exception):
+        pass
+
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    close = zipfile._ZipWriteFile.close
+
+    def signalled_close(self):
+        os.kill(os.getpid(), signal.SIGUSR1)
+        for _ in range(1000):  # bytecodes during which the signal is handled
+            pass
+        close(self)
+
+    monkeypatch.setattr(zipfile._ZipWriteFile, "close", signalled_close)
+    rec = Recording(
+        name="k",
+        source="run",
+        t0=0.0,
+        time=np.arange(3.0),
+        robots=["robot1", "robot2"],
+        truth=np.zeros((3, 2, 3)),
+        valid=np.ones((3, 2), bool),
+        estimates={"ckf": np.ones((3, 2, 3))},
+    )
+    previous = signal.signal(signal.SIGUSR1, raising_handler(lambda signum: StopError()))
+    try:
+        with pytest.raises(StopError):
+            rec.save(tmp_path / "r.npz")
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        monkeypatch.setattr(zipfile._ZipWriteFile, "close", close)
+    gc.collect()
+    assert unraisable == []
+    back = Recording.load(tmp_path / "r.npz")
+    assert np.array_equal(back.estimates["ckf"], rec.estimates["ckf"])

@@ -13,20 +13,48 @@ calls one while it writes its cache, so a SIGTERM during the first compilation w
 as "Exception ignored on calling ctypes callback function" and lost). There the frame does
 not say so; the exception reaches :data:`sys.unraisablehook`, which these handlers wrap
 to re-deliver their own signals instead of printing them.
+
+A third place is a write that a library cannot leave cleanly: numpy's ``savez`` interrupted
+inside its zip member's ``close`` leaves the ``ZipFile`` with an open write handle, whose
+``__del__`` prints a traceback when the exception frees it (measured: Ctrl-C during ``resloc
+run``'s recording, the run itself stopping cleanly). :func:`held` keeps these handlers'
+signals pending over such a block and raises them when it ends.
 """
 
 from __future__ import annotations
 
 import _thread
 import os
+import signal
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
-__all__ = ["raising_handler"]
+__all__ = ["held", "raising_handler"]
 
 _FINALIZER_FILES = ("weakref.py", "_weakrefset.py")
 #: Marks an exception raised by one of these handlers with its signal number.
 _SIGNAL_ATTRIBUTE = "resloc_signal"
+
+
+#: Open :func:`held` blocks, and the signals that arrived during them (in order).
+_HOLD = {"depth": 0, "pending": []}
+
+
+@contextmanager
+def held() -> Iterator[None]:
+    """Run the block with the signals of :func:`raising_handler` handlers held: one that
+    arrives meanwhile is raised when the outermost block ends (its exception then, not
+    inside the block). For short writes only: a held Ctrl-C waits for the block."""
+    _HOLD["depth"] += 1
+    try:
+        yield
+    finally:
+        _HOLD["depth"] -= 1
+        if _HOLD["depth"] == 0 and _HOLD["pending"]:
+            signum = _HOLD["pending"][0]
+            _HOLD["pending"].clear()
+            signal.raise_signal(signum)
 
 
 def _in_finalizer(frame) -> bool:
@@ -62,6 +90,9 @@ def raising_handler(make_exception: Callable[[int], BaseException]):
         sys.unraisablehook = _redelivering_hook(sys.unraisablehook)
 
     def handler(signum, frame):
+        if _HOLD["depth"]:
+            _HOLD["pending"].append(signum)
+            return
         if _in_finalizer(frame):
             _redeliver(signum)
             return

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from resloc.errors import DataError
+from resloc.signals import held
 
 __all__ = [
     "LINK_FLAGS",
@@ -200,7 +201,8 @@ class Recording:
             for name, flags in self.outcomes.items():
                 arrays[f"outcome__{name}"] = pack_outcomes(*(flags[k] for k in LINK_FLAGS))
         path = Path(path)
-        np.savez_compressed(path, **arrays)
+        with held():  # an interrupted savez leaves a ZipFile that prints a traceback
+            np.savez_compressed(path, **arrays)
         return path
 
     @classmethod

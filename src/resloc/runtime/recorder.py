@@ -44,6 +44,7 @@ from resloc.runtime.messages import (
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
 from resloc.runtime.team import team_setup
+from resloc.signals import held
 
 __all__ = ["Recording", "run_recorder"]
 
@@ -335,7 +336,8 @@ class Recording:
             if final:
                 summary["msle_mean_lockstep"] = self.lockstep_msle()
             write_json(tmp / "runtime.json", summary)
-            np.savez_compressed(tmp / "estimates.npz", x=X, P=P, truth=truth, fed=fed)
+            with held():  # an interrupted savez leaves a ZipFile that prints a traceback
+                np.savez_compressed(tmp / "estimates.npz", x=X, P=P, truth=truth, fed=fed)
             self._write_wire(tmp / "wire.csv", self.steps_done * self.team.dt)
             err = np.hypot(*(X[:, :, :2] - truth[:, :, :2]).transpose(2, 0, 1))
             with (tmp / "robot_errors.csv").open("w", newline="", encoding="utf-8") as fh:
