@@ -358,3 +358,42 @@ def test_a_step_builds_its_maps_where_first_read() -> None:
     np.testing.assert_allclose(joint.sigma, 0.5 * (dense + np.swapaxes(dense, -1, -2)), atol=1e-12)
     np.testing.assert_array_equal(joint.M, expected)  # the next step's start
     np.testing.assert_array_equal(joint.noise, np.zeros((8, 3, 3)))
+
+
+def test_compiled_prediction_takes_each_robots_odometry_noise() -> None:
+    """Per-robot odometry standard deviations ``(B, 2)`` (checked once per ``params``, not
+    per step): the compiled prediction is the reference's to 1e-12; with another number of
+    robots' deviations, or a floor of another shape, it refuses (None: the reference runs)
+    and leaves the joint as it was."""
+    import dataclasses
+
+    from resloc.cl.kernels_fusion_step import compiled_tracked_predict
+    from resloc.models.motion import process_noise
+
+    teams, robots = 2, 5
+    B = teams * robots
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(B, 3))
+    u = np.column_stack([rng.uniform(0.1, 1.0, B), rng.normal(0.0, 0.3, B)])
+    dt = 0.1
+    base = default_scenario().cl_params()
+    odometry = rng.uniform(0.01, 0.2, size=(B, 2))
+    params = dataclasses.replace(base, odometry_std=odometry)
+    joint = _random_joint(teams, robots, seed=7)
+    reference = copy.deepcopy(joint)
+    Q = process_noise(x, dt, odometry, np.asarray(params.process_floor_std))
+    expected = reference.predict(x, u, dt, Q)
+    with kernels.use_backend("numba"):
+        out = compiled_tracked_predict(joint, x, u, dt, params)
+    assert out is not None
+    np.testing.assert_allclose(joint.sigma, reference.sigma, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-12)
+    for wrong in (
+        dataclasses.replace(base, odometry_std=odometry[:-1]),  # B - 1 robots' deviations
+        dataclasses.replace(base, odometry_std=odometry[:, :1]),
+        dataclasses.replace(base, process_floor_std=np.ones(2)),
+    ):
+        held = joint.sigma
+        with kernels.use_backend("numba"):
+            assert compiled_tracked_predict(joint, x, u, dt, wrong) is None
+        assert joint.sigma is held

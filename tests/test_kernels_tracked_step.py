@@ -8,7 +8,6 @@ then installed by the compiled finish)."""
 from __future__ import annotations
 
 import copy
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -18,6 +17,18 @@ from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import default_scenario
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
+
+
+def _kernel_joint(A, Bij, nbr, noise, rows, robots: int):
+    """The records as the kernel's ``KernelJoint`` holds them (what the commit takes)."""
+    from resloc.cl.kernels_joint import TRACKED, KernelJoint
+
+    empty = np.zeros((0, 3, 3))
+    return KernelJoint(
+        TRACKED, robots, nbr, np.zeros((0, 0, 0)), noise, A, Bij, empty[None], empty[None],
+        empty[None], np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)), np.zeros((2, 6, 6)),
+        empty, rows,
+    )  # fmt: skip
 
 
 def _records(teams: int, robots: int, seed: int):
@@ -81,7 +92,7 @@ def test_commit_computes_the_reference_end_of_step(teams: int, robots: int) -> N
     reference = copy.deepcopy(joint)
     reference.M, reference.noise = M.copy(), noise.copy()
     expected = reference.finish()
-    state = SimpleNamespace(A=A, Bij=Bij, nbr=nbr, noise=noise, rows=rows, N=robots)
+    state = _kernel_joint(A, Bij, nbr, noise, rows, robots)
     commit_tracked(state, joint, obs, fused)
     assert joint.end_of_step is not None  # computed from the blocks
     assert joint.updates == int(fused.sum())
@@ -111,7 +122,7 @@ def test_non_finite_rows_leave_the_end_of_step_to_the_dense_path() -> None:
         reference = copy.deepcopy(joint)
         reference.M, reference.noise = M.copy(), noise.copy()
         reference.finish()
-    state = SimpleNamespace(A=A, Bij=Bij, nbr=nbr, noise=noise, rows=rows, N=6)
+    state = _kernel_joint(A, Bij, nbr, noise, rows, 6)
     commit_tracked(state, joint, obs, fused)
     assert joint.end_of_step is None
     assert joint.updates == int(fused.sum())
@@ -136,9 +147,7 @@ def test_a_reference_update_after_the_commit_drops_its_end_of_step() -> None:
     rows = (M.reshape(1, 15, 15) @ joint.sigma).reshape(-1, 3, 15)
     reference = copy.deepcopy(joint)
     reference.M, reference.noise, reference.updates = M.copy(), noise.copy(), 1
-    commit_tracked(
-        SimpleNamespace(A=A, Bij=Bij, nbr=nbr, noise=noise, rows=rows, N=5), joint, obs, fused
-    )
+    commit_tracked(_kernel_joint(A, Bij, nbr, noise, rows, 5), joint, obs, fused)
     m = Moments(np.zeros((1, 2)), np.eye(2)[None], 0.1 * np.ones((1, 3, 2)))
     x_i, x_j, R = np.array([[0.0, 0.0, 0.1]]), np.array([[1.0, 0.5, 0.0]]), 0.01 * np.eye(2)
     for target in (joint, reference):

@@ -37,7 +37,7 @@ from resloc.cl.kernels_factorized_step import (  # (the strategies find them her
 from resloc.cl.kernels_math import jit, jit_inline, per_params, stamp_with_pieces
 from resloc.cl.kernels_predict import odometry_process_noise
 from resloc.cl.kernels_split import sandwich3
-from resloc.cl.kernels_tracked_step import installed_end_of_step, keep_spare_rows
+from resloc.cl.kernels_tracked_step import installed_end_of_step
 from resloc.cl.tracking import JointCovariance
 
 __all__ = [
@@ -77,24 +77,42 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
     ``u: (B, 2)``), the step's bookkeeping started; returns the diagonal blocks (B, 3, 3)."""
     if backend() != "numba" or not isinstance(joint, JointCovariance):
         return None
-    B = joint.T * joint.N
-    odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
-    if odometry_shape not in ((2,), (B, 2)) or floor_shape != (3,):
+    checked = _prediction_inputs(params)
+    if checked is None:
         return None
+    odometry_var, floor_var, batch = checked
     x, u = c_float(x), c_float(u)  # (the run's arrays themselves: no copy, no np.shape)
-    if x.shape != (B, 3) or u.shape != (B, 2):
+    B = joint.T * joint.N
+    if x.shape != (B, 3) or u.shape != (B, 2) or (batch is not None and batch != B):
         return None
+    n3 = 3 * joint.N
     before = c_float(joint.sigma)
     sigma = np.empty_like(before)  # (written by the first pass: no copy of the joint first)
-    spare = np.empty_like(before)
+    spare = np.empty((B, 3, n3))  # (the rows' shape the correction takes: no reshape there)
     diagonal = np.empty((B, 3, 3))
     _propagate_joint(
         x, u, float(dt), odometry_var, floor_var, joint.N, before, sigma, diagonal, spare
     )
     joint.sigma = sigma
     joint._start_step()
-    keep_spare_rows(joint, sigma, spare)  # (the correction's rows of M Sigma: no copy there)
+    joint._spare_rows = (sigma, spare)  # (the correction's rows of M Sigma: take_spare_rows)
     return diagonal
+
+
+@per_params
+def _prediction_inputs(params):
+    """The odometry's and floor's variances of ``params`` as :func:`_propagate_joint` takes
+    them and the batch size they fit (None: any, for the run's one odometry standard
+    deviation; B for B robots' own), or None when their shapes are not the documented
+    ones: checked once for the run's one ``params``, not per step."""
+    odometry_shape, floor_shape, (odometry_var, floor_var) = _noise_variances(params)
+    if floor_shape != (3,):
+        return None
+    if odometry_shape == (2,):
+        return odometry_var, floor_var, None
+    if len(odometry_shape) == 2 and odometry_shape[1] == 2:
+        return odometry_var, floor_var, odometry_shape[0]
+    return None
 
 
 @jit

@@ -34,27 +34,23 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["commit_tracked", "installed_end_of_step", "keep_spare_rows", "take_spare_rows"]
-
-
-def keep_spare_rows(joint, sigma: np.ndarray, spare: np.ndarray) -> None:
-    """Keep ``spare``, a copy of the joint ``sigma`` (T, 3N, 3N) the compiled prediction
-    wrote while it had it in the cache, as the next correction's rows of ``M Sigma`` (``M =
-    I`` at a step's start): :func:`take_spare_rows` takes it instead of copying ``sigma``."""
-    joint._spare_rows = (sigma, spare)
+__all__ = ["commit_tracked", "installed_end_of_step", "take_spare_rows"]
 
 
 def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
     """Each robot's rows of ``sigma`` (B, 3, 3N), a copy the kernel may update in place: the
     prediction's spare when it is a copy of this very ``sigma`` (taken: used once), else
-    copied now."""
-    spare = getattr(joint, "_spare_rows", None)
-    B, n3 = sigma.shape[0] * sigma.shape[1] // 3, sigma.shape[1]
+    copied now. The compiled prediction keeps ``joint._spare_rows = (sigma, spare)``
+    (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_predict`: ``spare``, a copy of
+    the new joint ``sigma`` it wrote while it had it in the cache, in the rows' shape,
+    since ``M = I`` at a step's start)."""
+    spare = joint._spare_rows
     if spare is not None:
         joint._spare_rows = None
         if spare[0] is sigma:
-            return spare[1].reshape(B, 3, n3)
-    return sigma.reshape(B, 3, n3).copy()
+            return spare[1]
+    T, n3 = sigma.shape[0], sigma.shape[1]
+    return sigma.reshape(T * n3 // 3, 3, n3).copy()
 
 
 def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
@@ -64,15 +60,14 @@ def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
     :class:`~resloc.cl.tracking.JointCovariance` as the step began: checked by
     ``joint_state``) and compute its end of step from the blocks (kept in
     ``joint.end_of_step`` for the compiled finish; left None where a row is not finite)."""
-    joint.set_blocks(state.A, state.Bij, obs, state.nbr, fused)
-    joint.noise = state.noise
-    joint.m_sigma = state.rows  # M Sigma as the records kept it (the dense path's first product)
+    # (the fields unpacked at once: a NamedTuple's field by name is a property call)
+    _, N, nbr, _, noise, A, Bij, _, _, _, _, _, _, _, rows = state
+    joint.set_blocks(A, Bij, obs, nbr, fused)
+    joint.noise = noise
+    joint.m_sigma = rows  # M Sigma as the records kept it (the dense path's first product)
     sigma = np.empty(joint.sigma.shape)
-    diagonal = np.empty(state.A.shape)
-    count = _end_of_step(
-        state.rows, state.A, state.Bij, obs, state.nbr, fused, state.noise, state.N, sigma,
-        diagonal,
-    )  # fmt: skip
+    diagonal = np.empty(A.shape)
+    count = _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, sigma, diagonal)
     if count >= 0:
         joint.updates = count
         joint.end_of_step = (sigma, diagonal)

@@ -151,6 +151,11 @@ class JointCovariance:
         Team size N.
     """
 
+    #: ``(sigma, spare)``: a copy of the joint ``sigma`` the compiled prediction wrote, which
+    #: the next compiled correction takes as its rows of ``M Sigma``
+    #: (:func:`resloc.cl.kernels_tracked_step.take_spare_rows`).
+    _spare_rows: tuple[np.ndarray, np.ndarray] | None = None
+
     def __init__(self, P0: np.ndarray, robots: int) -> None:
         B = P0.shape[0]
         self.N = int(robots)
