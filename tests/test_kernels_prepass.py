@@ -247,3 +247,18 @@ def test_the_plain_detection_with_changes_is_the_replaced_one() -> None:
             assert a is b or (
                 isinstance(a, tuple) and all(x is y for x, y in zip(a, b, strict=True))
             )
+
+
+def test_a_finished_memory_is_not_kept_by_the_passes_outputs() -> None:
+    """The outputs and the stores' buffers are kept per memory from step to step, weakly:
+    a run's memory (and the arrays kept for it) goes when the run lets it go."""
+    import gc
+    import weakref
+
+    params, memory, _, inputs = _one_step("zone+full+redundancy+sequence+reciprocal")
+    assert _prepass(params, memory, inputs) is not None
+    assert memory in kernels_prepass._OUTPUTS and memory in kernels_prepass._BUFFERS
+    gone = weakref.ref(memory)
+    del memory
+    gc.collect()
+    assert gone() is None

@@ -34,6 +34,7 @@ redundancy stage: a run without it does not pay for it.
 
 from __future__ import annotations
 
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -218,8 +219,13 @@ _NO_SLOTS = np.zeros(0, np.int64)
 _NO_RECIPROCAL_STATE = np.zeros((0, STATE_WIDTH))
 _NO_DISCS = np.zeros((0, 3))
 _NO_GAIN = np.zeros(1)
-#: The key of :func:`prepass`'s outputs without a memory (no stage that keeps state).
-_NO_MEMORY = object()
+
+
+class _NoMemory:
+    """The key of :func:`prepass`'s outputs without a memory (no stage that keeps state)."""
+
+
+_NO_MEMORY = _NoMemory()
 
 
 @per_params
@@ -251,10 +257,11 @@ def _options(params: CLParams) -> tuple | None:
     return flags, gains, claim_discs, rec_discs, fix.sequence, reciprocal, zone, claims
 
 
-#: Per store (by id): ``(store, its keys, its values, the NIS CUSUM store's keys, the
-#: buffer its values are saved in, the last ``undo`` record or None)`` while the two
-#: stores hold the same keys.
-_BUFFERS: dict = {}
+#: Per memory, per store (by id): ``(the store, its keys, its values, the NIS CUSUM store's
+#: keys, the buffer its values are saved in, the last ``undo`` record or None)`` while the
+#: two stores hold the same keys (weak: a finished run's stores and buffers go with its
+#: memory; the stores do not refer to their memory).
+_BUFFERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> tuple:
@@ -267,13 +274,16 @@ def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> 
     if not detection.cusum:
         return store_slots(store, li, lj, saved), empty
     keys, values, other = store.keys, store.values, memory.cusum.keys
-    kept = _BUFFERS.get(id(store))
+    buffers = _BUFFERS.get(memory)
+    if buffers is None:
+        buffers = _BUFFERS[memory] = {}
+    kept = buffers.get(id(store))
     if kept is not None and kept[0] is store and kept[1] is keys and kept[2] is values:
         if kept[3] is other:  # the same arrays: the same keys, the same buffer
             slots, record = detection.cusum_slot, kept[5]
             if record is None or record[3] is not slots:  # (the record kept with its slots)
                 record = (store, keys, None, slots, kept[4])
-                _BUFFERS[id(store)] = (*kept[:5], record)
+                buffers[id(store)] = (*kept[:5], record)
             saved.append(record)
             return slots, kept[4]
     slots = shared_slots(store, memory.cusum, detection.cusum_slot, saved)
@@ -281,9 +291,7 @@ def _slots(store, memory, li, lj, detection, saved: list, empty: np.ndarray) -> 
         return store_slots(store, li, lj, saved), empty
     values = store.values  # (made contiguous by shared_slots)
     if values.dtype == np.float64 and values.shape[1:] == empty.shape[1:] and len(values):
-        if len(_BUFFERS) >= 64:  # (old stores: finished runs')
-            _BUFFERS.clear()
-        _BUFFERS[id(store)] = (store, keys, values, other, np.empty_like(values), None)
+        buffers[id(store)] = (store, keys, values, other, np.empty_like(values), None)
     return slots, empty
 
 
@@ -309,12 +317,11 @@ class _Outputs:
     read them within the step, the memory stores copies."""
 
     __slots__ = (
-        "E", "P_out", "discard", "discs", "fixes", "memory", "paired", "rows", "verdict",
-        "x_out", "z_rec", "zone",
+        "E", "P_out", "discard", "discs", "fixes", "paired", "rows", "verdict", "x_out",
+        "z_rec", "zone",
     )  # fmt: skip
 
-    def __init__(self, memory, E: int, D: int, discs) -> None:
-        self.memory = memory
+    def __init__(self, E: int, D: int, discs) -> None:
         self.E = E
         self.x_out = np.empty((E, D))
         self.P_out = np.empty((E, 3, 3))
@@ -340,17 +347,14 @@ class _Outputs:
         return PrepassVerdict(self.discard, DetectorState(None, records))
 
 
-#: Per memory (by id): its :class:`_Outputs`.
-_OUTPUTS: dict = {}
+#: Per memory: its :class:`_Outputs` (weak: a finished run's arrays go with its memory).
+_OUTPUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _outputs(memory, E: int, D: int, discs) -> _Outputs:
-    kept = _OUTPUTS.get(id(memory))
-    if kept is None or kept.memory is not memory or kept.E != E or kept.discs is not discs:
-        kept = _Outputs(memory, E, D, discs)
-        if len(_OUTPUTS) >= 64:  # (old memories: finished runs')
-            _OUTPUTS.clear()
-        _OUTPUTS[id(memory)] = kept
+    kept = _OUTPUTS.get(memory)
+    if kept is None or kept.E != E or kept.discs is not discs:
+        kept = _OUTPUTS[memory] = _Outputs(E, D, discs)
     elif kept.x_out.shape[1] != D:
         kept.x_out = np.empty((E, D))
     return kept
