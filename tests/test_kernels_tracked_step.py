@@ -8,6 +8,7 @@ then installed by the compiled finish)."""
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,12 +23,13 @@ pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not ins
 def _kernel_joint(A, Bij, nbr, noise, rows, robots: int):
     """The records as the kernel's ``KernelJoint`` holds them (what the commit takes)."""
     from resloc.cl.kernels_joint import TRACKED, KernelJoint
+    from resloc.cl.kernels_tracked_step import NOT_COMPUTED
 
     empty = np.zeros((0, 3, 3))
     return KernelJoint(
         TRACKED, robots, nbr, np.zeros((0, 0, 0)), noise, A, Bij, empty[None], empty[None],
         empty[None], np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)), np.zeros((2, 6, 6)),
-        empty, rows,
+        empty, rows, np.zeros((0, 0, 0)), empty, np.full(1, NOT_COMPUTED, np.int64),
     )  # fmt: skip
 
 
@@ -185,3 +187,70 @@ def test_the_prediction_leaves_the_corrections_rows() -> None:
         assert not np.shares_memory(state.rows, joint.sigma)
         again = joint_state(TRACKED, memory, i, j)  # (the spare is used once)
         assert not np.shares_memory(again.rows, state.rows)
+
+
+def test_later_gains_are_the_records_products() -> None:
+    """``apply_later_gains`` (the joints' rounds defer each record's left products of the
+    robot's earlier ``B_ij`` to the end of the step) equals the row-order records' products
+    one link at a time (``B_ir <- G_e B_ir`` for every earlier fused ``r`` of the robot) to
+    1e-12 relative: robots with zero, one and several fused links among unfused ones, most
+    ``B_ij`` with a zero third column (which stays exactly zero), some without."""
+    from resloc.cl.kernels_tracked_step import apply_later_gains
+
+    rng = np.random.default_rng(5)
+    obs = np.sort(rng.integers(0, 9, 80)).astype(np.int64)
+    fused = rng.random(80) < 0.6
+    fused[obs == 3] = False  # a robot with no fused link
+    Bij = rng.normal(size=(80, 3, 3))
+    zero = rng.random(80) < 0.8
+    Bij[zero, :, 2] = 0.0
+    gains = np.eye(3) + 0.4 * rng.normal(size=(80, 3, 3))
+    expected = Bij.copy()
+    for e in range(80):  # the row-order records: each gain on the robot's earlier fused B
+        if fused[e]:
+            for r in range(e):
+                if fused[r] and obs[r] == obs[e]:
+                    expected[r] = gains[e] @ expected[r]
+    assert (np.bincount(obs[fused]) > 2).any()
+    got = Bij.copy()
+    apply_later_gains(got, gains, obs, fused)
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(got[fused], expected[fused], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(got[~fused], Bij[~fused])  # unfused: not touched
+    assert np.all(got[zero & fused][:, :, 2] == 0.0)
+
+
+@pytest.mark.parametrize("name", ["ckf", "ekf"])
+def test_the_joints_rounds_compute_the_end_of_step_in_their_call(name: str, monkeypatch) -> None:
+    """Two teams of the default scenario in lockstep with the reference (1e-9, the
+    lockstep of ``test_kernels_joint``): with the CKF every correction ran the joints'
+    rounds, which computed the end of step in their call (the commit found the fused links'
+    count in ``end_count``); the EKF's row-order loop leaves it to the commit
+    (``NOT_COMPUTED``). Either way the compiled finish installed the commit's."""
+    from resloc.cl import kernels_joint
+    from resloc.cl.kernels_joint import warm_up_joint_form
+    from resloc.cl.kernels_rounds import LOOP_RUNS
+    from resloc.cl.kernels_tracked_step import NOT_COMPUTED
+    from test_kernels_joint import FILTERS, lockstep
+
+    warm_up_joint_form()  # (its corrections are not the lockstep's)
+    original = kernels_joint.commit_tracked
+    seen = []
+
+    def spy(state, joint, obs, fused):
+        original(state, joint, obs, fused)
+        seen.append((int(state.end_count[0]), int(fused.sum()), joint.end_of_step is not None))
+
+    monkeypatch.setattr(kernels_joint, "commit_tracked", spy)
+    params = replace(default_scenario().cl_params(), fusion="tracked")
+    before = LOOP_RUNS["joint_rounds"]
+    steps = 20
+    fused, _ = lockstep("tracked", FILTERS[name], params, steps, seed=23)
+    assert fused > 0 and len(seen) == steps
+    assert all(computed for _, _, computed in seen)
+    if name == "ckf":
+        assert LOOP_RUNS["joint_rounds"] - before == steps
+        assert all(count == n for count, n, _ in seen)
+    else:
+        assert LOOP_RUNS["joint_rounds"] == before
+        assert all(count == NOT_COMPUTED for count, _, _ in seen)

@@ -51,6 +51,7 @@ from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_tracked_lanes as _kernels_tracked_lanes
+from resloc.cl import kernels_tracked_step as _kernels_tracked_step
 from resloc.cl.kernels_joint_lanes import (
     CROSS_INPUT_ROWS,
     LANE_STRIDE,
@@ -98,6 +99,7 @@ from resloc.cl.kernels_tracked_lanes import (
     tracked_cross_lanes,
     tracked_record_lanes,
 )
+from resloc.cl.kernels_tracked_step import rounds_end_of_step
 
 _jit = jit_lanes
 
@@ -287,7 +289,10 @@ def correct_joint_rounds(
     :data:`~resloc.cl.kernels_joint_links.JOINT_FORM` here, taken for the loops' common
     call and not read: these rounds have one form). On ``FALLBACK`` the options' stores and
     the joint's working copies are as they were on entry. Twin:
-    :func:`resloc.cl.kernels_links.correct_links` (form ``JOINT_FORM``)."""
+    :func:`resloc.cl.kernels_links.correct_links` (form ``JOINT_FORM``). ``tracked``: the
+    end of step computed at once, in this call, while the records' rows are in the cache
+    (:func:`~resloc.cl.kernels_tracked_step.rounds_end_of_step`, which also applies the
+    gains the records deferred to the earlier ``B_ij``); the commit takes it."""
     saved = save_state(detection, defence, fusion, gauge)
     status = _joint_rounds(
         x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
@@ -295,6 +300,8 @@ def correct_joint_rounds(
     if status == FALLBACK:
         restore_state(saved, detection, defence, fusion, gauge)
         reset_joint(fusion[3])
+    elif status == OK and fusion[3][0] == TRACKED:
+        rounds_end_of_step(fusion[3], links[0], out[2][3])
     return status
 
 
@@ -410,8 +417,8 @@ def _joint_rounds(
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, True)
             if tracked:  # the record's arithmetic over the fused lanes (SIMD)
                 tracked_record_lanes(
-                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out[2],
-                    now, blocks, fused_lanes, record_in, record_out, work[8], work[7], T3,
+                    joint, P, lane_e, obs, n, xi, xr, update, decision, R, out[2], now, blocks,
+                    fused_lanes, record_in, record_out, work[8], work[7], T3,
                 )  # fmt: skip
             else:
                 joint_record_lanes(
@@ -480,6 +487,7 @@ for _dispatcher in (
         _kernels_joint_lanes,
         _kernels_joint_records,
         _kernels_tracked_lanes,
+        _kernels_tracked_step,
         _kernels_round_cached,
         *_kernels_round_stages.PIECE_MODULES,
     )
