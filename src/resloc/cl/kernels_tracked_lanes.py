@@ -3,7 +3,9 @@ the blocks of every lane and their 6 x 6 joint (:func:`tracked_cross_lanes`) and
 of every fused lane (:func:`tracked_record_lanes`), the arithmetic over lanes in loops that
 compile to SIMD, on arrays of :data:`~resloc.cl.kernels_joint_lanes.LANE_STRIDE` columns.
 Each is the scalar pieces' (:mod:`resloc.cl.kernels_joint_links`,
-:mod:`resloc.cl.kernels_joint_records`) to the bit and names them.
+:mod:`resloc.cl.kernels_joint_records`) to the bit and names them, but for the record's
+products of the robot's earlier ``B_ij`` with its gain, deferred to the end of the rounds
+(:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`).
 """
 
 from __future__ import annotations
