@@ -34,12 +34,14 @@ import weakref
 
 import numpy as np
 
+from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl.backend import backend
 from resloc.cl.detection_witness import STATE, consistency_gates, step_notes
 from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
-from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict, note_at
+from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict
 from resloc.cl.kernels_witness_frames import delivered_pass, per_robot
+from resloc.cl.kernels_witness_notes import NOTE_ROWS, sent_notes
 from resloc.cl.memory import LinkStatistic
 
 __all__ = ["fused_verdict", "witness_pass"]
@@ -171,24 +173,23 @@ def witness_pass(
         pending[p, 10] = 0.0
         if 0 <= pkeys[p] < n * n:
             slot[pkeys[p]] = p
-    u = np.empty((1, 2))
-    Q = np.empty((1, 2, 2))
+    notes = np.empty((NOTE_ROWS, E))
+    sent_notes(z, x, P, x_nb, li, R, lengthen, notes)
     for e in range(E):
         r = li[e]
         if inside[r] or not ok[e]:
             continue  # (not sent: inside the map, j's estimate not received)
-        note_at(z, e, x, r, P, x_nb, R, u, Q, 0, lengthen[r])
-        if not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
+        if not (math.isfinite(notes[0, e]) and math.isfinite(notes[1, e])):
             continue  # (not sent: no number)
         p = slot[r * n + lj[e]]
         if p < 0:  # a link not stored yet: the spec records (it inserts)
             return DONE, K, need, False
-        pending[p, 0] = u[0, 0]
-        pending[p, 1] = u[0, 1]
-        pending[p, 2] = Q[0, 0, 0]
-        pending[p, 3] = Q[0, 0, 1]
-        pending[p, 4] = Q[0, 1, 0]
-        pending[p, 5] = Q[0, 1, 1]
+        pending[p, 0] = notes[0, e]
+        pending[p, 1] = notes[1, e]
+        pending[p, 2] = notes[2, e]
+        pending[p, 3] = notes[3, e]
+        pending[p, 4] = notes[3, e]
+        pending[p, 5] = notes[4, e]
         c = crows[e] if by_row else e
         pending[p, 6] = claims[c, 0, 0]
         pending[p, 7] = claims[c, 0, 1]
@@ -197,6 +198,8 @@ def witness_pass(
         pending[p, 10] = 1.0
     return DONE, K, need, True
 
+
+stamp_with_pieces(witness_pass, _kernels_lanes)  # (sent_notes' sincos_lanes)
 
 _NO_ROWS = np.zeros(0, np.int64)
 _NO_PENDING = np.zeros((0, PENDING_WIDTH))
