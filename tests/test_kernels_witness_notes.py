@@ -34,7 +34,8 @@ def _links(rng, n: int = 7, E: int = 300):
 def test_the_notes_in_lanes_equal_the_spec_and_note_at():
     """Every link's note by the lanes (libm only out of the polynomials' range, for nan
     and where the squares overflow) equals the numpy spec to 1e-9 (nan where it is nan)
-    and the libm kernel (``notes_of``, ``note_at`` per row) to 1e-12."""
+    and the libm kernel (``notes_of``, ``note_at`` per row) to 1e-12; the broadcasts read
+    by index give the same bits as per link."""
     from resloc.cl.kernels_witness import notes_of
     from resloc.cl.kernels_witness_notes import NOTE_ROWS, sent_notes
 
@@ -43,7 +44,7 @@ def test_the_notes_in_lanes_equal_the_spec_and_note_at():
     R = np.array([[0.01**2, 1e-6], [1e-6, 0.02**2]])
     lengthen = np.exp(0.5 * (R[1, 1] + P[:, 2, 2]))
     notes = np.full((NOTE_ROWS, len(li)), -1.0)
-    sent_notes(z, x, P, x_nb, li, R, lengthen, notes)
+    sent_notes(z, x, P, x_nb, np.zeros(0, np.int64), li, R, lengthen, notes)
     assert sent_notes.signatures  # (compiled, not the Python function)
     u0, Q0 = witness_notes(z, x[li], P[li], x_nb, R)
     got = np.c_[notes[0], notes[1], notes[2], notes[3], notes[4]]
@@ -57,3 +58,11 @@ def test_the_notes_in_lanes_equal_the_spec_and_note_at():
     finite = np.isfinite(libm)
     np.testing.assert_array_equal(np.isfinite(got), finite)
     np.testing.assert_allclose(got, libm, rtol=1e-12, atol=1e-15)  # (u cancels: not ulps)
+    # the broadcasts by index (the batch's rows, shuffled and repeated): the same bits
+    order = rng.permutation(len(li))
+    x_src = np.concatenate([x_nb[order], x_nb[order[:5]] + 1.0])
+    rows = np.empty(len(li), np.int64)
+    rows[order] = np.arange(len(li))
+    by_row = np.full_like(notes, -1.0)
+    sent_notes(z, x, P, x_src, rows, li, R, lengthen, by_row)
+    np.testing.assert_array_equal(by_row, notes)

@@ -35,15 +35,17 @@ NOTE_ROWS = 5
 
 
 @jit_lanes
-def sent_notes(z, x, P, x_nb, li, R, lengthen, notes):
+def sent_notes(z, x, P, x_src, xrows, li, R, lengthen, notes):
     """Every link's note: link ``e`` (observer ``li[e]``, reading ``z[e]``, neighbour's
-    broadcast ``x_nb[e]``) at the observer's estimate ``x[li[e]]``, ``P[li[e]]``;
+    broadcast ``x_src[xrows[e]]``, or ``x_src[e]`` when ``xrows`` is empty) at the
+    observer's estimate ``x[li[e]]``, ``P[li[e]]``;
     ``lengthen[o] = exp((R[1, 1] + P[o, 2, 2]) / 2)``. Into ``notes: (NOTE_ROWS, E)``:
     ``u`` and ``Q`` (symmetric: its off-diagonal once), rows ``u0, u1, Q00, Q01, Q11``.
     Twin: :func:`~resloc.cl.kernels_witness.note_at` (to a few ulps). The angles, their
     sines and cosines and the distances in arrays of their own: a loop over rows of one 2-d
     array does not compile to SIMD (measured: 3.0 against 0.55 us for 260 links)."""
     E = li.shape[0]
+    by_row = xrows.shape[0] > 0
     out = notes.reshape(notes.size)
     angle = np.empty(E)
     cos_a = np.empty(E)
@@ -51,9 +53,10 @@ def sent_notes(z, x, P, x_nb, li, R, lengthen, notes):
     dist = np.empty(E)
     for e in range(E):
         o = li[e]
+        m = xrows[e] if by_row else e
         angle[e] = x[o, 2] + z[e, 1]
-        rel0 = x_nb[e, 0] - x[o, 0]
-        rel1 = x_nb[e, 1] - x[o, 1]
+        rel0 = x_src[m, 0] - x[o, 0]
+        rel1 = x_src[m, 1] - x[o, 1]
         dist[e] = math.sqrt(rel0 * rel0 + rel1 * rel1)
     for e in range(E):
         sn, cs = sincos_lanes(angle[e])
@@ -66,17 +69,19 @@ def sent_notes(z, x, P, x_nb, li, R, lengthen, notes):
             sin_a[e] = math.sin(a)
         if not math.isfinite(dist[e]):
             o = li[e]
-            dist[e] = math.hypot(x_nb[e, 0] - x[o, 0], x_nb[e, 1] - x[o, 1])
+            m = xrows[e] if by_row else e
+            dist[e] = math.hypot(x_src[m, 0] - x[o, 0], x_src[m, 1] - x[o, 1])
     R00, R01, R10, R11 = R[0, 0], R[0, 1], R[1, 0], R[1, 1]
     for e in range(E):
         o = li[e]
+        m = xrows[e] if by_row else e
         ca = cos_a[e]
         sa = sin_a[e]
         r_mean = z[e, 0] * lengthen[o]
-        out[e] = x_nb[e, 0] - (x[o, 0] + r_mean * ca)
-        out[E + e] = x_nb[e, 1] - (x[o, 1] + r_mean * sa)
-        rel0 = x_nb[e, 0] - x[o, 0]
-        rel1 = x_nb[e, 1] - x[o, 1]
+        out[e] = x_src[m, 0] - (x[o, 0] + r_mean * ca)
+        out[E + e] = x_src[m, 1] - (x[o, 1] + r_mean * sa)
+        rel0 = x_src[m, 0] - x[o, 0]
+        rel1 = x_src[m, 1] - x[o, 1]
         r = dist[e]
         far = r > 0.0
         c = rel0 / r if far else ca

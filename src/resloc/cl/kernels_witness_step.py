@@ -93,7 +93,7 @@ def witness_pass(
         The predicted estimates (``B >= n``).
     x_src, xrows : ndarray, shapes (S, 3), (E,) or (0,)
         The neighbours' broadcasts: link ``e``'s ``x_src[xrows[e]]`` (``xrows`` empty:
-        ``x_src[e]``; gathered here, not on the batch: ``links.x_nb`` would keep them).
+        ``x_src[e]``; read by index, not gathered: ``links.x_nb`` would keep them).
     crows, claims : ndarray, shapes (E,) or (0,), (C, 3, 3)
         Their covariances as sent (before any cap): link ``e``'s ``claims[crows[e]]``
         (``crows`` empty: ``claims[e]``).
@@ -178,14 +178,8 @@ def witness_pass(
         pending[p, 10] = 0.0
         if 0 <= pkeys[p] < n * n:
             slot[pkeys[p]] = p
-    x_nb = x_src
-    if x_by_row:
-        x_nb = np.empty((E, 3))
-        for e in range(E):
-            for a in range(3):
-                x_nb[e, a] = x_src[xrows[e], a]
     notes = np.empty((NOTE_ROWS, E))
-    sent_notes(z, x, P, x_nb, li, R, lengthen, notes)
+    sent_notes(z, x, P, x_src, xrows, li, R, lengthen, notes)
     for e in range(E):
         r = li[e]
         if inside[r] or not ok[e]:
