@@ -11,6 +11,9 @@ call; the constants it reads (each robot's ``f``, ``k``, ``h``, the consistency 
 zone map) are kept per ``params`` object. The record is written into a copy of the pending
 values (the link loop may still fail, and the memory must then be as it was), which
 :meth:`~resloc.cl.kernels_witness.WitnessVerdict.record` puts in the memory after the loop.
+The notes are computed in SIMD lanes (:func:`~resloc.cl.kernels_witness_notes.sent_notes`:
+sines and cosines by polynomials, the distance by a square root; ``note_at``'s values to a
+few ulps, not to the bit), the broadcasts read by index.
 
 =============================  ==========================================================
 function                       numpy twin
@@ -164,7 +167,7 @@ def witness_pass(
         return DONE, K, need, False
     # the step's notes, recorded into a copy of the pending values (the memory is put
     # right after the loop); per observer, not per link: the reading's lengthening
-    # (note_at), inside the map
+    # (sent_notes'), inside the map
     lengthen = np.empty(n)
     inside = np.zeros(n, np.bool_)
     for r in range(n):
