@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import kernels
+from resloc.cl import kernels, kernels_plain, kernels_prepared
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -80,7 +80,7 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
     decision = np.zeros((4, C))
     decision[3, :n] = fused
     params = replace(default_scenario().cl_params(), fusion="ci")
-    options = kernels._prepared(params).plain_options
+    options = kernels_prepared.prepared(params).plain_options
     R = options[0]
     for c in range(n):
         Hi, Hj = _jacobians(xi[:, c], xr[:, c])
@@ -101,7 +101,7 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
     fusion = kernel_fusion(CI, criterion, n)
     out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-            decision, options, kernels._plain(fusion), out]  # fmt: skip
+            decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 
 
 def _bits(a: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import pytest
 
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl.fusion_methods import fusion_strategy
-from resloc.cl.kernels import COMPILED_BOOKKEEPING
+from resloc.cl.kernels_bookkeeping import COMPILED_BOOKKEEPING
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
 from resloc.world.world import World

@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import kernels
+from resloc.cl import kernels, kernels_plain, kernels_prepared
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -88,14 +88,14 @@ def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
         pxz[:, c] = (Pi @ Hi.T).ravel()
         update[:2, c] = rng.normal(size=2) * 0.05
     params = replace(default_scenario().cl_params(), fusion="split_ci")
-    options = kernels._prepared(params).plain_options
+    options = kernels_prepared.prepared(params).plain_options
     criterion = CICriterion.DET if det else CICriterion.TRACE
     fusion = kernel_fusion(SPLIT_CI, criterion, n)._replace(
         independent=np.ascontiguousarray(ind), P_nb_ind=np.ascontiguousarray(ind_nb)
     )
     out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-            decision, options, kernels._plain(fusion), out]  # fmt: skip
+            decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 
 
 def _bits(a: np.ndarray) -> np.ndarray:
