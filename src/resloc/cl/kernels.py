@@ -276,7 +276,7 @@ def fast_correct(
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard
-    detect = _plain_with(detect, changes)  # (no _replace: ~2 us with two fields)
+    detect = _plain_with(detect, changes, memory)  # (no _replace: ~2 us with two fields)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),

@@ -10,6 +10,8 @@ here.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 __all__ = ["contiguous", "plain", "plain_with"]
@@ -44,20 +46,24 @@ def plain(structure: tuple) -> tuple:
 _FIELDS: dict[type, dict[str, int]] = {}
 
 
-#: The last structure :func:`plain_with` was given, its plain form, the changes' names and
-#: values and the result (a run's steady state gives the same detection structure every
-#: step, kernels_stores.steady_state, and the same pre-passes' arrays, kernels_prepass).
-_LAST_PLAIN: list = [None, None, (), (), None]
+#: Per memory: the last structure :func:`plain_with` was given for it, its plain form, the
+#: changes' names and values and the result (a run's steady state gives the same detection
+#: structure every step, kernels_stores.steady_state, and the same pre-passes' arrays,
+#: kernels_prepass; weak: a finished run's arrays go with its memory).
+_LAST: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_NOTHING_KEPT = (None, None, (), (), None)
 
 
-def plain_with(structure: tuple, changes: dict) -> tuple:
+def plain_with(structure: tuple, changes: dict, memory=None) -> tuple:
     """``plain(structure._replace(**changes))`` without the NamedTuple built between
     (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more), from the plain form of
-    the last ``structure`` when it is the same object (immutable: its plain form too), the
-    last result when the changes are the same objects too."""
+    the last ``structure`` given with ``memory`` when it is the same object (immutable: its
+    plain form too), the last result when the changes are the same objects too (nothing is
+    kept without a ``memory``)."""
     if not changes:
         return plain(structure)
-    last, plain_form, names, values, result = _LAST_PLAIN
+    kept = None if memory is None else _LAST.get(memory)
+    last, plain_form, names, values, result = _NOTHING_KEPT if kept is None else kept
     new_names, new_values = tuple(changes), tuple(changes.values())
     if last is structure and names == new_names:  # (the same names: as many values)
         for a, b in zip(values, new_values, strict=True):  # (all() of a generator: 0.3 us)
@@ -74,5 +80,6 @@ def plain_with(structure: tuple, changes: dict) -> tuple:
     for name, value in changes.items():
         fields[index[name]] = plain(value) if isinstance(value, tuple) else value
     result = tuple(fields)
-    _LAST_PLAIN[:] = [structure, plain_form, new_names, new_values, result]
+    if memory is not None:
+        _LAST[memory] = (structure, plain_form, new_names, new_values, result)
     return result
