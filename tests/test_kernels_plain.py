@@ -35,8 +35,7 @@ def _detection(memory: LinkMemory):
 
 def _same_objects(got: tuple, want: tuple) -> bool:
     return len(got) == len(want) and all(
-        a is b or (type(a) is tuple and _same_objects(a, b))
-        for a, b in zip(got, want, strict=True)
+        a is b or (type(a) is tuple and _same_objects(a, b)) for a, b in zip(got, want, strict=True)
     )
 
 
