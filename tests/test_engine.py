@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from lockstep_helpers import default_world, runner_step, start_states
 from resloc.angles import wrap_angle
 from resloc.cl import (
     CLParams,
@@ -20,7 +21,6 @@ from resloc.cl import (
     correct,
     kernels,
     kernels_math,
-    predict,
 )
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.fusion_methods import fusion_strategy
@@ -33,7 +33,6 @@ from resloc.filters.base import FilterKind
 from resloc.filters.sigma_points import cubature_rule
 from resloc.models import range_bearing
 from resloc.world.network import radius_links
-from resloc.world.world import World
 
 needs_numba = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 FILTERS = {
@@ -170,26 +169,14 @@ def lockstep_both_backends(world, filt, params, steps: int):
     """``steps`` world steps through the compiled and the reference CL step side by side,
     each path carrying its own estimates and link memory; after each step checks that the
     two agree (and which path ran), then yields ``(results, memories)`` keyed by backend."""
-    x0, P0 = world.initial_estimates()
     fusion = fusion_strategy(params.fusion)  # its bookkeeping runs as in the runner
-    state = {}
-    for backend in ("numba", "numpy"):
-        memory = LinkMemory(world.B)
-        fusion.init(memory, x0, P0, world.n)
-        state[backend] = (x0.copy(), P0.copy(), memory)
+    state = start_states(world, ("numba", "numpy"), fusion)
     for _ in range(steps):
         ws = world.step()
         res = {}
         for backend, (x, P, memory) in state.items():
             with kernels.use_backend(backend):
-                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-                links = LinkBatch(
-                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
-                    ws.risk_s, ws.risk_c, ws.lambda2,
-                )  # fmt: skip
-                res[backend] = correct(filt, xp, Pp, links, params, memory)
-                fusion.exchange(memory, ws.i, ws.j)
+                res[backend] = runner_step(filt, x, P, ws, world.dt, params, fusion, memory)
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
         yield res, {backend: s[2] for backend, s in state.items()}
@@ -200,9 +187,8 @@ def lockstep_both_backends(world, filt, params, steps: int):
 def test_engine_matches_reference_over_a_scenario(name: str) -> None:
     """The default scenario (two trials batched) for 150 steps: same estimates to 1e-9 and
     identical detector/trigger/channel decisions at every step."""
-    sc = default_scenario()
-    world = World(sc.world, 2, 1, sc.trigger.lambda2)
-    params = sc.cl_params()
+    world = default_world(2, 1)
+    params = default_scenario().cl_params()
     filt = FILTERS[name]
     for _ in lockstep_both_backends(world, filt, params, 150):
         pass  # each step is compared inside

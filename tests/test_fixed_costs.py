@@ -12,7 +12,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import LinkBatch, correct, kernels, kernels_memory, predict
+from lockstep_helpers import default_world, runner_step, start_state
+from resloc.cl import kernels, kernels_memory
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import use_backend
 from resloc.cl.fusion_methods import fusion_strategy
@@ -20,7 +21,6 @@ from resloc.cl.kernels_joint_links import JOINT_FORM
 from resloc.cl.memory import LinkMemory, LinkStatistic
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_kernel_forms import _forms_seen
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -32,24 +32,15 @@ def _outcomes(params, steps: int):
     """The outcomes of ``steps`` corrections of the default scenario (two trials) with
     ``params`` and the CKF, in the row-order loop (as a run steps it)."""
     filt = make_filter("ckf")
-    world = World(default_scenario().world, 2, 3, default_scenario().trigger.lambda2)
+    world = default_world(2, 3)
     fusion = fusion_strategy(params.fusion)
-    x, P = world.initial_estimates()
-    memory = LinkMemory(world.B)
-    fusion.init(memory, x, P, world.n)
+    x, P, memory = start_state(world, fusion)
     saved = rounds.ROUNDS_MIN_LINKS
     rounds.ROUNDS_MIN_LINKS = 10**18
     try:
         for _ in range(steps):
             ws = world.step()
-            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-            Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-            links = LinkBatch(
-                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
-                ws.lambda2, **fusion.link_fields(memory, ws.j),
-            )  # fmt: skip
-            x, P, out = correct(filt, xp, Pp, links, params, memory)
-            fusion.exchange(memory, ws.i, ws.j)
+            x, P, out = runner_step(filt, x, P, ws, world.dt, params, fusion, memory)
             yield out
     finally:
         rounds.ROUNDS_MIN_LINKS = saved

@@ -11,12 +11,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from lockstep_helpers import default_world, runner_step, start_state
+from resloc.cl import kernels
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -72,25 +72,15 @@ def _forms_seen():
 def _steps(filt, params, steps: int, rounds_min: int):
     """``steps`` corrections of the default scenario (two trials) with ``params``; yields
     each step's result."""
-    sc = default_scenario()
-    world = World(sc.world, 2, 3, sc.trigger.lambda2)
+    world = default_world(2, 3)
     fusion = fusion_strategy(params.fusion)
-    x, P = world.initial_estimates()
-    memory = LinkMemory(world.B)
-    fusion.init(memory, x, P, world.n)
+    x, P, memory = start_state(world, fusion)
     saved = rounds.ROUNDS_MIN_LINKS
     rounds.ROUNDS_MIN_LINKS = rounds_min
     try:
         for _ in range(steps):
             ws = world.step()
-            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-            Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-            links = LinkBatch(
-                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
-                ws.lambda2, **fusion.link_fields(memory, ws.j),
-            )  # fmt: skip
-            x, P, out = correct(filt, xp, Pp, links, params, memory)
-            fusion.exchange(memory, ws.i, ws.j)
+            x, P, out = runner_step(filt, x, P, ws, world.dt, params, fusion, memory)
             assert out.compiled
             yield x, P, out
     finally:

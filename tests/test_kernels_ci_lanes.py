@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import kernels
+from resloc.cl import kernels, kernels_plain, kernels_prepared
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -21,12 +21,15 @@ pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not ins
 _KINDS = 6
 
 
-def _spd(rng, n: int, scale: float) -> np.ndarray:
+def spd(rng, n: int, scale: float) -> np.ndarray:
+    """``n`` random SPD 3x3 matrices ``(n, 3, 3)`` of about ``scale**2``."""
     A = rng.normal(size=(n, 3, 3)) * scale
     return A @ np.swapaxes(A, -1, -2) + scale**2 * np.eye(3)
 
 
-def _jacobians(xi, xr):
+def jacobians(xi, xr):
+    """The range-bearing Jacobians ``H_i``, ``H_j`` (2, 3) at the observer's ``xi`` (3,)
+    and the observed's position ``xr`` (2,)."""
     dx, dy = xr[0] - xi[0], xr[1] - xi[1]
     q = dx * dx + dy * dy
     r = np.sqrt(q)
@@ -44,15 +47,14 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
     from resloc.cl.fusion import CICriterion
     from resloc.cl.kernels_fusion import CI, kernel_fusion
     from resloc.cl.kernels_lanes import CHUNK
-    from resloc.cl.kernels_link_stages import UPDATE_ROWS
     from resloc.experiments.config import default_scenario
 
     rng = np.random.default_rng(seed)
     C = CHUNK
     perm = rng.permutation(n)
     x = rng.uniform(-5.0, 5.0, (n, 3))
-    P = _spd(rng, n, 0.15)
-    P_nb = _spd(rng, n, 0.15)
+    P = spd(rng, n, 0.15)
+    P_nb = spd(rng, n, 0.15)
     x_nb = x[perm] + rng.normal(size=(n, 3)) * 3.0
     inflation = np.ones(C)
     fused = np.ones(n, dtype=bool)
@@ -64,26 +66,12 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
             inflation[c] = 2.5
         elif kind[c] == 3:
             fused[c] = False
-    lane_e = np.zeros(C, np.int64)
-    obs = np.zeros(C, np.int64)
-    src = np.zeros(C, np.int64)
-    lane_e[:n] = perm
-    obs[:n] = np.arange(n)
-    src[:n] = perm
-    xi = np.zeros((3, C))
-    xr = np.zeros((2, C))
-    xi[:, :n] = x.T
-    xr[:, :n] = x_nb[perm, :2].T
-    moments = np.zeros((5, C))
-    pxz = np.zeros((6, C))
-    update = np.zeros((UPDATE_ROWS, C))
-    decision = np.zeros((4, C))
-    decision[3, :n] = fused
+    lane_e, obs, src, xi, xr, moments, pxz, update, decision = lane_arrays(x, x_nb, perm, C, fused)
     params = replace(default_scenario().cl_params(), fusion="ci")
-    options = kernels._prepared(params).plain_options
+    options = kernels_prepared.prepared(params).plain_options
     R = options[0]
     for c in range(n):
-        Hi, Hj = _jacobians(xi[:, c], xr[:, c])
+        Hi, Hj = jacobians(xi[:, c], xr[:, c])
         Pi = P[c] * inflation[c]
         S = Hi @ Pi @ Hi.T + Hj @ P_nb[perm[c]] @ Hj.T
         if kind[c] == 4 and weights is not None:
@@ -101,10 +89,38 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
     fusion = kernel_fusion(CI, criterion, n)
     out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-            decision, options, kernels._plain(fusion), out]  # fmt: skip
+            decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 
 
-def _bits(a: np.ndarray) -> np.ndarray:
+def lane_arrays(x, x_nb, perm, C: int, fused):
+    """A round's lanes for ``n = len(perm)`` links in ``C`` lanes (robot ``c`` observes
+    through link ``perm[c]``; ``x`` (n, 3) and ``fused`` (n,) by lane, ``x_nb`` (n, 3) by
+    link): ``lane_e``, ``obs``, ``src`` (C,), ``xi`` (3, C), ``xr`` (2, C), zeroed
+    ``moments`` (5, C), ``pxz`` (6, C), ``update`` (UPDATE_ROWS, C) and ``decision``
+    (4, C) with the fused flags."""
+    from resloc.cl.kernels_link_stages import UPDATE_ROWS
+
+    n = len(perm)
+    lane_e = np.zeros(C, np.int64)
+    obs = np.zeros(C, np.int64)
+    src = np.zeros(C, np.int64)
+    lane_e[:n] = perm
+    obs[:n] = np.arange(n)
+    src[:n] = perm
+    xi = np.zeros((3, C))
+    xr = np.zeros((2, C))
+    xi[:, :n] = x.T
+    xr[:, :n] = x_nb[perm, :2].T
+    moments = np.zeros((5, C))
+    pxz = np.zeros((6, C))
+    update = np.zeros((UPDATE_ROWS, C))
+    decision = np.zeros((4, C))
+    decision[3, :n] = fused
+    return lane_e, obs, src, xi, xr, moments, pxz, update, decision
+
+
+def bits(a: np.ndarray) -> np.ndarray:
+    """``a``'s float64 values as their bits, to compare to the bit."""
     return np.ascontiguousarray(a, dtype=float).view(np.uint64)
 
 
@@ -139,8 +155,8 @@ def test_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) -> None:
     done, args, lanes = _run(n, det, "lanes", weights)
     done_s, args_s, _ = _run(n, det, "scalar", weights)
     assert done and done_s
-    np.testing.assert_array_equal(_bits(args[0]), _bits(args_s[0]))  # x
-    np.testing.assert_array_equal(_bits(args[1]), _bits(args_s[1]))  # P
+    np.testing.assert_array_equal(bits(args[0]), bits(args_s[0]))  # x
+    np.testing.assert_array_equal(bits(args[1]), bits(args_s[1]))  # P
     np.testing.assert_array_equal(args[16][2], args_s[16][2])  # the repair flags
     kinds = np.array(fused_lanes) % _KINDS
     certified = lanes[rows.R_OK, : len(fused_lanes)] == 1.0

@@ -8,15 +8,14 @@ import numpy as np
 import pytest
 
 import resloc.cl.step
+from lockstep_helpers import default_world
 from resloc.cl import kernels
 from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_redundancy import capped_claims
 from resloc.cl.detection_zone import inside_zone_map, zone_map
 from resloc.cl.links import LinkBatch, NeighbourStates
 from resloc.cl.params import CLParams
-from resloc.experiments.config import default_scenario
 from resloc.filters.base import make_filter
-from resloc.world.world import World
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -25,8 +24,7 @@ def _scene():
     """The default scenario's first step (one trial) at the initial estimates ``x, P``:
     its links with a few claims made tiny or large, and a map around two of the
     neighbours (by their broadcast positions)."""
-    sc = default_scenario()
-    world = World(sc.world, 1, 4, sc.trigger.lambda2)
+    world = default_world(1, 4)
     x, P = world.initial_estimates()
     ws = world.step()
     P_nb = P[ws.j].copy()

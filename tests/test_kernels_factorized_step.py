@@ -13,12 +13,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import assert_equivalent
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -208,15 +208,9 @@ def test_two_corrections_in_a_step_over_a_run() -> None:
     the same estimates and factors as the reference path at every step."""
     params = replace(default_scenario().cl_params(), fusion="factorized")
     filt = make_filter("ckf")
-    sc = default_scenario()
-    world = World(sc.world, 1, 21, sc.trigger.lambda2)
-    x0, P0 = world.initial_estimates()
+    world = default_world(1, 21)
     fusion = fusion_strategy("factorized")
-    state = {}
-    for backend in ("numba", "numpy"):
-        memory = LinkMemory(world.B)
-        fusion.init(memory, x0, P0, world.n)
-        state[backend] = (x0.copy(), P0.copy(), memory)
+    state = start_states(world, ("numba", "numpy"), fusion)
     second_fused = 0
     for _ in range(40):
         ws = world.step()

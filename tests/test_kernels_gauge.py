@@ -10,12 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from lockstep_helpers import default_world, runner_step, start_states
+from resloc.cl import LinkMemory, correct, kernels
 from resloc.cl.fusion_methods import fusion_strategy
-from resloc.cl.kernels import COMPILED_BOOKKEEPING
+from resloc.cl.kernels_bookkeeping import COMPILED_BOOKKEEPING
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import assert_equivalent
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -33,15 +33,9 @@ def run_gauge(
     """The default scenario (``trials`` batched) with gauge fusion by both paths; compares the
     correction, ``G`` as every robot knows it and the reported covariances at every step
     (``pickle_at``: the compiled path's memory goes through a pickle after that step)."""
-    sc = default_scenario()
-    world = World(sc.world, trials, seed, sc.trigger.lambda2)
-    x0, P0 = world.initial_estimates()
+    world = default_world(trials, seed)
     fusion = fusion_strategy("gauge")
-    state = {}
-    for backend in ("numba", "numpy"):
-        memory = LinkMemory(world.B)
-        fusion.init(memory, x0, P0, world.n, rounds=rounds)
-        state[backend] = (x0.copy(), P0.copy(), memory)
+    state = start_states(world, ("numba", "numpy"), fusion, rounds=rounds)
     fused = 0
     for k in range(steps):
         if k == pickle_at:  # the compiled step arrays are views of one array: kept as such
@@ -51,14 +45,7 @@ def run_gauge(
         res = {}
         for backend, (x, P, memory) in state.items():
             with kernels.use_backend(backend):
-                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-                links = LinkBatch(
-                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok,
-                    ws.risk_s, ws.risk_c, ws.lambda2,
-                )  # fmt: skip
-                res[backend] = correct(filt, xp, Pp, links, params, memory)
-                fusion.exchange(memory, ws.i, ws.j)
+                res[backend] = runner_step(filt, x, P, ws, world.dt, params, fusion, memory)
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
         fast, ref = state["numba"][2].joint, state["numpy"][2].joint

@@ -12,13 +12,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from lockstep_helpers import default_world, runner_step, start_states
+from resloc.cl import LinkBatch, LinkMemory, correct, kernels
 from resloc.cl import fusion as cl_fusion
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import assert_equivalent, random_batch
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -48,16 +48,10 @@ def lockstep(method, filt, params, steps: int, seed: int, trials: int = 2, jam=N
     runner steps it (the method's prediction and transmitted fields included); ``jam``:
     the share of channels jammed at random. Returns the counts of fused links and of links
     the detector rejected."""
-    sc = default_scenario()
-    world = World(sc.world, trials, seed, sc.trigger.lambda2)
+    world = default_world(trials, seed)
     rng = np.random.default_rng(seed)
-    x0, P0 = world.initial_estimates()
     fusion = fusion_strategy(method)
-    state = {}
-    for backend in ("numba", "numpy"):
-        memory = LinkMemory(world.B)
-        fusion.init(memory, x0, P0, world.n)
-        state[backend] = (x0.copy(), P0.copy(), memory)
+    state = start_states(world, ("numba", "numpy"), fusion)
     fused = detected = 0
     for _ in range(steps):
         ws = world.step()
@@ -67,14 +61,9 @@ def lockstep(method, filt, params, steps: int, seed: int, trials: int = 2, jam=N
         res = {}
         for backend, (x, P, memory) in state.items():
             with kernels.use_backend(backend):
-                xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-                Pp = fusion.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-                links = LinkBatch(
-                    ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], channel_ok,
-                    ws.risk_s, ws.risk_c, ws.lambda2, **fusion.link_fields(memory, ws.j),
-                )  # fmt: skip
-                res[backend] = correct(filt, xp, Pp, links, params, memory)
-                fusion.exchange(memory, ws.i, ws.j)
+                res[backend] = runner_step(
+                    filt, x, P, ws, world.dt, params, fusion, memory, channel_ok
+                )
             state[backend] = (res[backend][0], res[backend][1], memory)
         assert_equivalent(res["numba"], res["numpy"])
         assert_same_state(method, state["numba"][2], state["numpy"][2])

@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.angles import wrap_angle
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
@@ -37,7 +38,6 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.attackers import AttackStep, make_attacker
-from resloc.world.world import World
 from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 from test_kernels_rounds import assert_same_loops
@@ -154,11 +154,9 @@ def lockstep(filt, params, steps: int, seed: int, kind: str):
     """``steps`` steps of the default scenario through :data:`PATHS` under the attack
     ``kind``; checks every step and yields the reference's outcome and memory and the
     one-ended liar's rows."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     N = world.n
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in PATHS}
+    state = start_states(world, PATHS)
     adversary = _attacker(kind)
     for k in range(steps):
         ws = world.step()
@@ -233,8 +231,7 @@ def _step_with_one_ended_liars():
     """One step of the default world (seed 8): ``(world, x, li, lj, z)``, every fifth
     reading lengthened past the reciprocal check's one-step gate."""
     links = links_of_one_step(8)
-    sc = default_scenario()
-    world = World(sc.world, 1, 8, sc.trigger.lambda2)
+    world = default_world(1, 8)
     x, _ = world.initial_estimates()
     li, lj = links.i.astype(np.int64), links.j.astype(np.int64)
     z = links.z.copy()

@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, runner_step, start_state, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.fusion_methods import fusion_strategy
@@ -25,7 +26,6 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.adversary import StealthKnowledge
-from resloc.world.world import World
 from test_engine import assert_equivalent
 from test_kernels_defence import assert_same_stage_statistics, readmissions  # noqa: F401
 from test_kernels_detection import NIS_RHO, assert_same_statistics
@@ -123,16 +123,10 @@ def lockstep_three_paths(filt, params, steps: int, seed: int, knowledge=None):
     the reference side by side (with the stealthy attacker on 40% of the links when
     ``knowledge`` is given); checks every step (see the module docstring) and yields the
     reference's outcome and the hit links."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     rng = np.random.default_rng(seed)
     fusion = fusion_strategy(params.fusion)
-    x0, P0 = world.initial_estimates()
-    state = {}
-    for path in PATHS:
-        memory = LinkMemory(world.B)
-        fusion.init(memory, x0, P0, world.n)
-        state[path] = (x0.copy(), P0.copy(), memory)
+    state = start_states(world, PATHS, fusion)
     for _ in range(steps):
         ws = world.step()
         hit = rng.random(len(ws.i)) < 0.4
@@ -203,23 +197,13 @@ def test_a_fallback_puts_the_options_stores_back(fusion: str) -> None:
     must be those of the row-order loop alone, from the same memory."""
     params = _params("full", fusion=fusion, **STRICT)
     filt = FILTERS["ckf"]
-    sc = default_scenario()
-    world = World(sc.world, 2, 5, sc.trigger.lambda2)
+    world = default_world(2, 5)
     strategy = fusion_strategy(fusion)
-    x, P = world.initial_estimates()
-    memory = LinkMemory(world.B)
-    strategy.init(memory, x, P, world.n)
+    x, P, memory = start_state(world, strategy)
     with _path("rounds"):
         for _ in range(25):  # statistics away from zero
             ws = world.step()
-            xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
-            Pp = strategy.predict(memory, x, ws.u_meas, world.dt, params, Pp)
-            links = LinkBatch(
-                ws.i, ws.j, ws.z, xp[ws.j], Pp[ws.j], ws.channel_ok, ws.risk_s, ws.risk_c,
-                ws.lambda2, **strategy.link_fields(memory, ws.j),
-            )  # fmt: skip
-            x, P, _ = correct(filt, xp, Pp, links, params, memory)
-            strategy.exchange(memory, ws.i, ws.j)
+            x, P, _ = runner_step(filt, x, P, ws, world.dt, params, strategy, memory)
         ws = world.step()
         xp, Pp = predict(filt, x, P, ws.u_meas, world.dt, params)
         Pp = strategy.predict(memory, x, ws.u_meas, world.dt, params, Pp)

@@ -11,14 +11,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import kernels
+from resloc.cl import kernels, kernels_plain, kernels_prepared
+from test_kernels_ci_lanes import bits, jacobians, lane_arrays, spd
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
-
-
-def _spd(rng, n: int, scale: float) -> np.ndarray:
-    A = rng.normal(size=(n, 3, 3)) * scale
-    return A @ np.swapaxes(A, -1, -2) + scale**2 * np.eye(3)
 
 
 def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
@@ -30,15 +26,14 @@ def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
     from resloc.cl.fusion import CICriterion
     from resloc.cl.kernels_fusion import SPLIT_CI, kernel_fusion
     from resloc.cl.kernels_lanes import CHUNK
-    from resloc.cl.kernels_link_stages import UPDATE_ROWS
     from resloc.experiments.config import default_scenario
 
     rng = np.random.default_rng(seed)
     C = CHUNK
     perm = rng.permutation(n)
     x = rng.uniform(-5.0, 5.0, (n, 3))
-    P = _spd(rng, n, 0.15)
-    P_nb = _spd(rng, n, 0.15)
+    P = spd(rng, n, 0.15)
+    P_nb = spd(rng, n, 0.15)
     ind = P * rng.uniform(0.05, 0.9, (n, 1, 1))
     ind_nb = P_nb * rng.uniform(0.05, 0.9, (n, 1, 1))
     x_nb = x[perm] + rng.normal(size=(n, 3)) * 3.0
@@ -60,46 +55,23 @@ def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
             fused[c] = False
         elif kind == 6 and c > 7:
             ind[c] = 0.0
-    lane_e = np.zeros(C, np.int64)
-    obs = np.zeros(C, np.int64)
-    src = np.zeros(C, np.int64)
-    lane_e[:n] = perm
-    obs[:n] = np.arange(n)
-    src[:n] = perm
-    xi = np.zeros((3, C))
-    xr = np.zeros((2, C))
-    xi[:, :n] = x.T
-    xr[:, :n] = x_nb[perm, :2].T
-    moments = np.zeros((5, C))
-    pxz = np.zeros((6, C))
-    update = np.zeros((UPDATE_ROWS, C))
-    decision = np.zeros((4, C))
-    decision[3, :n] = fused
+    lane_e, obs, src, xi, xr, moments, pxz, update, decision = lane_arrays(x, x_nb, perm, C, fused)
     for c in range(n):
-        dx, dy = xr[:, c] - xi[:2, c]
-        q = dx * dx + dy * dy
-        r = np.sqrt(q)
-        Hj = np.array([[dx / r, dy / r, 0.0], [-dy / q, dx / q, 0.0]])
-        Hi = -Hj
-        Hi[1, 2] = -1.0
+        Hi, Hj = jacobians(xi[:, c], xr[:, c])
         Pi = P[c] * inflation[c]
         S = Hi @ Pi @ Hi.T + Hj @ P_nb[perm[c]] @ Hj.T
         moments[2:, c] = S[0, 0], S[0, 1], S[1, 1]
         pxz[:, c] = (Pi @ Hi.T).ravel()
         update[:2, c] = rng.normal(size=2) * 0.05
     params = replace(default_scenario().cl_params(), fusion="split_ci")
-    options = kernels._prepared(params).plain_options
+    options = kernels_prepared.prepared(params).plain_options
     criterion = CICriterion.DET if det else CICriterion.TRACE
     fusion = kernel_fusion(SPLIT_CI, criterion, n)._replace(
         independent=np.ascontiguousarray(ind), P_nb_ind=np.ascontiguousarray(ind_nb)
     )
     out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
-            decision, options, kernels._plain(fusion), out]  # fmt: skip
-
-
-def _bits(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=float).view(np.uint64)
+            decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 
 
 @pytest.mark.parametrize("det", [False, True])
@@ -127,9 +99,9 @@ def test_split_ci_lanes_are_the_scalar_update_lane_by_lane(n: int, det: bool) ->
     done, x, P, ind, flags, lanes = results["lanes"]
     done_s, x_s, P_s, ind_s, flags_s, _ = results["scalar"]
     assert done and done_s
-    np.testing.assert_array_equal(_bits(x), _bits(x_s))
-    np.testing.assert_array_equal(_bits(P), _bits(P_s))
-    np.testing.assert_array_equal(_bits(ind), _bits(ind_s))
+    np.testing.assert_array_equal(bits(x), bits(x_s))
+    np.testing.assert_array_equal(bits(P), bits(P_s))
+    np.testing.assert_array_equal(bits(ind), bits(ind_s))
     np.testing.assert_array_equal(flags, flags_s)
     fused = int(_lanes_inputs(n, 40 + n, det)[13][3].sum())
     certified = lanes[rows.R_OK, :fused] == 1.0

@@ -16,16 +16,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.angles import wrap_angle
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from resloc.cl import LinkBatch, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_kernels_defence import assert_same_stage_statistics
 from test_kernels_detection import assert_same_statistics
+from test_kernels_reciprocal import assert_matches_reference
 from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 
@@ -75,21 +76,6 @@ def _lie(k: int, rows: np.ndarray, x_nb: np.ndarray, P_nb: np.ndarray) -> None:
     P_nb[rows] *= 0.01
 
 
-def assert_summed_equal(fast, ref, tol: float = 1e-9) -> None:
-    (xf, Pf, of), (xr, Pr, orf) = fast, ref
-    assert of.compiled and not orf.compiled, "compared the wrong paths"
-    d = xf - xr
-    d[:, 2] = wrap_angle(d[:, 2])
-    assert np.abs(d).max() <= tol
-    assert np.abs(Pf - Pr).max() <= tol
-    for name in ("norm", "threshold"):
-        np.testing.assert_allclose(
-            getattr(of, name), getattr(orf, name), rtol=tol, atol=tol, equal_nan=True
-        )
-    for name in ("detected", "triggered", "delivered", "fused", "repaired"):
-        np.testing.assert_array_equal(getattr(of, name), getattr(orf, name), err_msg=name)
-
-
 def lockstep(filt, params, steps: int, seed: int, start: int = 0, verdicts=None):
     """``steps`` steps through the compiled path and the reference (after ``start`` steps
     of the world alone); checks every step and yields the reference's outcome and memory.
@@ -100,12 +86,8 @@ def lockstep(filt, params, steps: int, seed: int, start: int = 0, verdicts=None)
     from resloc.cl.kernels_summed import SUMMED_RUNS
     from resloc.cl.kernels_summed_lanes import SUMMED_LANES_MIN_LINKS
 
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    for _ in range(start):
-        world.step()
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("row_order", "numpy")}
+    world = default_world(2, seed, start)
+    state = start_states(world, ("row_order", "numpy"))
     for k in range(steps):
         ws = world.step()
         lied = np.isin(ws.j, LIARS)
@@ -129,7 +111,7 @@ def lockstep(filt, params, steps: int, seed: int, start: int = 0, verdicts=None)
                 lanes = filt is not FILTERS["ekf"] and len(ws.i) >= SUMMED_LANES_MIN_LINKS
                 assert loops == {"rounds" if lanes else "row_order": 1}, dict(loops)
             state[path] = (res[path][0], res[path][1], memory)
-        assert_summed_equal(res["row_order"], res["numpy"])
+        assert_matches_reference(res["row_order"], res["numpy"])
         if verdicts is not None:
             assert len(verdicts.compiled) == 1, "the compiled zone stage did not run"
             reference = verdicts.reference_rows(ws.i, ws.j)
@@ -192,8 +174,7 @@ def test_summed_lanes_give_every_rows_moments(name: str) -> None:
     from resloc.cl.kernels_lanes import CHUNK
     from resloc.cl.kernels_summed_lanes import summed_moments_lanes
 
-    sc = default_scenario()
-    world = World(sc.world, 40, 3, sc.trigger.lambda2)
+    world = default_world(40, 3)
     x, P = world.initial_estimates()
     rng = np.random.default_rng(0)
     x = x + rng.normal(scale=[0.3, 0.3, 0.5], size=x.shape)

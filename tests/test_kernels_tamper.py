@@ -9,12 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
+from lockstep_helpers import default_world, start_states
+from resloc.cl import LinkBatch, correct, kernels, predict
 from resloc.cl.backend import kernel_refusal
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
 from resloc.world.adversary import StealthKnowledge, stealthy_tamper
-from resloc.world.world import World
 from test_engine import assert_equivalent
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -50,9 +50,8 @@ def attacker(ws, params, direction, knowledge, attacked):
 
 def run_attacked(filt, params, direction, knowledge, steps: int, seed: int) -> int:
     sc = default_scenario().replace(**{"attack.kind": "stealthy", "attack.bias": [0.3, 0.6]})
-    world = World(sc.world, 1, seed, sc.trigger.lambda2)
-    x0, P0 = world.initial_estimates()
-    state = {b: (x0.copy(), P0.copy(), LinkMemory(world.B)) for b in ("numba", "numpy")}
+    world = default_world(1, seed, scenario=sc)
+    state = start_states(world, ("numba", "numpy"))
     rng = np.random.default_rng(seed)
     moved = 0
     for _ in range(steps):
@@ -86,7 +85,7 @@ def test_compiled_stealthy_attacker_matches_the_hook(name: str, case: str) -> No
 def test_the_attacker_changes_what_the_victim_receives() -> None:
     """The compiled attacker injects (the equivalence above is not between two no-ops)."""
     sc = default_scenario().replace(**{"attack.kind": "stealthy", "attack.bias": [0.3, 0.6]})
-    world = World(sc.world, 1, 5, sc.trigger.lambda2)
+    world = default_world(1, 5, scenario=sc)
     params = sc.cl_params()
     x, P = world.initial_estimates()
     filt = FILTERS["ckf"]
@@ -110,7 +109,7 @@ def test_the_attacker_changes_what_the_victim_receives() -> None:
 
 def test_a_hook_without_compiled_form_keeps_the_reference_path() -> None:
     sc = default_scenario()
-    world = World(sc.world, 1, 1, sc.trigger.lambda2)
+    world = default_world(1, 1, scenario=sc)
     ws = world.step()
     x, P = world.initial_estimates()
     links = LinkBatch(

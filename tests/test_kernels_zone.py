@@ -18,6 +18,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.angles import wrap_angle
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_zone, predict
 from resloc.cl import kernels_rounds as rounds
@@ -28,7 +29,6 @@ from resloc.cl.memory import LinkStatistic
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
 
@@ -216,13 +216,9 @@ def assert_same_stage_state(fast: LinkMemory, ref: LinkMemory) -> None:
 def lockstep(filt, params, steps: int, seed: int, tampered: bool, verdicts: Verdicts):
     """``steps`` steps of the default scenario through the compiled loops and the
     reference; checks every step and yields the reference's per-row verdicts and outcome."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    for _ in range(START):  # the world alone, to the zone's edge
-        world.step()
-    x0, P0 = world.initial_estimates()
+    world = default_world(2, seed, START)  # the world alone, to the zone's edge
     paths = ("row_order", "numpy") if filt is FILTERS["ekf"] else ("rounds", "row_order", "numpy")
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in paths}
+    state = start_states(world, paths)
     for _ in range(steps):
         ws = world.step()
         lied = np.isin(ws.j, LIARS)

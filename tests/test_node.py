@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import LinkBatch, LinkMemory, ThresholdInnovation, correct, kernels, predict
 from resloc.cl.fusion import FusionMethod
 from resloc.cl.fusion_methods import fusion_strategy
@@ -47,7 +48,7 @@ def hot_scenario(steps: int):
 
 
 def simulate(scenario, trials: int, seed: int):
-    world = World(scenario.world, trials, seed, scenario.trigger.lambda2)
+    world = default_world(trials, seed, scenario=scenario)
     x0, P0 = world.initial_estimates()
     return world, x0, P0, [world.step() for _ in range(scenario.run.steps)]
 

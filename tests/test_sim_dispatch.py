@@ -79,7 +79,7 @@ def test_links_the_kernel_must_not_read_go_to_the_reference():
 
 @needs_numba
 def test_the_kept_refusal_follows_the_backend_filter_and_params():
-    from resloc.cl import kernels
+    from resloc.cl import kernels, kernels_prepared
     from resloc.cl.kernels_tamper import no_tamper
 
     rng = np.random.default_rng(1)
@@ -88,26 +88,25 @@ def test_the_kept_refusal_follows_the_backend_filter_and_params():
     params = CLParams()
     with use_backend("numba"):
         for filt in (ckf, ekf, ckf):  # estimators alternate
-            assert kernels._refusal(filt, params, links) is None
+            assert kernels_prepared.refusal(filt, params, links) is None
         summed = dataclasses.replace(params, update_mode=UpdateMode.SUMMED, fusion="ci")
-        assert kernels._refusal(ckf, summed, links) == kernel_refusal(ckf, summed, links)
-        assert kernels._refusal(ckf, summed, links) is not None
+        assert kernels_prepared.refusal(ckf, summed, links) == kernel_refusal(ckf, summed, links)
+        assert kernels_prepared.refusal(ckf, summed, links) is not None
 
         class PythonHook:  # an adversary's hook without a compiled form
             kernel_form = None
 
         hooked = dataclasses.replace(links, tamper=PythonHook())
-        assert kernels._refusal(ckf, params, hooked) is not None
-        assert kernels._refusal(ckf, params, links) is None
+        assert kernels_prepared.refusal(ckf, params, hooked) is not None
+        assert kernels_prepared.refusal(ckf, params, links) is None
 
         class CompiledHook:
             kernel_form = no_tamper()
 
-        assert (
-            kernels._refusal(ckf, params, dataclasses.replace(links, tamper=CompiledHook())) is None
-        )
+        compiled_hook = dataclasses.replace(links, tamper=CompiledHook())
+        assert kernels_prepared.refusal(ckf, params, compiled_hook) is None
     with use_backend("numpy"):
-        assert kernels._refusal(ckf, params, links) == "the backend is numpy"
+        assert kernels_prepared.refusal(ckf, params, links) == "the backend is numpy"
         assert kernels.fast_correct(ckf, x, P, links, params) is None
 
 

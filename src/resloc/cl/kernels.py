@@ -37,19 +37,26 @@ kernel function               paper                   numpy twin
 :mod:`resloc.cl.kernels_prepass`).
 
 What the kernel covers is decided by :func:`resloc.cl.backend.kernel_refusal` from the
-strategies; the inputs are named structures (:class:`KernelLinks`, :class:`KernelRobots`,
-:class:`KernelOptions`, :class:`~resloc.cl.backend.FilterKernelSpec`,
-:class:`~resloc.cl.kernels_detection.KernelDetection`, :class:`KernelOutputs`). The detector
-stages that keep per-link state (the CUSUMs) are in :mod:`resloc.cl.kernels_detection`.
+strategies; the inputs are named structures (:class:`~resloc.cl.kernels_inputs.KernelLinks`,
+:class:`~resloc.cl.kernels_inputs.KernelRobots`,
+:class:`~resloc.cl.kernels_inputs.KernelOptions`,
+:class:`~resloc.cl.backend.FilterKernelSpec`,
+:class:`~resloc.cl.kernels_detection.KernelDetection`,
+:class:`~resloc.cl.kernels_inputs.KernelOutputs`). The detector stages that keep per-link
+state (the CUSUMs) are in :mod:`resloc.cl.kernels_detection`.
+
+The dispatch's parts, one job a module: the structures and the checks of their indices
+(:mod:`resloc.cl.kernels_inputs`), what ``params`` alone give and the refusal, kept per
+``params`` and per filter (:mod:`resloc.cl.kernels_prepared`), the plain tuples the loops
+are called with (:mod:`resloc.cl.kernels_plain`), a fusion method's records beside the
+update (:mod:`resloc.cl.kernels_bookkeeping`). This module makes the call and warms the
+kernels up.
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib
-import weakref
-from collections.abc import Callable
-from typing import NamedTuple
 
 import numpy as np
 
@@ -58,29 +65,29 @@ from resloc.cl.backend import (  # backend choice re-exported for callers of thi
     FilterKernelSpec,
     backend,
     filter_kernel_spec,
-    kernel_refusal,
     set_backend,
     use_backend,
 )
 from resloc.cl.fusion_methods import fusion_strategy
-from resloc.cl.kernels_checks import observer_bound
 from resloc.cl.kernels_defence import defence_state
-from resloc.cl.kernels_detection import NORM_CODE, detector_state
+from resloc.cl.kernels_detection import detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, NAIVE_UPDATE, fusion_commit, fusion_state
-from resloc.cl.kernels_gauge import gauge_commit, gauge_state, gauge_undo, no_gauge
+from resloc.cl.kernels_inputs import KernelLinks, KernelOutputs, KernelRobots
+from resloc.cl.kernels_inputs import cached_rows as _cached_rows
+from resloc.cl.kernels_inputs import shapes_ok as _shapes_ok
 from resloc.cl.kernels_links import OK
+from resloc.cl.kernels_plain import contiguous as _contiguous
+from resloc.cl.kernels_plain import plain as _plain
+from resloc.cl.kernels_plain import plain_with as _plain_with
+from resloc.cl.kernels_prepared import prepared as _prepared
+from resloc.cl.kernels_prepared import refusal as _refusal
 from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
-from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation, UpdateMode
-from resloc.linalg import JITTER_LEVELS
+from resloc.cl.params import CLParams, UpdateMode
 
 __all__ = [
     "HAVE_NUMBA",
-    "KernelLinks",
-    "KernelOptions",
-    "KernelOutputs",
-    "KernelRobots",
     "backend",
     "fast_correct",
     "options_beyond_paper",
@@ -88,264 +95,6 @@ __all__ = [
     "use_backend",
     "warm_up",
 ]
-
-_JITTER = np.asarray(JITTER_LEVELS, dtype=float)
-
-
-class KernelLinks(NamedTuple):
-    """Per-link inputs, each with leading axis E (rows sorted by observer)."""
-
-    i: np.ndarray  # (E,) int64 observers
-    z: np.ndarray  # (E, 2) measured range, bearing
-    x_nb: np.ndarray  # (S, 3) transmitted estimates: link e's is row nb[e]
-    P_nb: np.ndarray  # (S, 3, 3)
-    nb: np.ndarray  # (E,) int64 row of x_nb / P_nb (LinkBatch.neighbour_rows)
-    channel_ok: np.ndarray  # (E,) bool
-    last_norm: np.ndarray  # (E,) last delivered norm (``last_sent``), else (0,)
-    x_ref: np.ndarray  # (E, 3) the estimate of j the moments use (cached or x_nb)
-    P_ref: np.ndarray  # (E, 3, 3)
-    known: np.ndarray  # (E,) bool: j's estimate received before (``cached``)
-
-
-class KernelRobots(NamedTuple):
-    """Per-robot inputs ``(B,)``; the gains are ``(1,)`` (scalar) or ``(B,)``."""
-
-    risk_s: np.ndarray
-    risk_c: np.ndarray
-    lambda2: np.ndarray
-    rho: np.ndarray
-    alpha: np.ndarray
-    gamma: np.ndarray
-    zeta_s: np.ndarray
-    zeta_c: np.ndarray
-
-
-class KernelOptions(NamedTuple):
-    """The step's scalar options and constants."""
-
-    R: np.ndarray  # (2, 2)
-    noise_std: np.ndarray  # (2,)
-    detector: bool
-    trigger: bool
-    detector_norm: int  # NORM_CODE
-    trigger_norm: int
-    risk_factor_floor: float
-    last_sent: bool
-    jitter: np.ndarray  # escalating Cholesky jitter levels
-    cached: bool  # neighbour estimates: the last received (else the transmitted one)
-    update_without_transmission: bool
-
-
-class KernelOutputs(NamedTuple):
-    """Per-link decisions, written by the kernel."""
-
-    norm: np.ndarray  # (E,)
-    threshold: np.ndarray  # (E,)
-    flags: np.ndarray  # (5, E) bool: detected, triggered, delivered, fused, repaired
-
-
-class CompiledBookkeeping(NamedTuple):
-    """What a fusion method with a compiled twin records beside the kernel's update.
-
-    Attributes
-    ----------
-    state : callable ``(memory, E) -> KernelGauge or None``
-        (:class:`~resloc.cl.kernels_gauge.KernelGauge`)
-        The kernel's working arrays for ``E`` links (None: the kernel cannot run it).
-    commit : callable ``(memory, state, i, j, fused) -> None``
-        Hands the kernel's records to the method's state in ``memory``.
-    undo : callable ``(memory, state) -> None``
-        The kernel failed: puts back what it changed in place in ``memory``.
-    """
-
-    state: Callable
-    commit: Callable
-    undo: Callable
-
-
-def _nothing_to_commit(memory, state, i, j, fused) -> None:
-    del memory, state, i, j, fused
-
-
-def _nothing_to_undo(memory, state) -> None:
-    del memory, state
-
-
-def _gauge_commit(memory, state, i, j, fused) -> None:
-    gauge_commit(memory.joint, state, i, j, fused)
-
-
-def _gauge_undo(memory, state) -> None:
-    gauge_undo(memory.joint, state)
-
-
-#: The per-link bookkeeping of a fusion method in the compiled path, by the name its strategy
-#: declares (:attr:`FusionStrategy.kernel_bookkeeping
-#: <resloc.cl.fusion_methods.FusionStrategy.kernel_bookkeeping>`).
-COMPILED_BOOKKEEPING: dict[str, CompiledBookkeeping] = {
-    "none": CompiledBookkeeping(
-        lambda memory, E: no_gauge(E), _nothing_to_commit, _nothing_to_undo
-    ),
-    "gauge": CompiledBookkeeping(
-        lambda memory, E: None if memory is None else gauge_state(memory.joint, E),
-        _gauge_commit,
-        _gauge_undo,
-    ),
-}
-
-
-#: Per structure type: the positions of its fields that are structures themselves.
-_NESTED: dict[type, tuple[int, ...]] = {}
-
-
-def _plain(structure: tuple) -> tuple:
-    """A kernel input structure (a NamedTuple, nested ones too) as plain tuples, the form
-    the compiled loop is called with: numba types a NamedTuple argument in Python, a plain
-    tuple by its fast fingerprint (measured: the link loop's ten structures cost 16.5 us a
-    call as NamedTuples, 7 us as plain tuples). The structures keep their NamedTuple
-    classes as their documented layout; the kernels read their fields by position."""
-    nested = _NESTED.get(type(structure))
-    if nested is None:
-        nested = _NESTED[type(structure)] = tuple(
-            k for k, v in enumerate(structure) if isinstance(v, tuple)
-        )
-    if not nested:
-        return tuple(structure)
-    fields = list(structure)
-    for k in nested:
-        fields[k] = _plain(fields[k])
-    return tuple(fields)
-
-
-#: Per structure type: its fields' positions by name.
-_FIELDS: dict[type, dict[str, int]] = {}
-
-
-#: The last structure :func:`_plain_with` was given, its plain form, the changes' names and
-#: values and the result (a run's steady state gives the same detection structure every
-#: step, kernels_stores.steady_state, and the same pre-passes' arrays, kernels_prepass).
-_LAST_PLAIN: list = [None, None, (), (), None]
-
-
-def _plain_with(structure: tuple, changes: dict) -> tuple:
-    """``_plain(structure._replace(**changes))`` without the NamedTuple built between
-    (``_replace`` costs ~0.7 us and a keyword argument ~0.5 more), from the plain form of
-    the last ``structure`` when it is the same object (immutable: its plain form too), the
-    last result when the changes are the same objects too."""
-    if not changes:
-        return _plain(structure)
-    last, plain, names, values, result = _LAST_PLAIN
-    new_names, new_values = tuple(changes), tuple(changes.values())
-    if last is structure and names == new_names:  # (the same names: as many values)
-        for a, b in zip(values, new_values, strict=True):  # (all() of a generator: 0.3 us)
-            if a is not b:
-                break
-        else:
-            return result
-    if last is not structure:
-        plain = _plain(structure)
-    index = _FIELDS.get(type(structure))
-    if index is None:
-        index = _FIELDS[type(structure)] = {name: k for k, name in enumerate(structure._fields)}
-    fields = list(plain)
-    for name, value in changes.items():
-        fields[index[name]] = _plain(value) if isinstance(value, tuple) else value
-    result = tuple(fields)
-    _LAST_PLAIN[:] = [structure, plain, new_names, new_values, result]
-    return result
-
-
-def _per_robot(v) -> np.ndarray:
-    """A scalar or per-robot gain as a contiguous float array of shape (1,) or (B,)."""
-    return np.ascontiguousarray(np.atleast_1d(np.asarray(v, dtype=float)).ravel())
-
-
-def _contiguous(a, dtype=float) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=dtype)
-
-
-class _Prepared(NamedTuple):
-    """What a correction takes from ``params`` alone (a frozen dataclass: a run passes the
-    same object every step), prepared once."""
-
-    gains: tuple[np.ndarray, ...]  # rho, alpha, gamma, zeta_s, zeta_c: (1,) or (B,)
-    options: KernelOptions
-    strategy: object  # the fusion method's FusionStrategy
-    problem: str | None  # why the strategy cannot run with params
-    bookkeeping: CompiledBookkeeping
-    last_sent: bool
-    cached: bool
-    plain_options: tuple  # options as the kernel is called with it (_plain)
-
-
-_last_prepared: tuple = (None, None)
-
-
-def _prepared(params: CLParams) -> _Prepared:
-    """The gains, options and fusion strategy of ``params`` as the kernel takes them, kept
-    for the last ``params`` object."""
-    global _last_prepared
-    ref, prepared = _last_prepared
-    if ref is not None and ref() is params:
-        return prepared
-    gains = params.rho, params.alpha, params.gamma, params.zeta_s, params.zeta_c
-    last_sent = params.threshold_innovation is ThresholdInnovation.LAST_SENT
-    cached = params.neighbour_estimate is NeighbourEstimate.CACHED
-    options = KernelOptions(
-        _contiguous(params.R),
-        _contiguous(params.noise_std),
-        bool(params.detector),
-        bool(params.trigger),
-        NORM_CODE[params.detector_norm],
-        NORM_CODE[params.trigger_norm],
-        float(params.risk_factor_floor),
-        last_sent,
-        _JITTER,
-        cached,
-        bool(params.update_without_transmission),
-    )
-    strategy = fusion_strategy(params.fusion)
-    prepared = _Prepared(
-        tuple(_per_robot(g) for g in gains),
-        options,
-        strategy,
-        strategy.problem(params),
-        COMPILED_BOOKKEEPING[strategy.kernel_bookkeeping],
-        last_sent,
-        cached,
-        _plain(options),
-    )
-    try:
-        _last_prepared = (weakref.ref(params), prepared)
-    except TypeError:  # not weakly referenceable: no cache
-        _last_prepared = (None, None)
-    return prepared
-
-
-#: Per filter (a run's estimators alternate): the last ``params``, key and refusal.
-_refusals: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _refusal(filt, params: CLParams, links: LinkBatch) -> str | None:
-    """:func:`~resloc.cl.backend.kernel_refusal`, kept per filter for its last ``params``,
-    backend and the links' optional fields it reads (whether there is a tamper hook and
-    whether it has a compiled form, whether there are transmitted independent parts)."""
-    tamper = links.tamper
-    form = 0 if tamper is None else 1 + (getattr(tamper, "kernel_form", None) is None)
-    key = (backend(), form, links.P_nb_ind is None, links.z_reciprocal is None)
-    try:
-        params_ref, last_key, refusal = _refusals[filt]
-        if last_key == key and params_ref() is params:
-            return refusal
-    except (KeyError, TypeError):
-        pass
-    refusal = kernel_refusal(filt, params, links)
-    try:
-        _refusals[filt] = (weakref.ref(params), key, refusal)
-    except TypeError:  # not hashable or weakly referenceable: no cache
-        pass
-    return refusal
-
 
 _NO_TAMPER: list = []
 
@@ -355,55 +104,6 @@ def _no_tamper():
     if not _NO_TAMPER:
         _NO_TAMPER.append(no_tamper())
     return _NO_TAMPER[0]
-
-
-_NO_ROWS = np.zeros(0, np.int64)
-
-
-def _shape(a) -> tuple:
-    """``np.shape(a)`` without its dispatch for an array (a third of a microsecond each)."""
-    return a.shape if type(a) is np.ndarray else np.shape(a)
-
-
-def _shapes_ok(x, P, links: LinkBatch, li, lj, robots: KernelRobots, neighbours) -> bool:
-    """Every index the kernel will use is in range (the compiled loop does not check), and
-    no link repeats the one before it. ``li``, ``lj``: the links' observers and observed
-    nodes as contiguous int64 arrays."""
-    E = len(li)
-    nb, x_nb, P_nb = neighbours
-    S = len(x_nb)
-    if nb is not None:
-        if not isinstance(nb, np.ndarray) or nb.shape != (E,) or nb.dtype.kind not in "iu":
-            return False
-        nb = _contiguous(nb, np.int64)
-    B = observer_bound(li, lj, _NO_ROWS if nb is None else nb, S)
-    x_shape, P_shape = _shape(x), _shape(P)
-    if B < 1 or len(x_shape) != 2 or len(P_shape) != 3 or x_shape[0] < B or P_shape[0] < B:
-        return False
-    if x_shape[1] != 3 or P_shape[1:] != (3, 3):
-        return False
-    if _shape(x_nb) != (S, 3) or _shape(P_nb) != (S, 3, 3) or (nb is None and S != E):
-        return False
-    if _shape(links.z) != (E, 2) or _shape(links.channel_ok) != (E,) or _shape(links.j) != (E,):
-        return False
-    for a in robots[:3]:  # risks and lambda2: every observer's
-        if a.ndim != 1 or len(a) < B:
-            return False
-    for a in robots[3:]:  # gains: one, or every observer's
-        if a.shape[0] != 1 and a.shape[0] < B:
-            return False
-    return True
-
-
-def _cached_rows(memory, li, lj, nb, x_nb, P_nb, last_sent: bool):
-    """The per-link inputs of ``cached`` neighbour estimates
-    (:meth:`~resloc.cl.memory.LinkMemory.cached_rows`, one compiled pass): the transmitted
-    estimates per link ``(E, 3)``, ``(E, 3, 3)``, the estimates the moments use (j's last
-    received where robot i has one, else the transmitted: twin ``resloc.cl.step._decide``),
-    whether there is one ``(E,)`` and, with ``last_sent``, the last delivered norms
-    ``(E,)`` (else ``(0,)``)."""
-    rows = np.arange(len(li), dtype=np.int64) if nb is None else _contiguous(nb, np.int64)
-    return memory.cached_rows(li, lj, rows, _contiguous(x_nb), _contiguous(P_nb), last_sent)
 
 
 #: The options' kernel modules by name, imported on first use (:func:`_stage`).
@@ -576,7 +276,7 @@ def fast_correct(
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard
-    detect = _plain_with(detect, changes)  # (no _replace: ~2 us with two fields)
+    detect = _plain_with(detect, changes, memory)  # (no _replace: ~2 us with two fields)
     kernel_links = KernelLinks(
         li,
         _contiguous(z),

@@ -11,6 +11,9 @@ call; the constants it reads (each robot's ``f``, ``k``, ``h``, the consistency 
 zone map) are kept per ``params`` object. The record is written into a copy of the pending
 values (the link loop may still fail, and the memory must then be as it was), which
 :meth:`~resloc.cl.kernels_witness.WitnessVerdict.record` puts in the memory after the loop.
+The notes are computed in SIMD lanes (:func:`~resloc.cl.kernels_witness_notes.sent_notes`:
+sines and cosines by polynomials, the distance by a square root; ``note_at``'s values to a
+few ulps, not to the bit), the broadcasts read by index.
 
 =============================  ==========================================================
 function                       numpy twin
@@ -34,12 +37,14 @@ import weakref
 
 import numpy as np
 
+from resloc.cl import kernels_lanes as _kernels_lanes
 from resloc.cl.backend import backend
 from resloc.cl.detection_witness import STATE, consistency_gates, step_notes
 from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
-from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict, note_at
+from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_witness import WITNESS_RUNS, WitnessVerdict
 from resloc.cl.kernels_witness_frames import delivered_pass, per_robot
+from resloc.cl.kernels_witness_notes import NOTE_ROWS, sent_notes
 from resloc.cl.memory import LinkStatistic
 
 __all__ = ["fused_verdict", "witness_pass"]
@@ -66,12 +71,12 @@ def witness_pass(
     z,
     x,
     P,
-    x_nb,
+    x_src,
+    xrows,
     crows,
     claims,
     R,
     discs,
-    zoned,
     record,
     keys,
     values,
@@ -89,14 +94,15 @@ def witness_pass(
         The readings as reported.
     x, P : ndarray, shapes (B, 3), (B, 3, 3)
         The predicted estimates (``B >= n``).
-    x_nb : ndarray, shape (E, 3)
-        The neighbours' broadcasts.
+    x_src, xrows : ndarray, shapes (S, 3), (E,) or (0,)
+        The neighbours' broadcasts: link ``e``'s ``x_src[xrows[e]]`` (``xrows`` empty:
+        ``x_src[e]``; read by index, not gathered: ``links.x_nb`` would keep them).
     crows, claims : ndarray, shapes (E,) or (0,), (C, 3, 3)
         Their covariances as sent (before any cap): link ``e``'s ``claims[crows[e]]``
         (``crows`` empty: ``claims[e]``).
     R : ndarray, shape (2, 2)
     discs : ndarray, shape (Z, 3)
-        The zone-trust map (centre, radius); read when ``zoned``.
+        The zone-trust map (centre, radius); empty without zone trust.
     record : bool
         Compute the step's notes and record them (False: an adversary's hook changes
         them first; the caller computes and records them by the spec's functions).
@@ -125,7 +131,7 @@ def witness_pass(
     E = li.shape[0]
     # (the shapes, checked here: a comparison in Python costs ~60 ns)
     bad = lj.shape[0] != E or ok.shape[0] != E or z.shape[0] != E or z.shape[1] != 2
-    bad = bad or x_nb.shape[0] != E or x_nb.shape[1] != 3 or x.shape[1] != 3
+    bad = bad or x_src.shape[1] != 3 or x.shape[1] != 3
     bad = bad or P.shape[1] != 3 or P.shape[2] != 3 or claims.shape[1] != 3
     bad = bad or claims.shape[2] != 3 or pvals.shape[0] != pkeys.shape[0]
     bad = bad or pvals.shape[1] != PENDING_WIDTH or svals.shape[0] != skeys.shape[0]
@@ -136,10 +142,14 @@ def witness_pass(
     bad = n > x.shape[0] or n > P.shape[0]
     by_row = crows.shape[0] > 0
     bad = bad or (crows.shape[0] != E if by_row else claims.shape[0] != E)
+    x_by_row = xrows.shape[0] > 0
+    bad = bad or (xrows.shape[0] != E if x_by_row else x_src.shape[0] != E)
     for e in range(E):
         bad = bad or li[e] < 0 or li[e] >= n or lj[e] < 0 or lj[e] >= n
         if by_row and not bad:
             bad = crows[e] < 0 or crows[e] >= claims.shape[0]
+        if x_by_row and not bad:
+            bad = xrows[e] < 0 or xrows[e] >= x_src.shape[0]
     if bad:
         return BAD_IDS, 0, 0, False
     on_ok = np.ones(n, np.bool_)
@@ -157,12 +167,12 @@ def witness_pass(
         return DONE, K, need, False
     # the step's notes, recorded into a copy of the pending values (the memory is put
     # right after the loop); per observer, not per link: the reading's lengthening
-    # (note_at), inside the map
+    # (sent_notes'), inside the map
     lengthen = np.empty(n)
     inside = np.zeros(n, np.bool_)
     for r in range(n):
         lengthen[r] = math.exp(0.5 * (R[1, 1] + P[r, 2, 2]))
-        for d in range(discs.shape[0] if zoned else 0):  # (inside_zone_map)
+        for d in range(discs.shape[0]):  # (inside_zone_map)
             gap = math.hypot(x[r, 0] - discs[d, 0], x[r, 1] - discs[d, 1]) - discs[d, 2]
             inside[r] = inside[r] or gap <= 0.0
     pending[:] = pvals
@@ -171,24 +181,23 @@ def witness_pass(
         pending[p, 10] = 0.0
         if 0 <= pkeys[p] < n * n:
             slot[pkeys[p]] = p
-    u = np.empty((1, 2))
-    Q = np.empty((1, 2, 2))
+    notes = np.empty((NOTE_ROWS, E))
+    sent_notes(z, x, P, x_src, xrows, li, R, lengthen, notes)
     for e in range(E):
         r = li[e]
         if inside[r] or not ok[e]:
             continue  # (not sent: inside the map, j's estimate not received)
-        note_at(z, e, x, r, P, x_nb, R, u, Q, 0, lengthen[r])
-        if not (math.isfinite(u[0, 0]) and math.isfinite(u[0, 1])):
+        if not (math.isfinite(notes[0, e]) and math.isfinite(notes[1, e])):
             continue  # (not sent: no number)
         p = slot[r * n + lj[e]]
         if p < 0:  # a link not stored yet: the spec records (it inserts)
             return DONE, K, need, False
-        pending[p, 0] = u[0, 0]
-        pending[p, 1] = u[0, 1]
-        pending[p, 2] = Q[0, 0, 0]
-        pending[p, 3] = Q[0, 0, 1]
-        pending[p, 4] = Q[0, 1, 0]
-        pending[p, 5] = Q[0, 1, 1]
+        pending[p, 0] = notes[0, e]
+        pending[p, 1] = notes[1, e]
+        pending[p, 2] = notes[2, e]
+        pending[p, 3] = notes[3, e]
+        pending[p, 4] = notes[3, e]
+        pending[p, 5] = notes[4, e]
         c = crows[e] if by_row else e
         pending[p, 6] = claims[c, 0, 0]
         pending[p, 7] = claims[c, 0, 1]
@@ -198,10 +207,12 @@ def witness_pass(
     return DONE, K, need, True
 
 
+stamp_with_pieces(witness_pass, _kernels_lanes)  # (sent_notes' sincos_lanes)
+
 _NO_ROWS = np.zeros(0, np.int64)
 _NO_PENDING = np.zeros((0, PENDING_WIDTH))
 #: The arrays' dimensions the pass takes (``li .. crows``), and the stores' dtypes.
-_DIMS = (1, 1, 1, 2, 2, 3, 2, 1)
+_DIMS = (1, 1, 1, 2, 2, 3, 2, 1, 1)
 _INT, _FLOAT = np.dtype(np.int64), np.dtype(np.float64)
 
 #: The constants of the last ``params`` object: (weak reference, n, constants).
@@ -209,9 +220,9 @@ _CONSTANTS: list = [None, -1, None]
 
 
 def _constants(params, n: int, largest: int = 0) -> tuple:
-    """``(f_at, k_at, h_at, gates, R, discs, zoned)`` for ``params`` and ids ``0 .. n -
-    1``, the gates covering sets of at least ``largest`` notes (kept for the last
-    ``params``)."""
+    """``(f_at, k_at, h_at, gates, R, discs)`` for ``params`` and ids ``0 .. n - 1``, the
+    gates covering sets of at least ``largest`` notes, the zone map empty without zone trust
+    (kept for the last ``params``)."""
     ref, held_n, held = _CONSTANTS
     if ref is not None and ref() is params and held_n == n and len(held[3]) > largest:
         return held
@@ -225,7 +236,6 @@ def _constants(params, n: int, largest: int = 0) -> tuple:
         consistency_gates(p_fa, max(largest, n)),
         np.ascontiguousarray(params.R, float),
         np.ascontiguousarray(discs),
-        zoned,
     )
     try:
         _CONSTANTS[:] = [weakref.ref(params), n, held]
@@ -251,14 +261,15 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     xc = np.ascontiguousarray(x, float)
     Pc = np.ascontiguousarray(P, float)
     nb_rows, x_sent, _ = links.neighbour_rows()  # (links.x_nb would gather them for good:
-    # the loop then reads every neighbour per link instead of by index)
-    x_nb = np.ascontiguousarray(x_sent if nb_rows is None else x_sent[nb_rows], float)
+    # the loop then reads every neighbour per link instead of by index; the pass gathers)
+    x_src = np.ascontiguousarray(x_sent, float)
+    xrows = _NO_ROWS if nb_rows is None else np.ascontiguousarray(nb_rows, np.int64)
     crows = _NO_ROWS if inputs.rows is None else np.ascontiguousarray(inputs.rows, np.int64)
     claims = np.ascontiguousarray(inputs.claims, float)
     # (the stores' arrays as LinkStatistic and the pass make them: int64 keys, float64
     # values; checked, not converted; the shapes are checked by the pass)
     pkeys, pvals, skeys, svals = pending.keys, pending.values, stat.keys, stat.values
-    dims = (li.ndim, lj.ndim, ok.ndim, z.ndim, xc.ndim, Pc.ndim, x_nb.ndim, crows.ndim)
+    dims = (li.ndim, lj.ndim, ok.ndim, z.ndim, xc.ndim, Pc.ndim, x_src.ndim, xrows.ndim, crows.ndim)
     if dims != _DIMS or claims.ndim != 3 or pvals.ndim != 2 or svals.ndim != 1:
         return None
     if pkeys.dtype != _INT or skeys.dtype != _INT:
@@ -274,10 +285,10 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     discard = np.empty(E, np.bool_)
     after = np.empty(pvals.shape) if record else _NO_PENDING
     while True:
-        f_at, k_at, h_at, gates, R, discs, zoned = _constants(params, n, largest)
+        f_at, k_at, h_at, gates, R, discs = _constants(params, n, largest)
         status, K, need, recorded = witness_pass(
             pkeys, pvals, n, li, lj, ok, skeys, svals, f_at, k_at, h_at, gates, z, xc, Pc,
-            x_nb, crows, claims, R, discs, zoned, record, keys, values, discard, after,
+            x_src, xrows, crows, claims, R, discs, record, keys, values, discard, after,
         )  # fmt: skip
         if status != SHORT_GATES:
             break
@@ -293,6 +304,7 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
     runs["steps"] += 1
     if recorded:  # (the notes are in ``after``)
         return WitnessVerdict(discard, store, None, after)
+    x_nb = x_src if nb_rows is None else x_src[xrows]
     notes = step_notes(z, xc[li], Pc[li], x_nb, inputs.claimed, li, lj, params, ok)
     if inputs.lie_notes is not None:  # the adversary's notes: the spec records them
         notes = inputs.lie_notes(notes)
