@@ -23,13 +23,12 @@ pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not ins
 def _kernel_joint(A, Bij, nbr, noise, rows, robots: int):
     """The records as the kernel's ``KernelJoint`` holds them (what the commit takes)."""
     from resloc.cl.kernels_joint import TRACKED, KernelJoint
-    from resloc.cl.kernels_tracked_step import NOT_COMPUTED
 
-    empty = np.zeros((0, 3, 3))
+    empty = np.zeros((0, 3, 3))  # (no gains: the blocks as the commit's products leave them)
     return KernelJoint(
         TRACKED, robots, nbr, np.zeros((0, 0, 0)), noise, A, Bij, empty[None], empty[None],
         empty[None], np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)), np.zeros((2, 6, 6)),
-        empty, rows, np.zeros((0, 0, 0)), empty, np.full(1, NOT_COMPUTED, np.int64),
+        empty, rows,
     )  # fmt: skip
 
 
@@ -221,16 +220,16 @@ def test_later_gains_are_the_records_products() -> None:
 
 
 @pytest.mark.parametrize("name", ["ckf", "ekf"])
-def test_the_joints_rounds_compute_the_end_of_step_in_their_call(name: str, monkeypatch) -> None:
-    """Two teams of the default scenario in lockstep with the reference (1e-9, the
-    lockstep of ``test_kernels_joint``): with the CKF every correction ran the joints'
-    rounds, which computed the end of step in their call (the commit found the fused links'
-    count in ``end_count``); the EKF's row-order loop leaves it to the commit
-    (``NOT_COMPUTED``). Either way the compiled finish installed the commit's."""
+def test_the_commit_applies_the_gains_the_records_deferred(name: str, monkeypatch) -> None:
+    """Two teams of the default scenario in lockstep with the reference (1e-9, the lockstep
+    of ``test_kernels_joint``), the CKF through the joints' rounds and the EKF through the
+    row-order loop: at every commit the records had kept each fused link's gain and left
+    the robots' earlier ``B_ij`` as their own record wrote them (``-K H_j``, a zero third
+    column); the commit's products changed exactly the blocks of fused links with a later
+    fused link of their robot, and its end of step was installed."""
     from resloc.cl import kernels_joint
     from resloc.cl.kernels_joint import warm_up_joint_form
     from resloc.cl.kernels_rounds import LOOP_RUNS
-    from resloc.cl.kernels_tracked_step import NOT_COMPUTED
     from test_kernels_joint import FILTERS, lockstep
 
     warm_up_joint_form()  # (its corrections are not the lockstep's)
@@ -238,19 +237,22 @@ def test_the_joints_rounds_compute_the_end_of_step_in_their_call(name: str, monk
     seen = []
 
     def spy(state, joint, obs, fused):
+        before = state.Bij.copy()
         original(state, joint, obs, fused)
-        seen.append((int(state.end_count[0]), int(fused.sum()), joint.end_of_step is not None))
+        later = np.zeros(len(obs), dtype=bool)  # a fused link with a later fused one
+        for e in np.flatnonzero(fused):
+            later[e] = bool(np.any(fused[e + 1 :] & (obs[e + 1 :] == obs[e])))
+        changed = np.any(state.Bij != before, axis=(1, 2))
+        assert np.all(before[fused][:, :, 2] == 0.0)  # as each record wrote it
+        np.testing.assert_array_equal(changed[fused], later[fused])
+        seen.append((int(later.sum()), joint.end_of_step is not None))
 
     monkeypatch.setattr(kernels_joint, "commit_tracked", spy)
     params = replace(default_scenario().cl_params(), fusion="tracked")
-    before = LOOP_RUNS["joint_rounds"]
+    before = dict(LOOP_RUNS)
     steps = 20
     fused, _ = lockstep("tracked", FILTERS[name], params, steps, seed=23)
     assert fused > 0 and len(seen) == steps
-    assert all(computed for _, _, computed in seen)
-    if name == "ckf":
-        assert LOOP_RUNS["joint_rounds"] - before == steps
-        assert all(count == n for count, n, _ in seen)
-    else:
-        assert LOOP_RUNS["joint_rounds"] == before
-        assert all(count == NOT_COMPUTED for count, _, _ in seen)
+    assert sum(n for n, _ in seen) > 0 and all(done for _, done in seen)
+    loop = "joint_rounds" if name == "ckf" else "row_order"
+    assert LOOP_RUNS[loop] - before[loop] >= steps

@@ -15,10 +15,10 @@ differ in where ``C_ij`` comes from and what an update records:
     covariance a robot keeps after an update, ``P_i = M_i Sigma M_i^T + N_i`` in the
     reference, is the same quantity by the update's recursion
     ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
-    the robot's first link). :func:`joint_commit` hands ``M`` to the joint by its blocks
-    with the end of step (``Sigma <- M Sigma M^T + N``) from them and the rows, which the
-    joints' rounds compute at the end of their call (``end_sigma``, ``end_diagonal``,
-    ``end_count``) and the commit after the row-order loop
+    the robot's first link). The records keep each fused link's gain ``G`` (``gains``) and
+    leave its products with the robot's earlier ``B_ij`` to the commit. :func:`joint_commit`
+    applies them, hands ``M`` to the joint by its blocks and computes the end of step
+    (``Sigma <- M Sigma M^T + N``) from them and the rows
     (:mod:`resloc.cl.kernels_tracked_step`).
 ``factorized`` (:class:`~resloc.cl.factorized.FactorizedCovariance`)
     ``C_ij = sigma_ij sigma_ji,pred^T`` shrunk to a valid joint
@@ -65,7 +65,7 @@ from resloc.cl.factorized import FactorizedCovariance
 from resloc.cl.kernels_factorized_step import commit_factorized
 from resloc.cl.kernels_joint_links import FACTORIZED, NO_JOINT, TRACKED
 from resloc.cl.kernels_math import jit
-from resloc.cl.kernels_tracked_step import NOT_COMPUTED, commit_tracked, take_spare_rows
+from resloc.cl.kernels_tracked_step import commit_tracked, take_spare_rows
 from resloc.cl.tracking import JointCovariance, identity_stack
 
 __all__ = [
@@ -97,28 +97,18 @@ class KernelJoint(NamedTuple):
     fused: np.ndarray  # (B, N) bool factorized: i fused l's estimate this step
     work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
-    gains: np.ndarray  # (E, 3, 3) each fused link's G = I - K H_i (tracked: the rounds')
+    gains: np.ndarray  # (E, 3, 3) each fused link's G = I - K H_i
     rows: np.ndarray  # (B, 3, 3N) tracked: each robot's M_i Sigma (its rows of M Sigma)
-    # tracked: the end of step the joints' rounds computed in their call (kernels_tracked_step.
-    # rounds_end_of_step): the new joint (T, 3N, 3N), its diagonal blocks (B, 3, 3) and
-    # (1,) int64 the fused links' count, -1 where a row was not finite, NOT_COMPUTED
-    # (the row-order loop: the commit computes it)
-    end_sigma: np.ndarray
-    end_diagonal: np.ndarray
-    end_count: np.ndarray
 
 
 _EMPTY3 = np.zeros((0, 3, 3))
 _EMPTY4 = np.zeros((0, 0, 3, 3))
 
 
-_NO_END_COUNT = np.full(1, NOT_COMPUTED, np.int64)  # (never written; tracked's a copy:
-# np.full cost 1.1 us, the copy 0.16)
-
 _NO_JOINT = KernelJoint(
     NO_JOINT, 1, np.zeros(0, np.int64), np.zeros((0, 0, 0)), _EMPTY3, _EMPTY3, _EMPTY3,
     _EMPTY4, _EMPTY4, _EMPTY4, np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)),
-    np.zeros((2, 6, 6)), _EMPTY3, _EMPTY3, np.zeros((0, 0, 0)), _EMPTY3, _NO_END_COUNT,
+    np.zeros((2, 6, 6)), _EMPTY3, _EMPTY3,
 )  # fmt: skip
 
 
@@ -163,7 +153,6 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
         return KernelJoint(
             code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.empty((E, 3, 3)), _EMPTY4, _EMPTY4,
             _EMPTY4, _NO_JOINT.fused, work, J6, np.empty((E, 3, 3)), rows,
-            np.empty(sigma.shape), np.empty((B, 3, 3)), _NO_END_COUNT.copy(),
         )  # fmt: skip
     # factorized: the kernel reads the factors as the step began (never writes them)
     return KernelJoint(
@@ -171,7 +160,6 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
         np.ascontiguousarray(joint.sig, dtype=float),
         np.ascontiguousarray(joint.sig_pred, dtype=float), np.zeros((B, N, 3, 3)),
         np.zeros((B, N), dtype=np.bool_), work, J6, np.zeros((E, 3, 3)), _EMPTY3,
-        _NO_JOINT.end_sigma, _EMPTY3, _NO_END_COUNT,
     )  # fmt: skip
 
 

@@ -51,7 +51,6 @@ from resloc.cl import kernels_joint_records as _kernels_joint_records
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_tracked_lanes as _kernels_tracked_lanes
-from resloc.cl import kernels_tracked_step as _kernels_tracked_step
 from resloc.cl.kernels_joint_lanes import (
     CROSS_INPUT_ROWS,
     LANE_STRIDE,
@@ -99,7 +98,6 @@ from resloc.cl.kernels_tracked_lanes import (
     tracked_cross_lanes,
     tracked_record_lanes,
 )
-from resloc.cl.kernels_tracked_step import rounds_end_of_step
 
 _jit = jit_lanes
 
@@ -289,10 +287,7 @@ def correct_joint_rounds(
     :data:`~resloc.cl.kernels_joint_links.JOINT_FORM` here, taken for the loops' common
     call and not read: these rounds have one form). On ``FALLBACK`` the options' stores and
     the joint's working copies are as they were on entry. Twin:
-    :func:`resloc.cl.kernels_links.correct_links` (form ``JOINT_FORM``). ``tracked``: the
-    end of step computed at once, in this call, while the records' rows are in the cache
-    (:func:`~resloc.cl.kernels_tracked_step.rounds_end_of_step`, which also applies the
-    gains the records deferred to the earlier ``B_ij``); the commit takes it."""
+    :func:`resloc.cl.kernels_links.correct_links` (form ``JOINT_FORM``)."""
     saved = save_state(detection, defence, fusion, gauge)
     status = _joint_rounds(
         x, P, links, robots, filt, options, fusion, detection, defence, gauge, tamper, out
@@ -300,8 +295,6 @@ def correct_joint_rounds(
     if status == FALLBACK:
         restore_state(saved, detection, defence, fusion, gauge)
         reset_joint(fusion[3])
-    elif status == OK and fusion[3][0] == TRACKED:
-        rounds_end_of_step(fusion[3], links[0], out[2][3])
     return status
 
 
@@ -487,7 +480,6 @@ for _dispatcher in (
         _kernels_joint_lanes,
         _kernels_joint_records,
         _kernels_tracked_lanes,
-        _kernels_tracked_step,
         _kernels_round_cached,
         *_kernels_round_stages.PIECE_MODULES,
     )

@@ -3,9 +3,7 @@ the blocks of every lane and their 6 x 6 joint (:func:`tracked_cross_lanes`) and
 of every fused lane (:func:`tracked_record_lanes`), the arithmetic over lanes in loops that
 compile to SIMD, on arrays of :data:`~resloc.cl.kernels_joint_lanes.LANE_STRIDE` columns.
 Each is the scalar pieces' (:mod:`resloc.cl.kernels_joint_links`,
-:mod:`resloc.cl.kernels_joint_records`) to the bit and names them, but for the record's
-products of the robot's earlier ``B_ij`` with its gain, deferred to the end of the rounds
-(:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`).
+:mod:`resloc.cl.kernels_joint_records`) to the bit and names them.
 """
 
 from __future__ import annotations
@@ -142,10 +140,9 @@ def tracked_record_lanes(
     ``Pn``, ``T3`` (3 x 3): scratch. Returns the number of fused lanes. The same operations
     in the same order as the scalar record it replaces (the ``tracked`` branch of
     :func:`resloc.cl.kernels_joint_rounds.joint_record_lanes`, ``tracked_record``): the
-    same values to the bit, but for i's earlier fused ``B`` rows, which the scalar record
-    left-multiplies by ``G`` at once and these records leave to the end of the rounds
-    (:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`: two products a link there,
-    where the walk over every earlier link of the robot here cost ~3.5 us a step)."""
+    same values to the bit. Neither multiplies i's earlier fused ``B`` rows by ``G``: the
+    commit does (:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`, two products a
+    link; the walk over every earlier link of the robot per record cost ~5 us a step)."""
     noise = joint[4]
     A = joint[5]
     Bij = joint[6]

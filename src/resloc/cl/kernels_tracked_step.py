@@ -4,16 +4,14 @@ After a compiled correction the kernel holds ``M`` by its non-zero 3 x 3 blocks 
 ``A_b`` at its own column, each fused link's ``B_ij`` at j's: :class:`~resloc.cl.kernels_joint.
 KernelJoint`) and each robot's rows of ``U = M Sigma`` (``rows``, the records'). The
 reference's end of step is ``Sigma <- sym(M Sigma M^T + blockdiag(N))``
-(:meth:`resloc.cl.tracking.JointCovariance.finish`). The end of step is computed at once,
-while the rows are still in the cache, from the blocks: ``M U^T`` over each robot's blocks,
-only the lower triangle of the team's joint (the result is symmetric; its upper triangle is
-the mirror). The joints' rounds compute it at the end of their call
-(:func:`rounds_end_of_step`, which first applies the gains their records deferred,
-:func:`apply_later_gains`), the commit after the row-order loop. :func:`commit_tracked`
-hands the blocks to the joint (:meth:`~resloc.cl.tracking.JointCovariance.set_blocks`: the
-dense ``M`` is built only if the reference reads it) and the end of step into
-:attr:`~resloc.cl.tracking.JointCovariance.end_of_step`, which the compiled finish
-(:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish`) installs.
+(:meth:`resloc.cl.tracking.JointCovariance.finish`). :func:`commit_tracked` applies the
+gains the records deferred to the earlier ``B_ij`` (:func:`apply_later_gains`), hands the
+blocks to the joint (:meth:`~resloc.cl.tracking.JointCovariance.set_blocks`: the dense ``M``
+is built only if the reference reads it) and computes the end of step at once, while the
+rows are still in the cache, from the blocks: ``M U^T`` over each robot's blocks, only the
+lower triangle of the team's joint (the result is symmetric; its upper triangle is the
+mirror), into :attr:`~resloc.cl.tracking.JointCovariance.end_of_step`, which the compiled
+finish (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish`) installs.
 
 Not the reference's sums to the bit (it sums the dense products and averages the two
 triangles): equal to 1e-9 (the tests check 1e-12 relative on random block-sparse maps), as
@@ -26,7 +24,6 @@ function                       numpy twin
 =============================  ======================================================
 :func:`commit_tracked`         the state ``JointCovariance.update`` leaves, then
                                ``JointCovariance.finish``'s new joint and diagonal
-:func:`rounds_end_of_step`     ``JointCovariance.finish``'s new joint and diagonal
 :func:`apply_later_gains`      ``JointCovariance.update``'s ``G M_i`` on the earlier
                                links' blocks of ``M_i``
 =============================  ======================================================
@@ -40,18 +37,7 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = [
-    "NOT_COMPUTED",
-    "apply_later_gains",
-    "commit_tracked",
-    "installed_end_of_step",
-    "rounds_end_of_step",
-    "take_spare_rows",
-]
-
-#: ``KernelJoint.end_count`` of a correction whose loop did not compute the end of step (the
-#: row-order loop's; the commit computes it).
-NOT_COMPUTED = -2
+__all__ = ["apply_later_gains", "commit_tracked", "installed_end_of_step", "take_spare_rows"]
 
 
 def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
@@ -75,44 +61,22 @@ def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
     :class:`~resloc.cl.kernels_joint.KernelJoint`; ``obs``, ``fused``: the links' observers
     (E,) int64 and whether each fused, (E,) bool) to ``joint`` (a
     :class:`~resloc.cl.tracking.JointCovariance` as the step began: checked by
-    ``joint_state``) with its end of step (kept in ``joint.end_of_step`` for the compiled
-    finish; left None where a row is not finite): the one the joints' rounds computed in
-    their call (:func:`rounds_end_of_step`), else (the row-order loop) computed here from
-    the blocks."""
+    ``joint_state``): the gains the records deferred applied to the earlier ``B_ij``, then
+    the blocks, and the end of step computed from them (kept in ``joint.end_of_step`` for the
+    compiled finish; left None where a row is not finite), in one compiled call."""
     # (the fields unpacked at once: a NamedTuple's field by name is a property call)
-    (_, N, nbr, _, noise, A, Bij, _, _, _, _, _, _, _, rows, sigma, diagonal,
-     end_count) = state  # fmt: skip
+    _, N, nbr, _, noise, A, Bij, _, _, _, _, _, _, gains, rows = state
+    sigma = np.empty(joint.sigma.shape)
+    diagonal = np.empty(A.shape)
+    count = _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, sigma, diagonal, gains)
     joint.set_blocks(A, Bij, obs, nbr, fused)
     joint.noise = noise
     joint.m_sigma = rows  # M Sigma as the records kept it (the dense path's first product)
-    count = end_count[0]
-    if count == NOT_COMPUTED:
-        sigma = np.empty(joint.sigma.shape)
-        diagonal = np.empty(A.shape)
-        count = _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, sigma, diagonal, _NO_GAINS)
     if count >= 0:
-        joint.updates = int(count)
+        joint.updates = count
         joint.end_of_step = (sigma, diagonal)
     else:
         joint.updates = int(np.count_nonzero(fused))
-
-
-_NO_GAINS = np.zeros((0, 3, 3))
-
-
-@jit
-def rounds_end_of_step(joint, obs, fused):
-    """``tracked``'s end of step at the end of the joints' rounds' call
-    (:func:`resloc.cl.kernels_joint_rounds.correct_joint_rounds`), while the records' rows
-    are in the cache: the gains the rounds deferred applied to the ``B_ij`` blocks
-    (:func:`apply_later_gains`), then :func:`_end_of_step` into the joint's ``end_sigma``,
-    ``end_diagonal``, its result into ``end_count[0]`` (``joint``: the kernel's
-    ``KernelJoint``; ``obs``, ``fused``: (E,) the links' observers and fused flags).
-    :func:`commit_tracked` takes them."""
-    joint[17][0] = _end_of_step(
-        joint[14], joint[5], joint[6], obs, joint[2], fused, joint[4], joint[1], joint[15],
-        joint[16], joint[13],
-    )  # fmt: skip
 
 
 def installed_end_of_step(joint) -> np.ndarray | None:
@@ -207,12 +171,13 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal, gains):
 def apply_later_gains(Bij, gains, obs, fused):
     """Each fused link's ``B_ij`` (``Bij[e]``, (E, 3, 3)) left-multiplied by the gains
     ``G`` (``gains[e]``) of its robot's later fused links (``obs``, ``fused``: (E,) the
-    links' observers, rows in the order the records ran): what the row-order loop's records
-    do one link at a time (``left_multiply_b_row``), which the joints' rounds defer to the
-    end of the step. For a robot's fused links ``e_1 < ... < e_k``, from the last:
-    ``B_(e_m) <- S B_(e_m)``, ``S <- S G_(e_m)`` (``S = I`` first): two products a link,
-    not one per earlier link; the same matrices, summed in another order (1e-16 relative
-    per product)."""
+    links' observers, rows in the order the records ran): the reference's ``M_i <- G M_i``
+    (``JointCovariance.update``) on the blocks of the earlier links, which the compiled
+    records leave to the commit (they keep each fused link's ``G``; no record reads an
+    earlier ``B_ij``). For a robot's fused links ``e_1 < ... < e_k``, from the last:
+    ``B_(e_m) <- S B_(e_m)``, ``S <- S G_(e_m)`` (``S = I`` first): two products a link;
+    the same matrices, summed in another order (1e-16 relative a product). A zero third
+    column (``-K H_j``'s) stays zero."""
     B = 0
     for e in range(obs.shape[0]):
         B = max(B, obs[e] + 1)
