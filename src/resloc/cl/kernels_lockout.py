@@ -63,6 +63,8 @@ def floor_pass(skeys, svals, n, li, P, out, share, std):
         The number of robots raised (``out`` holds the covariances when > 0, ``P`` is
         unchanged otherwise), :data:`REFUSED` or :data:`NEED_OUT` (nothing written).
     """
+    if P.shape[1] != 3 or P.shape[2] != 3 or svals.shape[1] != 2:
+        return REFUSED  # (checked here, not by the glue a step)
     observer, slot, ok = stored_slots(skeys, n, li, np.ones(li.shape[0], np.bool_), P.shape[0])
     if not ok:
         return REFUSED
@@ -92,6 +94,8 @@ def record_pass(skeys, svals, n, li, detected, channel_ok, x, discs, weight):
     observer with none judged is left. Returns the number of observers recorded, or
     :data:`REFUSED`."""
     E = li.shape[0]
+    if x.shape[1] < 2 or svals.shape[1] != 2 or detected.shape[0] != E or channel_ok.shape[0] != E:
+        return REFUSED  # (checked here, not by the glue a step)
     judged = np.zeros(E, np.bool_)
     inside = np.zeros(n, np.int8)  # per observer: 0 not tested yet, 1 inside, -1 outside
     for e in range(E):
@@ -140,15 +144,16 @@ def fast_floor(params, state, links, P: np.ndarray) -> np.ndarray | None:
         return None
     li = np.ascontiguousarray(links.i, np.int64)
     Pa = np.ascontiguousarray(P, float)
-    if state.values.ndim != 2 or Pa.ndim != 3 or Pa.shape[1:] != (3, 3) or li.ndim != 1:
+    skeys, svals = state.keys, state.values
+    if svals.ndim != 2 or Pa.ndim != 3 or li.ndim != 1:  # (the shapes: the pass checks)
         LOCKOUT_RUNS["fallbacks"] += 1
         return None
     share, std, _, _ = _constants(params)
     out = _NO_OUT
-    status = floor_pass(state.keys, state.values, state.n_nodes, li, Pa, out, share, std)
+    status = floor_pass(skeys, svals, state.n_nodes, li, Pa, out, share, std)
     if status == NEED_OUT:
         out = np.empty_like(Pa)
-        status = floor_pass(state.keys, state.values, state.n_nodes, li, Pa, out, share, std)
+        status = floor_pass(skeys, svals, state.n_nodes, li, Pa, out, share, std)
     if status == REFUSED:
         LOCKOUT_RUNS["fallbacks"] += 1
         return None
@@ -163,7 +168,7 @@ def fast_record(params, state, links, detected: np.ndarray, x: np.ndarray) -> bo
     if backend() != "numba" or state.values.ndim != 2:
         return False
     xa = np.ascontiguousarray(x, float)
-    if xa.ndim != 2 or xa.shape[1] < 2:
+    if xa.ndim != 2:  # (its width: the pass checks)
         LOCKOUT_RUNS["fallbacks"] += 1
         return False
     _, _, discs, weight = _constants(params)
