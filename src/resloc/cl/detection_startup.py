@@ -92,13 +92,11 @@ STARTUP_FLOOR_END = 1e-4
 _OVER: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _over(params: CLParams | None, memory: LinkMemory) -> bool:
+def _over(memory: LinkMemory) -> bool:
     """Whether the stage was found over for ``memory``'s store, its arrays unchanged since
-    (the same objects) and the schedule the same (``params`` None: any schedule)."""
+    (the same objects), under any schedule."""
     over = _OVER.get(memory)
-    if over is None or over[1] is not over[0].keys or over[2] is not over[0].values:
-        return False
-    return params is None or over[4] is params or over[3] == _schedule(params)
+    return over is not None and over[1] is over[0].keys and over[2] is over[0].values
 
 
 def _schedule(params: CLParams) -> tuple:
@@ -118,8 +116,10 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
     (:func:`reference_floor`)."""
     if params.startup_steps <= 0 or memory is None:
         return P
-    if _over(params, memory):
-        return P
+    over = _OVER.get(memory)  # (_over inline: a call less a step)
+    if over is not None and over[1] is over[0].keys and over[2] is over[0].values:
+        if over[4] is params or over[3] == _schedule(params):
+            return P
     state = memory.stage_statistic(STARTUP_STATE, width=2)
     if not _FAST:  # numba's import, on first use
         from resloc.cl.kernels_startup import fast_floor
@@ -140,7 +140,7 @@ def claims_floored(params: CLParams, memory: LinkMemory | None) -> bool:
     :func:`startup_floor` found it)."""
     if not params.startup_claims or params.startup_steps <= 0 or memory is None:
         return False
-    return not _over(None, memory)
+    return not _over(memory)
 
 
 def floored_claims(params: CLParams, memory: LinkMemory | None, i, P_nb: np.ndarray) -> np.ndarray:
