@@ -174,6 +174,7 @@ def sequence_group(start, stop, residual, ref_cov, state, slot, gate, hold, forg
             for a in range(5):
                 state[slot[e], a] = 0.0
     state[slot[alarm], _HOLD] = hold
+    discard[alarm] = True
 
 
 #: :func:`fix_verdicts`' working rows (:func:`scaled_fix_verdicts`'): the claims' factors
