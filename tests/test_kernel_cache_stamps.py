@@ -64,3 +64,28 @@ def test_a_callee_reached_through_its_module_is_found() -> None:
     # _rounds reads the stages as module attributes and by name; both are followed
     assert {"resloc.cl.kernels_round_stages", "resloc.cl.kernels_split"} <= names
     assert "resloc.cl.kernels_fusion" in names  # through kernels_split (transitively)
+
+
+def test_the_redundancy_and_witness_kernels_go_stale_with_the_modules_they_were_split_into():
+    """The callers of the redundancy stage's fixes and verdicts and of the witness
+    statistic and notes (split out of kernels_redundancy and kernels_witness) are stamped
+    with the modules those now live in, through every caller that inlines or calls them."""
+    from resloc.cl.kernels_claims import claimed_rows
+    from resloc.cl.kernels_prepass import prepass_rows
+    from resloc.cl.kernels_redundancy_verdicts import fix_verdicts, scaled_fix_verdicts
+    from resloc.cl.kernels_witness_frames import delivered_pass
+    from resloc.cl.kernels_witness_step import witness_pass
+
+    fixes, verdicts = "resloc.cl.kernels_redundancy_fixes", "resloc.cl.kernels_redundancy_verdicts"
+    statistic = "resloc.cl.kernels_witness_statistic"
+    expected = {
+        fix_verdicts: {fixes},
+        scaled_fix_verdicts: {fixes},
+        prepass_rows: {fixes, verdicts},
+        claimed_rows: {fixes},
+        delivered_pass: {statistic},
+        witness_pass: {statistic},
+    }
+    for kernel, modules in expected.items():
+        kernel._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
+        assert modules <= kernel._resloc_pieces, kernel.py_func.__name__

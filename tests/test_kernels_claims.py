@@ -206,7 +206,7 @@ def test_the_capped_claims_median_from_the_first_order_is_a_full_sorts() -> None
     (``trace_scales``) and the numpy stages' claims, on groups of tied traces, zero and
     negative traces, traces just above and below the median, and a NaN (then sorted)."""
     from resloc.cl.kernels_claims import claimed_covariances, raised_trace_scales
-    from resloc.cl.kernels_redundancy import claim_scales, trace_scales
+    from resloc.cl.kernels_redundancy_fixes import claim_scales, trace_scales
 
     rng = np.random.default_rng(12)
     checked = 0

@@ -61,7 +61,8 @@ def test_the_compiled_passes_equal_the_spec(zone):
     spec = _run("numpy", params, 40)
     before = dict(LOCKOUT_RUNS)
     fast = _run("numba", params, 40)
-    assert LOCKOUT_RUNS["floors"] - before["floors"] >= 30
+    floors, idle = (LOCKOUT_RUNS[k] - before[k] for k in ("floors", "idle"))
+    assert floors >= 20 and idle >= 3 and floors + idle >= 35
     assert LOCKOUT_RUNS["records"] - before["records"] >= 30
     # robots raised in some steps, not in others (the share rises and falls)
     raised = [int((out[:, 1, 1] > P[:, 1, 1]).sum()) for P, out in spec[0]]
@@ -70,3 +71,33 @@ def test_the_compiled_passes_equal_the_spec(zone):
         np.testing.assert_array_equal(u, v)
     np.testing.assert_array_equal(spec[1], fast[1])
     np.testing.assert_array_equal(spec[2], fast[2])
+
+
+def test_a_floor_after_a_record_by_the_spec_is_not_skipped():
+    """The floor is skipped while the store holds the arrays the last compiled record found
+    idle (nobody above the share, no factor above 1): a record by the numpy spec in
+    between writes those same arrays in place, and the next floor must see it."""
+    from resloc.cl.kernels_lockout import LOCKOUT_RUNS
+
+    params = CLParams(lockout_share=0.45, lockout_window=1.0, lockout_floor_std=0.01)
+    B = 4
+    i = np.repeat(np.arange(B), 2)
+    links = _Batch(i=i, j=(i + 1) % B, channel_ok=np.ones(2 * B, bool))
+    P = np.tile(np.eye(3) * 1e-6, (B, 1, 1))
+    x = np.zeros((B, 3))
+    memory = LinkMemory(B)
+    calm, alarmed = (SimpleNamespace(detected=np.full(2 * B, d)) for d in (False, True))
+    with kernels.use_backend("numba"):
+        for _ in range(2):  # (nobody stored at first: the spec's, then compiled: idle)
+            lockout_floor(params, memory, links, P)
+            record_lockout(params, memory, links, calm, x)
+        before = dict(LOCKOUT_RUNS)
+        assert lockout_floor(params, memory, links, P) is P
+        assert LOCKOUT_RUNS["idle"] == before["idle"] + 1, "an idle store's floor was run"
+    with kernels.use_backend("numpy"):
+        record_lockout(params, memory, links, alarmed, x)  # every share 1, in place
+    with kernels.use_backend("numba"):
+        before = dict(LOCKOUT_RUNS)
+        out = lockout_floor(params, memory, links, P)
+        assert LOCKOUT_RUNS["floors"] == before["floors"] + 1, "not compiled"
+    np.testing.assert_allclose(out[:, 0, 0], 1e-4, rtol=1e-12)  # raised to 0.01 m

@@ -180,3 +180,35 @@ def test_pending_keys_out_of_order_are_left_to_the_spec():
         ref = reference_widen(params, memories[1], links, P)
     np.testing.assert_array_equal(fast, ref)
     _assert_same_store(*memories)
+
+
+def test_the_inputs_kept_per_memory_follow_its_store_and_params():
+    """The glue keeps per memory the options, the output arrays and the stage store's
+    arrays once checked (:class:`~resloc.cl.kernels_outvoted._Kept`): a store whose arrays
+    are replaced (a checkpoint restored, a store written by the spec), a store the pass
+    cannot write in place (strided values) and another ``params`` mid-run are each read
+    afresh, equal to the spec's."""
+    rng = np.random.default_rng(5)
+    params = CLParams(witness=True, outvoted=True, witness_liars=2.0)
+    offsets = np.zeros((ROBOTS, 2))
+    offsets[:3] = rng.uniform(-0.04, 0.04, (3, 2))
+    sd_p = rng.uniform(0.001, 0.02, ROBOTS)
+    memories = (LinkMemory(ROBOTS), LinkMemory(ROBOTS))
+    high = replace(params, witness_k=0.0, outvoted_cap=40.0)
+    for k in range(60):
+        notes, links = _random_step(rng, offsets, sd_p)
+        for memory in memories:
+            reference_record(notes, memory)
+            state = memory.stage_statistic(OUTVOTED_STATE, width=2)
+            if k in (20, 21) and len(state):  # new arrays: every test near its alarm
+                values = state.values.copy()
+                values[:, 0] = 2.0 * float(params.witness_h)
+                values[:, 1] = 1.0
+                state.keys, state.values = state.keys.copy(), values
+            if k == 30 and len(state):  # strided values: the pass writes a copy
+                wide = np.zeros((len(state), 4))
+                wide[:, ::2] = state.values
+                state.values = wide[:, ::2]
+        P = np.tile(np.eye(3) * 1e-4, (ROBOTS, 1, 1))
+        P[:, :2, :2] = np.eye(2) * sd_p[:, None, None] ** 2
+        _widen_both(high if 40 <= k < 50 else params, memories, links, P)

@@ -236,7 +236,8 @@ def test_the_pre_pass_fixes_in_blocks_equal_fix_evidence_out_of_the_polynomials_
     third robot far out of that range and a liar, its verdicts and sequence-test state equal
     :func:`fix_evidence`'s."""
     from resloc.cl.kernels_lanes import SINCOS_LANES_MAX
-    from resloc.cl.kernels_redundancy import FIX_BLOCK, redundancy_verdict
+    from resloc.cl.kernels_redundancy import redundancy_verdict
+    from resloc.cl.kernels_redundancy_fixes import FIX_BLOCK
 
     params = _params("full+redundancy+sequence")
     sc = default_scenario()
@@ -267,7 +268,7 @@ def test_the_pre_pass_fixes_in_blocks_equal_fix_evidence_out_of_the_polynomials_
 
 def test_capped_claims_twin() -> None:
     from resloc.cl.kernels_claims import CLAIMS_UNSORTED, claimed_covariances
-    from resloc.cl.kernels_redundancy import claim_scales
+    from resloc.cl.kernels_redundancy_fixes import claim_scales
 
     links = links_of_one_step()
     P_nb = links.P_nb.copy()

@@ -13,6 +13,7 @@ covariances nor the factors the attacker reads, and a robot not seen yet keeps i
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from types import SimpleNamespace
 
@@ -23,6 +24,7 @@ from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_startup, 
 from resloc.cl.detection_startup import (
     STARTUP_STATE,
     applied_startup_factors,
+    claims_floored,
     floor_over,
     reference_floor,
     startup_floor,
@@ -224,3 +226,28 @@ def test_a_robot_not_seen_yet_keeps_its_floor_after_the_others_end(backend):
     assert used[3, 0, 0] == pytest.approx(0.01**2)  # (10 mm)^2: raised
     assert (used[:3] == P[:3]).all()
     assert applied_startup_factors(memory, 4) == pytest.approx([1.0, 1.0, 1.0, 25.0])
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_the_over_record_is_read_with_the_params_of_the_step(backend):
+    """The stage found over is kept per memory with the ``params`` it was found under: the
+    same schedule in another ``params`` object still skips (no pass), a longer one raises
+    the robots again, as the spec does on that store."""
+    params = CLParams(startup_steps=3, startup_floor_std=0.01)
+    memory = LinkMemory(3)
+    P = np.tile(np.eye(3) * 0.002**2, (3, 1, 1))
+    links = SimpleNamespace(i=np.array([0, 1, 2]), j=np.array([1, 2, 0]))
+    with kernels.use_backend(backend):
+        for _ in range(5):
+            startup_floor(params, memory, links, P)
+        assert not claims_floored(dataclasses.replace(params, startup_claims=True), memory)
+        before = dict(kernels_startup.STARTUP_RUNS)
+        same = dataclasses.replace(params, lockout_share=0.5)  # another object, same schedule
+        assert startup_floor(same, memory, links, P) is P
+        assert kernels_startup.STARTUP_RUNS == before, "an ended stage ran again"
+        longer = dataclasses.replace(params, startup_steps=8)
+        state = memory.stage_statistic(STARTUP_STATE, width=2)
+        spec = reference_floor(longer, copy.deepcopy(state), links, P)
+        used = startup_floor(longer, memory, links, P)
+    assert used[:, 0, 0] == pytest.approx([0.01**2] * 3)  # (10 mm)^2: raised again
+    np.testing.assert_allclose(used, spec, rtol=1e-12, atol=0.0)

@@ -278,12 +278,12 @@ def test_the_compiled_statistic_equals_the_spec_on_adversarial_notes():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_chunked_enumeration_equals_the_spec_and_stops_exactly(seed):
-    """The enumeration's sets judged SET_CHUNK at a time (kernels_witness._chunk): every
+    """The enumeration's sets judged SET_CHUNK at a time (kernels_witness_statistic._chunk): every
     group's smallest statistic equals the spec's over sizes whose levels span several
     chunks, with a nan note (the one-by-one path), and a stop at ``enough`` gives a value at
     most ``enough`` exactly when the spec's smallest is (else the smallest itself)."""
     from resloc.cl.detection_witness import consistency_gates, reference_groups
-    from resloc.cl.kernels_witness import SET_CHUNK, group_statistics
+    from resloc.cl.kernels_witness_statistic import SET_CHUNK, group_statistics
 
     rng = np.random.default_rng(seed)
     params = CLParams(witness=True, witness_liars=3.0, witness_h=30.0)
@@ -316,6 +316,8 @@ def test_the_chunked_enumeration_equals_the_spec_and_stops_exactly(seed):
 
 def test_the_compiled_notes_and_cusum_equal_the_spec():
     from resloc.cl.detection_witness import witness_cusum, witness_notes
+    from resloc.cl.kernels_witness_notes import fast_notes
+    from resloc.cl.kernels_witness_statistic import cusum_of
 
     rng = np.random.default_rng(3)
     E = 50
@@ -327,7 +329,7 @@ def test_the_compiled_notes_and_cusum_equal_the_spec():
     x_nb[0, :2] = x_obs[0, :2]  # a neighbour at the observer's position (r = 0)
     R = np.diag([0.01**2, 0.02**2])
     with kernels.use_backend("numba"):
-        u, Q = kernels_witness.fast_notes(z, x_obs, P_obs, x_nb, R)
+        u, Q = fast_notes(z, x_obs, P_obs, x_nb, R)
     u0, Q0 = witness_notes(z, x_obs, P_obs, x_nb, R)
     np.testing.assert_allclose(u, u0, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(Q, Q0, rtol=1e-9, atol=1e-15)
@@ -336,7 +338,7 @@ def test_the_compiled_notes_and_cusum_equal_the_spec():
     judged = rng.random(E) < 0.7
     k, h = np.full(E, 4.0), np.full(E, 40.0)
     out = np.empty(E)
-    kernels_witness.cusum_of(S, T, judged, k, h, out)
+    cusum_of(S, T, judged, k, h, out)
     np.testing.assert_allclose(out, witness_cusum(S, T, judged, k, h), rtol=0, atol=1e-12)
 
 

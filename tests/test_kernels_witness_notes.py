@@ -36,8 +36,7 @@ def test_the_notes_in_lanes_equal_the_spec_and_note_at():
     and where the squares overflow) equals the numpy spec to 1e-9 (nan where it is nan)
     and the libm kernel (``notes_of``, ``note_at`` per row) to 1e-12; the broadcasts read
     by index give the same bits as per link."""
-    from resloc.cl.kernels_witness import notes_of
-    from resloc.cl.kernels_witness_notes import NOTE_ROWS, sent_notes
+    from resloc.cl.kernels_witness_notes import NOTE_ROWS, notes_of, sent_notes
 
     rng = np.random.default_rng(12)
     li, x, P, z, x_nb = _links(rng)

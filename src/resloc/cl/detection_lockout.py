@@ -101,15 +101,14 @@ def lockout_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
     numpy spec (:func:`reference_floor`)."""
     if params.lockout_share <= 0.0 or memory is None:
         return P
-    state = memory.stage_statistic(LOCKOUT_STATE, width=2)
     if not _FAST:  # numba's import, on first use
         from resloc.cl import kernels_lockout
 
         _FAST.append(kernels_lockout)
-    fast = _FAST[0].fast_floor(params, state, links, P)
+    fast = _FAST[0].fast_floor(params, memory, links, P)
     if fast is not None:
         return fast
-    return reference_floor(params, state, links, P)
+    return reference_floor(params, memory.stage_statistic(LOCKOUT_STATE, width=2), links, P)
 
 
 def reference_floor(params: CLParams, state, links, P: np.ndarray) -> np.ndarray:
@@ -164,16 +163,16 @@ def record_lockout(
     robot inside a zone would raise its floor)."""
     if params.lockout_share <= 0.0 or memory is None or len(links) == 0:
         return
-    state = memory.stage_statistic(LOCKOUT_STATE, width=2)
     if not _FAST:  # numba's import, on first use
         from resloc.cl import kernels_lockout
 
         _FAST.append(kernels_lockout)
-    if _FAST[0].fast_record(params, state, links, outcome.detected, x):
+    if _FAST[0].fast_record(params, memory, links, outcome.detected, x):
         return
     judged = np.asarray(links.channel_ok, bool)
     if params.zone_trust:
         judged = judged & ~inside_zone_map(np.asarray(x)[links.i, :2], params.zone_trust_map)
+    state = memory.stage_statistic(LOCKOUT_STATE, width=2)
     reference_record(params, state, links.i, outcome.detected, judged)
 
 

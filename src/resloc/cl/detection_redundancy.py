@@ -513,7 +513,7 @@ class RedundancyCheck:
     """Discard a link whose position fix disagrees with the robot's other fixes this step."""
 
     name: ClassVar[str] = "redundancy"
-    compiled: ClassVar[bool] = True  # resloc.cl.kernels_redundancy.fix_verdicts
+    compiled: ClassVar[bool] = True  # resloc.cl.kernels_redundancy_verdicts.fix_verdicts
     overrides: ClassVar[bool] = False
 
     def problem(self, options) -> str | None:

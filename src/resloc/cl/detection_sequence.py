@@ -194,7 +194,7 @@ class RedundancySequence:
     """Per-link sequence test on the redundancy residuals; holds a flagged link out."""
 
     name: ClassVar[str] = "redundancy_sequence"
-    compiled: ClassVar[bool] = True  # resloc.cl.kernels_redundancy.sequence_group
+    compiled: ClassVar[bool] = True  # resloc.cl.kernels_redundancy_verdicts.sequence_group
     overrides: ClassVar[bool] = False
 
     def problem(self, options: Any) -> str | None:

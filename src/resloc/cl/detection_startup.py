@@ -84,9 +84,24 @@ STARTUP_STATE = "startup"
 STARTUP_FLOOR_END = 1e-4
 
 
-#: Per stage store: its keys, values and the schedule when it was found over
-#: (:func:`floor_over`; it stays over: a skipped pass writes nothing).
+#: Per memory: its stage store, the store's keys and values, the schedule and the
+#: ``params`` when the stage was found over (:func:`floor_over`; it stays over: a skipped
+#: pass writes nothing). Keyed by the memory, and ``params`` compared first by identity (a
+#: run's): a run's later steps cost one look-up (the store's method and the schedule's
+#: tuple were ~0.5 of ~1.5 us a step in runs).
 _OVER: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _over(memory: LinkMemory) -> bool:
+    """Whether the stage was found over for ``memory``'s store, its arrays unchanged since
+    (the same objects), under any schedule."""
+    over = _OVER.get(memory)
+    return over is not None and over[1] is over[0].keys and over[2] is over[0].values
+
+
+def _schedule(params: CLParams) -> tuple:
+    return (params.startup_steps, params.startup_floor_std, params.startup_decay)
+
 
 #: :func:`resloc.cl.kernels_startup.fast_floor` once imported.
 _FAST: list = []
@@ -101,12 +116,11 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
     (:func:`reference_floor`)."""
     if params.startup_steps <= 0 or memory is None:
         return P
-    state = memory.stage_statistic(STARTUP_STATE, width=2)
-    schedule = (params.startup_steps, params.startup_floor_std, params.startup_decay)
-    over = _OVER.get(state)
-    if over is not None and over[0] is state.keys and over[1] is state.values:
-        if over[2] == schedule:
+    over = _OVER.get(memory)  # (_over inline: a call less a step)
+    if over is not None and over[1] is over[0].keys and over[2] is over[0].values:
+        if over[4] is params or over[3] == _schedule(params):
             return P
+    state = memory.stage_statistic(STARTUP_STATE, width=2)
     if not _FAST:  # numba's import, on first use
         from resloc.cl.kernels_startup import fast_floor
 
@@ -116,7 +130,7 @@ def startup_floor(params: CLParams, memory: LinkMemory | None, links, P: np.ndar
         return fast
     if status == "spec" and not floor_over(params, state):
         return reference_floor(params, state, links, P)
-    _OVER[state] = (state.keys, state.values, schedule)
+    _OVER[memory] = (state, state.keys, state.values, _schedule(params), params)
     return P
 
 
@@ -126,9 +140,7 @@ def claims_floored(params: CLParams, memory: LinkMemory | None) -> bool:
     :func:`startup_floor` found it)."""
     if not params.startup_claims or params.startup_steps <= 0 or memory is None:
         return False
-    state = memory.stage_statistic(STARTUP_STATE, width=2)
-    over = _OVER.get(state)
-    return not (over is not None and over[0] is state.keys and over[1] is state.values)
+    return not _over(memory)
 
 
 def floored_claims(params: CLParams, memory: LinkMemory | None, i, P_nb: np.ndarray) -> np.ndarray:

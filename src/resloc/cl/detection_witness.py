@@ -201,7 +201,7 @@ def step_notes(
     the draw j's estimate message to i gets): a note on an estimate the observer never
     received is not sent (a robot's process cannot write it)."""
     from resloc.cl.detection_zone import inside_zone_map
-    from resloc.cl.kernels_witness import fast_notes  # numba's import, on first use
+    from resloc.cl.kernels_witness_notes import fast_notes  # numba's import, on first use
 
     notes = fast_notes(z, x_obs, P_obs, x_nb, params.R)
     u, Q = witness_notes(z, x_obs, P_obs, x_nb, params.R) if notes is None else notes
@@ -272,7 +272,7 @@ def witness_statistic(
     judged : ndarray of bool, shape (G,)
         More than f notes on the robot this step.
     """
-    from resloc.cl.kernels_witness import fast_statistic  # numba's import, on first use
+    from resloc.cl.kernels_witness_statistic import fast_statistic  # numba's import, on first use
 
     fast = fast_statistic(notes, params, robots)
     if fast is not None:
@@ -319,7 +319,7 @@ def group_statistic(
     """The statistic ``T (G,)`` and ``judged (G,)`` of any groups of notes: group ``g`` is
     ``rows[start[g] : start[g] + count[g]]`` of ``notes``, all on robot ``ids[g]`` (its
     ``f`` and ``h``). The compiled twin with the numba backend, else the numpy spec."""
-    from resloc.cl.kernels_witness import fast_groups  # numba's import, on first use
+    from resloc.cl.kernels_witness_statistic import fast_groups  # numba's import, on first use
 
     fast = fast_groups(notes, params, rows, start, count, ids)
     if fast is not None:

@@ -35,7 +35,7 @@ import numpy as np
 from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.kernels_math import jit, jit_inline, per_params
 from resloc.cl.kernels_reciprocal import inside_discs
-from resloc.cl.kernels_redundancy import claim_scales, scales_to_median, trace_scales
+from resloc.cl.kernels_redundancy_fixes import claim_scales, scales_to_median, trace_scales
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -62,7 +62,7 @@ CLAIMS_RUNS = {"compiled": 0}
 def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scale, scratch):
     """Row ``e``'s claim ``P_src[rows[e]]`` (``(S, 3, 3)``, observer ``li[e]``) as the
     correction fuses it, into ``out: (E, 3, 3)``: with ``cap``, scaled by
-    :func:`~resloc.cl.kernels_redundancy.claim_scales`' factor; then, when the neighbour's
+    :func:`~resloc.cl.kernels_redundancy_fixes.claim_scales`' factor; then, when the neighbour's
     broadcast position ``x_src[rows[e], :2]`` lies inside a disc of ``discs: (Z, 3)``,
     scaled by that factor of the (capped) claims and multiplied by ``inflation``.
     ``scale``, ``scratch``: (E,) scratch. Returns the number of rows inside the map,
@@ -114,10 +114,10 @@ def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scal
 
 @jit_inline
 def raised_trace_scales(li, scale, raised, ranked, work):
-    """:func:`~resloc.cl.kernels_redundancy.trace_scales` of the capped claims' traces
+    """:func:`~resloc.cl.kernels_redundancy_fixes.trace_scales` of the capped claims' traces
     ``scale: (E,)`` (replaced by their factors), from the order of the traces before the
     cap: ``ranked: (E,)`` holds each observer's traces before the cap sorted (the scratch
-    :func:`~resloc.cl.kernels_redundancy.claim_scales` leaves), ``raised: (E,)`` whether
+    :func:`~resloc.cl.kernels_redundancy_fixes.claim_scales` leaves), ``raised: (E,)`` whether
     the cap's factor of a row was not 1. False, nothing written, when a trace is NaN (the
     caller then sorts). ``work: (E,)`` scratch. Rows sorted by observer (the caller tested
     them).

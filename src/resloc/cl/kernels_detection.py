@@ -70,7 +70,7 @@ class KernelDetection(NamedTuple):
     mean_g: np.ndarray  # (n, 4): g+_r, g-_r, g+_b, g-_b, written in place
     mean_slot: np.ndarray  # (E,) int64
     # (E,) bool: the links the step's redundancy pre-pass discards
-    # (resloc.cl.kernels_redundancy.fix_verdicts); empty when the stage is off
+    # (resloc.cl.kernels_redundancy_verdicts.fix_verdicts); empty when the stage is off
     fixes: np.ndarray
     # zone-aware trust (resloc.cl.kernels_zone): its map, the partners' readings and each
     # row's verdict, written by the loop (KernelZone.on False when the stage is off)
@@ -103,7 +103,7 @@ class DetectorState(NamedTuple):
 
 class PrepassVerdict(NamedTuple):
     """A compiled pre-pass's discards, shape (E,), and its stage's state before the step
-    (:func:`resloc.cl.kernels_redundancy.fix_verdicts`,
+    (:func:`resloc.cl.kernels_redundancy_verdicts.fix_verdicts`,
     :func:`resloc.cl.kernels_reciprocal.reciprocal_verdict`)."""
 
     discard: np.ndarray

@@ -23,6 +23,7 @@ singular one).
 from __future__ import annotations
 
 import math
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -32,8 +33,8 @@ from resloc.cl.detection_outvoted import OUTVOTED_STATE
 from resloc.cl.detection_witness import consistency_gates
 from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
 from resloc.cl.kernels_math import jit_lanes, per_params
-from resloc.cl.kernels_witness import group_statistics
 from resloc.cl.kernels_witness_frames import copy_note
+from resloc.cl.kernels_witness_statistic import group_statistics
 from resloc.cl.params import CLParams, at_robots
 
 __all__ = ["OUTVOTED_RUNS", "fast_widen", "outvoted_pass", "widened_covariances"]
@@ -78,11 +79,8 @@ def outvoted_pass(
     P,
     f_at,
     half_h_at,
-    k,
-    h,
+    consts,
     gates,
-    cap,
-    max_std,
     robots,
     values,
 ):
@@ -108,8 +106,9 @@ def outvoted_pass(
         The covariances before the stage (B >= every receiver's id + 1).
     f_at, half_h_at : ndarray, shape (n,)
         ``witness_liars`` (int64) and ``witness_h / 2`` of each robot.
-    k, h, cap, max_std : float
-        ``witness_k``, ``witness_h``, ``outvoted_cap``, ``outvoted_max_std``.
+    consts : ndarray, shape (4,)
+        ``witness_k``, ``witness_h``, ``outvoted_cap``, ``outvoted_max_std`` (one array:
+        each argument costs numba's dispatch ~65 ns).
     gates : ndarray, shape (M,)
         ``gates[c]``: the consistency gate of ``c`` notes.
     robots : ndarray of int, shape (n,)
@@ -132,7 +131,14 @@ def outvoted_pass(
     widened : int
         Receivers whose factor is above 1 (:data:`DONE`).
     """
+    k, h, cap, max_std = consts[0], consts[1], consts[2], consts[3]
     E = li.shape[0]
+    if lj.shape[0] != E or ok.shape[0] != E or P.shape[1] != 3 or P.shape[2] != 3:
+        return 0, REFUSED, 0, False, 0  # (arrays the glue no longer checks a step)
+    if pvals.shape[0] != pkeys.shape[0] or pvals.shape[1] != PENDING_WIDTH:
+        return 0, REFUSED, 0, False, 0
+    if svals.shape[0] != skeys.shape[0] or svals.shape[1] != 2 or f_at.shape[0] < n:
+        return 0, REFUSED, 0, False, 0
     for e in range(E):  # ids the spec would index with (or fail on): the spec decides
         if li[e] < 0 or lj[e] < 0 or li[e] >= n or lj[e] >= n or li[e] >= P.shape[0]:
             return 0, REFUSED, 0, False, 0
@@ -301,10 +307,7 @@ def widened_covariances(P, robots, values, G):
 class _Options(NamedTuple):
     """The stage's options as :func:`outvoted_pass` takes them (kept per ``params``)."""
 
-    k: float
-    h: float
-    cap: float
-    max_std: float
+    consts: np.ndarray  # witness_k, witness_h, outvoted_cap, outvoted_max_std
     p_fa: float
     gates: np.ndarray  # consistency_gates(p_fa, 16), the first the pass is given
     at: dict  # n -> (f_at, half_h_at), shapes (n,)
@@ -329,19 +332,72 @@ def _rows_of(values, rows: int, width: int) -> bool:
 
 
 _FLOAT = np.dtype(float)
+_INT = np.dtype(np.int64)
 
 
 @per_params
 def _options(params: CLParams) -> _Options:
-    return _Options(
-        float(params.witness_k),  # (scalars, as the spec reads them)
-        float(params.witness_h),
-        float(params.outvoted_cap),
-        float(params.outvoted_max_std),
-        float(np.max(params.witness_false_alarm)),
-        consistency_gates(float(np.max(params.witness_false_alarm)), 16),
-        {},
-    )
+    p_fa = float(np.max(params.witness_false_alarm))
+    consts = (params.witness_k, params.witness_h, params.outvoted_cap, params.outvoted_max_std)
+    # (scalars, as the spec reads them)
+    return _Options(np.array([float(v) for v in consts]), p_fa, consistency_gates(p_fa, 16), {})
+
+
+class _Kept:
+    """A memory's inputs of :func:`outvoted_pass` kept from step to step (a run passes the
+    same ``params`` and stores every step): the stores, the options, the per-robot arrays,
+    the pass's output arrays, and the store's arrays once checked (the pass writes them in
+    place: the same objects the next step, not checked again). The glue's checks, options
+    and allocations were ~3 of its ~6 us a step in runs."""
+
+    __slots__ = (
+        "at", "gates", "in_place", "n", "opt", "params", "pending", "pkeys", "robots",
+        "skeys", "state", "svals", "values",
+    )  # fmt: skip
+
+    def __init__(self, params: CLParams, memory) -> None:
+        self.params = params
+        self.state = memory.stage_statistic(OUTVOTED_STATE, width=2)
+        self.pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
+        self.n = n = self.state.n_nodes
+        self.opt = _options(params)
+        self.at = self.opt.per_robot(params, n)
+        # the pass's arrays (numba boxes a returned array at ~0.3 us; nothing keeps them
+        # past the step: the store's set copies them)
+        self.robots = np.empty(n, np.int64)
+        self.values = np.empty((n, 2))
+        self.skeys = self.svals = self.pkeys = None
+        self.in_place = False
+
+    def store_arrays(self) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The stage store's keys and values as the pass takes them, and whether the values
+        are the store's own (written in place; else a copy, and the caller sets them)."""
+        state = self.state
+        skeys, svals = state.keys, state.values
+        if skeys is self.skeys and svals is self.svals:  # checked at an earlier step
+            return skeys, svals, True
+        in_place = skeys.dtype == _INT and skeys.flags.c_contiguous
+        in_place = in_place and _rows_of(svals, len(skeys), 2)
+        if in_place:
+            self.skeys, self.svals = skeys, svals
+            return skeys, svals, True
+        # (a store the pass cannot write: it writes a copy, set by the caller)
+        skeys = np.ascontiguousarray(skeys, np.int64)
+        return skeys, np.ascontiguousarray(svals, float).reshape(len(state), 2), False
+
+    def pending_keys(self) -> np.ndarray:
+        """The pending store's keys as the pass takes them (checked once per array)."""
+        pkeys = self.pending.keys
+        if pkeys is not self.pkeys:
+            if pkeys.dtype != _INT or not pkeys.flags.c_contiguous:
+                return np.ascontiguousarray(pkeys, np.int64)
+            self.pkeys = pkeys
+        return pkeys
+
+
+#: Per memory: its :class:`_Kept` (weak: a finished run's arrays go with its memory; the
+#: stores do not refer to their memory).
+_KEPT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | None:
@@ -352,55 +408,49 @@ def fast_widen(params: CLParams, memory, links, P: np.ndarray) -> np.ndarray | N
     :func:`widened_covariances`: the glue only checks and calls."""
     if backend() != "numba":
         return None
-    state = memory.stage_statistic(OUTVOTED_STATE, width=2)
-    pending = memory.stage_statistic(PENDING, width=PENDING_WIDTH)
-    n = state.n_nodes
-    li = np.ascontiguousarray(links.i, np.int64)
-    lj = np.ascontiguousarray(links.j, np.int64)
+    kept = _KEPT.get(memory)
+    if kept is None or kept.params is not params:
+        kept = _KEPT[memory] = _Kept(params, memory)
+        if kept.pending.n_nodes != kept.n:
+            del _KEPT[memory]
+            return None
     Pa = np.ascontiguousarray(P, float)
-    if pending.n_nodes != n or Pa.ndim != 3 or Pa.shape[1:] != (3, 3) or li.shape != lj.shape:
+    if Pa.ndim != 3:
         return None
-    opt = _options(params)
-    f_at, half_h_at = opt.per_robot(params, n)
-    svals = state.values
-    in_place = _rows_of(svals, len(state.keys), 2)
-    if not in_place:  # (a store the pass cannot write: it writes a copy, set below)
-        svals = np.ascontiguousarray(svals, float).reshape(len(state), 2)
-    pvals = pending.values
-    if not _rows_of(pvals, len(pending.keys), PENDING_WIDTH):
+    skeys, svals, in_place = kept.store_arrays()
+    pending = kept.pending
+    pkeys, pvals = pending.keys, pending.values  # (new each step: the witness pass's)
+    if pkeys is not kept.pkeys:
+        pkeys = kept.pending_keys()
+    # (_rows_of inline, a call costs ~0.2 us a step in runs; the width: the pass checks)
+    if pvals.ndim != 2 or pvals.dtype is not _FLOAT or not pvals.flags.c_contiguous:
         pvals = np.ascontiguousarray(pvals, float).reshape(len(pending), PENDING_WIDTH)
+    opt, robots, values = kept.opt, kept.robots, kept.values
     args = (
-        np.ascontiguousarray(pending.keys, np.int64),
+        pkeys,
         pvals,
-        n,
-        li,
-        lj,
+        kept.n,
+        np.ascontiguousarray(links.i, np.int64),
+        np.ascontiguousarray(links.j, np.int64),
         np.ascontiguousarray(links.channel_ok, np.bool_),
-        np.ascontiguousarray(state.keys, np.int64),
+        skeys,
         svals,
         Pa,
-        f_at,
-        half_h_at,
-        opt.k,
-        opt.h,
+        *kept.at,
+        opt.consts,
     )
-    # the pass's arrays (allocated here: numba boxes a returned array at ~0.3 us)
-    robots = np.empty(n, np.int64)
-    values = np.empty((n, 2))
-    largest = 16
+    largest, gates = 16, opt.gates
     while True:
-        gates = opt.gates if largest == 16 else consistency_gates(opt.p_fa, largest)
-        G, status, enumerated, written, widened = outvoted_pass(
-            *args, gates, opt.cap, opt.max_std, robots, values
-        )
+        G, status, enumerated, written, widened = outvoted_pass(*args, gates, robots, values)
         if status >= 0:
             break
         largest = max(-status, 2 * largest)
+        gates = consistency_gates(opt.p_fa, largest)
     if status == REFUSED:
         OUTVOTED_RUNS["fallbacks"] += 1
         return None
     if not (written and in_place):  # (a receiver not stored yet: the store inserts)
-        state.set(robots[:G], robots[:G], values[:G])
+        kept.state.set(robots[:G], robots[:G], values[:G])
     OUTVOTED_RUNS["passes"] += 1
     OUTVOTED_RUNS["enumerated"] += enumerated
     return widened_covariances(Pa, robots, values, G) if widened else P

@@ -6,8 +6,8 @@ links before its link loop, each a numba call of its own with its Python glue:
 * the claims the correction fuses (:func:`~resloc.cl.kernels_claims.claimed_covariances`:
   the redundancy stage's cap and the zone landmarks),
 * zone trust's partners' readings (:func:`~resloc.cl.kernels_zone.partner_readings`),
-* the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`: its
-  claims' factors, then :func:`~resloc.cl.kernels_redundancy.scaled_fix_verdicts`),
+* the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy_verdicts.fix_verdicts`: its
+  claims' factors, then :func:`~resloc.cl.kernels_redundancy_verdicts.scaled_fix_verdicts`),
 * the reciprocal check's pre-pass (:func:`~resloc.cl.kernels_reciprocal.reciprocal_verdicts`).
 
 None of them depends on the order in which the links are fused, and none on the others'
@@ -53,12 +53,9 @@ from resloc.cl.kernels_claims import (
 from resloc.cl.kernels_detection import DetectorState, PrepassVerdict, shared_slots, store_slots
 from resloc.cl.kernels_math import jit, per_params, stamp_with_pieces
 from resloc.cl.kernels_reciprocal import reciprocal_options, reciprocal_verdicts
-from resloc.cl.kernels_redundancy import (
-    FIX_WORK_ROWS,
-    claim_scales,
-    named_fix_options,
-    scaled_fix_verdicts,
-)
+from resloc.cl.kernels_redundancy import named_fix_options
+from resloc.cl.kernels_redundancy_fixes import claim_scales
+from resloc.cl.kernels_redundancy_verdicts import FIX_WORK_ROWS, scaled_fix_verdicts
 from resloc.cl.kernels_zone import OUTSIDE, KernelZone, ZoneState, partner_readings
 from resloc.cl.params import CLParams
 
@@ -108,7 +105,7 @@ def prepass_rows(
     2. with zone trust (``z_rec``, ``verdict`` of ``E`` rows; else empty), its partner's
        reading (:func:`~resloc.cl.kernels_zone.partner_readings`) into ``z_rec: (E, 2)``,
        and zone trust's verdicts ``(E,)`` set to ``OUTSIDE``;
-    3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy.fix_verdicts`; the
+    3. the redundancy pre-pass (:func:`~resloc.cl.kernels_redundancy_verdicts.fix_verdicts`; the
        sequence test's state ``seq_state[seq_slot[e]]``) into ``discard: (E,)``;
        with the cap alone, the claims' factors it starts with are read from the order of
        the claims' traces the cap sorted (:func:`~resloc.cl.kernels_claims.raised_trace_scales`,

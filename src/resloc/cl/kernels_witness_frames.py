@@ -18,7 +18,7 @@ sets by a random 64-bit word per row; the masks identify them exactly). A receiv
 holds a frame twice (a duplicate link) gets sets of its own, with the rows repeated as
 the spec repeats them. Each set's whole set is judged; a group left at 0 by a consistent
 whole set skips the enumeration (the spec's rule), the others' sets are enumerated by
-:func:`~resloc.cl.kernels_witness.terms_statistic` (``group_statistics``' enumeration, on
+:func:`~resloc.cl.kernels_witness_statistic.terms_statistic` (``group_statistics``' enumeration, on
 the information terms the sums used: computed once per note), each once, stopping at the
 first consistent subset whose statistic clips every group holding the set at 0 (``S + T -
 k <= 0``: the smallest would give the same 0; the spec enumerates them all). The store is
@@ -33,12 +33,8 @@ import numpy as np
 
 from resloc.cl.backend import backend
 from resloc.cl.kernels_math import jit_lanes
-from resloc.cl.kernels_witness import (
-    SET_CHUNK,
-    WITNESS_RUNS,
-    set_moments,
-    terms_statistic,
-)
+from resloc.cl.kernels_witness import WITNESS_RUNS
+from resloc.cl.kernels_witness_statistic import SET_CHUNK, set_moments, terms_statistic
 from resloc.cl.memory import LinkStatistic
 from resloc.cl.params import CLParams, at_robots
 

@@ -1,20 +1,26 @@
-"""The witness stage's notes of a step in SIMD lanes (the step's pass,
-:func:`~resloc.cl.kernels_witness_step.witness_pass`).
+"""The witness stage's notes, compiled (twins of
+:func:`~resloc.cl.detection_witness.witness_notes`).
 
-:func:`~resloc.cl.kernels_witness.note_at` computes a link's note with libm's ``cos``,
-``sin`` and ``hypot``: three calls a link, about half of the notes' cost in a step (numba
-here has no vector math library). :func:`sent_notes` computes every link's note with
-:func:`~resloc.cl.kernels_lanes.sincos_lanes` (branch-free polynomials, within 2e-16 of libm
-for ``|a| <= SINCOS_LANES_MAX``; libm beyond it and for a nan, as the redundancy pre-pass's
-fixes do) and the distance as the square root of the sum of squares (within an ulp of
-``hypot``; ``hypot`` where that is not finite), then ``note_at``'s operations one for one,
-branch-free (``r > 0`` a select), in loops LLVM compiles to SIMD. The notes are those of
-``note_at`` to a few ulps, not to the bit.
+:func:`note_at` computes a link's note with libm's ``cos``, ``sin`` and ``hypot``, the
+numpy spec's products one for one (:func:`notes_of`: rows of arrays; :func:`fast_notes`:
+``step_notes`` with the numba backend). Those three calls a link are about half of the
+notes' cost in a step (numba here has no vector math library): the step's pass
+(:func:`~resloc.cl.kernels_witness_step.witness_pass`) computes every link's note with
+:func:`sent_notes` instead, with :func:`~resloc.cl.kernels_lanes.sincos_lanes`
+(branch-free polynomials, within 2e-16 of libm for ``|a| <= SINCOS_LANES_MAX``; libm beyond
+it and for a nan, as the redundancy pre-pass's fixes do) and the distance as the square
+root of the sum of squares (within an ulp of ``hypot``; ``hypot`` where that is not
+finite), then ``note_at``'s operations one for one, branch-free (``r > 0`` a select), in
+loops LLVM compiles to SIMD. The notes are those of ``note_at`` to a few ulps, not to the
+bit.
 
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`sent_notes`             :func:`~resloc.cl.detection_witness.witness_notes`
+:func:`notes_of`               :func:`~resloc.cl.detection_witness.witness_notes` (the
+                               same products)
+:func:`sent_notes`             :func:`~resloc.cl.detection_witness.witness_notes` (to a
+                               few ulps)
 =============================  ==========================================================
 """
 
@@ -25,10 +31,93 @@ import math
 import numpy as np
 
 from resloc.cl import kernels_lanes as _kernels_lanes
+from resloc.cl.backend import backend
 from resloc.cl.kernels_lanes import SINCOS_LANES_MAX, sincos_lanes
-from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_math import jit_inline, jit_lanes, stamp_with_pieces
+from resloc.cl.kernels_witness import WITNESS_RUNS
 
-__all__ = ["NOTE_ROWS", "sent_notes"]
+__all__ = ["NOTE_ROWS", "fast_notes", "note_at", "notes_of", "sent_notes"]
+
+
+@jit_lanes
+def notes_of(z, x_obs, P_obs, x_nb, R, u, Q):
+    """Each row's note ``u (E, 2)`` and its covariance ``Q (E, 2, 2)``, written in place,
+    from the readings ``z (E, 2)``, the observers' estimates ``x_obs (E, 3)``, ``P_obs
+    (E, 3, 3)`` and the neighbours' broadcasts ``x_nb (E, 3)``. Twin:
+    :func:`~resloc.cl.detection_witness.witness_notes` (the same products)."""
+    for e in range(z.shape[0]):
+        lengthen = math.exp(0.5 * (R[1, 1] + P_obs[e, 2, 2]))
+        note_at(z, e, x_obs, e, P_obs, x_nb, R, u, Q, e, lengthen)
+
+
+@jit_inline
+def note_at(z, e, x, o, P, x_nb, R, u, Q, q, lengthen):
+    """Row ``e``'s note into ``u[q]``, ``Q[q]``: the reading ``z[e]``, the neighbour's
+    broadcast ``x_nb[e]``, the observer's estimate ``x[o]``, ``P[o]`` (:func:`notes_of`);
+    ``lengthen``: ``exp((R[1, 1] + P[o, 2, 2]) / 2)``, the observer's (computed once per
+    observer by the step's pass). Scalars and whole arrays with indices: a view per row
+    costs more than the note."""
+    a = x[o, 2] + z[e, 1]
+    r_mean = z[e, 0] * lengthen
+    ca = math.cos(a)
+    sa = math.sin(a)
+    u[q, 0] = x_nb[e, 0] - (x[o, 0] + r_mean * ca)
+    u[q, 1] = x_nb[e, 1] - (x[o, 1] + r_mean * sa)
+    rel0 = x_nb[e, 0] - x[o, 0]
+    rel1 = x_nb[e, 1] - x[o, 1]
+    r = math.hypot(rel0, rel1)
+    if r > 0.0:
+        c = rel0 / r
+        s = rel1 / r
+    else:
+        c = ca
+        s = sa
+        r = z[e, 0]
+    # J_x = [[1, 0, -r s], [0, 1, r c]], J_z = [[c, -r s], [s, r c]]: every product of
+    # J_x P J_x^T + J_z R J_z^T kept, zeros included (a non-finite P propagates as in numpy)
+    j2, k2 = -r * s, r * c
+    A = (
+        P[o, 0, 0] + 0.0 * P[o, 1, 0] + j2 * P[o, 2, 0],
+        P[o, 0, 1] + 0.0 * P[o, 1, 1] + j2 * P[o, 2, 1],
+        P[o, 0, 2] + 0.0 * P[o, 1, 2] + j2 * P[o, 2, 2],
+    )
+    B = (
+        0.0 * P[o, 0, 0] + P[o, 1, 0] + k2 * P[o, 2, 0],
+        0.0 * P[o, 0, 1] + P[o, 1, 1] + k2 * P[o, 2, 1],
+        0.0 * P[o, 0, 2] + P[o, 1, 2] + k2 * P[o, 2, 2],
+    )
+    Ra = (c * R[0, 0] + j2 * R[1, 0], c * R[0, 1] + j2 * R[1, 1])
+    Rb = (s * R[0, 0] + k2 * R[1, 0], s * R[0, 1] + k2 * R[1, 1])
+    Q00 = (A[0] + 0.0 * A[1] + A[2] * j2) + (Ra[0] * c + Ra[1] * j2)
+    Q01 = (0.0 * A[0] + A[1] + A[2] * k2) + (Ra[0] * s + Ra[1] * k2)
+    Q10 = (B[0] + 0.0 * B[1] + B[2] * j2) + (Rb[0] * c + Rb[1] * j2)
+    Q11 = (0.0 * B[0] + B[1] + B[2] * k2) + (Rb[0] * s + Rb[1] * k2)
+    off = 0.5 * (Q01 + Q10)
+    Q[q, 0, 0] = Q00
+    Q[q, 0, 1] = off
+    Q[q, 1, 0] = off
+    Q[q, 1, 1] = Q11
+
+
+def fast_notes(z, x_obs, P_obs, x_nb, R) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`notes_of` on the arrays as :func:`~resloc.cl.detection_witness.witness_notes`
+    takes them: ``(u, Q)``, or None with the numpy backend or shapes it does not take."""
+    if backend() != "numba":
+        return None
+    z, x_obs, P_obs, x_nb, R = (
+        np.ascontiguousarray(a, dtype=float) for a in (z, x_obs, P_obs, x_nb, R)
+    )
+    E = len(z)
+    if z.shape != (E, 2) or x_obs.shape != (E, 3) or P_obs.shape != (E, 3, 3):
+        return None
+    if x_nb.shape != (E, 3) or R.shape != (2, 2):
+        return None
+    u = np.empty((E, 2))
+    Q = np.empty((E, 2, 2))
+    notes_of(z, x_obs, P_obs, x_nb, R, u, Q)
+    WITNESS_RUNS["notes"] += 1
+    return u, Q
+
 
 #: :func:`sent_notes`' rows: ``u`` (2), ``Q``'s entries ``Q00``, ``Q01 = Q10``, ``Q11``.
 NOTE_ROWS = 5
@@ -41,7 +130,7 @@ def sent_notes(z, x, P, x_src, xrows, li, R, lengthen, notes):
     observer's estimate ``x[li[e]]``, ``P[li[e]]``;
     ``lengthen[o] = exp((R[1, 1] + P[o, 2, 2]) / 2)``. Into ``notes: (NOTE_ROWS, E)``:
     ``u`` and ``Q`` (symmetric: its off-diagonal once), rows ``u0, u1, Q00, Q01, Q11``.
-    Twin: :func:`~resloc.cl.kernels_witness.note_at` (to a few ulps). The angles, their
+    Twin: :func:`note_at` (to a few ulps). The angles, their
     sines and cosines and the distances in arrays of their own: a loop over rows of one 2-d
     array does not compile to SIMD (measured: 3.0 against 0.55 us for 260 links)."""
     E = li.shape[0]

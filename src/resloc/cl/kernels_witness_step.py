@@ -4,7 +4,7 @@ Before it, :func:`~resloc.cl.kernels_witness.witness_verdict` made five calls a 
 with its numpy glue: the receivers' delivery
 (:func:`~resloc.cl.kernels_witness_frames.delivered_pass`), the verdict per link (the
 delivered statistic looked up and compared with ``h``), the step's notes
-(:func:`~resloc.cl.kernels_witness.notes_of` on gathered rows), which notes are sent (the
+(:func:`~resloc.cl.kernels_witness_notes.notes_of` on gathered rows), which notes are sent (the
 observer outside the zone-trust map, the note a number) and, after the loop, the record
 of the notes in the pending store. :func:`witness_pass` does all of it in one compiled
 call; the constants it reads (each robot's ``f``, ``k``, ``h``, the consistency gates, the
