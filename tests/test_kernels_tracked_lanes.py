@@ -133,9 +133,10 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
     """:func:`~resloc.cl.kernels_tracked_lanes.tracked_record_lanes` (the arithmetic over the
     fused lanes in SIMD) against the scalar record (the ``tracked`` branch of
     ``joint_record_lanes``, ``tracked_record`` lane by lane) on the same round: the joint's
-    ``A``, ``B_ij``, noise and rows of ``M Sigma``, ``P``, ``now`` and the repaired flags
-    the same to the bit. Each lane has three earlier rows (some fused), some lanes are not
-    fused (left alone), one lane's robots are closer than the minimum range, and the
+    ``A``, ``B_ij`` (the earlier rows left to the commit by both), the fused lanes' gains,
+    noise and rows of ``M Sigma``, ``P``, ``now`` and the repaired flags the same to the
+    bit. Each lane has three earlier rows (some fused), some lanes are not fused (left
+    alone), one lane's robots are closer than the minimum range, and the
     random blocks give posteriors that need the repair. ``n`` below one block of lanes,
     not a multiple of it, and above."""
     from resloc.cl.kernels_joint import joint_state
@@ -213,12 +214,14 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
     )  # fmt: skip
     j1, P1, now1, flags1 = state[1]
     fused = tracked_record_lanes(
-        j1, P1, lane_e, lane_first, o, np.int64(n), xi, xr, update, decision, R, flags1,
-        now1, blocks, np.zeros(CHUNK, np.int64), np.zeros((RECORD_INPUT_ROWS, LANE_STRIDE)),
+        j1, P1, lane_e, o, np.int64(n), xi, xr, update, decision, R, flags1, now1, blocks,
+        np.zeros(CHUNK, np.int64), np.zeros((RECORD_INPUT_ROWS, LANE_STRIDE)),
         np.zeros((RECORD_OUTPUT_ROWS, LANE_STRIDE)), np.zeros((3, 3)), np.zeros((3, 3)),
         np.zeros((3, 3)),
     )  # fmt: skip
     assert fused == int(decision[3, :n].sum())
+    lanes = lane_e[:n][decision[3, :n] == 1.0]
+    np.testing.assert_array_equal(_bits(j1.gains[lanes]), _bits(j0.gains[lanes]))
     for name in ("A", "Bij", "noise", "rows"):
         np.testing.assert_array_equal(
             _bits(getattr(j1, name)), _bits(getattr(j0, name)), err_msg=name

@@ -8,6 +8,7 @@ then installed by the compiled finish)."""
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ def _kernel_joint(A, Bij, nbr, noise, rows, robots: int):
     """The records as the kernel's ``KernelJoint`` holds them (what the commit takes)."""
     from resloc.cl.kernels_joint import TRACKED, KernelJoint
 
-    empty = np.zeros((0, 3, 3))
+    empty = np.zeros((0, 3, 3))  # (no gains: the blocks as the commit's products leave them)
     return KernelJoint(
         TRACKED, robots, nbr, np.zeros((0, 0, 0)), noise, A, Bij, empty[None], empty[None],
         empty[None], np.zeros((0, 0), np.bool_), np.zeros((5, 3, 3)), np.zeros((2, 6, 6)),
@@ -185,3 +186,73 @@ def test_the_prediction_leaves_the_corrections_rows() -> None:
         assert not np.shares_memory(state.rows, joint.sigma)
         again = joint_state(TRACKED, memory, i, j)  # (the spare is used once)
         assert not np.shares_memory(again.rows, state.rows)
+
+
+def test_later_gains_are_the_records_products() -> None:
+    """``apply_later_gains`` (the joints' rounds defer each record's left products of the
+    robot's earlier ``B_ij`` to the end of the step) equals the row-order records' products
+    one link at a time (``B_ir <- G_e B_ir`` for every earlier fused ``r`` of the robot) to
+    1e-12 relative: robots with zero, one and several fused links among unfused ones, most
+    ``B_ij`` with a zero third column (which stays exactly zero), some without."""
+    from resloc.cl.kernels_tracked_step import apply_later_gains
+
+    rng = np.random.default_rng(5)
+    obs = np.sort(rng.integers(0, 9, 80)).astype(np.int64)
+    fused = rng.random(80) < 0.6
+    fused[obs == 3] = False  # a robot with no fused link
+    Bij = rng.normal(size=(80, 3, 3))
+    zero = rng.random(80) < 0.8
+    Bij[zero, :, 2] = 0.0
+    gains = np.eye(3) + 0.4 * rng.normal(size=(80, 3, 3))
+    expected = Bij.copy()
+    for e in range(80):  # the row-order records: each gain on the robot's earlier fused B
+        if fused[e]:
+            for r in range(e):
+                if fused[r] and obs[r] == obs[e]:
+                    expected[r] = gains[e] @ expected[r]
+    assert (np.bincount(obs[fused]) > 2).any()
+    got = Bij.copy()
+    apply_later_gains(got, gains, obs, fused)
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(got[fused], expected[fused], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(got[~fused], Bij[~fused])  # unfused: not touched
+    assert np.all(got[zero & fused][:, :, 2] == 0.0)
+
+
+@pytest.mark.parametrize("name", ["ckf", "ekf"])
+def test_the_commit_applies_the_gains_the_records_deferred(name: str, monkeypatch) -> None:
+    """Two teams of the default scenario in lockstep with the reference (1e-9, the lockstep
+    of ``test_kernels_joint``), the CKF through the joints' rounds and the EKF through the
+    row-order loop: at every commit the records had kept each fused link's gain and left
+    the robots' earlier ``B_ij`` as their own record wrote them (``-K H_j``, a zero third
+    column); the commit's products changed exactly the blocks of fused links with a later
+    fused link of their robot, and its end of step was installed."""
+    from resloc.cl import kernels_joint
+    from resloc.cl.kernels_joint import warm_up_joint_form
+    from resloc.cl.kernels_rounds import LOOP_RUNS
+    from test_kernels_joint import FILTERS, lockstep
+
+    warm_up_joint_form()  # (its corrections are not the lockstep's)
+    original = kernels_joint.commit_tracked
+    seen = []
+
+    def spy(state, joint, obs, fused):
+        before = state.Bij.copy()
+        original(state, joint, obs, fused)
+        later = np.zeros(len(obs), dtype=bool)  # a fused link with a later fused one
+        for e in np.flatnonzero(fused):
+            later[e] = bool(np.any(fused[e + 1 :] & (obs[e + 1 :] == obs[e])))
+        changed = np.any(state.Bij != before, axis=(1, 2))
+        assert np.all(before[fused][:, :, 2] == 0.0)  # as each record wrote it
+        np.testing.assert_array_equal(changed[fused], later[fused])
+        seen.append((int(later.sum()), joint.end_of_step is not None))
+
+    monkeypatch.setattr(kernels_joint, "commit_tracked", spy)
+    params = replace(default_scenario().cl_params(), fusion="tracked")
+    before = dict(LOOP_RUNS)
+    steps = 20
+    fused, _ = lockstep("tracked", FILTERS[name], params, steps, seed=23)
+    assert fused > 0 and len(seen) == steps
+    assert sum(n for n, _ in seen) > 0 and all(done for _, done in seen)
+    loop = "joint_rounds" if name == "ckf" else "row_order"
+    assert LOOP_RUNS[loop] - before[loop] >= steps

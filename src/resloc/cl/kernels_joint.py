@@ -15,8 +15,10 @@ differ in where ``C_ij`` comes from and what an update records:
     covariance a robot keeps after an update, ``P_i = M_i Sigma M_i^T + N_i`` in the
     reference, is the same quantity by the update's recursion
     ``[G, -K H_j] [[P_i, C_ij], [C_ij^T, P_j]] [G, -K H_j]^T + K R K^T`` (``Sigma_ii`` at
-    the robot's first link). :func:`joint_commit` hands ``M`` to the joint by its blocks
-    and computes the end of step (``Sigma <- M Sigma M^T + N``) from them and the rows
+    the robot's first link). The records keep each fused link's gain ``G`` (``gains``) and
+    leave its products with the robot's earlier ``B_ij`` to the commit. :func:`joint_commit`
+    applies them, hands ``M`` to the joint by its blocks and computes the end of step
+    (``Sigma <- M Sigma M^T + N``) from them and the rows
     (:mod:`resloc.cl.kernels_tracked_step`).
 ``factorized`` (:class:`~resloc.cl.factorized.FactorizedCovariance`)
     ``C_ij = sigma_ij sigma_ji,pred^T`` shrunk to a valid joint
@@ -95,7 +97,7 @@ class KernelJoint(NamedTuple):
     fused: np.ndarray  # (B, N) bool factorized: i fused l's estimate this step
     work: np.ndarray  # (5, 3, 3) P_i, C_ij, P_j of the moments, scratch, tracked P_i now
     J6: np.ndarray  # (2, 6, 6) scratch: the joint and its Cholesky factor
-    gains: np.ndarray  # (E, 3, 3) factorized: each fused link's G = I - K H_i
+    gains: np.ndarray  # (E, 3, 3) each fused link's G = I - K H_i
     rows: np.ndarray  # (B, 3, 3N) tracked: each robot's M_i Sigma (its rows of M Sigma)
 
 
@@ -146,11 +148,11 @@ def joint_state(code: int, memory, i: np.ndarray, j: np.ndarray) -> KernelJoint 
     if code == TRACKED:
         sigma = np.ascontiguousarray(joint.sigma, dtype=float)
         rows = take_spare_rows(joint, sigma)  # M = I: each robot's rows of Sigma
-        # (Bij not zeroed: every reader of tracked's takes the fused links' blocks only,
-        # which the records write first; 18 KiB a step at 260 links)
+        # (Bij and the gains not zeroed: every reader of tracked's takes the fused links'
+        # blocks only, which the records write first; 18 KiB a step each at 260 links)
         return KernelJoint(
             code, N, nbr, sigma, np.zeros((B, 3, 3)), A, np.empty((E, 3, 3)), _EMPTY4, _EMPTY4,
-            _EMPTY4, _NO_JOINT.fused, work, J6, _EMPTY3, rows,
+            _EMPTY4, _NO_JOINT.fused, work, J6, np.empty((E, 3, 3)), rows,
         )  # fmt: skip
     # factorized: the kernel reads the factors as the step began (never writes them)
     return KernelJoint(

@@ -14,7 +14,6 @@ from resloc.cl.kernels_math import jit_inline
 __all__ = [
     "factorized_record",
     "joint_record",
-    "left_multiply_b_row",
     "left_multiply_row",
     "tracked_record",
     "update_m_sigma_rows",
@@ -79,25 +78,6 @@ def left_multiply_row(G, M, r, T3):
 
 
 @jit_inline
-def left_multiply_b_row(G, Bij, r, T3):
-    """``Bij[r] <- G Bij[r]`` in place, for ``tracked``'s ``B_ij``: a zero third column
-    (``-K H_j``, times gains: ``H_j``'s is zero) stays zero, so only the first two columns
-    are formed (in scalars: no scratch); :func:`left_multiply_row` where it is not zero."""
-    if Bij[r, 0, 2] != 0.0 or Bij[r, 1, 2] != 0.0 or Bij[r, 2, 2] != 0.0:
-        left_multiply_row(G, Bij, r, T3)
-        return
-    b00 = Bij[r, 0, 0]
-    b01 = Bij[r, 0, 1]
-    b10 = Bij[r, 1, 0]
-    b11 = Bij[r, 1, 1]
-    b20 = Bij[r, 2, 0]
-    b21 = Bij[r, 2, 1]
-    for a in range(3):
-        Bij[r, a, 0] = G[a, 0] * b00 + G[a, 1] * b10 + G[a, 2] * b20
-        Bij[r, a, 1] = G[a, 0] * b01 + G[a, 1] * b11 + G[a, 2] * b21
-
-
-@jit_inline
 def joint_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """Record link ``e``'s update of robot ``i`` (gain ``K``) linearized at i's estimate
     before the update and j's transmitted one; ``tracked`` writes robot i's covariance after
@@ -123,17 +103,20 @@ def _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3):
 def tracked_record(joint, e, first, fused, i, xi0, xi1, xj0, xj1, K, R, Hi, Hj, G, T3, Pn):
     """:func:`joint_record` of ``tracked``: the blocks of ``M_i``, the noise, i's rows of
     ``M Sigma`` (the cross of its later links, :func:`update_m_sigma_rows`), then ``P_i`` into
-    ``Pn``. Indexes the arrays, takes no view of them (a view costs a
-    reference count, and this runs per link)."""
+    ``Pn``. The gain ``G`` is kept (``joint[13][e]``); its products with robot i's earlier
+    fused ``B_ij`` (``M_i <- G M_i`` on their blocks; no record reads them) are left to the
+    commit (:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`: two products a link,
+    not a walk over every earlier link of the robot per record; ``first`` and ``fused``,
+    which that walk read, are the shared call's). Indexes the arrays, takes no view of them
+    (a view costs a reference count, and this runs per link)."""
     Bij = joint[6]
     noise = joint[4]
+    gains = joint[13]
     _gain_map(joint, i, xi0, xi1, xj0, xj1, K, Hi, Hj, G, T3)
-    for r in range(first, e):
-        if fused[r]:
-            left_multiply_b_row(G, Bij, r, T3)
     for a in range(3):
         for b in range(3):
             Bij[e, a, b] = -(K[a, 0] * Hj[0, b] + K[a, 1] * Hj[1, b])
+            gains[e, a, b] = G[a, b]
     for a in range(3):  # N_i <- G N_i G^T + K R K^T
         for b in range(3):
             T3[a, b] = (

@@ -410,8 +410,8 @@ def _joint_rounds(
             apply_lanes(x, P, lane_e, n, obs, xi, update, norms, decision, out, T3, True)
             if tracked:  # the record's arithmetic over the fused lanes (SIMD)
                 tracked_record_lanes(
-                    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, out[2],
-                    now, blocks, fused_lanes, record_in, record_out, work[8], work[7], T3,
+                    joint, P, lane_e, obs, n, xi, xr, update, decision, R, out[2], now, blocks,
+                    fused_lanes, record_in, record_out, work[8], work[7], T3,
                 )  # fmt: skip
             else:
                 joint_record_lanes(

@@ -13,7 +13,7 @@ import math
 from resloc.cl import kernels_joint_links as _kernels_joint_links
 from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl.kernels_joint_lanes import LANE_STRIDE
-from resloc.cl.kernels_joint_records import left_multiply_b_row, update_m_sigma_rows
+from resloc.cl.kernels_joint_records import update_m_sigma_rows
 from resloc.cl.kernels_lanes import CHUNK
 from resloc.cl.kernels_math import jit_lanes, stamp_with_pieces, store_covariance
 from resloc.cl.kernels_round_cached import padded_lanes
@@ -124,8 +124,8 @@ RECORD_OUTPUT_ROWS = 45
 
 @_jit
 def tracked_record_lanes(
-    joint, P, lane_e, lane_first, obs, n, xi, xr, update, decision, R, flags, now, blocks,
-    lanes, rin, rout, G, Pn, T3,
+    joint, P, lane_e, obs, n, xi, xr, update, decision, R, flags, now, blocks, lanes, rin,
+    rout, G, Pn, T3,
 ):  # fmt: skip
     """``tracked``'s record of every fused lane of a round (``decision[3, c] == 1``) with
     the arithmetic over lanes: the fused lanes' inputs gathered into ``rin:
@@ -133,18 +133,20 @@ def tracked_record_lanes(
     never read), then the Jacobians, ``G``, ``G A_i``, ``B_ij``, the noise and i's
     covariance after the update in one branch-free loop over lanes that compiles to SIMD
     (:func:`_record_of_lanes`, into ``rout: (RECORD_OUTPUT_ROWS, LANE_STRIDE)``), then per
-    fused lane what the loop cannot do: the results into the joint's working copies, i's
-    earlier fused ``B`` rows and its rows of ``M Sigma`` left-multiplied by ``G``
+    fused lane what the loop cannot do: the results into the joint's working copies, ``G``
+    into the link's gain (``joint[13]``), i's rows of ``M Sigma`` left-multiplied by ``G``
     (:func:`~resloc.cl.kernels_joint_records.update_m_sigma_rows`), ``P[i]`` (repaired
     where not positive definite, ``flags[4]``) and ``now[i]``. ``lanes: (CHUNK,)``, ``G``,
     ``Pn``, ``T3`` (3 x 3): scratch. Returns the number of fused lanes. The same operations
     in the same order as the scalar record it replaces (the ``tracked`` branch of
     :func:`resloc.cl.kernels_joint_rounds.joint_record_lanes`, ``tracked_record``): the
-    same values to the bit."""
-    fused = flags[3]
+    same values to the bit. Neither multiplies i's earlier fused ``B`` rows by ``G``: the
+    commit does (:func:`~resloc.cl.kernels_tracked_step.apply_later_gains`, two products a
+    link; the walk over every earlier link of the robot per record cost ~5 us a step)."""
     noise = joint[4]
     A = joint[5]
     Bij = joint[6]
+    gains = joint[13]
     nf = 0
     for c in range(n):
         if decision[3, c] == 1.0:
@@ -184,12 +186,10 @@ def tracked_record_lanes(
                 G[a, b] = rout[r, k]
                 A[i, a, b] = rout[9 + r, k]
                 Bij[e, a, b] = rout[18 + r, k]
+                gains[e, a, b] = rout[r, k]
                 noise[i, a, b] = rout[27 + r, k]
                 Pn[a, b] = rout[36 + r, k]
                 now[i, a, b] = rout[36 + r, k]
-        for r in range(lane_first[c], e):
-            if fused[r]:
-                left_multiply_b_row(G, Bij, r, T3)
         update_m_sigma_rows(rows, sigma, i, i // N, 3 * (nbr[e] % N), G, Bij, e)
         flags[4, e] = store_covariance(P, i, Pn, T3)
     return nf

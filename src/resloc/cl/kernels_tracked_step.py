@@ -4,11 +4,12 @@ After a compiled correction the kernel holds ``M`` by its non-zero 3 x 3 blocks 
 ``A_b`` at its own column, each fused link's ``B_ij`` at j's: :class:`~resloc.cl.kernels_joint.
 KernelJoint`) and each robot's rows of ``U = M Sigma`` (``rows``, the records'). The
 reference's end of step is ``Sigma <- sym(M Sigma M^T + blockdiag(N))``
-(:meth:`resloc.cl.tracking.JointCovariance.finish`). :func:`commit_tracked` hands the
-blocks to the joint (:meth:`~resloc.cl.tracking.JointCovariance.set_blocks`: the dense
-``M`` is built only if the reference reads it) and computes the end of step at once, while
-the rows are still in the cache, from the blocks: ``M U^T`` over each robot's blocks, only
-the lower triangle of the team's joint (the result is symmetric; its upper triangle is the
+(:meth:`resloc.cl.tracking.JointCovariance.finish`). :func:`commit_tracked` applies the
+gains the records deferred to the earlier ``B_ij`` (:func:`apply_later_gains`), hands the
+blocks to the joint (:meth:`~resloc.cl.tracking.JointCovariance.set_blocks`: the dense ``M``
+is built only if the reference reads it) and computes the end of step at once, while the
+rows are still in the cache, from the blocks: ``M U^T`` over each robot's blocks, only the
+lower triangle of the team's joint (the result is symmetric; its upper triangle is the
 mirror), into :attr:`~resloc.cl.tracking.JointCovariance.end_of_step`, which the compiled
 finish (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_finish`) installs.
 
@@ -23,6 +24,8 @@ function                       numpy twin
 =============================  ======================================================
 :func:`commit_tracked`         the state ``JointCovariance.update`` leaves, then
                                ``JointCovariance.finish``'s new joint and diagonal
+:func:`apply_later_gains`      ``JointCovariance.update``'s ``G M_i`` on the earlier
+                               links' blocks of ``M_i``
 =============================  ======================================================
 """
 
@@ -34,7 +37,7 @@ import numpy as np
 
 from resloc.cl.kernels_math import jit
 
-__all__ = ["commit_tracked", "installed_end_of_step", "take_spare_rows"]
+__all__ = ["apply_later_gains", "commit_tracked", "installed_end_of_step", "take_spare_rows"]
 
 
 def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
@@ -58,16 +61,17 @@ def commit_tracked(state, joint, obs: np.ndarray, fused: np.ndarray) -> None:
     :class:`~resloc.cl.kernels_joint.KernelJoint`; ``obs``, ``fused``: the links' observers
     (E,) int64 and whether each fused, (E,) bool) to ``joint`` (a
     :class:`~resloc.cl.tracking.JointCovariance` as the step began: checked by
-    ``joint_state``) and compute its end of step from the blocks (kept in
-    ``joint.end_of_step`` for the compiled finish; left None where a row is not finite)."""
+    ``joint_state``): the gains the records deferred applied to the earlier ``B_ij``, then
+    the blocks, and the end of step computed from them (kept in ``joint.end_of_step`` for the
+    compiled finish; left None where a row is not finite), in one compiled call."""
     # (the fields unpacked at once: a NamedTuple's field by name is a property call)
-    _, N, nbr, _, noise, A, Bij, _, _, _, _, _, _, _, rows = state
+    _, N, nbr, _, noise, A, Bij, _, _, _, _, _, _, gains, rows = state
+    sigma = np.empty(joint.sigma.shape)
+    diagonal = np.empty(A.shape)
+    count = _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, sigma, diagonal, gains)
     joint.set_blocks(A, Bij, obs, nbr, fused)
     joint.noise = noise
     joint.m_sigma = rows  # M Sigma as the records kept it (the dense path's first product)
-    sigma = np.empty(joint.sigma.shape)
-    diagonal = np.empty(A.shape)
-    count = _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, sigma, diagonal)
     if count >= 0:
         joint.updates = count
         joint.end_of_step = (sigma, diagonal)
@@ -88,13 +92,16 @@ def installed_end_of_step(joint) -> np.ndarray | None:
 
 
 @jit
-def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
+def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal, gains):
     """``out[t] = sym(M_t U_t^T + blockdiag(noise))`` per team from ``rows = U`` (B, 3, 3N:
     each robot's rows of ``M Sigma``) and ``M``'s blocks (``A``: (B, 3, 3) at each robot's
     own column; ``Bij[e]`` at column ``nbr[e]`` of row ``obs[e]`` for each ``fused[e]``;
     blocks at the same place add up, as the reference's records do), the diagonal blocks
-    into ``diagonal``. Returns the number of fused links, or -1 (``out`` and ``diagonal``
-    not valid) when an entry of ``rows`` is not finite.
+    into ``diagonal``. ``gains`` (E, 3, 3): each fused link's ``G``, whose products with
+    the robot's earlier ``B_ij`` the records deferred (:func:`apply_later_gains`, applied
+    first, into ``Bij``), or (0, 3, 3) where ``Bij`` holds them already. Returns the number
+    of fused links, or -1 (``out`` and ``diagonal`` not valid) when an entry of ``rows`` is
+    not finite.
 
     ``U^T`` per team first (a transposed copy: the block products then run over contiguous
     rows, SIMD); robot a's rows of the result, left of and in its diagonal block only (the
@@ -119,6 +126,8 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
         if fused[e]:
             order[fill[obs[e]]] = e
             fill[obs[e]] += 1
+    if gains.shape[0]:
+        _later_gains_by_robot(Bij, gains, start, order, B)
     UT = np.empty((n3, n3))
     for t in range(out.shape[0]):
         bad = 0  # (the rows' check in the copy: an integer sum, branch-free)
@@ -156,6 +165,83 @@ def _end_of_step(rows, A, Bij, obs, nbr, fused, noise, N, out, diagonal):
                 diagonal[t * N + a, p - d, k] = v
                 diagonal[t * N + a, k, p - d] = v
     return nf
+
+
+@jit
+def apply_later_gains(Bij, gains, obs, fused):
+    """Each fused link's ``B_ij`` (``Bij[e]``, (E, 3, 3)) left-multiplied by the gains
+    ``G`` (``gains[e]``) of its robot's later fused links (``obs``, ``fused``: (E,) the
+    links' observers, rows in the order the records ran): the reference's ``M_i <- G M_i``
+    (``JointCovariance.update``) on the blocks of the earlier links, which the compiled
+    records leave to the commit (they keep each fused link's ``G``; no record reads an
+    earlier ``B_ij``). For a robot's fused links ``e_1 < ... < e_k``, from the last:
+    ``B_(e_m) <- S B_(e_m)``, ``S <- S G_(e_m)`` (``S = I`` first): two products a link;
+    the same matrices, summed in another order (1e-16 relative a product). A zero third
+    column (``-K H_j``'s) stays zero."""
+    B = 0
+    for e in range(obs.shape[0]):
+        B = max(B, obs[e] + 1)
+    start = np.zeros(B + 1, np.int64)
+    for e in range(obs.shape[0]):
+        if fused[e]:
+            start[obs[e] + 1] += 1
+    for b in range(B):
+        start[b + 1] += start[b]
+    fill = start[:B].copy()
+    order = np.empty(start[B], np.int64)
+    for e in range(obs.shape[0]):
+        if fused[e]:
+            order[fill[obs[e]]] = e
+            fill[obs[e]] += 1
+    _later_gains_by_robot(Bij, gains, start, order, B)
+
+
+@jit
+def _later_gains_by_robot(Bij, gains, start, order, B):
+    """:func:`apply_later_gains` on the fused links grouped by robot (``order[start[b]:
+    start[b + 1]]``: robot b's, in the records' order)."""
+    for b in range(B):
+        last = start[b + 1] - 1
+        if last <= start[b]:
+            continue  # (no or one fused link: no later gain)
+        e = order[last]
+        s00, s01, s02 = gains[e, 0, 0], gains[e, 0, 1], gains[e, 0, 2]
+        s10, s11, s12 = gains[e, 1, 0], gains[e, 1, 1], gains[e, 1, 2]
+        s20, s21, s22 = gains[e, 2, 0], gains[e, 2, 1], gains[e, 2, 2]
+        for m in range(last - 1, start[b] - 1, -1):
+            e = order[m]
+            b00, b01, b02 = Bij[e, 0, 0], Bij[e, 0, 1], Bij[e, 0, 2]
+            b10, b11, b12 = Bij[e, 1, 0], Bij[e, 1, 1], Bij[e, 1, 2]
+            b20, b21, b22 = Bij[e, 2, 0], Bij[e, 2, 1], Bij[e, 2, 2]
+            Bij[e, 0, 0] = s00 * b00 + s01 * b10 + s02 * b20
+            Bij[e, 0, 1] = s00 * b01 + s01 * b11 + s02 * b21
+            Bij[e, 1, 0] = s10 * b00 + s11 * b10 + s12 * b20
+            Bij[e, 1, 1] = s10 * b01 + s11 * b11 + s12 * b21
+            Bij[e, 2, 0] = s20 * b00 + s21 * b10 + s22 * b20
+            Bij[e, 2, 1] = s20 * b01 + s21 * b11 + s22 * b21
+            if b02 != 0.0 or b12 != 0.0 or b22 != 0.0:  # (B_ij's third column: zero)
+                Bij[e, 0, 2] = s00 * b02 + s01 * b12 + s02 * b22
+                Bij[e, 1, 2] = s10 * b02 + s11 * b12 + s12 * b22
+                Bij[e, 2, 2] = s20 * b02 + s21 * b12 + s22 * b22
+            if m > start[b]:  # S <- S G_e
+                g00, g01, g02 = gains[e, 0, 0], gains[e, 0, 1], gains[e, 0, 2]
+                g10, g11, g12 = gains[e, 1, 0], gains[e, 1, 1], gains[e, 1, 2]
+                g20, g21, g22 = gains[e, 2, 0], gains[e, 2, 1], gains[e, 2, 2]
+                s00, s01, s02 = (
+                    s00 * g00 + s01 * g10 + s02 * g20,
+                    s00 * g01 + s01 * g11 + s02 * g21,
+                    s00 * g02 + s01 * g12 + s02 * g22,
+                )
+                s10, s11, s12 = (
+                    s10 * g00 + s11 * g10 + s12 * g20,
+                    s10 * g01 + s11 * g11 + s12 * g21,
+                    s10 * g02 + s11 * g12 + s12 * g22,
+                )
+                s20, s21, s22 = (
+                    s20 * g00 + s21 * g10 + s22 * g20,
+                    s20 * g01 + s21 * g11 + s22 * g21,
+                    s20 * g02 + s21 * g12 + s22 * g22,
+                )
 
 
 @jit
