@@ -68,7 +68,7 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
             fused[c] = False
     lane_e, obs, src, xi, xr, moments, pxz, update, decision = lane_arrays(x, x_nb, perm, C, fused)
     params = replace(default_scenario().cl_params(), fusion="ci")
-    options = kernels_prepared.prepared(params).plain_options
+    options = kernels_prepared.prepared_for(params).plain_options
     R = options[0]
     for c in range(n):
         Hi, Hj = jacobians(xi[:, c], xr[:, c])

@@ -230,25 +230,6 @@ def test_undo_puts_back_the_values_the_kernel_saved() -> None:
             np.testing.assert_array_equal(store.values, values)
 
 
-def test_the_plain_detection_with_changes_is_the_replaced_one() -> None:
-    """``kernels._plain_with``: ``_plain(structure._replace(**changes))``, from the last
-    result when the structure and the changes are the same objects, not otherwise."""
-    params = _params("zone+full+redundancy+sequence")
-    rows = np.arange(4, dtype=np.int64)
-    detect = detector_state(params, LinkMemory(4), rows, (rows + 1) % 4).kernel
-    zone = detect.zone._replace(on=True)
-    fixes, other = np.ones(4, bool), np.zeros(4, bool)
-    for changes in ({}, {"fixes": fixes, "zone": zone}, {"fixes": fixes, "zone": zone},
-                    {"fixes": other, "zone": zone}, {"fixes": other}):  # fmt: skip
-        got = kernels._plain_with(detect, changes)
-        want = kernels._plain(detect._replace(**changes))
-        assert len(got) == len(want)
-        for a, b in zip(got, want, strict=True):
-            assert a is b or (
-                isinstance(a, tuple) and all(x is y for x, y in zip(a, b, strict=True))
-            )
-
-
 def test_a_finished_memory_is_not_kept_by_the_passes_outputs() -> None:
     """The outputs and the stores' buffers are kept per memory from step to step, weakly:
     a run's memory (and the arrays kept for it) goes when the run lets it go."""

@@ -64,7 +64,7 @@ def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
         pxz[:, c] = (Pi @ Hi.T).ravel()
         update[:2, c] = rng.normal(size=2) * 0.05
     params = replace(default_scenario().cl_params(), fusion="split_ci")
-    options = kernels_prepared.prepared(params).plain_options
+    options = kernels_prepared.prepared_for(params).plain_options
     criterion = CICriterion.DET if det else CICriterion.TRACE
     fusion = kernel_fusion(SPLIT_CI, criterion, n)._replace(
         independent=np.ascontiguousarray(ind), P_nb_ind=np.ascontiguousarray(ind_nb)

@@ -72,15 +72,16 @@ from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.kernels_detection import detector_state
 from resloc.cl.kernels_fusion import KERNEL_UPDATES, NAIVE_UPDATE, fusion_commit, fusion_state
-from resloc.cl.kernels_inputs import KernelLinks, KernelOutputs, KernelRobots
-from resloc.cl.kernels_inputs import cached_rows as _cached_rows
-from resloc.cl.kernels_inputs import shapes_ok as _shapes_ok
+from resloc.cl.kernels_inputs import (
+    KernelLinks,
+    KernelOutputs,
+    KernelRobots,
+    cached_rows,
+    shapes_ok,
+)
 from resloc.cl.kernels_links import OK
-from resloc.cl.kernels_plain import contiguous as _contiguous
-from resloc.cl.kernels_plain import plain as _plain
-from resloc.cl.kernels_plain import plain_with as _plain_with
-from resloc.cl.kernels_prepared import prepared as _prepared
-from resloc.cl.kernels_prepared import refusal as _refusal
+from resloc.cl.kernels_plain import contiguous, plain, plain_with
+from resloc.cl.kernels_prepared import prepared_for, refusal
 from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch, run_link_loop
 from resloc.cl.kernels_tamper import no_tamper
 from resloc.cl.links import LinkBatch, LinkOutcome
@@ -134,12 +135,12 @@ def fast_correct(
     Shapes and ``buffers`` (checked by the caller) as in :func:`~resloc.cl.step.correct`;
     the outcome has ``compiled = True``.
     """
-    if _refusal(filt, params, links) is not None:
+    if refusal(filt, params, links) is not None:
         return None
     witness = None
     if params.witness:  # the notes read the claims as sent (kernels_witness)
         witness = _stage("kernels_witness").WitnessInputs.of(links)
-    prepared = _prepared(params)
+    prepared = prepared_for(params)
     # the claims, zone's readings and the pre-passes in one compiled call after the stores'
     # look-ups (kernels_prepass), where nothing runs between them
     one_pass = _stage("kernels_prepass").applies(params, links, prepared.cached)
@@ -181,17 +182,17 @@ def fast_correct(
     need_memory = last_sent or cached
     if need_memory and memory is None:
         return None  # the reference path raises the explanatory error
-    li = _contiguous(links.i, np.int64)
-    lj = _contiguous(links.j, np.int64)
+    li = contiguous(links.i, np.int64)
+    lj = contiguous(links.j, np.int64)
     E = len(li)
     robots = KernelRobots(
-        _contiguous(links.risk_s),
-        _contiguous(links.risk_c),
-        _contiguous(links.lambda2),
+        contiguous(links.risk_s),
+        contiguous(links.risk_c),
+        contiguous(links.lambda2),
         *prepared.gains,
     )
     neighbours = links.neighbour_rows()
-    if E == 0 or not _shapes_ok(x, P, links, li, lj, robots, neighbours):
+    if E == 0 or not shapes_ok(x, P, links, li, lj, robots, neighbours):
         return None
     strategy = prepared.strategy
     if prepared.problem is not None:
@@ -216,14 +217,14 @@ def fast_correct(
         return None  # the reference path raises the explanatory error
     nb, x_nb, P_nb = neighbours
     if cached:  # per-link rows, j's last received estimate where there is one
-        x_nb, P_nb, x_ref, P_ref, known, last = _cached_rows(
+        x_nb, P_nb, x_ref, P_ref, known, last = cached_rows(
             memory, li, lj, nb, x_nb, P_nb, last_sent
         )
         nb = np.arange(E, dtype=np.int64)
     else:
         if nb is None:  # the per-link arrays themselves
             nb = np.arange(E, dtype=np.int64)
-        x_nb, P_nb, nb = _contiguous(x_nb), _contiguous(P_nb), _contiguous(nb, np.int64)
+        x_nb, P_nb, nb = contiguous(x_nb), contiguous(P_nb), contiguous(nb, np.int64)
         last = np.zeros(E if last_sent else 0)
         known = np.zeros(E, dtype=np.bool_)
         x_ref, P_ref = x_nb, P_nb
@@ -236,7 +237,7 @@ def fast_correct(
     paired = None
     if one_pass:  # the claims, zone's readings, the pre-passes (kernels_prepass)
         passes = _stage("kernels_prepass").prepass(
-            params, memory, li, lj, _contiguous(z), _contiguous(x), _contiguous(P), x_nb, P_nb,
+            params, memory, li, lj, contiguous(z), contiguous(x), contiguous(P), x_nb, P_nb,
             nb, detect,
         )  # fmt: skip
         if passes is None:
@@ -276,14 +277,14 @@ def fast_correct(
         changes["zone"] = zone.kernel
     if witness is not None:
         changes["witness"] = witness.discard
-    detect = _plain_with(detect, changes, memory)  # (no _replace: ~2 us with two fields)
+    detect = plain_with(detect, changes, memory)  # (no _replace: ~2 us with two fields)
     kernel_links = KernelLinks(
         li,
-        _contiguous(z),
+        contiguous(z),
         x_nb,
         P_nb,
         nb,
-        _contiguous(links.channel_ok, np.bool_),
+        contiguous(links.channel_ok, np.bool_),
         last,
         x_ref,
         P_ref,
@@ -310,11 +311,11 @@ def fast_correct(
         tuple(robots),
         tuple(spec),
         prepared.plain_options,
-        _plain(fusion),
+        plain(fusion),
         detect,
-        _plain(defence.kernel),
+        plain(defence.kernel),
         tuple(gauge),
-        _plain(tamper),
+        plain(tamper),
         out,
     )
     if status != OK:
@@ -346,7 +347,7 @@ def options_beyond_paper(params: CLParams) -> bool:
     """Whether corrections with ``params`` run an option's stage in the compiled loops
     (:func:`~resloc.cl.kernels_rounds.beyond_paper` on the structures ``params`` give; an
     adversary's tamper hook, which comes with the links, is the caller's to add)."""
-    prepared = _prepared(params)
+    prepared = prepared_for(params)
     strategy = prepared.strategy
     if KERNEL_UPDATES[strategy.kernel_update] != NAIVE_UPDATE:
         return True

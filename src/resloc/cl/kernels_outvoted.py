@@ -12,7 +12,7 @@ The grouping is a counting sort, the ids being small ints: the pending rows (key
 robot's rows come sorted by observer (the spec's ``lexsort``); robot r keeps the rows of the
 observers whose frame reached it (the links (r, o) with their channel through). Each
 robot's statistic is the witness stage's enumeration
-(:func:`~resloc.cl.kernels_witness.group_statistics`), stopped at the first consistent set
+(:func:`~resloc.cl.kernels_witness_statistic.group_statistics`), stopped at the first consistent set
 whose statistic clips the robot's sequence test at 0 (``S + T - k <= 0``: the smallest
 gives the same 0; the spec enumerates them all, and its ``T`` is read nowhere else). The
 widening's 2 x 2 solve is written out (the spec calls LAPACK: equal to rounding); a

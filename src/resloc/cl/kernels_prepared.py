@@ -21,7 +21,7 @@ from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams, NeighbourEstimate, ThresholdInnovation
 from resloc.linalg import JITTER_LEVELS
 
-__all__ = ["Prepared", "prepared", "refusal"]
+__all__ = ["Prepared", "prepared_for", "refusal"]
 
 _JITTER = np.asarray(JITTER_LEVELS, dtype=float)
 
@@ -48,7 +48,7 @@ class Prepared(NamedTuple):
 _last_prepared: tuple = (None, None)
 
 
-def prepared(params: CLParams) -> Prepared:
+def prepared_for(params: CLParams) -> Prepared:
     """The gains, options and fusion strategy of ``params`` as the kernel takes them, kept
     for the last ``params`` object."""
     global _last_prepared

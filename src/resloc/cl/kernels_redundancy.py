@@ -72,7 +72,7 @@ _NO_GAIN = np.zeros(1)
 @per_params
 def _fix_options(params: CLParams) -> tuple:
     """:class:`FixOptions` of ``params`` as a plain tuple (numba types a NamedTuple
-    argument in Python, a plain tuple by its fast fingerprint: ``kernels._plain``)."""
+    argument in Python, a plain tuple by its fast fingerprint: ``kernels_plain.plain``)."""
     return tuple(named_fix_options(params))
 
 

@@ -2,7 +2,7 @@
 (:func:`resloc.cl.kernels_rounds.correct_rounds`).
 
 With ``cached`` estimates a link's first pass uses ``j``'s last received estimate (the
-per-link rows ``x_ref``, ``P_ref`` :func:`resloc.cl.kernels._cached_rows` gathers), the
+per-link rows ``x_ref``, ``P_ref`` :func:`resloc.cl.kernels_inputs.cached_rows` gathers), the
 trigger fires at a link's first reception, an accepted untriggered link may be fused with
 the cached estimate (``update_without_transmission``), and a delivered message is fused
 with the estimate it carries: a second pass with the transmitted rows ``x_nb``, ``P_nb``,
