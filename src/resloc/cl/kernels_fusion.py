@@ -44,6 +44,7 @@ from resloc.cl.kernels_joint import (
     KernelJoint,
     joint_commit,
     joint_state,
+    kernel_scratch,
     no_joint,
 )
 from resloc.cl.kernels_math import chol2, jit, jit_inline, jit_lanes, solve2, wrap
@@ -121,9 +122,10 @@ def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
             return None
         if criterion is not CICriterion.TRACE and criterion is not CICriterion.DET:
             criterion = CICriterion(criterion)
+        scratch = kernel_scratch(memory.joint)  # (the joint's: no allocation a step)
         return KernelFusion(
-            code, criterion is CICriterion.DET, _GRID, joint, _NONE3, _NONE3,
-            np.zeros((8, 3, 3)), np.empty(_GRID.shape[1]),
+            code, criterion is CICriterion.DET, _GRID, joint, _NONE3, _NONE3, scratch[2],
+            scratch[3],
         )  # fmt: skip
     return kernel_fusion(code, criterion, E)
 
