@@ -176,11 +176,13 @@ def _split_working_copy(independent, i):
 
 
 def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray) -> None:
-    """Hand the kernel's records of a correction to the method's state in ``memory``."""
-    if fusion.code == SPLIT_CI:
+    """Hand the kernel's records of a correction to the method's state in ``memory``
+    (``i``: the links' observers, (E,) int64, ``fused``: (E,) bool, the kernel's own)."""
+    code = fusion[0]  # (by position: a NamedTuple's field by name is a property call)
+    if code == SPLIT_CI:
         memory.independent = fusion.independent
-    elif fusion.code in _JOINT_CODES:
-        joint_commit(fusion.joint, memory, i, fused)
+    elif code in _JOINT_CODES:
+        joint_commit(fusion[3], memory, i, fused)
 
 
 @jit_inline

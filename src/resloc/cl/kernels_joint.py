@@ -220,15 +220,15 @@ def joint_commit(state: KernelJoint, memory, i: np.ndarray, fused: np.ndarray) -
     them (:func:`~resloc.cl.kernels_tracked_step.commit_tracked`); ``factorized``, ``A``,
     ``B`` and the pairs that fused, and the factors as its ``finish`` then leaves them
     (:func:`~resloc.cl.kernels_factorized_step.commit_factorized`)."""
-    li = np.ascontiguousarray(i, dtype=np.int64)
-    fused = np.ascontiguousarray(fused, dtype=np.bool_)
-    joint = memory.joint
-    if state.code == TRACKED:
+    code = state[0]  # (by position: a NamedTuple's field by name is a property call)
+    if code == TRACKED:
         # M by its blocks (dense where the reference reads it) and the end of step computed
-        # from them, while the rows are in the cache (resloc.cl.kernels_tracked_step)
-        commit_tracked(state, joint, li, fused)
-    elif state.code == FACTORIZED:  # and the end of step's pairs in the same pass
-        commit_factorized(state, joint, li, fused)
+        # from them, while the rows are in the cache (resloc.cl.kernels_tracked_step); i and
+        # fused as given (the CL kernel's own, int64 and bool, contiguous: no conversion)
+        commit_tracked(state, memory.joint, i, fused)
+    elif code == FACTORIZED:  # and the end of step's pairs in the same pass
+        li = np.ascontiguousarray(i, dtype=np.int64)
+        commit_factorized(state, memory.joint, li, np.ascontiguousarray(fused, dtype=np.bool_))
 
 
 _WARMED: list = []
