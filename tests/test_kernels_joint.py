@@ -286,3 +286,45 @@ def test_links_across_teams_or_out_of_range_go_to_the_reference(method: str) -> 
     assert joint_state(code, memory, np.array([0, 2]), np.array([1, 3])) is None
     assert joint_state(code, memory, np.array([0]), np.array([6])) is None
     assert joint_state(code, memory, np.array([0]), np.array([-1])) is None
+    one_team = LinkMemory(3)  # B == N: the check without the team's division
+    if method == "tracked":
+        one_team.joint = JointCovariance(P0[:3], 3)
+    else:
+        one_team.joint = FactorizedCovariance(3, 3)
+    assert joint_state(code, one_team, np.array([0, 2]), np.array([2, 1])) is not None
+    assert joint_state(code, one_team, np.array([0]), np.array([3])) is None
+    assert joint_state(code, one_team, np.array([-1]), np.array([0])) is None
+
+
+def test_tracked_scratch_is_kept_per_joint_and_goes_with_its_memory() -> None:
+    """``fusion_state`` of ``tracked`` takes the kernel's scratch from the memory's joint
+    (:func:`~resloc.cl.kernels_joint.kernel_scratch`): the same arrays every step of that
+    joint, other arrays for another memory's joint, and none kept once the memory is gone."""
+    import gc
+    import weakref
+
+    from resloc.cl.fusion import CICriterion
+    from resloc.cl.kernels_fusion import fusion_state
+    from resloc.cl.tracking import JointCovariance
+
+    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
+    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
+    links = LinkBatch(
+        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
+        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
+    )  # fmt: skip
+
+    def scratch(memory):
+        state = fusion_state("tracked", CICriterion.TRACE, memory, links, 2)
+        return state.joint.work, state.joint.J6, state.work, state.costs
+
+    memories = [LinkMemory(2), LinkMemory(2)]
+    for memory in memories:
+        memory.joint = JointCovariance(P, 2)
+    first, again, other = scratch(memories[0]), scratch(memories[0]), scratch(memories[1])
+    assert all(a is b for a, b in zip(first, again, strict=True))
+    assert not any(np.shares_memory(a, b) for a in first for b in other)
+    gone = weakref.ref(memories[0]), weakref.ref(memories[0].joint)
+    del memories[0], first, again
+    gc.collect()
+    assert gone[0]() is None and gone[1]() is None

@@ -44,6 +44,7 @@ from resloc.cl.kernels_joint import (
     KernelJoint,
     joint_commit,
     joint_state,
+    kernel_scratch,
     no_joint,
 )
 from resloc.cl.kernels_math import chol2, jit, jit_inline, jit_lanes, solve2, wrap
@@ -121,9 +122,10 @@ def fusion_state(update: str, criterion: CICriterion, memory, links, E: int):
             return None
         if criterion is not CICriterion.TRACE and criterion is not CICriterion.DET:
             criterion = CICriterion(criterion)
+        scratch = kernel_scratch(memory.joint)  # (the joint's: no allocation a step)
         return KernelFusion(
-            code, criterion is CICriterion.DET, _GRID, joint, _NONE3, _NONE3,
-            np.zeros((8, 3, 3)), np.empty(_GRID.shape[1]),
+            code, criterion is CICriterion.DET, _GRID, joint, _NONE3, _NONE3, scratch[2],
+            scratch[3],
         )  # fmt: skip
     return kernel_fusion(code, criterion, E)
 
@@ -174,11 +176,13 @@ def _split_working_copy(independent, i):
 
 
 def fusion_commit(fusion: KernelFusion, memory, i: np.ndarray, fused: np.ndarray) -> None:
-    """Hand the kernel's records of a correction to the method's state in ``memory``."""
-    if fusion.code == SPLIT_CI:
+    """Hand the kernel's records of a correction to the method's state in ``memory``
+    (``i``: the links' observers, (E,) int64, ``fused``: (E,) bool, the kernel's own)."""
+    code = fusion[0]  # (by position: a NamedTuple's field by name is a property call)
+    if code == SPLIT_CI:
         memory.independent = fusion.independent
-    elif fusion.code in _JOINT_CODES:
-        joint_commit(fusion.joint, memory, i, fused)
+    elif code in _JOINT_CODES:
+        joint_commit(fusion[3], memory, i, fused)
 
 
 @jit_inline

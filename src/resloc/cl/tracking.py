@@ -155,6 +155,9 @@ class JointCovariance:
     #: the next compiled correction takes as its rows of ``M Sigma``
     #: (:func:`resloc.cl.kernels_tracked_step.take_spare_rows`).
     _spare_rows: tuple[np.ndarray, np.ndarray] | None = None
+    #: The compiled corrections' scratch arrays, kept for the joint's steps
+    #: (:func:`resloc.cl.kernels_joint.kernel_scratch`).
+    _kernel_scratch: tuple | None = None
 
     def __init__(self, P0: np.ndarray, robots: int) -> None:
         B = P0.shape[0]
