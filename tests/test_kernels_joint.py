@@ -305,14 +305,10 @@ def test_tracked_scratch_is_kept_per_joint_and_goes_with_its_memory() -> None:
 
     from resloc.cl.fusion import CICriterion
     from resloc.cl.kernels_fusion import fusion_state
+    from resloc.cl.kernels_inputs import pair_warm_up_batch
     from resloc.cl.tracking import JointCovariance
 
-    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
-    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
-    links = LinkBatch(
-        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
-        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
-    )  # fmt: skip
+    _, P, links = pair_warm_up_batch()
 
     def scratch(memory):
         state = fusion_state("tracked", CICriterion.TRACE, memory, links, 2)

@@ -77,6 +77,7 @@ from resloc.cl.kernels_inputs import (
     KernelOutputs,
     KernelRobots,
     cached_rows,
+    pair_warm_up_batch,
     shapes_ok,
 )
 from resloc.cl.kernels_links import OK
@@ -385,12 +386,7 @@ def warm_up(paper: bool = True, options: bool = True) -> bool:
 
     if backend() != "numba":
         return False
-    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
-    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
-    links = LinkBatch(
-        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
-        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
-    )  # fmt: skip
+    x, P, links = pair_warm_up_batch()
     for kind in ("ckf", "ekf"):  # the prediction's robot-by-robot loop (kernels_predict)
         fast_predict(make_filter(kind), x, P, np.array([[0.1, 0.0], [0.1, 0.1]]), 0.1, CLParams())
     forms = [contextlib.nullcontext] if paper else []

@@ -23,6 +23,7 @@ __all__ = [
     "KernelOutputs",
     "KernelRobots",
     "cached_rows",
+    "pair_warm_up_batch",
     "shapes_ok",
 ]
 
@@ -126,3 +127,17 @@ def cached_rows(memory, li, lj, nb, x_nb, P_nb, last_sent: bool):
     ``(E,)`` (else ``(0,)``)."""
     rows = np.arange(len(li), dtype=np.int64) if nb is None else contiguous(nb, np.int64)
     return memory.cached_rows(li, lj, rows, contiguous(x_nb), contiguous(P_nb), last_sent)
+
+
+def pair_warm_up_batch() -> tuple[np.ndarray, np.ndarray, LinkBatch]:
+    """``(x (2, 3), P (2, 3, 3), links)``: two robots observing each other, the
+    smallest batch that runs a correction's compiled forms once (the warm-ups of
+    :func:`resloc.cl.kernels.warm_up` and :func:`resloc.cl.kernels_joint.warm_up_joint_form`
+    call it before a run times its steps)."""
+    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
+    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
+    links = LinkBatch(
+        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
+        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
+    )  # fmt: skip
+    return x, P, links

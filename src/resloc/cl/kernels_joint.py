@@ -247,17 +247,12 @@ def warm_up_joint_form() -> None:
         return
     _WARMED.append(True)
     from resloc.cl.kernels import fast_correct  # the dispatch imports the strategies
-    from resloc.cl.links import LinkBatch
+    from resloc.cl.kernels_inputs import pair_warm_up_batch
     from resloc.cl.memory import LinkMemory
     from resloc.cl.params import CLParams
     from resloc.filters.base import make_filter
 
-    x = np.array([[0.0, 0.0, 0.1], [1.0, 0.5, -0.2]])
-    P = np.broadcast_to(0.01 * np.eye(3), (2, 3, 3)).copy()
-    links = LinkBatch(
-        np.array([0, 1]), np.array([1, 0]), np.array([[1.1, 0.4], [1.1, 2.9]]),
-        x[[1, 0]], P[[1, 0]], np.array([True, True]), np.zeros(2), np.zeros(2), np.ones(2),
-    )  # fmt: skip
+    x, P, links = pair_warm_up_batch()
     memory = LinkMemory(2)
     memory.joint = JointCovariance(P, 2)
     fast_correct(make_filter("ckf"), x, P, links, CLParams(fusion="tracked"), memory)
