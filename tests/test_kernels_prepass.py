@@ -17,14 +17,13 @@ import copy
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.detection_reciprocal import STATE_WIDTH, ReciprocalCheck
 from resloc.cl.detection_sequence import WIDTH, RedundancySequence
 from resloc.cl.kernels_detection import detector_state
-from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_kernels_round_options import _path
 from test_kernels_zone import START, _params, assert_same_correction, assert_same_stage_state
 
@@ -49,12 +48,8 @@ def _steps(params, steps: int, seed: int, tampered: bool = False):
     compiled rounds and the reference; yields how many one-pass calls each compiled step
     made and the reference's outcome, after checking the step."""
     filt = make_filter("ckf")
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    for _ in range(START):
-        world.step()
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("rounds", "numpy")}
+    world = default_world(2, seed, start=START)
+    state = start_states(world, ("rounds", "numpy"))
     for _ in range(steps):
         ws = world.step()
         res, runs = {}, 0
@@ -110,10 +105,7 @@ def _one_step(chain: str, seed: int = 11):
     after ``params`` and ``memory`` (but the detection)."""
     params = _params(chain)
     filt = make_filter("ckf")
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    for _ in range(START):
-        world.step()
+    world = default_world(2, seed, start=START)
     x, P = world.initial_estimates()
     memory = LinkMemory(world.B)
     with kernels.use_backend("numba"):
