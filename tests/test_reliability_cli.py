@@ -305,6 +305,56 @@ def test_a_signal_while_writing_removes_the_temporary(tmp_path, signum):
     assert signal.getsignal(signal.SIGTERM) is not None  # the previous handler is back
 
 
+@pytest.mark.parametrize("where", ["probe", "mkdtemp", "rmtree"])
+def test_a_signal_inside_making_or_removing_the_temporary_leaves_nothing(
+    tmp_path, monkeypatch, where
+):
+    """A Ctrl-C inside ``mkdtemp`` (after its mkdir: the writability probe's or the
+    temporary's) or part-way through removing the swapped-out results left a hidden
+    ``.out.tmp-*`` after a clean stop (seen once in CI's kill test): these run with
+    signals held, the interrupt raised once the directory is gone."""
+    import shutil
+    import tempfile
+
+    from resloc.signals import raising_handler
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    real = {"mkdtemp": tempfile.mkdtemp, "rmtree": shutil.rmtree}
+    made = []
+
+    def interrupt() -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)  # without the hold, the KeyboardInterrupt is raised here
+
+    def mkdtemp(*args, **kwargs):
+        made.append(real["mkdtemp"](*args, **kwargs))
+        if len(made) == {"probe": 1, "mkdtemp": 2}.get(where):
+            interrupt()
+        return made[-1]
+
+    def rmtree(path, *args, **kwargs):
+        if where == "rmtree" and (Path(path) / "old.txt").exists():
+            interrupt()
+        return real["rmtree"](path, *args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkdtemp", mkdtemp)
+    monkeypatch.setattr(shutil, "rmtree", rmtree)
+    # The CLI's Ctrl-C handler (the one signals.held can hold), as `resloc` installs it.
+    previous = signal.signal(signal.SIGINT, raising_handler(lambda signum: KeyboardInterrupt()))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with output.atomic_output_dir(out, overwrite=True) as tmp:
+                (tmp / "new.txt").write_text("new")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        monkeypatch.undo()
+    assert len(made) == {"probe": 1, "mkdtemp": 2, "rmtree": 2}[where]
+    assert [p.name for p in out.iterdir()] == ["new.txt" if where == "rmtree" else "old.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
 def test_mrclam_reports_dropped_and_reordered_rows_and_strict_refuses(tmp_path):
     import shutil
 

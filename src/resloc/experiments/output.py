@@ -32,7 +32,6 @@ import re
 import shutil
 import signal
 import sys
-import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from resloc.errors import ConfigError
-from resloc.signals import raising_handler
+from resloc.signals import raising_handler, temporary_directory
 
 __all__ = [
     "Terminated",
@@ -186,8 +185,8 @@ def _probe_writable(out: Path, existing: Path, target: Path) -> None:
     systems, missing permissions and quotas that ``os.access`` does not)."""
     where = existing if existing != target else target.parent
     try:
-        probe = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-{os.getpid()}-", dir=where))
-        probe.rmdir()
+        with temporary_directory(f".{target.name}.tmp-{os.getpid()}-", where):
+            pass
     except OSError as exc:
         reason = exc.strerror or exc.__class__.__name__
         raise ConfigError(f"--out {out}: cannot create a directory in {where} ({reason})") from None
@@ -298,16 +297,14 @@ def atomic_output_dir(
     out = Path(out)
     check_output_dir(out, overwrite, inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with signals_as_exceptions():
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
-        try:
-            umask = os.umask(0)
-            os.umask(umask)
-            tmp.chmod(0o777 & ~umask)  # mkdtemp creates 0700; give the usual directory mode
-            yield tmp
-            _replace(tmp, out)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)  # after a swap: the old results
+    prefix = f".{out.name}.tmp-{os.getpid()}-"
+    # After a swap the temporary holds the old results; it is removed either way.
+    with signals_as_exceptions(), temporary_directory(prefix, out.parent) as tmp:
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)  # mkdtemp creates 0700; give the usual directory mode
+        yield tmp
+        _replace(tmp, out)
 
 
 def _replace(tmp: Path, out: Path) -> None:

@@ -13,11 +13,11 @@ import importlib
 import importlib.util
 import os
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from resloc.errors import ConfigError
+from resloc.signals import temporary_directory
 
 __all__ = [
     "ExportFormat",
@@ -163,15 +163,12 @@ def export_recording(
     for fmt in formats:
         target = target_path(out, fmt)
         writer = importlib.import_module(WRITERS[fmt].module)
-        tmp_dir = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=out))
-        try:
+        with temporary_directory(f".{target.name}.tmp-", out) as tmp_dir:
             tmp = tmp_dir / target.name
             info = writer.write(recording, tmp, options)
             if target.is_dir():
                 shutil.rmtree(target)
             os.replace(tmp, target)
-        finally:
-            shutil.rmtree(tmp_dir, ignore_errors=True)
         results.append(ExportResult(fmt, target, info))
     return results
 
