@@ -52,9 +52,8 @@ def test_split_ci_update_goes_stale_with_the_ci_pieces_it_inlines() -> None:
     from resloc.cl.kernels_split import split_ci_update
 
     split_ci_update._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
-    assert {"resloc.cl.kernels_fusion", "resloc.cl.kernels_joint_links"} <= (
-        split_ci_update._resloc_pieces
-    )
+    pieces = {"resloc.cl.kernels_ci_weight", "resloc.cl.kernels_ci_update"}
+    assert pieces | {"resloc.cl.kernels_joint_links"} <= split_ci_update._resloc_pieces
 
 
 def test_a_callee_reached_through_its_module_is_found() -> None:
@@ -63,7 +62,7 @@ def test_a_callee_reached_through_its_module_is_found() -> None:
     names = {m.__name__ for m in callee_modules(kernels_rounds.correct_rounds)}
     # _rounds reads the stages as module attributes and by name; both are followed
     assert {"resloc.cl.kernels_round_stages", "resloc.cl.kernels_split"} <= names
-    assert "resloc.cl.kernels_fusion" in names  # through kernels_split (transitively)
+    assert "resloc.cl.kernels_ci_weight" in names  # through kernels_split (transitively)
 
 
 def test_the_redundancy_and_witness_kernels_go_stale_with_the_modules_they_were_split_into():

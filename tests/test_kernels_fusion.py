@@ -1,7 +1,8 @@
-"""The compiled covariance-intersection update (``ci`` fusion, :mod:`resloc.cl.kernels_fusion`)
-against the numpy reference over multi-step runs: same estimates, covariances and decisions
-to 1e-9 at every step with the compiled path asserted, for both weight criteria, with links
-whose weight is 1 (the prior kept) and links fused with a weight below 1."""
+"""The compiled covariance-intersection update (``ci`` fusion,
+:mod:`resloc.cl.kernels_ci_update`) against the numpy reference over multi-step runs: same
+estimates, covariances and decisions to 1e-9 at every step with the compiled path asserted,
+for both weight criteria, with links whose weight is 1 (the prior kept) and links fused
+with a weight below 1."""
 
 from __future__ import annotations
 
@@ -102,11 +103,12 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
 @pytest.mark.parametrize("split", [False, True])
 @pytest.mark.parametrize("criterion", ["trace", "det"])
 def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
-    """The vectorized grid search (``kernels_fusion.grid_costs``, compiled and called
+    """The vectorized grid search (``kernels_ci_weight.grid_costs``, compiled and called
     here directly) gives the reference's cost at every candidate weight, for both
     criteria, with and without independent parts."""
     from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
-    from resloc.cl.kernels_fusion import _GRID, grid_costs
+    from resloc.cl.kernels_ci_weight import grid_costs
+    from resloc.cl.kernels_fusion import _GRID
     from resloc.models.measurement import range_bearing_jacobians
 
     rng = np.random.default_rng(5)
@@ -141,10 +143,10 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
 
 
 def test_first_best_is_the_scalar_search():
-    """``kernels_fusion.first_best`` (four interleaved searches, merged) finds the index
+    """``kernels_ci_weight.first_best`` (four interleaved searches, merged) finds the index
     the scalar search ``best = cost[0]; cost[t] < best`` finds, with ties, infinities and
     NaNs (first or later), for every length."""
-    from resloc.cl.kernels_fusion import first_best
+    from resloc.cl.kernels_ci_weight import first_best
 
     rng = np.random.default_rng(8)
     values = np.array([0.0, -0.0, 1.0, 2.0, -1.0, np.inf, -np.inf, np.nan])

@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 
+from resloc.cl import kernels_ci_update as _kernels_ci_update
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
@@ -30,9 +32,10 @@ from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl.kernels_ci_update import ci_update
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
-from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_joint_links import (
     NO_JOINT,
@@ -467,6 +470,8 @@ stamp_with_pieces(
     _kernels_detection,
     _kernels_defence,
     _kernels_fusion,
+    _kernels_ci_weight,
+    _kernels_ci_update,
     _kernels_gauge,
     _kernels_joint_links,
     _kernels_joint_records,

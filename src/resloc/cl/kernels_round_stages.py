@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl import kernels_ci_lanes as _kernels_ci_lanes
+from resloc.cl import kernels_ci_update as _kernels_ci_update
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
@@ -47,6 +49,7 @@ from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
 from resloc.cl.kernels_ci_lanes import ci_lanes
+from resloc.cl.kernels_ci_update import ci_update
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
     NIS_CODE,
@@ -56,7 +59,7 @@ from resloc.cl.kernels_detection import (
     nis_of_white,
     whiten_of,
 )
-from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_lanes import FALLBACK
 from resloc.cl.kernels_link_stages import UPDATE_ROWS, kalman_lanes
@@ -484,6 +487,8 @@ PIECE_MODULES = (
     _kernels_detection,
     _kernels_defence,
     _kernels_fusion,
+    _kernels_ci_weight,
+    _kernels_ci_update,
     _kernels_split,
     _kernels_split_lanes,
     _kernels_ci_lanes,
