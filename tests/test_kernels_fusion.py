@@ -11,12 +11,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import fusion as cl_fusion
 from resloc.cl import kernels
 from resloc.cl.backend import kernel_refusal
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import lockstep_both_backends, random_batch
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -48,8 +48,7 @@ def ci_weights_seen(monkeypatch):
 def test_compiled_ci_matches_reference_over_a_run(name, criterion, ci_weights_seen):
     params = replace(default_scenario().cl_params(), fusion="ci", ci_criterion=criterion)
     assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
-    sc = default_scenario()
-    world = World(sc.world, 2, 11, sc.trigger.lambda2)
+    world = default_world(2, 11)
     fused = 0
     for res, _ in lockstep_both_backends(world, FILTERS[name], params, 120):
         fused += int(res["numpy"][2].fused.sum())
@@ -64,8 +63,7 @@ def test_compiled_ci_with_the_full_defence_and_recovery():
 
     base = default_scenario().replace(**DEFENCES["full"]).cl_params()
     params = replace(base, fusion="ci", rho=1.2, recovery_after=2.0, recovery_gate=3.0)
-    sc = default_scenario()
-    world = World(sc.world, 2, 12, sc.trigger.lambda2)
+    world = default_world(2, 12)
     for _ in lockstep_both_backends(world, FILTERS["ekf"], params, 60):
         pass
 
@@ -87,8 +85,7 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
     (the kernel's second pass), with the link memory the same after every step."""
     params = replace(default_scenario().cl_params(), neighbour_estimate="cached", **changes)
     assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
-    sc = default_scenario()
-    world = World(sc.world, 2, 13, sc.trigger.lambda2)
+    world = default_world(2, 13)
     untransmitted = 0
     for res, memories in lockstep_both_backends(world, FILTERS[name], params, 80):
         out = res["numpy"][2]
