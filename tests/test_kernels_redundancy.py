@@ -19,7 +19,8 @@ from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
-from resloc.cl.detection_redundancy import capped_claims, fix_evidence
+from resloc.cl.detection_redundancy import fix_evidence
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detection_sequence import WIDTH
 from resloc.cl.kernels_detection import detector_state
 from resloc.experiments.config import default_scenario
