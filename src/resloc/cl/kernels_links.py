@@ -32,6 +32,7 @@ from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl import kernels_zone_verdicts as _kernels_zone_verdicts
 from resloc.cl.kernels_ci_update import ci_update
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
@@ -59,7 +60,12 @@ from resloc.cl.kernels_math import (
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
-from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
+from resloc.cl.kernels_zone_verdicts import (
+    SUBSTITUTED,
+    WITHHELD,
+    position_fix_of_link,
+    zone_verdict,
+)
 
 #: Kernel status codes.
 OK = 0
@@ -478,6 +484,7 @@ stamp_with_pieces(
     _kernels_split,
     _kernels_tamper,
     _kernels_zone,
+    _kernels_zone_verdicts,
 )
 
 # The link's pieces by public names, for the loop over rounds (resloc.cl.kernels_rounds),
