@@ -88,3 +88,28 @@ def test_the_redundancy_and_witness_kernels_go_stale_with_the_modules_they_were_
     for kernel, modules in expected.items():
         kernel._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
         assert modules <= kernel._resloc_pieces, kernel.py_func.__name__
+
+
+def test_the_callers_go_stale_with_the_ci_zone_and_pending_modules_split_out():
+    """The callers of covariance intersection's weight and update (split out of
+    kernels_fusion), of zone trust's in-loop verdicts (out of kernels_zone) and of the
+    pending store's row copy (out of kernels_witness_frames) are stamped with the modules
+    those now live in."""
+    from resloc.cl.kernels_ci_lanes import ci_lanes
+    from resloc.cl.kernels_links import correct_links
+    from resloc.cl.kernels_outvoted import outvoted_pass
+    from resloc.cl.kernels_rounds import correct_rounds
+    from resloc.cl.kernels_summed import correct_summed
+
+    ci = {"resloc.cl.kernels_ci_weight", "resloc.cl.kernels_ci_update"}
+    zone = {"resloc.cl.kernels_zone_verdicts"}
+    expected = {
+        correct_links: ci | zone,
+        correct_rounds: ci | zone,
+        correct_summed: zone,
+        ci_lanes: ci,
+        outvoted_pass: {"resloc.cl.kernels_witness_pending"},
+    }
+    for kernel, modules in expected.items():
+        kernel._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
+        assert modules <= kernel._resloc_pieces, kernel.py_func.__name__
