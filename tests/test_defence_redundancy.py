@@ -13,13 +13,15 @@ import resloc
 from resloc.cl import kernels
 from resloc.cl.cusum import chi2_gate
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, detect
-from resloc.cl.detection_redundancy import (
-    _group_median,
+from resloc.cl.detection_redundancy import fix_evidence
+from resloc.cl.detection_redundancy_exclusion import (
     exclude_inconsistent,
-    fix_evidence,
     leave_one_out,
-    position_fix,
     redundancy_statistic,
+)
+from resloc.cl.detection_redundancy_fixes import (
+    _group_median,
+    position_fix,
     weight_capped_covariance,
 )
 from resloc.cl.links import LinkBatch

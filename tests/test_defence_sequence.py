@@ -291,7 +291,7 @@ def test_the_compromised_robot_spends_the_sequence_tests_budget_and_no_more():
 
 
 def test_capped_claims_scale_the_whole_covariance_as_the_test_caps_it():
-    from resloc.cl.detection_redundancy import capped_claims, weight_capped_covariance
+    from resloc.cl.detection_redundancy_fixes import capped_claims, weight_capped_covariance
 
     P = np.tile(np.diag([1e-4, 1e-4, 1e-5]), (4, 1, 1))
     P[1] *= 0.01  # a neighbour claiming x0.01

@@ -52,9 +52,8 @@ def test_split_ci_update_goes_stale_with_the_ci_pieces_it_inlines() -> None:
     from resloc.cl.kernels_split import split_ci_update
 
     split_ci_update._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
-    assert {"resloc.cl.kernels_fusion", "resloc.cl.kernels_joint_links"} <= (
-        split_ci_update._resloc_pieces
-    )
+    pieces = {"resloc.cl.kernels_ci_weight", "resloc.cl.kernels_ci_update"}
+    assert pieces | {"resloc.cl.kernels_joint_links"} <= split_ci_update._resloc_pieces
 
 
 def test_a_callee_reached_through_its_module_is_found() -> None:
@@ -63,7 +62,7 @@ def test_a_callee_reached_through_its_module_is_found() -> None:
     names = {m.__name__ for m in callee_modules(kernels_rounds.correct_rounds)}
     # _rounds reads the stages as module attributes and by name; both are followed
     assert {"resloc.cl.kernels_round_stages", "resloc.cl.kernels_split"} <= names
-    assert "resloc.cl.kernels_fusion" in names  # through kernels_split (transitively)
+    assert "resloc.cl.kernels_ci_weight" in names  # through kernels_split (transitively)
 
 
 def test_the_redundancy_and_witness_kernels_go_stale_with_the_modules_they_were_split_into():
@@ -85,6 +84,31 @@ def test_the_redundancy_and_witness_kernels_go_stale_with_the_modules_they_were_
         claimed_rows: {fixes},
         delivered_pass: {statistic},
         witness_pass: {statistic},
+    }
+    for kernel, modules in expected.items():
+        kernel._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp
+        assert modules <= kernel._resloc_pieces, kernel.py_func.__name__
+
+
+def test_the_callers_go_stale_with_the_ci_zone_and_pending_modules_split_out():
+    """The callers of covariance intersection's weight and update (split out of
+    kernels_fusion), of zone trust's in-loop verdicts (out of kernels_zone) and of the
+    pending store's row copy (out of kernels_witness_frames) are stamped with the modules
+    those now live in."""
+    from resloc.cl.kernels_ci_lanes import ci_lanes
+    from resloc.cl.kernels_links import correct_links
+    from resloc.cl.kernels_outvoted import outvoted_pass
+    from resloc.cl.kernels_rounds import correct_rounds
+    from resloc.cl.kernels_summed import correct_summed
+
+    ci = {"resloc.cl.kernels_ci_weight", "resloc.cl.kernels_ci_update"}
+    zone = {"resloc.cl.kernels_zone_verdicts"}
+    expected = {
+        correct_links: ci | zone,
+        correct_rounds: ci | zone,
+        correct_summed: zone,
+        ci_lanes: ci,
+        outvoted_pass: {"resloc.cl.kernels_witness_pending"},
     }
     for kernel, modules in expected.items():
         kernel._cache._cache_file._source_stamp  # noqa: B018 - computes the stamp

@@ -11,7 +11,7 @@ import resloc.cl.step
 from lockstep_helpers import default_world
 from resloc.cl import kernels
 from resloc.cl.detection_landmark import landmark_claims
-from resloc.cl.detection_redundancy import capped_claims
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detection_zone import inside_zone_map, zone_map
 from resloc.cl.links import LinkBatch, NeighbourStates
 from resloc.cl.params import CLParams

@@ -8,10 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import kernels
 from resloc.cl.connectivity import DistributedLambda2
-from resloc.experiments.config import default_scenario
-from resloc.world.world import World
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -43,8 +42,7 @@ def lockstep(edges_per_step, n, n_max, rounds=3, leak=0.01, seed=0):
 
 def test_compiled_lambda2_matches_reference_over_a_scenario():
     """The default scenario's radio graph, two teams batched, 150 steps."""
-    sc = default_scenario()
-    world = World(sc.world, 2, 4, sc.trigger.lambda2)
+    world = default_world(2, 4)
     edges = []
     for _ in range(150):
         ws = world.step()

@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import LinkMemory, correct, kernels
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.detection_recovery import RejectionRecovery
@@ -17,7 +18,6 @@ from resloc.errors import NumericalError
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import lockstep_both_backends, random_batch
 from test_kernels_detection import assert_same_statistics
 
@@ -88,8 +88,7 @@ def readmissions(monkeypatch):
 def test_compiled_defence_stages_match_reference_over_a_run(name, case, readmissions):
     params = full_defence(**CASES[case])
     assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
-    sc = default_scenario()
-    world = World(sc.world, 2, 3 + list(CASES).index(case), sc.trigger.lambda2)
+    world = default_world(2, 3 + list(CASES).index(case))
     detected = robot_cusum_active = 0
     for res, memories in lockstep_both_backends(world, FILTERS[name], params, 100):
         assert_same_statistics(memories["numba"], memories["numpy"])

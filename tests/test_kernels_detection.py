@@ -9,12 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import CLParams, LinkMemory, correct, kernels
 from resloc.cl.backend import kernel_refusal
 from resloc.errors import NumericalError
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import assert_equivalent, lockstep_both_backends, random_batch, run_both
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -50,8 +50,7 @@ def run_scenario(filt, params, steps: int, seed: int):
     """``steps`` steps of the default scenario (two trials batched, its SDZ attacks) by both
     paths, each carrying its own estimates and memory; compares every step. Returns the
     reference's detections per step and the final memories."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     detected, memories = 0, {}
     for res, memories in lockstep_both_backends(world, filt, params, steps):
         assert_same_statistics(memories["numba"], memories["numpy"])

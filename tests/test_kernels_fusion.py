@@ -1,7 +1,8 @@
-"""The compiled covariance-intersection update (``ci`` fusion, :mod:`resloc.cl.kernels_fusion`)
-against the numpy reference over multi-step runs: same estimates, covariances and decisions
-to 1e-9 at every step with the compiled path asserted, for both weight criteria, with links
-whose weight is 1 (the prior kept) and links fused with a weight below 1."""
+"""The compiled covariance-intersection update (``ci`` fusion,
+:mod:`resloc.cl.kernels_ci_update`) against the numpy reference over multi-step runs: same
+estimates, covariances and decisions to 1e-9 at every step with the compiled path asserted,
+for both weight criteria, with links whose weight is 1 (the prior kept) and links fused
+with a weight below 1."""
 
 from __future__ import annotations
 
@@ -10,12 +11,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import fusion as cl_fusion
 from resloc.cl import kernels
 from resloc.cl.backend import kernel_refusal
 from resloc.experiments.config import default_scenario
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import lockstep_both_backends, random_batch
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -47,8 +48,7 @@ def ci_weights_seen(monkeypatch):
 def test_compiled_ci_matches_reference_over_a_run(name, criterion, ci_weights_seen):
     params = replace(default_scenario().cl_params(), fusion="ci", ci_criterion=criterion)
     assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
-    sc = default_scenario()
-    world = World(sc.world, 2, 11, sc.trigger.lambda2)
+    world = default_world(2, 11)
     fused = 0
     for res, _ in lockstep_both_backends(world, FILTERS[name], params, 120):
         fused += int(res["numpy"][2].fused.sum())
@@ -63,8 +63,7 @@ def test_compiled_ci_with_the_full_defence_and_recovery():
 
     base = default_scenario().replace(**DEFENCES["full"]).cl_params()
     params = replace(base, fusion="ci", rho=1.2, recovery_after=2.0, recovery_gate=3.0)
-    sc = default_scenario()
-    world = World(sc.world, 2, 12, sc.trigger.lambda2)
+    world = default_world(2, 12)
     for _ in lockstep_both_backends(world, FILTERS["ekf"], params, 60):
         pass
 
@@ -86,8 +85,7 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
     (the kernel's second pass), with the link memory the same after every step."""
     params = replace(default_scenario().cl_params(), neighbour_estimate="cached", **changes)
     assert kernel_refusal(FILTERS[name], params, random_batch(0)[2]) is None
-    sc = default_scenario()
-    world = World(sc.world, 2, 13, sc.trigger.lambda2)
+    world = default_world(2, 13)
     untransmitted = 0
     for res, memories in lockstep_both_backends(world, FILTERS[name], params, 80):
         out = res["numpy"][2]
@@ -102,11 +100,12 @@ def test_compiled_cached_neighbour_estimates_match_reference(name, changes):
 @pytest.mark.parametrize("split", [False, True])
 @pytest.mark.parametrize("criterion", ["trace", "det"])
 def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
-    """The vectorized grid search (``kernels_fusion.grid_costs``, compiled and called
+    """The vectorized grid search (``kernels_ci_weight.grid_costs``, compiled and called
     here directly) gives the reference's cost at every candidate weight, for both
     criteria, with and without independent parts."""
     from resloc.cl.fusion import CI_GRID, CICriterion, _posterior_cost
-    from resloc.cl.kernels_fusion import _GRID, grid_costs
+    from resloc.cl.kernels_ci_weight import grid_costs
+    from resloc.cl.kernels_fusion import _GRID
     from resloc.models.measurement import range_bearing_jacobians
 
     rng = np.random.default_rng(5)
@@ -141,10 +140,10 @@ def test_grid_costs_are_the_reference_posterior_costs(criterion, split):
 
 
 def test_first_best_is_the_scalar_search():
-    """``kernels_fusion.first_best`` (four interleaved searches, merged) finds the index
+    """``kernels_ci_weight.first_best`` (four interleaved searches, merged) finds the index
     the scalar search ``best = cost[0]; cost[t] < best`` finds, with ties, infinities and
     NaNs (first or later), for every length."""
-    from resloc.cl.kernels_fusion import first_best
+    from resloc.cl.kernels_ci_weight import first_best
 
     rng = np.random.default_rng(8)
     values = np.array([0.0, -0.0, 1.0, 2.0, -1.0, np.inf, -np.inf, np.nan])

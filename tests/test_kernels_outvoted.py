@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_outvoted, predict
 from resloc.cl.detection_outvoted import OUTVOTED_STATE, reference_widen, widen_outvoted
 from resloc.cl.detection_witness import WitnessNotes
@@ -27,7 +28,6 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.attackers import AttackStep, make_attacker
-from resloc.world.world import World
 from test_kernels_reciprocal import assert_matches_reference
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -112,11 +112,9 @@ def lockstep(filt, params, steps: int, seed: int, shield: str, fooled: float):
     reference, each with its own estimates, memory and attacker's view; checks every step
     and yields the robots the reference widened. The attackers aim at a witness threshold
     ``fooled`` times the defence's (larger lies: their victims are pulled off)."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     N = world.n
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("numba", "numpy")}
+    state = start_states(world, ("numba", "numpy"))
     adversary = make_attacker("compromised", robots=3, claimed_cov=0.01, shield=shield)
     aim = replace(params, witness_h=fooled * float(np.max(params.witness_h)))
     for k in range(steps):

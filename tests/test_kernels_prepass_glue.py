@@ -15,7 +15,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from resloc.cl import kernels, kernels_detection, kernels_memory, kernels_zone
+from resloc.cl import (
+    kernels,
+    kernels_detection,
+    kernels_memory,
+    kernels_zone,
+    kernels_zone_verdicts,
+)
 from resloc.cl.kernels_defence import defence_state
 from resloc.cl.memory import LinkMemory, LinkStatistic
 from resloc.cl.params import CLParams
@@ -87,7 +93,9 @@ def test_zone_restores_the_unjudged_rows_compiled() -> None:
         slots = kernels_detection.store_slots(store, i, j, saved)
         before = store.values.copy()
         store.values += 1.0  # what the step's pre-pass wrote
-        verdict = np.array([0, kernels_zone.WITHHELD, 0, kernels_zone.SUBSTITUTED, 0])
+        verdict = np.array(
+            [0, kernels_zone_verdicts.WITHHELD, 0, kernels_zone_verdicts.SUBSTITUTED, 0]
+        )
         if compiled:
             runs = kernels_zone.RESTORE_RUNS["compiled"]
             state = kernels_detection.DetectorState(None, tuple(saved))

@@ -15,16 +15,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
-from resloc.cl.detection_redundancy import capped_claims, fix_evidence
+from resloc.cl.detection_redundancy import fix_evidence
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detection_sequence import WIDTH
 from resloc.cl.kernels_detection import detector_state
 from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
-from resloc.world.world import World
 from test_engine import assert_equivalent
 from test_kernels_round_options import _path
 from test_kernels_rounds import assert_same_loops
@@ -120,10 +121,8 @@ PATHS = ("rounds", "row_order", "numpy", "switching")
 def lockstep(filt, params, steps: int, seed: int, tampered: bool):
     """``steps`` steps of the default scenario through :data:`PATHS`; checks every step and
     yields the reference's outcome, memory and the liars' rows."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in PATHS}
+    world = default_world(2, seed)
+    state = start_states(world, PATHS)
     for k in range(steps):
         ws = world.step()
         lied = np.isin(ws.j, LIARS)
@@ -188,8 +187,7 @@ def test_compiled_redundancy_equals_the_reference(case: str) -> None:
 def links_of_one_step(seed: int = 4) -> LinkBatch:
     """The links of the default scenario's first step (one trial), at the initial estimates:
     what a kernel refusal is asked about (shared by the kernel tests)."""
-    sc = default_scenario()
-    world = World(sc.world, 1, seed, sc.trigger.lambda2)
+    world = default_world(1, seed)
     x, P = world.initial_estimates()
     ws = world.step()
     return LinkBatch(
@@ -204,8 +202,7 @@ def test_the_pre_pass_equals_fix_evidence_and_sees_a_changed_input() -> None:
     from resloc.cl.kernels_redundancy import redundancy_verdict
 
     params = _params("full+redundancy+sequence")
-    sc = default_scenario()
-    world = World(sc.world, 1, 8, sc.trigger.lambda2)
+    world = default_world(1, 8)
     x, P = world.initial_estimates()
     ws = world.step()
     li, lj = ws.i.astype(np.int64), ws.j.astype(np.int64)
@@ -240,8 +237,7 @@ def test_the_pre_pass_fixes_in_blocks_equal_fix_evidence_out_of_the_polynomials_
     from resloc.cl.kernels_redundancy_fixes import FIX_BLOCK
 
     params = _params("full+redundancy+sequence")
-    sc = default_scenario()
-    world = World(sc.world, 2, 8, sc.trigger.lambda2)
+    world = default_world(2, 8)
     x, P = world.initial_estimates()
     # ~1e10 turns (the same directions to ~1e-5 rad), far beyond the polynomials' range
     x[::3, 2] += 2.0 * np.pi * 1e10

@@ -14,12 +14,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world
 from resloc.cl import CLParams, LinkBatch, LinkMemory, ThresholdInnovation, correct, kernels
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.fusion_methods import fusion_strategy
 from resloc.cl.step import predict
 from resloc.experiments.config import default_scenario
-from resloc.world.world import World
 from test_engine import (
     FILTERS,
     PARAM_CASES,
@@ -179,7 +179,7 @@ def test_rounds_over_a_run_of_the_default_scenario(name: str) -> None:
     """Two batched trials (34 robots, ~100 links a step: the rounds run) for 80 steps in
     lockstep with the reference; every step compared inside."""
     sc = default_scenario()
-    world = World(sc.world, 2, 5, sc.trigger.lambda2)
+    world = default_world(2, 5, scenario=sc)
     before = rounds.LOOP_RUNS.copy()
     detected = 0
     for res, _ in lockstep_both_backends(world, FILTERS[name], sc.cl_params(), 80):

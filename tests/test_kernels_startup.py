@@ -20,6 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_startup, predict
 from resloc.cl.detection_startup import (
     STARTUP_STATE,
@@ -35,7 +36,6 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.attackers import AttackStep, make_attacker
-from resloc.world.world import World
 from test_kernels_reciprocal import assert_matches_reference
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -134,11 +134,9 @@ def lockstep(filt, params, steps: int, seed: int):
     """``steps`` steps of the default scenario by the compiled path and the numpy
     reference, each with its own estimates, memory and attacker's view; checks every step
     and yields the compiled stage's runs of the step and the reference's store."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     N = world.n
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in ("numba", "numpy")}
+    state = start_states(world, ("numba", "numpy"))
     adversary = make_attacker("compromised", robots=3, claimed_cov=0.01)
     for k in range(steps):
         ws = world.step()

@@ -220,7 +220,7 @@ ZONE_CASES = {
 
 @pytest.mark.parametrize("case", list(ZONE_CASES))
 def test_compiled_summed_update_with_zone_trust_equals_the_reference(case, monkeypatch):
-    from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD
+    from resloc.cl.kernels_zone_verdicts import SUBSTITUTED, WITHHELD
     from test_kernels_zone import START, Verdicts
 
     name, params, seed = ZONE_CASES[case]

@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lockstep_helpers import default_world, start_state, start_states
 from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_witness, predict
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
@@ -42,7 +43,6 @@ from resloc.experiments.config import default_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.filters import make_filter
 from resloc.world.attackers import AttackStep, make_attacker
-from resloc.world.world import World
 from test_kernels_reciprocal import assert_matches_reference
 from test_kernels_redundancy import links_of_one_step
 from test_kernels_round_options import _path
@@ -75,11 +75,9 @@ def lockstep(filt, params, steps: int, seed: int, attack: str = "lying notes", r
     notes"`` (their broadcasts lie, their notes are honest: no hook) or ``"none"`` (a
     clean run). ``runs``: a dict the compiled paths' :data:`WITNESS_RUNS` deltas are
     added to."""
-    sc = default_scenario()
-    world = World(sc.world, 2, seed, sc.trigger.lambda2)
+    world = default_world(2, seed)
     N = world.n
-    x0, P0 = world.initial_estimates()
-    state = {path: (x0.copy(), P0.copy(), LinkMemory(world.B)) for path in PATHS}
+    state = start_states(world, PATHS)
     adversary = make_attacker("compromised", robots=3, claimed_cov=0.01)
     runs = {} if runs is None else runs
     # the attackers aim at a threshold 4x the defence's: the stage convicts them
@@ -162,11 +160,9 @@ def test_a_jammed_link_gives_no_note(path):
     only, on the numpy reference and on the compiled paths (whose step pass ran and
     recorded the notes itself: the links were all noted the step before)."""
     params = _params()
-    sc = default_scenario()
-    world = World(sc.world, 1, 4, sc.trigger.lambda2)
-    x, P = world.initial_estimates()
+    world = default_world(1, 4)
+    x, P, memory = start_state(world)
     filt = make_filter("ckf")
-    memory = LinkMemory(world.B)
     for k in range(2):  # every link received, then every third link jammed
         ws = world.step()
         ok = ws.channel_ok & (np.arange(len(ws.i)) % 3 != 0 if k else True)

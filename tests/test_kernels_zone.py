@@ -20,7 +20,15 @@ import pytest
 
 from lockstep_helpers import default_world, start_states
 from resloc.angles import wrap_angle
-from resloc.cl import LinkBatch, LinkMemory, correct, kernels, kernels_zone, predict
+from resloc.cl import (
+    LinkBatch,
+    LinkMemory,
+    correct,
+    kernels,
+    kernels_zone,
+    kernels_zone_verdicts,
+    predict,
+)
 from resloc.cl import kernels_rounds as rounds
 from resloc.cl.backend import kernel_refusal
 from resloc.cl.detection_recovery import RejectionRecovery
@@ -143,9 +151,11 @@ class Verdicts:
 
         def judged(stage, evidence, params, memory):
             withheld = discard(stage, evidence, params, memory)
-            verdict = np.where(withheld, kernels_zone.WITHHELD, kernels_zone.OUTSIDE)
+            verdict = np.where(
+                withheld, kernels_zone_verdicts.WITHHELD, kernels_zone_verdicts.OUTSIDE
+            )
             if evidence.zone_substituted is not None:
-                verdict[evidence.zone_substituted] = kernels_zone.SUBSTITUTED
+                verdict[evidence.zone_substituted] = kernels_zone_verdicts.SUBSTITUTED
             self.reference.append((evidence.i.copy(), evidence.j.copy(), verdict))
             return withheld
 
@@ -261,7 +271,7 @@ def test_compiled_zone_trust_equals_the_reference(case: str, monkeypatch) -> Non
     for reference, out in lockstep(filt, params, STEPS, 41 + list(CASES).index(case), tampered,
                                    verdicts):  # fmt: skip
         count += np.bincount(reference, minlength=3)
-        fused_substituted += int(out.fused[reference == kernels_zone.SUBSTITUTED].sum())
+        fused_substituted += int(out.fused[reference == kernels_zone_verdicts.SUBSTITUTED].sum())
     outside, withheld, substituted = count
     assert outside > 0 and withheld > 0, "no robot inside the map without a partner reading"
     assert substituted > 0 and fused_substituted > 0, "no partner's position fix fused"
@@ -331,7 +341,7 @@ def test_partner_readings_equal_the_reference_pairing() -> None:
 
 
 def test_inside_map_is_the_reference_test() -> None:
-    """``kernels_zone.inside_map`` (the squares where they decide, else hypot) is
+    """``kernels_zone_verdicts.inside_map`` (the squares where they decide, else hypot) is
     ``inside_zone_map`` at random points and at points on, just inside and just outside
     the edges, for a disc of radius 0 or below, far away and non-finite points."""
     from resloc.cl.detection_zone import inside_zone_map
@@ -353,6 +363,6 @@ def test_inside_map_is_the_reference_test() -> None:
         ]
     )
     want = inside_zone_map(points, discs)
-    got = np.array([kernels_zone.inside_map(d, px, py) for px, py in points])
+    got = np.array([kernels_zone_verdicts.inside_map(d, px, py) for px, py in points])
     np.testing.assert_array_equal(got, want)
     assert want.any() and not want.all()

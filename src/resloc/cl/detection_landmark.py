@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from resloc.cl.detection_redundancy import capped_claims
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detection_zone import inside_zone_map
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
@@ -65,7 +65,8 @@ def landmark_claims(
 ) -> np.ndarray:
     """The claimed covariances ``P_nb: (E, 3, 3)`` with those of the neighbours whose
     broadcast position ``x_nb: (E, 3)`` lies inside ``params.zone_landmarks_map`` first
-    raised to the observer's median claim (:func:`~resloc.cl.detection_redundancy.capped_claims`
+    raised to the observer's median claim
+    (:func:`~resloc.cl.detection_redundancy_fixes.capped_claims`
     over each observer ``i: (E,)``'s rows: a tiny claim would otherwise stay below the
     median after the inflation, and the redundancy test's own cap would undo it), then
     multiplied by ``params.zone_landmarks_inflation``. A copy when any row is inside; else

@@ -16,7 +16,7 @@ residual between j's broadcast position and it,
 
 (first order in i's estimate and the sensor noise, at the predicted geometry; the range
 corrected for the mean shortening the angle's noise causes, as
-:func:`~resloc.cl.detection_redundancy.position_fix` does). The residuals of different
+:func:`~resloc.cl.detection_redundancy_fixes.position_fix` does). The residuals of different
 observers of j share j's own estimation error: ``P_j,pos`` (j's *claimed* covariance: a
 robot claiming a small covariance asserts small residuals) is common to all of them, and
 only the ``Q_ij`` are treated as independent (the observers' cross-covariances with each

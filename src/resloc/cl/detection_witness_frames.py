@@ -16,7 +16,8 @@ by ``k``); receiver r discards the links (r, j) while ``S_{r,j} > h``
 Most receivers hold the same notes on a robot (the default team is nearly fully
 connected): :func:`received_statistic` judges each distinct set of notes once.
 :func:`delivered_store` and :func:`record_witness` run their compiled twins
-(:mod:`resloc.cl.kernels_witness_frames`) with the numba backend; the numpy functions here
+(:mod:`resloc.cl.kernels_witness_frames`, :mod:`resloc.cl.kernels_witness_pending`) with
+the numba backend; the numpy functions here
 are their specification (:func:`reference_delivered_store`, :func:`reference_record`).
 """
 
@@ -309,7 +310,7 @@ def record_witness(notes: WitnessNotes | None, params: CLParams, memory: LinkMem
         return
     if memory is None:
         raise ValueError("detector witness (params.witness) needs a LinkMemory")
-    from resloc.cl.kernels_witness_frames import fast_record  # numba's import, on first use
+    from resloc.cl.kernels_witness_pending import fast_record  # numba's import, on first use
 
     if not fast_record(notes, memory):
         reference_record(notes, memory)

@@ -65,8 +65,10 @@ class FusionStrategy(Protocol):
     method: ClassVar[str]
     compiled: ClassVar[bool] = False
     #: In the compiled kernel: the link update (``"kalman"``, the filter's; ``"ci"`` and
-    #: ``"split_ci"``, :mod:`resloc.cl.kernels_fusion`; ``"tracked"`` and ``"factorized"``,
-    #: the correlated joint's moments and records of :mod:`resloc.cl.kernels_joint`) and the
+    #: ``"split_ci"``, :mod:`resloc.cl.kernels_fusion` (their updates:
+    #: :mod:`resloc.cl.kernels_ci_update`, :mod:`resloc.cl.kernels_split`); ``"tracked"``
+    #: and ``"factorized"``, the correlated joint's moments and records of
+    #: :mod:`resloc.cl.kernels_joint`) and the
     #: per-link bookkeeping (``"none"``; ``"gauge"``, :mod:`resloc.cl.kernels_gauge`).
     kernel_update: ClassVar[str] = "kalman"
     kernel_bookkeeping: ClassVar[str] = "none"

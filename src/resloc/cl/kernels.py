@@ -32,7 +32,9 @@ kernel function               paper                   numpy twin
 
 (in :mod:`resloc.cl.kernels_links`, :mod:`resloc.cl.kernels_detection`,
 :mod:`resloc.cl.kernels_defence`, :mod:`resloc.cl.kernels_fusion`,
-:mod:`resloc.cl.kernels_zone` and, imported only when their stages are on,
+:mod:`resloc.cl.kernels_ci_weight`, :mod:`resloc.cl.kernels_ci_update`,
+:mod:`resloc.cl.kernels_zone`, :mod:`resloc.cl.kernels_zone_verdicts` and, imported only
+when their stages are on,
 :mod:`resloc.cl.kernels_redundancy`, :mod:`resloc.cl.kernels_reciprocal`,
 :mod:`resloc.cl.kernels_prepass`).
 

@@ -1,7 +1,7 @@
 """Covariance intersection's update of a round's fused lanes in SIMD stages (``ci`` in the
 link rounds, :func:`resloc.cl.kernels_round_stages.intersect_lanes`).
 
-:func:`resloc.cl.kernels_fusion.ci_update` is scalar code, lane after lane (~220 ns a fused
+:func:`resloc.cl.kernels_ci_update.ci_update` is scalar code, lane after lane (~220 ns a fused
 lane: the weight's reductions and search, the inflated update, ``store_covariance``). As
 split CI's (:mod:`resloc.cl.kernels_split_lanes`, whose rows and weight stage this module
 shares: stages 1-3 there without the independent parts), the fused lanes of a round are
@@ -11,7 +11,7 @@ LANE_STRIDE` columns), then:
 1. :func:`_ci_weight_inputs_lanes`, over the lanes without branches: the Jacobians and the
    weight's reductions (``a = H_i P_i H_i^T``, ``b = H_j P_j H_j^T``, ``g = C^T C``), the
    trace and determinant of ``P_i`` and the prior's cost
-   (:func:`resloc.cl.kernels_fusion.weight_of` without ``split``);
+   (:func:`resloc.cl.kernels_ci_weight.weight_of` without ``split``);
 2. :func:`resloc.cl.kernels_split_lanes.weight_lanes` without ``split``: the weight;
 3. :func:`_ci_update_lanes`, over the lanes without branches: the inflated update with
    ``S``'s factor at the first jitter level, ``sym(P_n)`` and its positive-definiteness test
@@ -32,13 +32,15 @@ kernel function                twin
 
 from __future__ import annotations
 
-from resloc.cl import kernels_fusion as _kernels_fusion
+from resloc.cl import kernels_ci_update as _kernels_ci_update
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_lane_rows as _kernels_lane_rows
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_split_pieces as _kernels_split_pieces
-from resloc.cl.kernels_fusion import ci_update, gram
+from resloc.cl.kernels_ci_update import ci_update
+from resloc.cl.kernels_ci_weight import gram
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_lane_rows import (
     R_A,
@@ -88,7 +90,7 @@ _ZERO4 = (0.0, 0.0, 0.0, 0.0)
 @_jit
 def _ci_weight_inputs_lanes(f, m, det):
     """Stage 1 for lanes ``0 .. m - 1``: the weight's inputs as
-    :func:`resloc.cl.kernels_fusion.weight_of` without ``split`` (``D_i = P_i``, ``D_j =
+    :func:`resloc.cl.kernels_ci_weight.weight_of` without ``split`` (``D_i = P_i``, ``D_j =
     P_j``; the split rows zero, the determinant as it computes it)."""
     for k in range(m):
         Pi = row9(f, R_PI, k)
@@ -220,6 +222,6 @@ def ci_lanes(
 
 for _dispatcher in (_ci_weight_inputs_lanes, _ci_update_lanes, ci_lanes):
     stamp_with_pieces(
-        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_lane_rows,
-        _kernels_split_lanes, _kernels_split_pieces,
+        _dispatcher, _kernels_math, _kernels_ci_weight, _kernels_ci_update, _kernels_gauge,
+        _kernels_lane_rows, _kernels_split_lanes, _kernels_split_pieces,
     )  # fmt: skip

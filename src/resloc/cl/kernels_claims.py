@@ -2,7 +2,7 @@
 
 Two options change what a neighbour claims before anything judges or fuses it: the
 redundancy stage's cap (``detector.redundancy_cap_fusion``: each claim raised to the
-observer's median claim, :func:`~resloc.cl.detection_redundancy.capped_claims`) and the
+observer's median claim, :func:`~resloc.cl.detection_redundancy_fixes.capped_claims`) and the
 zone landmarks (``detector.zone_landmarks``: the claims of the neighbours whose broadcast
 position lies inside the map raised to the median of the capped claims, then inflated,
 :func:`~resloc.cl.detection_landmark.landmark_claims`). In numpy each is a few passes over
@@ -68,7 +68,7 @@ def claimed_covariances(li, x_src, P_src, rows, cap, discs, inflation, out, scal
     ``scale``, ``scratch``: (E,) scratch. Returns the number of rows inside the map,
     ``CLAIMS_UNCHANGED`` (``out`` not written) when neither step changed anything (no cap,
     no row inside) and ``CLAIMS_UNSORTED`` when the rows are not sorted by observer. Twin:
-    :func:`~resloc.cl.detection_redundancy.capped_claims` then
+    :func:`~resloc.cl.detection_redundancy_fixes.capped_claims` then
     :func:`~resloc.cl.detection_landmark.landmark_claims` (same products, same order)."""
     E = li.shape[0]
     Z = discs.shape[0]

@@ -34,7 +34,8 @@ from resloc.cl.detector import InnovationNorm
 from resloc.cl.kernels_math import gain_array, jit_inline, per_params
 from resloc.cl.kernels_memory import int64_rows, same_keys
 from resloc.cl.kernels_stores import group_slots, keep_state, steady_state
-from resloc.cl.kernels_zone import SUBSTITUTED, KernelZone, no_zone
+from resloc.cl.kernels_zone import KernelZone, no_zone
+from resloc.cl.kernels_zone_verdicts import SUBSTITUTED
 from resloc.cl.params import CLParams
 
 __all__ = [

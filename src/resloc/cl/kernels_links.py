@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 
+from resloc.cl import kernels_ci_update as _kernels_ci_update
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
@@ -30,9 +32,11 @@ from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl import kernels_zone_verdicts as _kernels_zone_verdicts
+from resloc.cl.kernels_ci_update import ci_update
 from resloc.cl.kernels_defence import defend_link
 from resloc.cl.kernels_detection import detect_link
-from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_joint_links import (
     NO_JOINT,
@@ -56,7 +60,12 @@ from resloc.cl.kernels_math import (
 from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_tamper import stealthy_measurement
-from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
+from resloc.cl.kernels_zone_verdicts import (
+    SUBSTITUTED,
+    WITHHELD,
+    position_fix_of_link,
+    zone_verdict,
+)
 
 #: Kernel status codes.
 OK = 0
@@ -467,12 +476,15 @@ stamp_with_pieces(
     _kernels_detection,
     _kernels_defence,
     _kernels_fusion,
+    _kernels_ci_weight,
+    _kernels_ci_update,
     _kernels_gauge,
     _kernels_joint_links,
     _kernels_joint_records,
     _kernels_split,
     _kernels_tamper,
     _kernels_zone,
+    _kernels_zone_verdicts,
 )
 
 # The link's pieces by public names, for the loop over rounds (resloc.cl.kernels_rounds),

@@ -75,7 +75,7 @@ def _stamp_lazily(dispatcher):
     compiled function it calls or inlines (:func:`callee_modules`), computed on the first
     cache access (all modules are imported by then). numba stamps a cached kernel with its
     own source file only, and a caller's cache holds its callees' code: an edited
-    :mod:`resloc.cl.kernels_fusion` would otherwise leave :mod:`resloc.cl.kernels_split`'s
+    :mod:`resloc.cl.kernels_ci_weight` would otherwise leave :mod:`resloc.cl.kernels_split`'s
     cached kernel running the old code. Returns the cache file (None: numba absent, or a
     numba whose cache we do not know)."""
     cache = getattr(dispatcher, "_cache", None)

@@ -33,7 +33,7 @@ from resloc.cl.detection_outvoted import OUTVOTED_STATE
 from resloc.cl.detection_witness import consistency_gates
 from resloc.cl.detection_witness_frames import PENDING, PENDING_WIDTH
 from resloc.cl.kernels_math import jit_lanes, per_params
-from resloc.cl.kernels_witness_frames import copy_note
+from resloc.cl.kernels_witness_pending import copy_note
 from resloc.cl.kernels_witness_statistic import group_statistics
 from resloc.cl.params import CLParams, at_robots
 

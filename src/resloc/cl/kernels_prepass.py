@@ -56,7 +56,8 @@ from resloc.cl.kernels_reciprocal import reciprocal_options, reciprocal_verdicts
 from resloc.cl.kernels_redundancy import named_fix_options
 from resloc.cl.kernels_redundancy_fixes import claim_scales
 from resloc.cl.kernels_redundancy_verdicts import FIX_WORK_ROWS, scaled_fix_verdicts
-from resloc.cl.kernels_zone import OUTSIDE, KernelZone, ZoneState, partner_readings
+from resloc.cl.kernels_zone import KernelZone, ZoneState, partner_readings
+from resloc.cl.kernels_zone_verdicts import OUTSIDE
 from resloc.cl.params import CLParams
 
 __all__ = [

@@ -59,7 +59,7 @@ from resloc.cl.kernels_math import (
     per_params,
     stamp_with_pieces,
 )
-from resloc.cl.kernels_zone import inside_map
+from resloc.cl.kernels_zone_verdicts import inside_map
 from resloc.cl.links import LinkBatch
 from resloc.cl.params import CLParams
 
@@ -109,7 +109,7 @@ def reciprocal_options(params: CLParams) -> ReciprocalOptions:
 @jit_inline
 def inside_discs(px, py, discs):
     """Whether ``(px, py)`` lies inside any disc ``(cx, cy, r)`` of ``discs: (Z, 3)``
-    (:func:`resloc.cl.kernels_zone.inside_map`: no libm call where the squares decide).
+    (:func:`resloc.cl.kernels_zone_verdicts.inside_map`: no libm call where the squares decide).
     Twin: :func:`~resloc.cl.detection_zone.inside_zone_map` (``hypot(.) - r <= 0``)."""
     return inside_map(discs, px, py)
 

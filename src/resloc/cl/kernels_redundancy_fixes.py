@@ -1,5 +1,5 @@
 """The redundancy stage's inputs, compiled: every link's claim raised to its observer's
-median and its position fix (twins of :mod:`resloc.cl.detection_redundancy`'s
+median and its position fix (twins of :mod:`resloc.cl.detection_redundancy_fixes`'s
 ``weight_capped_covariance``, ``capped_claims`` and ``position_fix``).
 
 The verdict kernels (:mod:`resloc.cl.kernels_redundancy_verdicts`) judge the fixes this
@@ -9,11 +9,11 @@ the same factors.
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`claim_scales`           the scale of :func:`~resloc.cl.detection_redundancy.
+:func:`claim_scales`           the scale of :func:`~resloc.cl.detection_redundancy_fixes.
                                weight_capped_covariance` and ``capped_claims``
                                (``_group_median``)
 :func:`trace_scales`           the same from the rows' traces (``_group_median``)
-:func:`position_fix_of_link`   :func:`~resloc.cl.detection_redundancy.position_fix`
+:func:`position_fix_of_link`   :func:`~resloc.cl.detection_redundancy_fixes.position_fix`
                                (:func:`fixes_of_rows`: in SIMD lanes, by blocks)
 =============================  ==========================================================
 """
@@ -43,8 +43,8 @@ def claim_scales(li, P_nb, nb, scale, scratch):
     the trace of the position block of ``P_nb[nb[e]]`` and ``m`` the median of those traces
     over the rows of the same observer ``li[e]``, into ``scale: (E,)``. Rows must be sorted
     by observer (False otherwise; ``scratch``: (E,)). Twin: the scale of
-    :func:`~resloc.cl.detection_redundancy.weight_capped_covariance` and
-    :func:`~resloc.cl.detection_redundancy.capped_claims` (``_group_median``)."""
+    :func:`~resloc.cl.detection_redundancy_fixes.weight_capped_covariance` and
+    :func:`~resloc.cl.detection_redundancy_fixes.capped_claims` (``_group_median``)."""
     E = li.shape[0]
     for e in range(E):  # the traces, once (the rows' own, then their factors, in scale)
         scale[e] = P_nb[nb[e], 0, 0] + P_nb[nb[e], 1, 1]
@@ -104,7 +104,7 @@ def position_fix_of_link(
     for every row at once). ``grow``: the range's mean correction ``exp((R_bb +
     var_heading) / 2)`` (one per observer: the caller computes it once for the observer's
     rows). Scalars only, no branch (:func:`_fixes_of_block` runs it over SIMD lanes). Twin:
-    :func:`~resloc.cl.detection_redundancy.position_fix` (same operations, same order,
+    :func:`~resloc.cl.detection_redundancy_fixes.position_fix` (same operations, same order,
     but for ``np.hypot``, here the square root of the sum of squares, and ``np.cos``,
     ``np.sin``, the caller's polynomials: within a few ulps, no libm call; measured, the
     pass 16.2 -> 12.6 us a step of 260 links)."""
@@ -139,7 +139,8 @@ def position_fix_of_link(
 
 @jit_inline
 def _information(a, b, c):
-    """``[[a, b], [b, c]]^-1`` in closed form (twin: ``detection_redundancy._information``)."""
+    """``[[a, b], [b, c]]^-1`` in closed form (twin:
+    ``detection_redundancy_exclusion._information``)."""
     det = a * c - b * b
     return c / det, -b / det, a / det
 

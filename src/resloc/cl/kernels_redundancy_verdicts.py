@@ -11,8 +11,8 @@ in place). The dispatch's side is :mod:`resloc.cl.kernels_redundancy`.
 =============================  ==========================================================
 kernel function                numpy twin
 =============================  ==========================================================
-:func:`exclude_group`          :func:`~resloc.cl.detection_redundancy.exclude_inconsistent`
-                               (``_reference``, ``_statistic``)
+:func:`exclude_group`          :func:`~resloc.cl.detection_redundancy_exclusion.
+                               exclude_inconsistent` (``_reference``, ``_statistic``)
 :func:`sequence_group`         :func:`~resloc.cl.detection_sequence.sequence_evidence`
                                (``sequence_step``)
 :func:`fix_verdicts`           :func:`~resloc.cl.detection_redundancy.fix_evidence` and the
@@ -40,7 +40,7 @@ __all__ = [
     "sequence_group",
 ]
 
-#: A reference with no peer (twin: ``detection_redundancy._NO_PEER_COV``).
+#: A reference with no peer (twin: ``detection_redundancy_exclusion._NO_PEER_COV``).
 _NO_PEER_COV = 1e12
 #: The sequence state's hold column (twin: ``detection_sequence._HOLD``).
 _HOLD = 5
@@ -58,7 +58,7 @@ def exclude_group(start, stop, fix, cov, info, included, gate, min_peers, stat, 
     ``fix: (2, E)``, ``cov: (3, E)`` (entries ``a, b, c``), ``info: (5, E)`` each row's
     information ``C^-1`` (entries) and ``C^-1 fix``
     (:func:`~resloc.cl.kernels_redundancy_fixes.fixes_of_rows`), ``residual: (2, E)``,
-    ``ref_cov: (3, E)``. Twin: :func:`~resloc.cl.detection_redundancy.
+    ``ref_cov: (3, E)``. Twin: :func:`~resloc.cl.detection_redundancy_exclusion.
     exclude_inconsistent` (``_reference`` and ``_statistic`` on one group, the same
     operations: an excluded row's information times 0; groups are independent there too;
     IEEE division, as numpy's: inlined into :func:`fix_verdicts`, ``jit_lanes``; a call

@@ -32,6 +32,8 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl import kernels_ci_lanes as _kernels_ci_lanes
+from resloc.cl import kernels_ci_update as _kernels_ci_update
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_defence as _kernels_defence
 from resloc.cl import kernels_detection as _kernels_detection
 from resloc.cl import kernels_fusion as _kernels_fusion
@@ -46,7 +48,9 @@ from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_split_lanes as _kernels_split_lanes
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl import kernels_zone_verdicts as _kernels_zone_verdicts
 from resloc.cl.kernels_ci_lanes import ci_lanes
+from resloc.cl.kernels_ci_update import ci_update
 from resloc.cl.kernels_defence import recovery_step, robot_cusum_step
 from resloc.cl.kernels_detection import (
     NIS_CODE,
@@ -56,7 +60,7 @@ from resloc.cl.kernels_detection import (
     nis_of_white,
     whiten_of,
 )
-from resloc.cl.kernels_fusion import CI, SPLIT_CI, ci_update
+from resloc.cl.kernels_fusion import CI, SPLIT_CI
 from resloc.cl.kernels_gauge import gauge_record, range_bearing_jacobians_into
 from resloc.cl.kernels_lanes import FALLBACK
 from resloc.cl.kernels_link_stages import UPDATE_ROWS, kalman_lanes
@@ -72,7 +76,7 @@ from resloc.cl.kernels_points import POINT_ROWS, point_moments
 from resloc.cl.kernels_split import split_ci_update
 from resloc.cl.kernels_split_lanes import split_ci_lanes
 from resloc.cl.kernels_tamper import stealthy_measurement
-from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD
+from resloc.cl.kernels_zone_verdicts import SUBSTITUTED, WITHHELD
 
 _jit = jit_lanes
 
@@ -194,7 +198,7 @@ def screen_lanes(
     cusum, ck, ch, ccap, cg, cslot, mean, mk, mh, mg, mslot, fixes, zone, witness = detection
     fixed = fixes.shape[0] > 0  # the redundancy pre-pass's verdict (kernels_redundancy)
     convicted = witness.shape[0] > 0  # the witness stage's verdict (kernels_witness)
-    zoned = zone[0]  # zone-aware trust's verdicts (kernels_zone.zone_lanes)
+    zoned = zone[0]  # zone-aware trust's verdicts (kernels_zone_verdicts.zone_lanes)
     verdict = zone[3]
     robot, rk, rh, rg, rslot, recovery, after, gate, cap = defence[:9]
     runs, runs_slot, spread, sslot, applied, aslot = defence[9:]
@@ -484,6 +488,8 @@ PIECE_MODULES = (
     _kernels_detection,
     _kernels_defence,
     _kernels_fusion,
+    _kernels_ci_weight,
+    _kernels_ci_update,
     _kernels_split,
     _kernels_split_lanes,
     _kernels_ci_lanes,
@@ -491,6 +497,7 @@ PIECE_MODULES = (
     _kernels_gauge,
     _kernels_tamper,
     _kernels_zone,
+    _kernels_zone_verdicts,
     _kernels_points,
 )
 for _dispatcher in (

@@ -60,6 +60,7 @@ from resloc.cl import kernels_round_cached as _kernels_round_cached
 from resloc.cl import kernels_round_stages as _kernels_round_stages
 from resloc.cl import kernels_trig as _kernels_trig
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl import kernels_zone_verdicts as _kernels_zone_verdicts
 from resloc.cl.kernels_fusion import CI, NAIVE_UPDATE, SPLIT_CI
 from resloc.cl.kernels_joint_links import JOINT_FORM, NO_JOINT
 from resloc.cl.kernels_joint_rounds import correct_joint_rounds, joint_rounds_cover
@@ -106,7 +107,7 @@ from resloc.cl.kernels_round_stages import (
     tamper_lanes,
 )
 from resloc.cl.kernels_split_lanes import split_lane_scratch
-from resloc.cl.kernels_zone import withhold_lanes, zone_lanes
+from resloc.cl.kernels_zone_verdicts import withhold_lanes, zone_lanes
 from resloc.cl.links import LinkBatch
 
 _jit = jit_lanes
@@ -439,6 +440,7 @@ for _dispatcher in (correct_rounds, _rounds):
         _kernels_round_stages,
         _kernels_round_cached,
         _kernels_zone,
+        _kernels_zone_verdicts,
         *_kernels_round_stages.PIECE_MODULES,
     )
 

@@ -6,7 +6,8 @@ the CI weight (:func:`resloc.cl.fusion.fused_update` with ``split_ci``). The lin
 link, which calls :func:`_split_ci_link`: the independent parts (robot i's, from
 :class:`~resloc.cl.kernels_fusion.KernelFusion`'s working copy of ``memory.independent``,
 and j's transmitted one, ``LinkBatch.P_nb_ind``) clipped to their covariances, the weight
-and the inflated update shared with ``ci`` (:mod:`resloc.cl.kernels_fusion`), then robot
+and the inflated update shared with ``ci`` (:mod:`resloc.cl.kernels_ci_weight`,
+:mod:`resloc.cl.kernels_ci_update`), then robot
 i's new independent part. The once-per-step
 parts: the prediction of the independent parts is compiled too
 (:func:`resloc.cl.kernels_fusion_step.compiled_independent_predict`); a delivered
@@ -27,7 +28,8 @@ from __future__ import annotations
 import numpy as np
 
 from resloc.cl.backend import backend
-from resloc.cl.kernels_fusion import inflated_update, reduce_i, reduce_j, weight_of
+from resloc.cl.kernels_ci_update import inflated_update
+from resloc.cl.kernels_ci_weight import reduce_i, reduce_j, weight_of
 from resloc.cl.kernels_joint_links import scaled_unit_minus_is_pd
 from resloc.cl.kernels_math import chol3, jit, jit_inline, stamp_with_pieces
 
@@ -293,7 +295,8 @@ def _zero_delivered(independent, j, delivered):
     return True
 
 
-# _split_ci_link inlines kernels_fusion's weight and update and kernels_joint_links' bound
+# _split_ci_link inlines kernels_ci_weight's weight, kernels_ci_update's update and
+# kernels_joint_links' bound
 # check, and links kernels_math's chol3: its cache (and its inliner's) must go stale with them.
 stamp_with_pieces(split_ci_update)
 stamp_with_pieces(_split_ci_link)

@@ -11,11 +11,11 @@ fast branch on computed for every lane (stages 1 and 3):
 
 1. :func:`_weight_inputs_lanes`: both clips' certificates (``0 < P_ind < P`` by Sylvester's
    criterion, :func:`resloc.cl.kernels_split._clip_independent`), the dependent parts and
-   the weight's 2 x 2 reductions (:func:`resloc.cl.kernels_fusion.weight_of`);
-2. :func:`weight_lanes`: the weight as :func:`resloc.cl.kernels_fusion._search_weight`
+   the weight's 2 x 2 reductions (:func:`resloc.cl.kernels_ci_weight.weight_of`);
+2. :func:`weight_lanes`: the weight as :func:`resloc.cl.kernels_ci_weight._search_weight`
    finds it: lane by lane the grid's costs (its SIMD loop over the candidates) and their
    first best, then the refinement over the lanes without branches;
-3. :func:`_update_lanes`: the inflated update (:func:`resloc.cl.kernels_fusion.
+3. :func:`_update_lanes`: the inflated update (:func:`resloc.cl.kernels_ci_update.
    inflated_update`, its Cholesky factor of ``S`` without jitter), ``A``'s factor without
    jitter and the linearization's solves, the Joseph form of the independent part and the
    posterior's clip certificate (:func:`resloc.cl.kernels_split._split_ci_link`), by
@@ -40,21 +40,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from resloc.cl import kernels_ci_weight as _kernels_ci_weight
 from resloc.cl import kernels_fusion as _kernels_fusion
 from resloc.cl import kernels_gauge as _kernels_gauge
 from resloc.cl import kernels_lane_rows as _kernels_lane_rows
 from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_split as _kernels_split
 from resloc.cl import kernels_split_pieces as _kernels_split_pieces
-from resloc.cl.kernels_fusion import (
-    CI,
-    SPLIT_CI,
+from resloc.cl.kernels_ci_weight import (
     ci_cost,
     det3_scaled_entries,
     first_best,
     gram,
     grid_costs,
 )
+from resloc.cl.kernels_fusion import CI, SPLIT_CI
 from resloc.cl.kernels_gauge import range_bearing_jacobians_into
 from resloc.cl.kernels_lane_rows import (
     R_A,
@@ -149,7 +149,7 @@ def _parts(f, k):
 @_jit
 def _weight_inputs_lanes(f, m, R, det):
     """Stage 1 for lanes ``0 .. m - 1``: the clips' certificate and the weight's inputs
-    (:func:`resloc.cl.kernels_fusion.weight_of` with ``split``)."""
+    (:func:`resloc.cl.kernels_ci_weight.weight_of` with ``split``)."""
     r00 = R[0, 0]
     r01 = R[0, 1]
     r10 = R[1, 0]
@@ -187,9 +187,9 @@ def weight_lanes(f, m, grid, det, R, split):
     """Stage 2 (``ci``'s lanes too, ``split`` False: the rows ``R_AI``, ``R_BI``, ``R_GDI``,
     ``R_GII``, ``R_IP``, ``R_TRP`` then unread, ``R_DET`` read): the weight of lanes
     ``0 .. m - 1`` into row ``R_W``, as
-    :func:`resloc.cl.kernels_fusion._search_weight`: lane by lane, the grid's costs (its
-    :func:`~resloc.cl.kernels_fusion.grid_costs`, a SIMD loop over the candidates) and
-    their first best (:func:`~resloc.cl.kernels_fusion.first_best`); then, over the lanes
+    :func:`resloc.cl.kernels_ci_weight._search_weight`: lane by lane, the grid's costs (its
+    :func:`~resloc.cl.kernels_ci_weight.grid_costs`, a SIMD loop over the candidates) and
+    their first best (:func:`~resloc.cl.kernels_ci_weight.first_best`); then, over the lanes
     without branches, the parabola through the best and its neighbours, the refinement
     kept where not worse, ``1.0`` where no weight beats the prior (the refinement's three
     dependent divisions, ~45 ns a lane in the scalar search, overlap across lanes).
@@ -367,6 +367,6 @@ for _dispatcher in (
     split_ci_lanes,
 ):
     stamp_with_pieces(
-        _dispatcher, _kernels_math, _kernels_fusion, _kernels_gauge, _kernels_lane_rows,
-        _kernels_split, _kernels_split_pieces,
+        _dispatcher, _kernels_math, _kernels_fusion, _kernels_ci_weight, _kernels_gauge,
+        _kernels_lane_rows, _kernels_split, _kernels_split_pieces,
     )  # fmt: skip

@@ -10,10 +10,10 @@ function                        twin (same operations, same order)
 :func:`jacobians_of`            :func:`resloc.cl.kernels_gauge.range_bearing_jacobians_into`
 :func:`pd6`, :func:`is_pd9`     ``kernels_split._is_pd6``, :func:`~resloc.cl.kernels_math.is_pd3`
 :func:`clip_certified`          ``kernels_split._clip_independent``'s certificate
-:func:`reduce_i9`               :func:`resloc.cl.kernels_fusion.reduce_i`
-:func:`reduce_j9`               :func:`resloc.cl.kernels_fusion.reduce_j`
-:func:`inflated_update_of`      :func:`resloc.cl.kernels_fusion.inflated_update`
-:func:`ci_update_of`            :func:`resloc.cl.kernels_fusion.ci_update` after the weight
+:func:`reduce_i9`               :func:`resloc.cl.kernels_ci_weight.reduce_i`
+:func:`reduce_j9`               :func:`resloc.cl.kernels_ci_weight.reduce_j`
+:func:`inflated_update_of`      :func:`resloc.cl.kernels_ci_update.inflated_update`
+:func:`ci_update_of`            :func:`resloc.cl.kernels_ci_update.ci_update` after the weight
 :func:`split_update_of`         ``kernels_split._split_ci_link`` after the weight
 ==============================  ==========================================================
 """
@@ -104,7 +104,7 @@ def minus9(A, B):
 
 @jit_inline
 def reduce_i9(D, H):
-    """:func:`resloc.cl.kernels_fusion.reduce_i` of a 9-tuple ``D`` and 6-tuple ``H``."""
+    """:func:`resloc.cl.kernels_ci_weight.reduce_i` of a 9-tuple ``D`` and 6-tuple ``H``."""
     c00 = D[0] * H[0] + D[1] * H[1] + D[2] * H[2]
     c01 = D[0] * H[3] + D[1] * H[4] + D[2] * H[5]
     c10 = D[3] * H[0] + D[4] * H[1] + D[5] * H[2]
@@ -120,7 +120,7 @@ def reduce_i9(D, H):
 
 @jit_inline
 def reduce_j9(D, H):
-    """:func:`resloc.cl.kernels_fusion.reduce_j` of a 9-tuple ``D`` and 6-tuple ``H``,
+    """:func:`resloc.cl.kernels_ci_weight.reduce_j` of a 9-tuple ``D`` and 6-tuple ``H``,
     its sums in its order (from ``0.0``)."""
     b00 = b01 = b10 = b11 = 0.0
     for k in range(3):
@@ -154,7 +154,7 @@ def is_pd9(T):
 @jit_inline
 def inflated_update_of(Pi, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, jitter0):
     """The inflated update of one lane with weight ``w``, as
-    :func:`resloc.cl.kernels_fusion.inflated_update` (EKF-free) with ``S``'s factor at the
+    :func:`resloc.cl.kernels_ci_update.inflated_update` (EKF-free) with ``S``'s factor at the
     first jitter level (``jitter0``) only: ``A = sym(P_i + f_i D_i)``, ``S``'s factor,
     ``K``, ``x_i``, ``P_n = A - K S K^T``. ``P_i``, ``D_i``, ``D_j``: 9-tuples by row (the
     covariances for ``ci``, the dependent parts for split CI), ``H``: 6-tuples, ``Sm``:
@@ -244,7 +244,7 @@ def inflated_update_of(Pi, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, jitter0):
 @jit_inline
 def ci_update_of(Pi, Pj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, jitter0):
     """One lane's ``ci`` update with weight ``w``, as
-    :func:`resloc.cl.kernels_fusion.ci_update` (EKF-free) then
+    :func:`resloc.cl.kernels_ci_update.ci_update` (EKF-free) then
     :func:`~resloc.cl.kernels_math.store_covariance`'s symmetrization and test:
     :func:`inflated_update_of` with ``D = P``; ``w >= 1``, the prior kept. Returns
     ``(certified, x_i's new estimate (heading not wrapped), sym(P_n) (9-tuple by row),
@@ -271,7 +271,7 @@ def sym9(M):
 def split_update_of(ok, Pi, Ii, Di, Dj, Hi, Hj, w, Sm, pxz, x, nu0, nu1, R4, jitter0):
     """One lane's split CI update with weight ``w``, as
     :func:`resloc.cl.kernels_split._split_ci_link` (EKF-free): the inflated update
-    (:func:`resloc.cl.kernels_fusion.inflated_update`: ``A = sym(P_i + f_i D_i)``, ``S``'s
+    (:func:`resloc.cl.kernels_ci_update.inflated_update`: ``A = sym(P_i + f_i D_i)``, ``S``'s
     factor, ``K``, ``x_i``, ``P_n = A - K S K^T``), ``H = (A^-1 P^xz)^T`` by ``A``'s factor,
     ``(I - K H) I_i (I - K H)^T + K R K^T`` and the posterior's clip; ``w >= 1``: the prior
     and its clipped part, clipped to it. Both factors at the first jitter level

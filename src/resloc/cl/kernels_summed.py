@@ -47,6 +47,7 @@ from resloc.cl import kernels_math as _kernels_math
 from resloc.cl import kernels_points as _kernels_points
 from resloc.cl import kernels_tamper as _kernels_tamper
 from resloc.cl import kernels_zone as _kernels_zone
+from resloc.cl import kernels_zone_verdicts as _kernels_zone_verdicts
 from resloc.cl.kernels_detection import detect_link, gain_at, nis_of
 from resloc.cl.kernels_fusion import NAIVE_UPDATE
 from resloc.cl.kernels_links import (
@@ -80,7 +81,12 @@ from resloc.cl.kernels_summed_lanes import (
     summed_moments_lanes,
 )
 from resloc.cl.kernels_tamper import stealthy_measurement
-from resloc.cl.kernels_zone import SUBSTITUTED, WITHHELD, position_fix_of_link, zone_verdict
+from resloc.cl.kernels_zone_verdicts import (
+    SUBSTITUTED,
+    WITHHELD,
+    position_fix_of_link,
+    zone_verdict,
+)
 
 __all__ = [
     "SUMMED_RUNS",
@@ -456,6 +462,7 @@ stamp_with_pieces(
     _kernels_defence,
     _kernels_tamper,
     _kernels_zone,
+    _kernels_zone_verdicts,
 )
 
 

@@ -25,7 +25,8 @@ function                       numpy twin
 The compiled pieces live in their own modules: the notes
 (:mod:`resloc.cl.kernels_witness_notes`), the statistic of groups of notes and its
 enumeration of their sets (:mod:`resloc.cl.kernels_witness_statistic`), the receivers'
-delivery and the record of the notes (:mod:`resloc.cl.kernels_witness_frames`). In the CL
+delivery (:mod:`resloc.cl.kernels_witness_frames`) and the record of the notes
+(:mod:`resloc.cl.kernels_witness_pending`). In the CL
 step, :func:`witness_verdict` runs the delivery, the verdict, the step's notes and their
 record in one compiled call (:mod:`resloc.cl.kernels_witness_step`), the separate calls
 when that one declines. :data:`WITNESS_RUNS` counts what every one of them ran.
@@ -59,7 +60,8 @@ __all__ = [
 
 #: How often the compiled path took the stage's verdict, computed notes, statistics, the
 #: receivers' delivered statistic (:mod:`resloc.cl.kernels_witness_frames`) and how many
-#: distinct sets of notes that pass enumerated, the notes recorded in place, the whole
+#: distinct sets of notes that pass enumerated, the notes recorded in place
+#: (:mod:`resloc.cl.kernels_witness_pending`), the whole
 #: step in one call (:mod:`resloc.cl.kernels_witness_step`; the tests read it).
 WITNESS_RUNS = {
     "verdicts": 0,

@@ -148,7 +148,7 @@ class CLParams:
     redundancy_cap_fusion : bool
         Fuse each neighbour with its claimed covariance scaled up as the redundancy test
         caps it (no neighbour weighs more than the observer's median one in the update
-        either: :func:`resloc.cl.detection_redundancy.capped_claims`).
+        either: :func:`resloc.cl.detection_redundancy_fixes.capped_claims`).
     redundancy_sequence : bool
         Sum each link's redundancy residuals over time and hold a link out when the sum is
         inconsistent with zero mean (:mod:`resloc.cl.detection_sequence`).

@@ -19,7 +19,8 @@ from resloc.cl.detection_landmark import landmark_links
 from resloc.cl.detection_lockout import lockout_floor, record_lockout
 from resloc.cl.detection_outvoted import widen_outvoted
 from resloc.cl.detection_reciprocal import reciprocal_evidence
-from resloc.cl.detection_redundancy import capped_claims, fix_evidence
+from resloc.cl.detection_redundancy import fix_evidence
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detection_startup import claims_floored, floored_claims, startup_floor
 from resloc.cl.detection_widening import keep_exempt
 from resloc.cl.detection_witness import step_notes

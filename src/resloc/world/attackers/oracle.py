@@ -20,7 +20,8 @@ import numpy as np
 from resloc.cl.detection import DETECTOR_STAGES, Evidence, active_stages, detect
 from resloc.cl.detection_landmark import landmark_claims
 from resloc.cl.detection_reciprocal import ReciprocalContext
-from resloc.cl.detection_redundancy import FixContext, capped_claims
+from resloc.cl.detection_redundancy import FixContext
+from resloc.cl.detection_redundancy_fixes import capped_claims
 from resloc.cl.detector import innovation_norm
 from resloc.cl.links import LinkBatch
 from resloc.cl.memory import LinkMemory
