@@ -216,3 +216,23 @@ def test_a_steady_step_reuses_the_last_state_with_this_steps_slots_and_save(
         detection = detector_state(other, memory, i, j)
         defence = defence_state(other, memory, i)
         _assert_states_of(other, memory, i, j, detection, defence)
+
+
+def test_a_store_holding_given_arrays_is_the_constructors_store() -> None:
+    """``LinkStatistic.holding`` (the witness stage's delivered store, built each step
+    without the constructor's empty arrays) has the constructor's attributes, with the
+    arrays given, and behaves as a scalar store: its ``get`` and ``set``."""
+    keys, values = np.array([1, 7, 9], np.int64), np.array([0.5, 2.0, -1.0])
+    held = LinkStatistic.holding(4, keys, values)
+    made = LinkStatistic(4)
+    made.keys, made.values = keys, values
+    assert held.keys is keys and held.values is values
+    assert sorted(vars(held)) == sorted(vars(made))
+    for name, value in vars(made).items():
+        assert type(getattr(held, name)) is type(value), name
+        if not isinstance(value, np.ndarray):
+            assert getattr(held, name) == value, name
+    np.testing.assert_array_equal(held.get([0, 1, 2], [1, 3, 0]), [0.5, 2.0, 0.0])
+    held.set(np.array([3]), np.array([3]), np.array([4.0]))
+    np.testing.assert_array_equal(held.keys, [1, 7, 9, 15])
+    np.testing.assert_array_equal(held.get([3, 2], [3, 1]), [4.0, -1.0])

@@ -295,8 +295,7 @@ def fused_verdict(params, memory, x, P, links, inputs) -> WitnessVerdict | None:
         largest = -need
     if status != DONE:
         return None
-    store = LinkStatistic(n)
-    store.keys, store.values = keys[:K], values[:K]
+    store = LinkStatistic.holding(n, keys[:K], values[:K])
     runs = WITNESS_RUNS
     runs["verdicts"] += 1
     runs["delivered"] += 1
