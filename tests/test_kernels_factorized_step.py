@@ -84,7 +84,7 @@ def _kernel_state(joint: FactorizedCovariance, obs, nbr, link_fused, gains, Bij)
 def _started(rng, T: int, N: int, scale: float = 1.0) -> FactorizedCovariance:
     joint = FactorizedCovariance(T * N, N)
     joint.sig = scale * rng.normal(size=(T * N, N, 3, 3))
-    joint._start_step(_spd(rng, T * N))
+    joint.start_step(_spd(rng, T * N))
     return joint
 
 

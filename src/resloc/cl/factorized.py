@@ -97,9 +97,11 @@ class FactorizedCovariance:
         self.B = int(batch)
         self.sig = np.zeros((self.B, self.N, 3, 3))
         self.received: dict[int, np.ndarray] = {}
-        self._start_step(np.zeros((self.B, 3, 3)))
+        self.start_step(np.zeros((self.B, 3, 3)))
 
-    def _start_step(self, P_pred: np.ndarray) -> None:
+    def start_step(self, P_pred: np.ndarray) -> None:
+        """A new step's bookkeeping from the predicted covariances ``P_pred`` (B, 3, 3)
+        (here or in the compiled prediction)."""
         self.sig_pred = self.sig.copy()  # what j's messages carry this step
         self.P_pred = P_pred.copy()
         self.A = identity_stack(self.B)
@@ -139,7 +141,7 @@ class FactorizedCovariance:
         del Q
         F = unicycle_state_jacobian(x, u, dt)
         self.sig = np.einsum("bac,blcd->blad", F, self.sig)
-        self._start_step(P_pred)
+        self.start_step(P_pred)
         return P_pred
 
     def cross(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:

@@ -54,7 +54,7 @@ def compiled_factorized_predict(joint, x, u, dt: float, P_pred) -> np.ndarray | 
     sig = np.array(joint.sig, dtype=float, order="C", copy=True)
     _left_multiply_factors(c_float(x), c_float(u), float(dt), sig)
     joint.sig = sig
-    joint._start_step(P_pred)
+    joint.start_step(P_pred)
     return P_pred
 
 

@@ -94,8 +94,8 @@ def compiled_tracked_predict(joint, x, u, dt: float, params) -> np.ndarray | Non
         x, u, float(dt), odometry_var, floor_var, joint.N, before, sigma, diagonal, spare
     )
     joint.sigma = sigma
-    joint._start_step()
-    joint._spare_rows = (sigma, spare)  # (the correction's rows of M Sigma: take_spare_rows)
+    joint.start_step()
+    joint.spare_rows = (sigma, spare)  # (the correction's rows of M Sigma: take_spare_rows)
     return diagonal
 
 
@@ -274,7 +274,7 @@ def compiled_tracked_finish(joint) -> np.ndarray | None:
         sigma, diagonal,
     )  # fmt: skip
     joint.sigma = sigma
-    joint._start_step()
+    joint.start_step()
     return diagonal
 
 

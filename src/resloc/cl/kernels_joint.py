@@ -179,11 +179,11 @@ def kernel_scratch(joint) -> tuple:
     (:class:`~resloc.cl.kernels_fusion.KernelFusion`, which only ``ci`` and ``split_ci``
     read). Each is written before it is read within a link, so one set serves every step;
     four allocations a step fewer (~0.7 us, ``fusion_state`` of a 17-robot step)."""
-    kept = getattr(joint, "_kernel_scratch", None)
+    kept = getattr(joint, "compiled_scratch", None)
     if kept is None:
         kept = (np.zeros((5, 3, 3)), np.zeros((2, 6, 6)), np.zeros((8, 3, 3)),
                 np.empty(len(CI_GRID)))  # fmt: skip
-        joint._kernel_scratch = kept
+        joint.compiled_scratch = kept
     return kept
 
 

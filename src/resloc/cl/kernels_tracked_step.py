@@ -43,13 +43,13 @@ __all__ = ["apply_later_gains", "commit_tracked", "installed_end_of_step", "take
 def take_spare_rows(joint, sigma: np.ndarray) -> np.ndarray:
     """Each robot's rows of ``sigma`` (B, 3, 3N), a copy the kernel may update in place: the
     prediction's spare when it is a copy of this very ``sigma`` (taken: used once), else
-    copied now. The compiled prediction keeps ``joint._spare_rows = (sigma, spare)``
+    copied now. The compiled prediction keeps ``joint.spare_rows = (sigma, spare)``
     (:func:`resloc.cl.kernels_fusion_step.compiled_tracked_predict`: ``spare``, a copy of
     the new joint ``sigma`` it wrote while it had it in the cache, in the rows' shape,
     since ``M = I`` at a step's start)."""
-    spare = joint._spare_rows
+    spare = joint.spare_rows
     if spare is not None:
-        joint._spare_rows = None
+        joint.spare_rows = None
         if spare[0] is sigma:
             return spare[1]
     T, n3 = sigma.shape[0], sigma.shape[1]
@@ -87,7 +87,7 @@ def installed_end_of_step(joint) -> np.ndarray | None:
     if done is None:
         return None
     joint.sigma = done[0]
-    joint._start_step()
+    joint.start_step()
     return done[1]
 
 

@@ -154,10 +154,10 @@ class JointCovariance:
     #: ``(sigma, spare)``: a copy of the joint ``sigma`` the compiled prediction wrote, which
     #: the next compiled correction takes as its rows of ``M Sigma``
     #: (:func:`resloc.cl.kernels_tracked_step.take_spare_rows`).
-    _spare_rows: tuple[np.ndarray, np.ndarray] | None = None
+    spare_rows: tuple[np.ndarray, np.ndarray] | None = None
     #: The compiled corrections' scratch arrays, kept for the joint's steps
     #: (:func:`resloc.cl.kernels_joint.kernel_scratch`).
-    _kernel_scratch: tuple | None = None
+    compiled_scratch: tuple | None = None
 
     def __init__(self, P0: np.ndarray, robots: int) -> None:
         B = P0.shape[0]
@@ -168,7 +168,7 @@ class JointCovariance:
         n3 = 3 * self.N
         self.sigma = np.zeros((self.T, n3, n3))
         self._set_diagonal(self.sigma, P0)
-        self._start_step()
+        self.start_step()
 
     # ------------------------------------------------------------------ layout helpers
     def _set_diagonal(self, sigma: np.ndarray, P: np.ndarray) -> None:
@@ -176,7 +176,9 @@ class JointCovariance:
         r = np.arange(self.N)
         v[:, r, :, r, :] = np.swapaxes(P.reshape(self.T, self.N, 3, 3), 0, 1)
 
-    def _start_step(self) -> None:
+    def start_step(self) -> None:
+        """A new step's bookkeeping (``M`` the identity, no noise, no records), after the
+        prediction wrote ``sigma`` (here or in the compiled prediction)."""
         if getattr(self, "_identity_M", None) is None:
             # every robot's M_b = E_b (its own block the identity), built once (T and N do
             # not change): a step starts from a copy
@@ -289,7 +291,7 @@ class JointCovariance:
             Q.reshape(self.T, self.N, 3, 3), 0, 1
         )
         self.sigma = symmetrize(v.reshape(self.sigma.shape))
-        self._start_step()
+        self.start_step()
         return self.diagonal()
 
     def diagonal(self) -> np.ndarray:
@@ -428,5 +430,5 @@ class JointCovariance:
             self.noise.reshape(self.T, self.N, 3, 3), 0, 1
         )
         self.sigma = symmetrize(sigma)
-        self._start_step()
+        self.start_step()
         return self.diagonal()
