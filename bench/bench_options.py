@@ -40,7 +40,8 @@ import numpy as np  # noqa: E402
 import resloc  # noqa: E402
 from resloc.cl import kernels  # noqa: E402
 from resloc.cl import step as cl_step  # noqa: E402
-from resloc.experiments.config import default_scenario, load_scenario  # noqa: E402
+from resloc.experiments.config import default_scenario  # noqa: E402
+from resloc.experiments.config_parse import load_scenario  # noqa: E402
 from resloc.experiments.defences import DEFENCES  # noqa: E402
 from resloc.experiments.runner import run_scenario  # noqa: E402
 

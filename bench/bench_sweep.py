@@ -40,7 +40,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 import resloc  # noqa: E402
-from resloc.experiments.config import parse_scenario  # noqa: E402
+from resloc.experiments.config_parse import parse_scenario  # noqa: E402
 from resloc.experiments.sweep import parse_sweep, run_scenarios, run_sweep  # noqa: E402
 
 RHOS = [round(0.2 + 0.02 * k, 2) for k in range(50)]

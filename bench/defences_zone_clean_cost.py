@@ -8,7 +8,8 @@ Writes ``runs/clean_cost.json``; ``docs/attack/defences.md`` quotes it.
 
 import json
 
-from resloc.experiments.config import Scenario, default_scenario, load_scenario
+from resloc.experiments.config import Scenario, default_scenario
+from resloc.experiments.config_parse import load_scenario
 from resloc.experiments.defences import DEFENCES
 from resloc.experiments.runner import run_scenario
 

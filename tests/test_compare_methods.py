@@ -8,7 +8,9 @@ import pytest
 
 from resloc.experiments import compare as cmp
 from resloc.experiments.compare.methods import FUSION_METHODS, ROC_GATES
-from resloc.experiments.config import default_scenario, load_scenario, scenario_to_dict
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import scenario_to_dict
+from resloc.experiments.config_parse import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "beyond"
 

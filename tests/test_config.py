@@ -7,13 +7,9 @@ from pathlib import Path
 import pytest
 
 from resloc.errors import ConfigError
-from resloc.experiments.config import (
-    default_scenario,
-    dump_scenario,
-    load_scenario,
-    parse_scenario,
-    scenario_to_dict,
-)
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario, scenario_to_dict
+from resloc.experiments.config_parse import load_scenario, parse_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

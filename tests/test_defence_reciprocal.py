@@ -28,7 +28,8 @@ from resloc.cl.node import RobotNode
 from resloc.cl.params import CLParams
 from resloc.cl.step import correct, predict
 from resloc.errors import ConfigError
-from resloc.experiments.config import default_scenario, toml_value
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import toml_value
 from resloc.experiments.defences import DEFENCES
 from resloc.filters.base import make_filter
 from resloc.models.measurement import range_bearing

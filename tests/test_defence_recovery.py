@@ -187,7 +187,7 @@ def test_full_defence_stays_bounded_under_a_persistent_range_bias():
     bias (early-SDZ scenario, one trial: MSLE 3.1 after 150 steps, 1e15 after 300, against
     0.22 for the same stages without the recovery). It must stay with that defence."""
     import resloc
-    from resloc.experiments.config import load_scenario
+    from resloc.experiments.config_parse import load_scenario
     from resloc.experiments.defences import DEFENCES
     from resloc.world.attackers import make_attacker
 

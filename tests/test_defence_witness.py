@@ -243,8 +243,8 @@ def test_bytes_of_the_notes_are_counted():
     import msgpack
 
     from resloc.experiments.config import default_scenario
-    from resloc.experiments.metrics import WIRE_BYTES, communication
     from resloc.experiments.runner import run_scenario
+    from resloc.experiments.traffic import WIRE_BYTES, communication
     from resloc.runtime.messages import HEADER, TAG_SIZE
 
     for n in (1, 3, 4, 15, 31, 32, 40, 818):  # the runtime's note: id i8 and 10 f8

@@ -13,7 +13,7 @@ from resloc.errors import ConfigError
 from resloc.experiments import backends
 from resloc.experiments import cells as cells_mod
 from resloc.experiments.cells import run_scenarios
-from resloc.experiments.config import parse_scenario
+from resloc.experiments.config_parse import parse_scenario
 from resloc.experiments.executor import Study, StudyFailedError, Task, open_backend
 from resloc.experiments.store import CorruptEntryWarning, ResultStore
 

@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 
 from export_helpers import make_run_dir
 from resloc.cli.app import app
-from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.recording import Recording
 from resloc.export import ExportFormat, export_run_dir
 from resloc.export.geometry import align_se2, aligned_errors

@@ -21,8 +21,9 @@ from typer.testing import CliRunner
 from resloc.cli.app import app
 from resloc.datasets.mrclam import load_mrclam
 from resloc.errors import ConfigError, DataError
-from resloc.experiments.config import _SECTIONS, parse_scenario
-from resloc.experiments.config import toml_value as _toml_value
+from resloc.experiments.config import SCENARIO_TABLES
+from resloc.experiments.config_dump import toml_value as _toml_value
+from resloc.experiments.config_parse import parse_scenario
 from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam
 from resloc.experiments.runner import run_scenario
 from resloc.world.spec import ZoneSpec
@@ -53,7 +54,7 @@ VALUES = st.one_of(
     st.lists(st.lists(HOSTILE_FLOATS, max_size=3), max_size=4),
     st.dictionaries(st.text(max_size=4), SCALARS, max_size=2),
 )
-KEYS = {s: [f.name for f in dataclasses.fields(c)] for s, (c, _) in _SECTIONS.items()}
+KEYS = {s: [f.name for f in dataclasses.fields(c)] for s, (c, _) in SCENARIO_TABLES.items()}
 KEYS["sdz"] = [f.name for f in dataclasses.fields(ZoneSpec)]
 # Sizes stay tiny so that every accepted scenario runs in milliseconds.
 SIZES = {"run": ("steps", "trials"), "team": ("robots",)}

@@ -118,7 +118,7 @@ def test_resilient_example_with_the_full_defence_runs_compiled():
     robot CUSUM and the recovery: no part of its correction is left to the numpy path."""
     from pathlib import Path
 
-    from resloc.experiments.config import load_scenario
+    from resloc.experiments.config_parse import load_scenario
 
     path = Path(__file__).parent.parent / "examples" / "beyond" / "resilient.toml"
     if not path.exists():

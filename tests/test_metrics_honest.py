@@ -4,14 +4,13 @@ import numpy as np
 import pytest
 
 from resloc.experiments.metrics import (
-    WIRE_BYTES,
     align_se2,
-    communication,
     nees,
     nees_consistency,
     relative_nees,
     remove_team_rigid_motion,
 )
+from resloc.experiments.traffic import WIRE_BYTES, communication
 
 
 def _team(rng, T=3, N=6):
@@ -255,8 +254,8 @@ def test_run_summary_reports_relative_nees_and_bytes():
 
 def test_methods_whose_traffic_is_not_counted_report_no_bytes():
     from resloc.experiments.config import default_scenario
-    from resloc.experiments.metrics import uncounted_traffic
     from resloc.experiments.runner import run_scenario
+    from resloc.experiments.traffic import uncounted_traffic
 
     assert uncounted_traffic("naive") is None and uncounted_traffic("gauge") is None
     assert uncounted_traffic("split_ci") is None and uncounted_traffic("factorized") is None

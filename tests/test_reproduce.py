@@ -8,7 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from resloc.cli.app import app
-from resloc.experiments.config import load_scenario
+from resloc.experiments.config_parse import load_scenario
 from resloc.experiments.reproduce import FIGURES, SECTIONS, experiments, write_examples
 from resloc.experiments.stats import Verdict
 from resloc.experiments.sweep import load_sweep

@@ -15,7 +15,8 @@ import numpy as np
 from typer.testing import CliRunner
 
 from resloc.cli.app import app
-from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.runtime.swarm import stop_process
 
 runner = CliRunner()

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.runner import run_scenario
 from resloc.runtime.messages import FLAG_DELIVERED, FLAG_FUSED, FLAG_HEARD, FLAG_TRIGGERED, Kind
 from resloc.runtime.options import Mode, SwarmOptions

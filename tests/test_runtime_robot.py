@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.runtime.messages import FLAG_FUSED, FLAG_HEARD, Codec, Kind, Message
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.robot import RobotAgent

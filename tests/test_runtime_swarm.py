@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from resloc.experiments.config import default_scenario, dump_scenario
-from resloc.experiments.metrics import WIRE_BYTES
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.runner import run_scenario
+from resloc.experiments.traffic import WIRE_BYTES
 from resloc.runtime.options import Mode, SwarmOptions
 from resloc.runtime.swarm import SwarmError, run_swarm, stop_process
 from resloc.runtime.transport import free_endpoint

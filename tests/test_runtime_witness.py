@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from resloc.cl.detection_witness import STATE
-from resloc.experiments.config import default_scenario, dump_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.runner import run_scenario
 from resloc.runtime.messages import FLAG_HEARD, Kind
 from resloc.runtime.options import Mode, SwarmOptions

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from resloc.experiments import store as store_mod
-from resloc.experiments.config import default_scenario, scenario_to_dict
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import scenario_to_dict
 from resloc.experiments.store import (
     CorruptEntryWarning,
     ResultStore,

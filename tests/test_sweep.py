@@ -8,7 +8,8 @@ from typer.testing import CliRunner
 
 from resloc.cli.app import app
 from resloc.errors import ConfigError
-from resloc.experiments.config import default_scenario, parse_scenario
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_parse import parse_scenario
 from resloc.experiments.runner import run_scenario
 from resloc.experiments.sweep import (
     apply_parameter,

@@ -8,12 +8,9 @@ import math
 import pytest
 
 from resloc.errors import ConfigError
-from resloc.experiments.config import (
-    default_scenario,
-    dump_scenario,
-    load_scenario,
-    parse_scenario,
-)
+from resloc.experiments.config import default_scenario
+from resloc.experiments.config_dump import dump_scenario
+from resloc.experiments.config_parse import load_scenario, parse_scenario
 from resloc.experiments.runner import check_run_size, run_bytes
 from resloc.validation import (
     INT64_MAX,

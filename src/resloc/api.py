@@ -28,7 +28,8 @@ from resloc.cl.node import RobotNode
 from resloc.cl.params import CLParams
 from resloc.cl.step import correct, predict
 from resloc.errors import ConfigError, DataError, NumericalError
-from resloc.experiments.config import Scenario, default_scenario, load_scenario
+from resloc.experiments.config import Scenario, default_scenario
+from resloc.experiments.config_parse import load_scenario
 from resloc.experiments.mrclam import MRCLAMConfig, MRCLAMResult, run_mrclam
 from resloc.experiments.runner import RunResult, run_scenario
 from resloc.experiments.sweep import SweepResult, SweepSpec, load_sweep, run_sweep

@@ -84,7 +84,8 @@ def attack_command(
     """Run the study, print the worst cases, write ``attack.md``/``.csv``/``.json``."""
     from resloc.experiments.attack import run_attack_study
     from resloc.experiments.attack_report import markdown, save_attack_study
-    from resloc.experiments.config import default_scenario, load_scenario
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.config_parse import load_scenario
     from resloc.experiments.executor import StudyFailedError
     from resloc.experiments.output import atomic_output_dir, check_output_dir
 

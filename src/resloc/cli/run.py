@@ -118,7 +118,8 @@ def run_command(
 ):
     """Simulate a scenario and compare CKF / UKF / EKF (plus dead reckoning)."""
     from resloc.cli.export import write_exports
-    from resloc.experiments.config import default_scenario, load_scenario
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.config_parse import load_scenario
     from resloc.experiments.output import (
         atomic_output_dir,
         check_output_dir,
@@ -167,7 +168,9 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Print a scenario (default: the embedded one) as TOML with every value explicit."""
-        from resloc.experiments.config import default_scenario, dump_scenario, load_scenario
+        from resloc.experiments.config import default_scenario
+        from resloc.experiments.config_dump import dump_scenario
+        from resloc.experiments.config_parse import load_scenario
 
         sc = load_scenario(path) if path else default_scenario()
         sys.stdout.write(dump_scenario(sc))

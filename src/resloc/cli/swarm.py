@@ -204,7 +204,9 @@ def swarm_command(
         raise fail(f"--run-id {run_id!r}: use letters, digits, '-' or '_'")
     require_zenoh()
     from resloc.errors import ConfigError
-    from resloc.experiments.config import default_scenario, dump_scenario, load_scenario
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.config_dump import dump_scenario
+    from resloc.experiments.config_parse import load_scenario
     from resloc.experiments.output import check_output_dir
     from resloc.runtime.options import Mode, SwarmOptions
     from resloc.runtime.swarm import SwarmError, run_swarm

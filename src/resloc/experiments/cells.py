@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from resloc.experiments.config import Scenario, scenario_to_dict
+from resloc.experiments.config import Scenario
+from resloc.experiments.config_dump import scenario_to_dict
 from resloc.experiments.executor import (
     Study,
     StudyFailedError,

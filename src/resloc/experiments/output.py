@@ -384,7 +384,7 @@ def save_run(result, out: Path, plots: bool = True) -> list[Path]:
     list of Path
         The files written.
     """
-    from resloc.experiments.config import dump_scenario
+    from resloc.experiments.config_dump import dump_scenario
 
     out = Path(out)
     written = []

@@ -9,14 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from resloc.experiments.config import Scenario
-from resloc.experiments.metrics import (
-    communication,
-    detector_rates,
-    nees_consistency_counts,
-    rate,
-    uncounted_traffic,
-)
+from resloc.experiments.metrics import detector_rates, nees_consistency_counts, rate
 from resloc.experiments.recording import LinkLog
+from resloc.experiments.traffic import communication, uncounted_traffic
 
 __all__ = ["SERIES", "TOTALS", "EstimatorResult", "RunResult"]
 
@@ -178,7 +173,7 @@ class EstimatorResult:
 
     def bytes_per_step(self, fusion) -> np.ndarray:
         """Robot-to-robot bytes per step and trial, shape (T,); ``nan`` for a fusion method
-        whose traffic is not counted (:func:`~resloc.experiments.metrics.uncounted_traffic`:
+        whose traffic is not counted (:func:`~resloc.experiments.traffic.uncounted_traffic`:
         the centralized ``tracked``)."""
         per_step = self.bytes_per_trial() / self.series["msle"].shape[0]
         return np.full(per_step.shape, np.nan) if uncounted_traffic(fusion) else per_step

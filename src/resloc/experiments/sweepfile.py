@@ -37,16 +37,10 @@ from pathlib import Path
 from typing import Any
 
 from resloc.errors import ConfigError
-from resloc.experiments.config import (
-    Scenario,
-    default_scenario,
-    load_scenario,
-    parse_scenario,
-    read_toml,
-    scenario_to_dict,
-    set_dotted,
-)
-from resloc.experiments.config import toml_value as _toml_value
+from resloc.experiments.config import Scenario, default_scenario
+from resloc.experiments.config_dump import scenario_to_dict
+from resloc.experiments.config_dump import toml_value as _toml_value
+from resloc.experiments.config_parse import load_scenario, parse_scenario, read_toml, set_dotted
 from resloc.experiments.store import canonical_json
 
 __all__ = [
@@ -379,7 +373,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
 def dump_minimal(scenario: Scenario) -> str:
     """TOML of only what differs from the schema defaults (zones in full).
 
-    Loading the text with :func:`~resloc.experiments.config.load_scenario` gives back
+    Loading the text with :func:`~resloc.experiments.config_parse.load_scenario` gives back
     ``scenario``; a short file states exactly what an experiment changes.
     """
     ref = scenario_to_dict(Scenario())

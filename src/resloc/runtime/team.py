@@ -15,7 +15,8 @@ import numpy as np
 from resloc.cl.fusion_methods import FusionStrategy, fusion_strategy
 from resloc.cl.params import CLParams, NeighbourEstimate
 from resloc.errors import ConfigError
-from resloc.experiments.config import RiskSource, Scenario, load_scenario
+from resloc.experiments.config import RiskSource, Scenario
+from resloc.experiments.config_parse import load_scenario
 from resloc.filters.base import FilterKind, GaussianFilter, make_filter
 from resloc.runtime.options import SwarmOptions
 from resloc.world.attacks import AttackKind

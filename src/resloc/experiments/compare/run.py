@@ -29,7 +29,8 @@ from resloc.experiments.compare.methods import (
     study_scenario,
 )
 from resloc.experiments.compare.report import CompareResult, compare_result
-from resloc.experiments.config import Scenario, default_scenario, scenario_to_dict
+from resloc.experiments.config import Scenario, default_scenario
+from resloc.experiments.config_dump import scenario_to_dict
 from resloc.experiments.executor import Study, StudyFailedError, Task
 from resloc.experiments.store import cell_key
 

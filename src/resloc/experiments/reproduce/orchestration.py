@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Any
 
 from resloc import __version__
-from resloc.experiments.config import Scenario, dump_scenario
+from resloc.experiments.config import Scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.executor import Study
 from resloc.experiments.reproduce.catalogue import (
     FULL_SEEDS,

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from resloc import __version__
-from resloc.experiments.config import Scenario, dump_scenario
+from resloc.experiments.config import Scenario
+from resloc.experiments.config_dump import dump_scenario
 from resloc.experiments.reproduce.catalogue import FIGURES, FULL_SEEDS, QUICK_SEEDS, SECTIONS
 from resloc.experiments.reproduce.claims import (
     EQUIVALENCE_MARGIN,
