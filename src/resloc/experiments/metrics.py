@@ -8,7 +8,6 @@ import numpy as np
 
 from resloc.angles import wrap_angle
 from resloc.distributions import binomtest_pvalue, chi2_ppf
-from resloc.experiments.traffic import communication
 from resloc.linalg import solve_spd
 
 __all__ = [
@@ -16,8 +15,6 @@ __all__ = [
     "AccuracyRecorder",
     "TruthDistances",
     "align_se2",
-    # Re-exported from experiments.traffic: docs/attack/witness.md imports it from here.
-    "communication",
     "confusion_counts",
     "detector_rates",
     "detector_scores",
