@@ -52,7 +52,11 @@ def swarm_options(tmp_path: Path, scenario, filt: str, **kw) -> SwarmOptions:
         filter=filt,
         key_file=str(tmp_path / "team.key"),
         out=str(tmp_path / "out"),
-        barrier_timeout_s=20.0,
+        # The barrier drops a silent robot that is still alive (a killed one is seen by its
+        # liveliness at once): the lockstep tests compare with the simulator and must not
+        # depend on timing. A robot's first step compiling its kernels on a loaded machine
+        # took over 20 s (seen once: the world went on without it and the estimates differed).
+        barrier_timeout_s=120.0,
         startup_timeout_s=90.0,
         **kw,
     )

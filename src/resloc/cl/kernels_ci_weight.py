@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from resloc.cl.kernels_math import jit_inline, jit_lanes
+from resloc.cl.kernels_math import entries3, jit_inline, jit_lanes
 
 __all__ = [
     "ci_cost",
@@ -93,17 +93,9 @@ def ci_cost(u, v, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, Dp, Ip, tr
 
 
 @jit_inline
-def _entries(M):
-    """The nine entries of a 3 x 3 matrix by row, as a tuple."""
-    return (
-        M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2],
-    )  # fmt: skip
-
-
-@jit_inline
 def _det3_scaled(D, u, I3):
     """``det(D u + I3)`` of 3 x 3 matrices."""
-    return det3_scaled_entries(_entries(D), u, _entries(I3))
+    return det3_scaled_entries(entries3(D), u, entries3(I3))
 
 
 @jit_inline
@@ -320,6 +312,6 @@ def weight_of(a, cd, b, Di, Ii, Ij, split, Hi, Hj, R, det, grid, cost):
         prior = det_i if det else tr_i
     # the matrices as tuples of scalars for the evaluations of the cost (see ci_cost)
     return _search_weight(
-        grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, _entries(Di), _entries(Ii),
+        grid, det, split, tr_i, det_i, a, ai, b, bi, g, gdi, gii, entries3(Di), entries3(Ii),
         tr_ip, (R[0, 0], R[0, 1], R[1, 0], R[1, 1]), prior, cost,
     )  # fmt: skip

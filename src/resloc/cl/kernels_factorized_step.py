@@ -34,7 +34,7 @@ import numpy as np
 
 from resloc.cl.backend import backend, c_float
 from resloc.cl.factorized import FactorizedCovariance
-from resloc.cl.kernels_math import jit, jit_inline
+from resloc.cl.kernels_math import entries3, jit, jit_inline
 
 __all__ = [
     "commit_factorized",
@@ -116,7 +116,7 @@ def _commit_factors(A, sig, sig_pred, P_pred, Bij, gains, obs, nbr, link_fused, 
     for b in range(sig.shape[0]):
         lb = b % N
         t0 = b - lb
-        a = _entries(A[b])
+        a = entries3(A[b])
         for m in range(N):
             c = t0 + m
             if fused[b, m] or fused[c, lb]:
@@ -131,18 +131,10 @@ def _commit_factors(A, sig, sig_pred, P_pred, Bij, gains, obs, nbr, link_fused, 
 
 
 @jit_inline
-def _entries(M):
-    """The nine entries of a 3 x 3 matrix by row, as a tuple (kept in registers)."""
-    return (
-        M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2],
-    )  # fmt: skip
-
-
-@jit_inline
 def _product(S, M):
     """``S M`` of a 3 x 3 ``S`` given as a 9-tuple by row and a 3 x 3 array, as a 9-tuple
     (the sums of :func:`~resloc.cl.kernels_math.mul3`, in its order)."""
-    m = _entries(M)
+    m = entries3(M)
     return (
         S[0] * m[0] + S[1] * m[3] + S[2] * m[6],
         S[0] * m[1] + S[1] * m[4] + S[2] * m[7],
@@ -295,13 +287,13 @@ def _closed_factor(A, Bm, P_pred, sig_pred, a, c, la, lc, out):
     factors are small (:func:`_small`), and are skipped (most pairs of a step: 60 of 69
     in the bench's step 150), the same sums to the value.
     Twin: ``resloc.cl.factorized._pair_cross``."""
-    P_ac = _mul_t(_entries(sig_pred[a, lc]), _entries(sig_pred[c, la]))
-    A_a = _entries(A[a])
-    A_c = _entries(A[c])
-    B_ac = _entries(Bm[a, lc])
-    B_ca = _entries(Bm[c, la])
-    P_a = _entries(P_pred[a])
-    P_c = _entries(P_pred[c])
+    P_ac = _mul_t(entries3(sig_pred[a, lc]), entries3(sig_pred[c, la]))
+    A_a = entries3(A[a])
+    A_c = entries3(A[c])
+    B_ac = entries3(Bm[a, lc])
+    B_ca = entries3(Bm[c, la])
+    P_a = entries3(P_pred[a])
+    P_c = entries3(P_pred[c])
     if _zero(B_ca) and _small(A_a) and _small(P_a) and _small(B_ac) and _small(P_ac):
         # A_a P_ac A_c^T + B_ac P_c A_c^T
         C = _add(_mul_t(_mul(A_a, P_ac), A_c), _mul_t(_mul(B_ac, P_c), A_c))

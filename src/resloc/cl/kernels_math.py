@@ -323,6 +323,14 @@ def mul3_t(X, Y, out):
 
 
 @jit_inline
+def entries3(M):
+    """The nine entries of a 3 x 3 matrix by row, as a tuple (kept in registers)."""
+    return (
+        M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2],
+    )  # fmt: skip
+
+
+@jit_inline
 def sandwich(H, P, T):
     """``H P H^T`` of a 2 x 3 ``H`` and a 3 x 3 ``P`` as ``(q00, q01, q10, q11)`` (``T``:
     2 x 3 scratch)."""
