@@ -28,12 +28,8 @@ def weight_capped_covariance(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
     -------
     ndarray, shape (E, 2, 2)
     """
-    P = np.asarray(P_nb, float)[:, :2, :2]
-    trace = P[:, 0, 0] + P[:, 1, 1]
-    median = _group_median(trace, np.asarray(i))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
-    return P * scale[:, None, None]
+    P = np.asarray(P_nb, float)
+    return P[:, :2, :2] * _claim_scale(P, i)[:, None, None]
 
 
 def capped_claims(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
@@ -42,11 +38,17 @@ def capped_claims(P_nb: np.ndarray, i: np.ndarray) -> np.ndarray:
     ``redundancy_cap_fusion`` is on, so a neighbour weighs in the update no more than the
     redundancy test credited it (shape (E, 3, 3))."""
     P = np.asarray(P_nb, float)
+    return P * _claim_scale(P, i)[:, None, None]
+
+
+def _claim_scale(P: np.ndarray, i: np.ndarray) -> np.ndarray:
+    """Each claim's factor, shape (E,): its position block's trace raised to the median
+    trace of its observer's claims (``P: (E, 3, 3)``, ``i: (E,)``); 1 where the trace is
+    not positive."""
     trace = P[:, 0, 0] + P[:, 1, 1]
     median = _group_median(trace, np.asarray(i))
     with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
-    return P * scale[:, None, None]
+        return np.where(trace > 0.0, np.maximum(median / trace, 1.0), 1.0)
 
 
 def _group_median(values: np.ndarray, group: np.ndarray) -> np.ndarray:
