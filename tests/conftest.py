@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import tempfile
+import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,6 +54,13 @@ def random_spd() -> Callable[..., np.ndarray]:
 
 
 def pytest_configure(config):
+    if (
+        os.environ.get("RESLOC_TEST_WARM_SHARES")
+        and not os.environ.get("PYTEST_XDIST_WORKER")
+        and getattr(config.option, "numprocesses", None)
+    ):  # the controller of an xdist run: the workers inherit the variable
+        config._resloc_warm_marks = tempfile.mkdtemp(prefix="resloc-warm-")
+        os.environ[_WARM_MARKS] = config._resloc_warm_marks
     # A suite started in the background by a non-interactive shell inherits SIGINT ignored
     # (POSIX), and so would every process it starts; the Ctrl-C tests simulate a terminal's
     # foreground job, so give SIGINT Python's usual handler (a child gets it back at exec).
@@ -61,10 +72,19 @@ def pytest_configure(config):
         signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
+def pytest_unconfigure(config):
+    marks = getattr(config, "_resloc_warm_marks", None)
+    if marks is not None:
+        shutil.rmtree(marks, ignore_errors=True)
+        os.environ.pop(_WARM_MARKS, None)
+
+
 #: The big compiled forms (tiny runs of the default scenario that reach them), in shares
-#: for the xdist workers, balanced by their cold compile CPU (docs/performance.md, "Cold
-#: compile": the options' form ~96 s, the joints' ~76 s, the paper's ~24 s, summed ~22 s,
-#: the witness pass ~8 s).
+#: for the xdist workers, balanced by their cold compile CPU (measured on a cold cache,
+#: 2026-11-28: the options' form ~150 s with its stages, the witness pass ~17 s; the
+#: paper's ~28 s, the joints' ~115 s, summed ~25 s). The options' form (the link loops
+#: with every option's stage, :func:`resloc.cl.kernels.warm_up`) is compiled by the share
+#: that names it alone: the other shares' runs skip its warm-up and then wait for it.
 _WARM_SHARES = (("options", "witness"), ("paper", "joints", "summed"))
 _WARM_RUNS = {
     "paper": {},
@@ -73,14 +93,57 @@ _WARM_RUNS = {
     "summed": {"estimator.update_mode": "summed"},
     "witness": {"defence": "zone+full+redundancy+sequence+cap+landmarks+witness"},
 }
+#: How long a worker waits for another's share (a cold compile on a loaded machine takes
+#: ~4 min; past this it goes on and its tests compile what they reach).
+_WARM_WAIT_S = 600.0
+_WARM_MARKS = "RESLOC_TEST_WARM_MARKS"
+
+
+def _warm_marks() -> Path | None:
+    """The directory where the workers mark their finished shares (made by the controller,
+    :func:`pytest_configure`), or None."""
+    where = os.environ.get(_WARM_MARKS)
+    return Path(where) if where else None
+
+
+def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
+    from resloc.experiments import runner
+    from resloc.experiments.config import default_scenario
+    from resloc.experiments.defences import DEFENCES
+
+    base = default_scenario().replace(
+        **{"run.steps": 3, "run.trials": 1, "run.dead_reckoning": False,
+           "run.filters": ["ckf", "ekf"]}
+    )  # fmt: skip
+    warm_up_kernels = runner.warm_up_kernels
+    for name in share:
+        overrides = dict(_WARM_RUNS[name])
+        defence = overrides.pop("defence", None)
+        if defence is not None:
+            overrides.update(DEFENCES[defence])
+        with pytest.MonkeyPatch.context() as patch:
+            if "options" not in share:  # another worker compiles that form
+                patch.setattr(
+                    runner, "warm_up_kernels", lambda paper, options: warm_up_kernels(True, False)
+                )
+            runner.run_scenario(base.replace(**overrides))
+        if marks is not None:
+            (marks / name).touch()
+
+
+def _wait_for_shares(marks: Path) -> None:
+    names = [name for share in _WARM_SHARES for name in share]
+    deadline = time.monotonic() + _WARM_WAIT_S
+    while not all((marks / name).exists() for name in names) and time.monotonic() < deadline:
+        time.sleep(0.2)
 
 
 def pytest_sessionstart(session):
     """With ``RESLOC_TEST_WARM_SHARES`` set (``make test``), each xdist worker first compiles
-    its share of the big forms into numba's on-disk cache. On a cold cache (a fresh clone,
-    CI) each worker would otherwise compile nearly every form its tests reach, the same ones
-    in both (~4 min of CPU each); this way each compiles about half and loads the rest. On a
-    warm cache it only loads them (a few seconds)."""
+    its share of the big forms into numba's on-disk cache, then waits for the others'. On a
+    cold cache (a fresh clone, CI) each worker would otherwise compile nearly every form its
+    tests reach, the same ones in both (~4 min of CPU each); this way each compiles about
+    half and loads the rest. On a warm cache it only loads them (a few seconds)."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if not os.environ.get("RESLOC_TEST_WARM_SHARES") or not worker or count < 2:
@@ -89,21 +152,10 @@ def pytest_sessionstart(session):
 
     if not HAVE_NUMBA:
         return
-    from resloc.experiments.config import default_scenario
-    from resloc.experiments.defences import DEFENCES
-    from resloc.experiments.runner import run_scenario
-
-    base = default_scenario().replace(
-        **{"run.steps": 3, "run.trials": 1, "run.dead_reckoning": False,
-           "run.filters": ["ckf", "ekf"]}
-    )  # fmt: skip
+    marks = _warm_marks()
     index = int(worker.removeprefix("gw"))
     for k, share in enumerate(_WARM_SHARES):
-        if k % count != index:
-            continue
-        for name in share:
-            overrides = dict(_WARM_RUNS[name])
-            defence = overrides.pop("defence", None)
-            if defence is not None:
-                overrides.update(DEFENCES[defence])
-            run_scenario(base.replace(**overrides))
+        if k % count == index:
+            _run_share(share, marks)
+    if marks is not None:
+        _wait_for_shares(marks)

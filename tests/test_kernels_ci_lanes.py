@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from resloc.cl import kernels, kernels_plain, kernels_prepared
+from resloc.cl.kernels_inputs import KernelOutputs
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
 
@@ -87,7 +88,8 @@ def _lanes_inputs(n: int, seed: int, det: bool, weights=None):
         update[:2, c] = rng.normal(size=2) * 0.05
     criterion = CICriterion.DET if det else CICriterion.TRACE
     fusion = kernel_fusion(CI, criterion, n)
-    out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
+    # the kernels' own structure: a plain tuple would compile another specialization
+    out = KernelOutputs(np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
             decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 

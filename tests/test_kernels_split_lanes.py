@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from resloc.cl import kernels, kernels_plain, kernels_prepared
+from resloc.cl.kernels_inputs import KernelOutputs
 from test_kernels_ci_lanes import bits, jacobians, lane_arrays, spd
 
 pytestmark = pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba is not installed")
@@ -69,7 +70,8 @@ def _lanes_inputs(n: int, seed: int, det: bool, special: int = 7):
     fusion = kernel_fusion(SPLIT_CI, criterion, n)._replace(
         independent=np.ascontiguousarray(ind), P_nb_ind=np.ascontiguousarray(ind_nb)
     )
-    out = (np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
+    # the kernels' own structure: a plain tuple would compile another specialization
+    out = KernelOutputs(np.zeros(n), np.zeros(n), np.zeros((5, n), dtype=np.bool_))
     return [x, P, P_nb, lane_e, obs, src, n, xi, xr, update, moments, pxz, inflation,
             decision, options, kernels_plain.plain(fusion), out]  # fmt: skip
 

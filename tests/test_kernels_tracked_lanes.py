@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 
 from resloc.cl import kernels
+from resloc.cl.kernels_inputs import KernelOutputs
+from resloc.cl.kernels_plain import plain
 from resloc.cl.kernels_rounds import LOOP_RUNS
 from resloc.cl.tracking import JointCovariance
 from resloc.experiments.config import default_scenario
@@ -207,14 +209,16 @@ def test_tracked_record_lanes_are_the_scalar_record(n: int) -> None:
         (copy.deepcopy(joint), P.copy(), now.copy(), flags.copy()) for _ in range(2)
     ]  # scalar, lanes
     j0, P0, now0, flags0 = state[0]
-    out = (np.zeros(E), np.zeros(E), flags0)
+    # the loops' own structures (plain(joint), KernelOutputs): another form of either would
+    # compile another specialization of the stages
+    out = KernelOutputs(np.zeros(E), np.zeros(E), flags0)
     joint_record_lanes(
-        j0, P0, lane_e, lane_first, o, np.int64(n), xi, xr, update, decision, R, out,
+        plain(j0), P0, lane_e, lane_first, o, np.int64(n), xi, xr, update, decision, R, out,
         link_scratch(), now0, blocks,
     )  # fmt: skip
     j1, P1, now1, flags1 = state[1]
     fused = tracked_record_lanes(
-        j1, P1, lane_e, o, np.int64(n), xi, xr, update, decision, R, flags1, now1, blocks,
+        plain(j1), P1, lane_e, o, np.int64(n), xi, xr, update, decision, R, flags1, now1, blocks,
         np.zeros(CHUNK, np.int64), np.zeros((RECORD_INPUT_ROWS, LANE_STRIDE)),
         np.zeros((RECORD_OUTPUT_ROWS, LANE_STRIDE)), np.zeros((3, 3)), np.zeros((3, 3)),
         np.zeros((3, 3)),
@@ -283,7 +287,7 @@ def test_tracked_cross_lanes_are_the_scalar_cross(n: int) -> None:
         _joint_into_lane(joint.work, joint.J6, blocks_ref, J_ref, c)
     blocks = np.zeros((27, LANE_STRIDE))
     J = np.zeros((21, LANE_STRIDE))
-    tracked_cross_lanes(joint, lane_e, lane_first, o, np.int64(n), now, blocks, J)
+    tracked_cross_lanes(plain(joint), lane_e, lane_first, o, np.int64(n), now, blocks, J)
     np.testing.assert_array_equal(_bits(blocks[:, :n]), _bits(blocks_ref[:, :n]))
     np.testing.assert_array_equal(_bits(J[:, :n]), _bits(J_ref[:, :n]))
     np.testing.assert_array_equal(_bits(now), _bits(now_ref))
