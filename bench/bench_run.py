@@ -82,7 +82,7 @@ def _child(start: float) -> dict:
     from resloc.cli import run as _run_command  # noqa: F401
     from resloc.experiments import runner
     from resloc.experiments.config import default_scenario
-    from resloc.experiments.output import save_run
+    from resloc.experiments.run_files import save_run
 
     phases = {"import": time.perf_counter() - start}
     t = time.perf_counter()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from resloc.experiments.config import default_scenario
 from resloc.experiments.mrclam import MRCLAMConfig, run_mrclam, save_mrclam
-from resloc.experiments.output import save_run
+from resloc.experiments.run_files import save_run
 from resloc.experiments.runner import run_scenario
 
 MRCLAM_FIXTURE = Path(__file__).parent / "fixtures" / "mrclam" / "MRCLAM_Dataset6_60s"

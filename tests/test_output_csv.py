@@ -11,12 +11,7 @@ import numpy as np
 import pytest
 
 from resloc.experiments.config import default_scenario
-from resloc.experiments.output import (
-    csv_field,
-    csv_rows,
-    write_timeseries,
-    write_trajectories,
-)
+from resloc.experiments.run_files import csv_field, csv_rows, write_timeseries, write_trajectories
 from resloc.experiments.runner import run_scenario
 
 

@@ -295,7 +295,7 @@ import resloc.cli.app
 from resloc.cli import run
 from resloc.experiments import metrics, runner
 from resloc.experiments.config import default_scenario
-from resloc.experiments.output import save_run
+from resloc.experiments.run_files import save_run
 loaded = lambda: sorted(m for m in ("numba", "scipy", "scipy.sparse", "scipy.spatial",
     "scipy.special", "matplotlib") if m in sys.modules)
 print("IMPORT=" + ",".join(loaded()))

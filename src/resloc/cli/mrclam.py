@@ -167,11 +167,7 @@ def mrclam_command(
     from resloc.cli.export import write_exports
     from resloc.datasets.mrclam import load_mrclam
     from resloc.experiments.mrclam import estimate_noise, noise_from_fit, run_mrclam, save_mrclam
-    from resloc.experiments.output import (
-        atomic_output_dir,
-        check_output_dir,
-        signals_as_exceptions,
-    )
+    from resloc.experiments.output import atomic_output_dir, check_output_dir, signals_as_exceptions
 
     kw = {k: v for k, v in kw.items() if v is not None}
     config = make_config(**kw)  # every flag validated before any work

@@ -36,7 +36,7 @@ def robot_command(
     from resloc.runtime.messages import load_or_create_key
     from resloc.runtime.options import SwarmOptions
     from resloc.runtime.process import install_signal_handlers
-    from resloc.runtime.robot import run_robots
+    from resloc.runtime.robot_process import run_robots
     from resloc.runtime.transport import check_endpoint
 
     if not connect:

@@ -72,7 +72,7 @@ def print_summary(result, console=None) -> None:
 def warn_worse_than_dead_reckoning(summary: dict) -> None:
     """One warning line per estimator whose mean MSLE is above dead reckoning's (a
     cooperative estimate worse than none: e.g. ``update_mode = "summed"`` on a dense team)."""
-    from resloc.experiments.output import warn
+    from resloc.experiments.run_files import warn
 
     alone = summary.get("dr", {}).get("msle_mean")
     if alone is None or not alone == alone:  # no dead reckoning, or NaN
@@ -89,7 +89,7 @@ def warn_worse_than_dead_reckoning(summary: dict) -> None:
 
 def warn_diverged(estimators: dict) -> None:
     """One warning line per diverged estimator (the run still succeeds: exit code 0)."""
-    from resloc.experiments.output import warn
+    from resloc.experiments.run_files import warn
 
     for name, est in estimators.items():
         d = getattr(est, "diverged", None)
@@ -120,12 +120,8 @@ def run_command(
     from resloc.cli.export import write_exports
     from resloc.experiments.config import default_scenario
     from resloc.experiments.config_parse import load_scenario
-    from resloc.experiments.output import (
-        atomic_output_dir,
-        check_output_dir,
-        save_run,
-        signals_as_exceptions,
-    )
+    from resloc.experiments.output import atomic_output_dir, check_output_dir, signals_as_exceptions
+    from resloc.experiments.run_files import save_run
     from resloc.experiments.runner import check_run_size, run_scenario
 
     path = scenario

@@ -115,7 +115,8 @@ def study_session(
 def write_failures(exc, out: Path, overwrite: bool) -> typer.Exit:
     """Write ``failures.json`` (each failed cell's scenario, error and traceback) as the
     only output, print the summary, and return exit 1."""
-    from resloc.experiments.output import atomic_output_dir, write_json
+    from resloc.experiments.output import atomic_output_dir
+    from resloc.experiments.run_files import write_json
 
     with atomic_output_dir(out, overwrite) as tmp:
         write_json(tmp / "failures.json", [f.to_dict() for f in exc.failures])

@@ -268,7 +268,7 @@ def save_sweep(result: SweepResult, out: Path, plots: bool = True) -> list[Path]
     ``transmissions_<k>.png`` (robot x time raster of seed 0 per point, titled with the
     average communication rate).
     """
-    from resloc.experiments.output import write_json
+    from resloc.experiments.run_files import write_json
 
     out = Path(out)
     spec = result.spec

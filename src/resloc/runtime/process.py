@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
         elif role == "recorder":
             from resloc.runtime.recorder import run_recorder as run
         elif role == "robot":
-            from resloc.runtime.robot import run_robots
+            from resloc.runtime.robot_process import run_robots
 
             ids = [int(v) for v in argv[2].split(",")]
 

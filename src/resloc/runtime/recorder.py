@@ -2,7 +2,7 @@
 
 It collects the world's truth, every robot's reports and the radio's wire statistics, and
 writes, atomically (:func:`~resloc.experiments.output.atomic_output_dir`), the files of
-``resloc run`` (:func:`~resloc.experiments.output.save_run`: ``scenario.toml``,
+``resloc run`` (:func:`~resloc.experiments.run_files.save_run`: ``scenario.toml``,
 ``summary.json``, ``timeseries.csv``, ``trajectories.csv``, ``transmissions_<filter>.csv``,
 figures) computed by the runner's own per-step bookkeeping, and the runtime's own:
 
@@ -30,7 +30,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from resloc.cl.step import LinkOutcome
-from resloc.experiments.output import atomic_output_dir, save_run, write_json
+from resloc.experiments.output import atomic_output_dir
+from resloc.experiments.run_files import save_run, write_json
 from resloc.runtime.messages import (
     FLAG_DELIVERED,
     FLAG_DETECTED,

@@ -314,7 +314,7 @@ def _markdown(res: CompareResult) -> str:
 def save_compare(result: CompareResult, out: Path, plots: bool = True) -> list[Path]:
     """Write ``compare.json``, ``compare.md`` (the report section), ``roc.csv``,
     ``lambda2.csv`` and, with matplotlib and ``plots``, ``roc.png``."""
-    from resloc.experiments.output import write_json
+    from resloc.experiments.run_files import write_json
 
     out = Path(out)
     written = []

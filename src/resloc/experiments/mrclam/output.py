@@ -27,7 +27,7 @@ def save_mrclam(
     -------
     list of Path
     """
-    from resloc.experiments.output import write_json
+    from resloc.experiments.run_files import write_json
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -81,8 +81,8 @@ def save_mrclam(
 
     written.append(recording_from_mrclam(result).save(out / RECORDING_FILE))
     if plots:  # a figure that cannot be drawn is skipped with a warning, the data stay
-        from resloc.experiments.output import draw_plots
         from resloc.experiments.plots import plot_mrclam_errors, plot_mrclam_trajectories
+        from resloc.experiments.run_files import draw_plots
 
         figures = ((plot_mrclam_trajectories, "trajectories"), (plot_mrclam_errors, "errors"))
         for draw, name in figures:

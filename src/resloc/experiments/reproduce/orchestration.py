@@ -197,8 +197,8 @@ def results_dict(rep: Reproduction, claims: list[Claim]) -> dict:
 def write_reproduction(rep: Reproduction, out: Path) -> tuple[list[Claim], dict[str, Path]]:
     """Evaluate the claims and write ``report.md``, ``report.html``, ``results.json``,
     ``figures/*.png`` and ``scenarios/*.toml`` (each experiment as run) into ``out``."""
-    from resloc.experiments.output import write_json
     from resloc.experiments.report import write_report
+    from resloc.experiments.run_files import write_json
 
     out = Path(out)
     claims = evaluate_claims(rep)
