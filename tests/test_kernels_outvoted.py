@@ -143,7 +143,7 @@ def lockstep(filt, params, steps: int, seed: int, shield: str, fooled: float):
 @pytest.mark.parametrize(
     ("shield", "seed", "fooled", "changes", "steps"),
     [
-        ("on", 4, 4.0, {}, 60),  # the defence's own sequence test
+        ("on", 4, 4.0, {}, 30),  # the defence's own sequence test (widened at steps 4-18)
         ("off", 4, 4.0, {}, 60),
         # one that fires sooner: its robots are widened from step 5 on, every step, so a
         # shorter run tests as much (the witness attacker's search is ~0.3 s a step)

@@ -94,10 +94,11 @@ CASES = {
         "two_ended",
     ),
 }
-#: Steps per case (60 unless named): the UKF case's full-knowledge two-ended attacker
-#: searches its lies through the numpy stages, ~0.35 s a step; at its seed the check holds a
-#: link from step 2 and re-admits one at step 8, so 30 steps still see both, several times.
-STEPS = {"two-ended-ukf-redundancy": 30}
+#: Steps of each case: at their seeds the check holds a link from step 1 or 2 and re-admits
+#: one by step 8, and the one-ended liar is caught from the first steps (the attackers, full
+#: knowledge, search their lies through the numpy stages: up to ~0.35 s a step), so 30
+#: steps see each several times and the switching path switch four times.
+STEPS = 30
 
 
 def _attacker(kind: str):
@@ -211,7 +212,7 @@ def test_compiled_reciprocal_check_equals_the_reference(case: str) -> None:
     holds: dict[int, float] = {}
     left_to_map = 0
     for out, memory, liar, straddling in lockstep(
-        FILTERS[name], params, STEPS.get(case, 60), 41 + list(CASES).index(case), kind
+        FILTERS[name], params, STEPS, 41 + list(CASES).index(case), kind
     ):
         detected += int(out.detected.sum())
         fused += int(out.fused.sum())
