@@ -4,6 +4,7 @@ worker killed mid-study, and `resloc sweep` / `resloc reproduce` killed and resu
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -157,6 +158,9 @@ def scheduler(tmp_path_factory):
             client.wait_for_workers(2, timeout=60)
         yield address
     finally:
+        with contextlib.suppress(Exception):  # ~1 s, where SIGTERM to each takes ~8 s
+            with Client(address, timeout=10) as client:
+                client.shutdown()
         _stop(procs[::-1])
         assert all(p.poll() is not None for p in procs)
 
