@@ -84,8 +84,10 @@ def pytest_unconfigure(config):
 #: 2026-11-28: the options' form ~150 s with its stages, the witness pass ~17 s; the
 #: paper's ~28 s, the joints' ~115 s, summed ~25 s). The options' form (the link loops
 #: with every option's stage, :func:`resloc.cl.kernels.warm_up`) is compiled by the share
-#: that names it alone: the other shares' runs skip its warm-up and then wait for it.
-_WARM_SHARES = (("options", "witness"), ("paper", "joints", "summed"))
+#: that names it alone: the other shares' runs skip its warm-up and then wait for it. The
+#: joints come last in theirs: their form calls split CI's link too, which the options' form
+#: has compiled into the cache by then (else both workers compile it at once, ~30 s each).
+_WARM_SHARES = (("options", "witness"), ("paper", "summed", "joints"))
 _WARM_RUNS = {
     "paper": {},
     "options": {"defence": "full+redundancy+sequence+reciprocal"},
