@@ -123,12 +123,20 @@ def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
         defence = overrides.pop("defence", None)
         if defence is not None:
             overrides.update(DEFENCES[defence])
-        with pytest.MonkeyPatch.context() as patch:
-            if "options" not in share:  # another worker compiles that form
-                patch.setattr(
-                    runner, "warm_up_kernels", lambda paper, options: warm_up_kernels(True, False)
-                )
-            runner.run_scenario(base.replace(**overrides))
+        try:
+            with pytest.MonkeyPatch.context() as patch:
+                if "options" not in share:  # another worker compiles that form
+                    patch.setattr(
+                        runner,
+                        "warm_up_kernels",
+                        lambda paper, options: warm_up_kernels(True, False),
+                    )
+                runner.run_scenario(base.replace(**overrides))
+        except BaseException:
+            if marks is not None:  # the others stop waiting for it and the rest of the share
+                for left in share[share.index(name) :]:
+                    (marks / f"{left}.failed").touch()
+            raise
         if marks is not None:
             (marks / name).touch()
 
@@ -136,7 +144,9 @@ def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
 def _wait_for_shares(marks: Path) -> None:
     names = [name for share in _WARM_SHARES for name in share]
     deadline = time.monotonic() + _WARM_WAIT_S
-    while not all((marks / name).exists() for name in names) and time.monotonic() < deadline:
+    while time.monotonic() < deadline and not all(
+        (marks / name).exists() or (marks / f"{name}.failed").exists() for name in names
+    ):
         time.sleep(0.2)
 
 
