@@ -355,6 +355,40 @@ def test_a_signal_inside_making_or_removing_the_temporary_leaves_nothing(
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
+def test_a_signal_as_the_removal_enters_its_hold_still_removes_the_temporary(tmp_path, monkeypatch):
+    """A Ctrl-C whose exception is raised as the swapped-out results' removal enters its
+    hold (before the hold takes effect) left the hidden ``.out.tmp-*`` behind (once in a
+    fresh clone's kill test): the removal keeps the interrupt and raises it once the
+    directory is gone."""
+    from contextlib import contextmanager
+
+    from resloc import signals
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    real_held = signals.held
+    entries = []
+
+    @contextmanager
+    def held():
+        entries.append(len(entries) + 1)
+        # the probe's mkdtemp and rmtree, the temporary's mkdtemp, then its removal
+        if len(entries) == 4:
+            raise KeyboardInterrupt
+        with real_held():
+            yield
+
+    monkeypatch.setattr(signals, "held", held)
+    with pytest.raises(KeyboardInterrupt):
+        with output.atomic_output_dir(out, overwrite=True) as tmp:
+            (tmp / "new.txt").write_text("new")
+    monkeypatch.undo()
+    assert len(entries) >= 4
+    assert [p.name for p in out.iterdir()] == ["new.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
 def test_mrclam_reports_dropped_and_reordered_rows_and_strict_refuses(tmp_path):
     import shutil
 
