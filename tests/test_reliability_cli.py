@@ -356,35 +356,52 @@ def test_a_signal_inside_making_or_removing_the_temporary_leaves_nothing(
 
 
 def test_a_signal_as_the_removal_enters_its_hold_still_removes_the_temporary(tmp_path, monkeypatch):
-    """A Ctrl-C whose exception is raised as the swapped-out results' removal enters its
-    hold (before the hold takes effect) left the hidden ``.out.tmp-*`` behind (once in a
-    fresh clone's kill test): the removal keeps the interrupt and raises it once the
-    directory is gone."""
+    """A Ctrl-C whose exception is raised as a temporary's removal enters its hold (before
+    the hold takes effect) skipped the removal: it is kept, the directory removed, then
+    raised."""
     from contextlib import contextmanager
 
     from resloc import signals
 
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "old.txt").write_text("old")
     real_held = signals.held
     entries = []
 
     @contextmanager
     def held():
         entries.append(len(entries) + 1)
-        # the probe's mkdtemp and rmtree, the temporary's mkdtemp, then its removal
-        if len(entries) == 4:
+        if len(entries) == 2:  # the removal's (the first: mkdtemp's)
             raise KeyboardInterrupt
         with real_held():
             yield
 
     monkeypatch.setattr(signals, "held", held)
     with pytest.raises(KeyboardInterrupt):
+        with signals.temporary_directory(".out.tmp-", tmp_path) as tmp:
+            (tmp / "old.txt").write_text("old")
+    monkeypatch.undo()
+    assert len(entries) >= 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_signal_after_the_swap_leaves_no_old_results_behind(tmp_path, monkeypatch):
+    """The swapped-out results are removed inside the swap's blocked signals: a Ctrl-C
+    handled after the swap, before the temporary's own removal (simulated: that removal
+    raises without removing), left them in a hidden ``.out.tmp-*`` (once in a fresh clone's
+    kill test)."""
+    from resloc import signals
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+
+    def interrupted(path, attempts=3):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
         with output.atomic_output_dir(out, overwrite=True) as tmp:
             (tmp / "new.txt").write_text("new")
+            monkeypatch.setattr(signals, "_remove_held", interrupted)
     monkeypatch.undo()
-    assert len(entries) >= 4
     assert [p.name for p in out.iterdir()] == ["new.txt"]
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
 

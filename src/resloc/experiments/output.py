@@ -284,7 +284,7 @@ def atomic_output_dir(
     check_output_dir(out, overwrite, inputs)
     out.parent.mkdir(parents=True, exist_ok=True)
     prefix = f".{out.name}.tmp-{os.getpid()}-"
-    # After a swap the temporary holds the old results; it is removed either way.
+    # After a swap the temporary held the old results: _replace removes them.
     with signals_as_exceptions(), temporary_directory(prefix, out.parent) as tmp:
         umask = os.umask(0)
         os.umask(umask)
@@ -294,22 +294,24 @@ def atomic_output_dir(
 
 
 def _replace(tmp: Path, out: Path) -> None:
-    """Put ``tmp`` at ``out`` (whose old content, if any, ends up at ``tmp``)."""
+    """Put ``tmp`` at ``out`` and remove ``out``'s old content, if any, with the clean-exit
+    signals blocked throughout: a signal handled between the swap and a later removal (in
+    Python, any bytecode) would leave the old content at ``tmp``."""
     blocked = set(CLEAN_EXIT_SIGNALS)
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
     try:
         if not out.exists():
             tmp.rename(out)
             return
-        if _exchange(tmp, out):
-            return
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        out.rename(old)
-        try:
-            tmp.rename(out)
-        except BaseException:
-            old.rename(out)
-            raise
-        old.rename(tmp)  # removed by the caller, like a swapped-out directory
+        if not _exchange(tmp, out):
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            out.rename(old)
+            try:
+                tmp.rename(out)
+            except BaseException:
+                old.rename(out)
+                raise
+            old.rename(tmp)
+        shutil.rmtree(tmp, ignore_errors=True)  # the old content
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
