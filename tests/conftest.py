@@ -79,15 +79,20 @@ def pytest_unconfigure(config):
         os.environ.pop(_WARM_MARKS, None)
 
 
-#: The big compiled forms (tiny runs of the default scenario that reach them), in shares
-#: for the xdist workers, balanced by their cold compile CPU (measured on a cold cache,
-#: 2026-11-28: the options' form ~150 s with its stages, the witness pass ~17 s; the
-#: paper's ~28 s, the joints' ~115 s, summed ~25 s). The options' form (the link loops
-#: with every option's stage, :func:`resloc.cl.kernels.warm_up`) is compiled by the share
-#: that names it alone: the other shares' runs skip its warm-up and then wait for it. The
-#: joints come last in theirs: their form calls split CI's link too, which the options' form
-#: has compiled into the cache by then (else both workers compile it at once, ~30 s each).
-_WARM_SHARES = (("options", "witness"), ("paper", "summed", "joints"))
+#: The big compiled forms, in shares for the xdist workers, balanced by their cold compile
+#: (measured on a cold cache, 2026-11-28, wall seconds of one worker: the options' form
+#: ~190 with its stages, of which its link rounds ~105 and its row-order loop ~87 alone,
+#: ~30 shared; the joints' ~104, the paper's ~28, summed ~28, the witness stages ~25). The
+#: options' form is compiled in two halves, one per worker, each a tiny correction of its
+#: own (``_WARM_PIECES``); the other items are tiny runs of the default scenario. A run of an
+#: item waits for the items it needs from the other worker (``_WARM_AFTER``); the joints
+#: come after the row-order loop, whose split CI link their form calls too. One share, as
+#: it was, put the options' form and the witness on one worker: 240 s against the other's
+#: 160 s, the second worker idle for the difference.
+_WARM_SHARES = (
+    ("paper", "options-rounds", "options", "summed", "witness"),
+    ("options-rows", "joints"),
+)
 _WARM_RUNS = {
     "paper": {},
     "options": {"defence": "full+redundancy+sequence+reciprocal"},
@@ -95,10 +100,36 @@ _WARM_RUNS = {
     "summed": {"estimator.update_mode": "summed"},
     "witness": {"defence": "zone+full+redundancy+sequence+cap+landmarks+witness"},
 }
-#: How long a worker waits for another's share (a cold compile on a loaded machine takes
+#: Items whose runs load the options' form (the others' runs skip its warm-up).
+_WARM_WITH_OPTIONS = ("options", "witness")
+_WARM_AFTER = {"options": ("options-rows",)}
+#: How long a worker waits for another's item (a cold compile on a loaded machine takes
 #: ~4 min; past this it goes on and its tests compile what they reach).
 _WARM_WAIT_S = 600.0
 _WARM_MARKS = "RESLOC_TEST_WARM_MARKS"
+
+
+def _options_half(rounds: bool) -> None:
+    """One half of the options' form (:func:`resloc.cl.kernels.warm_up` does both): its
+    link rounds or its row-order loop, by a correction that reaches only that loop."""
+    from resloc.cl.kernels import fast_correct
+    from resloc.cl.kernels_inputs import pair_warm_up_batch
+    from resloc.cl.kernels_rounds import every_stage, rounds_warm_up_batch
+    from resloc.cl.params import CLParams
+    from resloc.filters.base import make_filter
+
+    with every_stage():
+        if rounds:
+            fast_correct(make_filter("ckf"), *rounds_warm_up_batch(), CLParams())
+        else:
+            for kind in ("ckf", "ekf"):
+                fast_correct(make_filter(kind), *pair_warm_up_batch(), CLParams())
+
+
+_WARM_PIECES = {
+    "options-rounds": lambda: _options_half(rounds=True),
+    "options-rows": lambda: _options_half(rounds=False),
+}
 
 
 def _warm_marks() -> Path | None:
@@ -108,30 +139,38 @@ def _warm_marks() -> Path | None:
     return Path(where) if where else None
 
 
-def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
+def _run_item(name: str, base) -> None:
     from resloc.experiments import runner
-    from resloc.experiments.config import default_scenario
     from resloc.experiments.defences import DEFENCES
+
+    if name in _WARM_PIECES:
+        _WARM_PIECES[name]()
+        return
+    overrides = dict(_WARM_RUNS[name])
+    defence = overrides.pop("defence", None)
+    if defence is not None:
+        overrides.update(DEFENCES[defence])
+    warm_up_kernels = runner.warm_up_kernels
+    with pytest.MonkeyPatch.context() as patch:
+        if name not in _WARM_WITH_OPTIONS:  # its warm-up would compile the options' form
+            patch.setattr(
+                runner, "warm_up_kernels", lambda paper, options: warm_up_kernels(True, False)
+            )
+        runner.run_scenario(base.replace(**overrides))
+
+
+def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
+    from resloc.experiments.config import default_scenario
 
     base = default_scenario().replace(
         **{"run.steps": 3, "run.trials": 1, "run.dead_reckoning": False,
            "run.filters": ["ckf", "ekf"]}
     )  # fmt: skip
-    warm_up_kernels = runner.warm_up_kernels
     for name in share:
-        overrides = dict(_WARM_RUNS[name])
-        defence = overrides.pop("defence", None)
-        if defence is not None:
-            overrides.update(DEFENCES[defence])
+        if marks is not None:
+            _wait_for_items(marks, _WARM_AFTER.get(name, ()))
         try:
-            with pytest.MonkeyPatch.context() as patch:
-                if "options" not in share:  # another worker compiles that form
-                    patch.setattr(
-                        runner,
-                        "warm_up_kernels",
-                        lambda paper, options: warm_up_kernels(True, False),
-                    )
-                runner.run_scenario(base.replace(**overrides))
+            _run_item(name, base)
         except BaseException:
             if marks is not None:  # the others stop waiting for it and the rest of the share
                 for left in share[share.index(name) :]:
@@ -141,8 +180,7 @@ def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
             (marks / name).touch()
 
 
-def _wait_for_shares(marks: Path) -> None:
-    names = [name for share in _WARM_SHARES for name in share]
+def _wait_for_items(marks: Path, names) -> None:
     deadline = time.monotonic() + _WARM_WAIT_S
     while time.monotonic() < deadline and not all(
         (marks / name).exists() or (marks / f"{name}.failed").exists() for name in names
@@ -170,4 +208,4 @@ def pytest_sessionstart(session):
         if k % count == index:
             _run_share(share, marks)
     if marks is not None:
-        _wait_for_shares(marks)
+        _wait_for_items(marks, [name for share in _WARM_SHARES for name in share])

@@ -38,8 +38,7 @@ from typing import Any
 
 from resloc.errors import ConfigError
 from resloc.experiments.config import Scenario, default_scenario
-from resloc.experiments.config_dump import scenario_to_dict
-from resloc.experiments.config_dump import toml_value as _toml_value
+from resloc.experiments.config_dump import scenario_to_dict, toml_value
 from resloc.experiments.config_parse import load_scenario, parse_scenario, read_toml, set_dotted
 from resloc.experiments.store import canonical_json
 
@@ -385,14 +384,14 @@ def dump_minimal(scenario: Scenario) -> str:
         diff = {k: v for k, v in values.items() if ref[section].get(k) != v}
         if diff:
             lines.append(f"[{section}]")
-            lines += [f"{k} = {_toml_value(v)}" for k, v in diff.items()]
+            lines += [f"{k} = {toml_value(v)}" for k, v in diff.items()]
             lines.append("")
     zone_ref = scenario_to_dict(Scenario(world=_one_zone_world()))["sdz"][0]
     for section in ("sdz", "cdz"):
         for zone in data.get(section, []):
             lines.append(f"[[{section}]]")
             lines += [
-                f"{k} = {_toml_value(v)}"
+                f"{k} = {toml_value(v)}"
                 for k, v in zone.items()
                 if k in ("center", "radius") or zone_ref.get(k) != v
             ]
@@ -410,19 +409,19 @@ def dump_sweep(spec: SweepSpec) -> str:
     """A sweep file for ``spec`` (``[sweep]`` plus the base scenario's non-default values);
     :func:`load_sweep` reads it back to an equal spec. Several parameters are written as
     ``[sweep.zip]`` columns (every point explicit)."""
-    head = ["[sweep]", f"name = {_toml_value(spec.name)}"]
+    head = ["[sweep]", f"name = {toml_value(spec.name)}"]
     if isinstance(spec.parameter, str):
         head += [
-            f"parameter = {_toml_value(spec.parameter)}",
-            f"values = {_toml_value(list(spec.values))}",
+            f"parameter = {toml_value(spec.parameter)}",
+            f"values = {toml_value(list(spec.values))}",
         ]
-    head.append(f"filters = {_toml_value(list(spec.base.run.filters))}")
+    head.append(f"filters = {toml_value(list(spec.base.run.filters))}")
     if spec.metric != "msle_mean":
-        head.append(f"metric = {_toml_value(spec.metric)}")
+        head.append(f"metric = {toml_value(spec.metric)}")
     if not isinstance(spec.parameter, str):
         head += ["", "[sweep.zip]"]
         head += [
-            f"{_toml_value(p)} = {_toml_value([pt[j] for pt in spec.values])}"
+            f"{toml_value(p)} = {toml_value([pt[j] for pt in spec.values])}"
             for j, p in enumerate(spec.parameter)
         ]
     base = spec.base.replace(**{"run.filters": list(Scenario().run.filters)})
