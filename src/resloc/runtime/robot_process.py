@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import time
 
-from resloc.runtime.messages import Kind
+from resloc.errors import ConfigError
+from resloc.runtime.messages import Kind, load_or_create_key
 from resloc.runtime.options import SwarmOptions
 from resloc.runtime.process import EXIT_LOST, EXIT_OK, connect_bus
 from resloc.runtime.robot import RobotAgent
@@ -16,9 +17,6 @@ __all__ = ["run_robots"]
 
 def run_robots(options: SwarmOptions, ids: list[int]) -> int:
     """Run robots ``ids`` in this process until the world ends the run."""
-    from resloc.errors import ConfigError
-    from resloc.runtime.messages import load_or_create_key
-
     team = team_setup(options)
     bad = [i for i in ids if not 0 <= i < team.robots]
     if bad:
