@@ -107,6 +107,8 @@ _WARM_AFTER = {"options": ("options-rows",)}
 #: ~4 min; past this it goes on and its tests compile what they reach).
 _WARM_WAIT_S = 600.0
 _WARM_MARKS = "RESLOC_TEST_WARM_MARKS"
+#: A file to which each worker appends its items' wall times, when set (measurement only).
+_WARM_LOG = "RESLOC_TEST_WARM_LOG"
 
 
 def _options_half(rounds: bool) -> None:
@@ -166,9 +168,11 @@ def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
         **{"run.steps": 3, "run.trials": 1, "run.dead_reckoning": False,
            "run.filters": ["ckf", "ekf"]}
     )  # fmt: skip
+    began = time.monotonic()
     for name in share:
         if marks is not None:
             _wait_for_items(marks, _WARM_AFTER.get(name, ()))
+        start = time.monotonic()
         try:
             _run_item(name, base)
         except BaseException:
@@ -178,6 +182,10 @@ def _run_share(share: tuple[str, ...], marks: Path | None) -> None:
             raise
         if marks is not None:
             (marks / name).touch()
+        if os.environ.get(_WARM_LOG):  # "worker item start end", seconds from the share's start
+            with open(os.environ[_WARM_LOG], "a", encoding="utf-8") as log:
+                worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+                log.write(f"{worker} {name} {start - began:.1f} {time.monotonic() - began:.1f}\n")
 
 
 def _wait_for_items(marks: Path, names) -> None:
